@@ -1,0 +1,3 @@
+"""uwbimu: UWB-aided inertial localization with online lever-arm and time-offset calibration."""
+
+__version__ = "0.1.0"

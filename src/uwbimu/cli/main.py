@@ -1,0 +1,27 @@
+"""The ``uwbimu`` command line.
+
+Each verb lives in its own module under :mod:`uwbimu.cli` and registers
+itself on :data:`app` through a ``register(app)`` function; this file only
+lists them, so ``uwbimu --help`` shows every verb with a one-line summary.
+"""
+
+from __future__ import annotations
+
+import typer
+
+app = typer.Typer(
+    name="uwbimu",
+    help="UWB-aided inertial localization: simulate, check, estimate, analyse observability, design.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_show_locals=False,
+)
+
+# One line per verb module (keep sorted by workflow order).
+from uwbimu.cli import demo as _demo  # noqa: E402
+
+_demo.register(app)
+
+
+def main() -> None:  # pragma: no cover - entry point
+    app()

@@ -1,0 +1,171 @@
+"""In-memory dataset and its folder format (the public interface).
+
+A dataset is a folder::
+
+    imu.csv          t, ax, ay, az, wx, wy, wz     (IMU clock s; m/s^2; rad/s; IMU frame)
+    uwb.csv          t, anchor, range [, tag]      (UWB clock s; anchor id text; m)
+    anchors.csv      anchor, x, y, z               (world frame, m)
+    groundtruth.csv  t, px, py, pz, qw, qx, qy, qz [, vx, vy, vz]   (optional; UWB clock,
+                     pose of the IMU frame in the world)
+    dataset.yaml     optional metadata (:class:`DatasetMeta`)
+
+Each table may be given as ``.parquet`` instead of ``.csv``.  Reading (with
+validation) is :func:`uwbimu.io.loader.load_dataset`; writing is
+:func:`write_dataset`, which writes atomically and never overwrites a folder
+that already holds a dataset unless asked to.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import pandas as pd
+import yaml
+from pydantic import BaseModel, ConfigDict, Field
+
+from uwbimu.models.imu import ImuNoise
+
+IMU_COLUMNS = ["t", "ax", "ay", "az", "wx", "wy", "wz"]
+UWB_COLUMNS = ["t", "anchor", "range"]
+ANCHOR_COLUMNS = ["anchor", "x", "y", "z"]
+GT_COLUMNS = ["t", "px", "py", "pz", "qw", "qx", "qy", "qz"]
+GT_VEL_COLUMNS = ["vx", "vy", "vz"]
+TABLES = ("imu", "uwb", "anchors", "groundtruth")
+
+
+class TagMeta(BaseModel):
+    """A UWB tag on the vehicle with its nominal lever arm (IMU frame, m)."""
+
+    model_config = ConfigDict(extra="forbid")
+    name: str = "tag0"
+    lever_arm: Optional[list[float]] = Field(default=None, min_length=3, max_length=3)
+
+
+class TruthMeta(BaseModel):
+    """True calibration, when known (simulation), used only for evaluation."""
+
+    model_config = ConfigDict(extra="forbid")
+    lever_arm: Optional[list[float]] = Field(default=None, min_length=3, max_length=3)
+    time_offset: Optional[float] = None
+    anchor_bias: Optional[dict[str, float]] = None
+    tags: Optional[dict[str, list[float]]] = None  # per-tag true lever arms
+
+
+class DatasetMeta(BaseModel):
+    """Contents of ``dataset.yaml``."""
+
+    model_config = ConfigDict(extra="forbid")
+    name: str = "unnamed"
+    description: str = ""
+    imu_noise: Optional[ImuNoise] = None
+    imu_rate_hz: Optional[float] = None
+    range_sigma: Optional[float] = Field(default=None, gt=0, description="UWB range noise sd, m")
+    tags: list[TagMeta] = Field(default_factory=lambda: [TagMeta()])
+    truth: Optional[TruthMeta] = None
+    known_anchor_bias: Optional[dict[str, float]] = None  # documented constant biases (subtract)
+    source: Optional[str] = None
+    license: Optional[str] = None
+    extra: dict = Field(default_factory=dict)
+
+
+@dataclass
+class Dataset:
+    """One recorded or simulated sequence.
+
+    Attributes
+    ----------
+    imu : DataFrame with columns ``IMU_COLUMNS`` (IMU clock).
+    uwb : DataFrame with ``t, anchor, range`` and optionally ``tag`` (UWB clock).
+    anchors : DataFrame ``anchor, x, y, z`` (world frame).
+    groundtruth : optional DataFrame ``GT_COLUMNS`` (+ velocity) on the UWB clock.
+    meta : :class:`DatasetMeta`.
+    path : folder it was read from, if any.
+    """
+
+    imu: pd.DataFrame
+    uwb: pd.DataFrame
+    anchors: pd.DataFrame
+    groundtruth: Optional[pd.DataFrame] = None
+    meta: DatasetMeta = field(default_factory=DatasetMeta)
+    path: Optional[Path] = None
+
+    # --- convenient array views -------------------------------------------
+    @property
+    def imu_t(self) -> np.ndarray:
+        return self.imu["t"].to_numpy(float)
+
+    @property
+    def imu_u(self) -> np.ndarray:
+        """(N, 6) ``[ax, ay, az, wx, wy, wz]``."""
+        return self.imu[IMU_COLUMNS[1:]].to_numpy(float)
+
+    def anchor_positions(self) -> dict[str, np.ndarray]:
+        """Map anchor id -> (3,) world position."""
+        return {
+            str(r.anchor): np.array([r.x, r.y, r.z], dtype=float)
+            for r in self.anchors.itertuples(index=False)
+        }
+
+    def anchor_array(self, ids) -> np.ndarray:
+        """(M, 3) positions for a sequence of anchor ids."""
+        pos = self.anchor_positions()
+        return np.array([pos[str(i)] for i in ids])
+
+    @property
+    def duration(self) -> float:
+        return float(self.imu_t[-1] - self.imu_t[0]) if len(self.imu) else 0.0
+
+
+def _write_table(df: pd.DataFrame, path: Path) -> None:
+    if path.suffix == ".parquet":
+        df.to_parquet(path, index=False)
+    else:
+        df.to_csv(path, index=False, float_format="%.9g")
+
+
+def write_dataset(ds: Dataset, folder: str | os.PathLike, overwrite: bool = False, fmt: str = "csv") -> Path:
+    """Write ``ds`` to ``folder`` in the dataset format, atomically.
+
+    Tables go to a temporary sibling folder that is renamed into place, so a
+    crash never leaves a half-written dataset.  An existing non-empty folder is
+    refused unless ``overwrite`` is true (it is then replaced as a whole).
+    """
+    folder = Path(folder)
+    if fmt not in ("csv", "parquet"):
+        raise ValueError(f"fmt must be 'csv' or 'parquet', got {fmt!r}")
+    if folder.exists() and any(folder.iterdir()):
+        if not overwrite:
+            raise FileExistsError(
+                f"{folder} exists and is not empty; refusing to overwrite (pass overwrite=True / --force)"
+            )
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
+    try:
+        _write_table(ds.imu[IMU_COLUMNS], tmp / f"imu.{fmt}")
+        uwb_cols = UWB_COLUMNS + (["tag"] if "tag" in ds.uwb.columns else [])
+        _write_table(ds.uwb[uwb_cols], tmp / f"uwb.{fmt}")
+        _write_table(ds.anchors[ANCHOR_COLUMNS], tmp / f"anchors.{fmt}")
+        if ds.groundtruth is not None:
+            cols = GT_COLUMNS + [c for c in GT_VEL_COLUMNS if c in ds.groundtruth.columns]
+            _write_table(ds.groundtruth[cols], tmp / f"groundtruth.{fmt}")
+        with open(tmp / "dataset.yaml", "w") as fh:
+            yaml.safe_dump(ds.meta.model_dump(exclude_none=True), fh, sort_keys=False)
+        if folder.exists():
+            backup = folder.with_name(f".{folder.name}.old")
+            if backup.exists():
+                shutil.rmtree(backup)
+            folder.rename(backup)
+            tmp.rename(folder)
+            shutil.rmtree(backup)
+        else:
+            tmp.rename(folder)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return folder

@@ -1,0 +1,121 @@
+"""Layout of the 20-number nominal state and the 19-dimensional error state.
+
+Nominal state (seed 001, eq. 1)::
+
+    x = (p, v, q, b_a, b_g, p_IU, t_d)
+         0:3 3:6 6:10 10:13 13:16 16:19 19
+
+* ``p``    IMU position in the world frame [m]
+* ``v``    IMU velocity in the world frame [m/s]
+* ``q``    Hamilton quaternion ``[qw, qx, qy, qz]``, IMU body -> world
+* ``b_a``  accelerometer bias, IMU frame [m/s^2]
+* ``b_g``  gyroscope bias, IMU frame [rad/s]
+* ``p_IU`` lever arm: UWB antenna position in the IMU frame [m]
+* ``t_d``  time offset [s]: an IMU sample stamped ``s`` describes the motion
+  at UWB time ``s - t_d``.
+
+Error state (attitude error as a 3-vector, right/body perturbation
+``q = q_hat ⊗ Exp(dtheta)``)::
+
+    dx = (dp, dv, dtheta, db_a, db_g, dp_IU, dt_d)
+          0:3 3:6  6:9    9:12  12:15 15:18  18
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from uwbimu.models.quaternion import quat_exp, quat_multiply, quat_normalize, quat_conjugate, quat_log
+
+# nominal-state slices
+P = slice(0, 3)
+V = slice(3, 6)
+Q = slice(6, 10)
+BA = slice(10, 13)
+BG = slice(13, 16)
+PIU = slice(16, 19)
+TD = 19
+NOMINAL_DIM = 20
+
+# error-state slices
+EP = slice(0, 3)
+EV = slice(3, 6)
+ETH = slice(6, 9)
+EBA = slice(9, 12)
+EBG = slice(12, 15)
+EPIU = slice(15, 18)
+ETD = 18
+ERROR_DIM = 19
+
+#: Names of the 19 error-state components, in order (used for CSV columns and reports).
+ERROR_STATE_NAMES = (
+    "px", "py", "pz",
+    "vx", "vy", "vz",
+    "thx", "thy", "thz",
+    "bax", "bay", "baz",
+    "bgx", "bgy", "bgz",
+    "lx", "ly", "lz",
+    "td",
+)  # fmt: skip
+
+#: Names of the 20 nominal-state components, in order.
+NOMINAL_STATE_NAMES = (
+    "px", "py", "pz",
+    "vx", "vy", "vz",
+    "qw", "qx", "qy", "qz",
+    "bax", "bay", "baz",
+    "bgx", "bgy", "bgz",
+    "lx", "ly", "lz",
+    "td",
+)  # fmt: skip
+
+
+def make_state(
+    p=(0.0, 0.0, 0.0),
+    v=(0.0, 0.0, 0.0),
+    q=(1.0, 0.0, 0.0, 0.0),
+    b_a=(0.0, 0.0, 0.0),
+    b_g=(0.0, 0.0, 0.0),
+    p_IU=(0.0, 0.0, 0.0),
+    t_d: float = 0.0,
+) -> np.ndarray:
+    """Assemble a nominal state vector of length 20 (quaternion normalised)."""
+    x = np.zeros(NOMINAL_DIM)
+    x[P] = p
+    x[V] = v
+    x[Q] = quat_normalize(np.asarray(q, dtype=float))
+    x[BA] = b_a
+    x[BG] = b_g
+    x[PIU] = p_IU
+    x[TD] = t_d
+    return x
+
+
+def boxplus(x: np.ndarray, dx: np.ndarray) -> np.ndarray:
+    """Inject an error-state vector into a nominal state: ``x ⊞ dx``."""
+    x = np.asarray(x, dtype=float)
+    dx = np.asarray(dx, dtype=float)
+    out = x.copy()
+    out[P] = x[P] + dx[EP]
+    out[V] = x[V] + dx[EV]
+    out[Q] = quat_normalize(quat_multiply(x[Q], quat_exp(dx[ETH])))
+    out[BA] = x[BA] + dx[EBA]
+    out[BG] = x[BG] + dx[EBG]
+    out[PIU] = x[PIU] + dx[EPIU]
+    out[TD] = x[TD] + dx[ETD]
+    return out
+
+
+def boxminus(x: np.ndarray, x_ref: np.ndarray) -> np.ndarray:
+    """Error-state difference ``x ⊟ x_ref`` so that ``x_ref ⊞ (x ⊟ x_ref) = x``."""
+    x = np.asarray(x, dtype=float)
+    x_ref = np.asarray(x_ref, dtype=float)
+    dx = np.zeros(ERROR_DIM)
+    dx[EP] = x[P] - x_ref[P]
+    dx[EV] = x[V] - x_ref[V]
+    dx[ETH] = quat_log(quat_multiply(quat_conjugate(x_ref[Q]), x[Q]))
+    dx[EBA] = x[BA] - x_ref[BA]
+    dx[EBG] = x[BG] - x_ref[BG]
+    dx[EPIU] = x[PIU] - x_ref[PIU]
+    dx[ETD] = x[TD] - x_ref[TD]
+    return dx
