@@ -21,6 +21,18 @@ app = typer.Typer(
 from uwbimu.cli import demo as _demo  # noqa: E402
 
 _demo.register(app)
+from uwbimu.cli import simulate as _simulate; _simulate.register(app)  # noqa: E402,E702
+from uwbimu.cli import check as _check, import_cmd as _import_cmd  # noqa: E402
+
+_check.register(app)
+_import_cmd.register(app)
+from uwbimu.cli import evaluate as _evaluate, report as _report  # noqa: E402
+
+_evaluate.register(app)
+_report.register(app)
+from uwbimu.cli import plan as _plan  # noqa: E402
+
+_plan.register(app)
 
 
 def main() -> None:  # pragma: no cover - entry point

@@ -37,6 +37,8 @@ class EstimationResult:
     estimator : name of the estimator (``"eskf"``, ``"pointmass"``).
     config : the options used, as a plain dict (for provenance).
     runtime_s : wall time of the run [s].
+    t_imu : (K,) the same output instants on the IMU clock [s] (optional).
+    extra : estimator-specific arrays (e.g. ``anchor_bias_states`` (K, M)).
     """
 
     t: np.ndarray
@@ -50,6 +52,8 @@ class EstimationResult:
     estimator: str = "eskf"
     config: dict[str, Any] = field(default_factory=dict)
     runtime_s: float = float("nan")
+    t_imu: Optional[np.ndarray] = None
+    extra: dict[str, Any] = field(default_factory=dict)
 
 
 class Estimator(Protocol):

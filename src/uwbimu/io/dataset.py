@@ -22,7 +22,7 @@ import shutil
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 import pandas as pd
@@ -86,6 +86,7 @@ class Dataset:
     groundtruth : optional DataFrame ``GT_COLUMNS`` (+ velocity) on the UWB clock.
     meta : :class:`DatasetMeta`.
     path : folder it was read from, if any.
+    report : load report (rows read/kept, repairs) when read by ``load_dataset``.
     """
 
     imu: pd.DataFrame
@@ -94,6 +95,8 @@ class Dataset:
     groundtruth: Optional[pd.DataFrame] = None
     meta: DatasetMeta = field(default_factory=DatasetMeta)
     path: Optional[Path] = None
+    #: :class:`uwbimu.io.loader.LoadReport` when read by ``load_dataset`` (rows, repairs).
+    report: Optional[Any] = field(default=None, repr=False, compare=False)
 
     # --- convenient array views -------------------------------------------
     @property

@@ -1,0 +1,85 @@
+"""``uwbimu evaluate``: score an estimator output against ground truth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def _parse_distances(text: str) -> list[float]:
+    try:
+        vals = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise typer.BadParameter(f"--distances must be comma-separated numbers, got {text!r}")
+    if not vals or any(v <= 0 for v in vals):
+        raise typer.BadParameter(f"--distances must be positive, got {text!r}")
+    return vals
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("evaluate")
+    def evaluate(
+        out: Path = typer.Argument(..., help="Estimator output folder (holds trajectory.csv)."),
+        groundtruth: Path = typer.Option(..., "--groundtruth", "-g", help="groundtruth.csv (dataset format) or a dataset folder."),
+        align: str = typer.Option("se3", "--align", help="Alignment to ground truth: none | position | se3."),
+        distances: str = typer.Option("1,2,5", "--distances", help="RPE path lengths in m, comma-separated."),
+        max_gap: float = typer.Option(0.5, "--max-gap", help="Longest ground-truth gap bridged by interpolation [s]."),
+        skip_initial: float = typer.Option(0.0, "--skip-initial", help="Ignore the first seconds of the estimate (convergence)."),
+        no_plots: bool = typer.Option(False, "--no-plots", help="Do not write PNG plots."),
+    ) -> None:
+        """Score OUT/trajectory.csv against ground truth (ATE after alignment, RPE); writes OUT/evaluation.json."""
+        from rich.console import Console
+
+        from uwbimu.eval.align import ALIGN_MODES
+        from uwbimu.eval.evaluate import evaluate_output
+        from uwbimu.eval.files import EvalInputError
+
+        console = Console()
+        if align not in ALIGN_MODES:
+            console.print(f"[red]error:[/red] --align must be one of {', '.join(ALIGN_MODES)}, got {align!r}")
+            raise typer.Exit(code=2)
+        dist = _parse_distances(distances)
+        try:
+            s = evaluate_output(out, groundtruth, align=align, distances=dist, max_gap=max_gap,
+                                skip_initial=skip_initial, plots=not no_plots)
+        except (EvalInputError, ValueError) as exc:
+            console.print(f"[red]error:[/red] {exc}", soft_wrap=True)
+            raise typer.Exit(code=1)
+        print_summary(console, s)
+        console.print(f"wrote {out / 'evaluation.json'}")
+
+
+def print_summary(console, s: dict) -> None:
+    """Rich tables of an evaluation summary."""
+    from rich.table import Table
+
+    a = s["association"]
+    al = s["align"]
+    console.print(
+        f"alignment [bold]{al['mode']}[/bold]: rotation {al['rotation_deg']:.2f} deg, "
+        f"translation {[round(x, 3) for x in al['translation']]} m; scored {a['n_scored']}/{a['n_estimate']} samples; "
+        f"ground-truth glitches excluded: {a['n_groundtruth_glitches_excluded']} position, "
+        f"{a['n_groundtruth_attitude_glitches_excluded']} attitude; "
+        f"outside span {a['n_estimate_outside_groundtruth_span']}, in gaps {a['n_estimate_in_groundtruth_gaps']}"
+    )
+    t = Table(title="Absolute trajectory error")
+    for c in ("metric", "RMSE", "mean", "median", "max", "n"):
+        t.add_column(c, justify="right")
+    ap = s["ate_position"]
+    t.add_row("position [m]", *(f"{ap[k]:.3f}" for k in ("rmse", "mean", "median", "max")), str(ap["n"]))
+    if "ate_rotation_deg" in s:
+        ar = s["ate_rotation_deg"]
+        t.add_row("attitude [deg]", *(f"{ar[k]:.2f}" for k in ("rmse", "mean", "median", "max")), str(ar["n"]))
+    console.print(t)
+    r = Table(title="Relative pose error over travelled distance")
+    for c in ("distance [m]", "pairs", "trans RMSE [m]", "trans median [m]", "drift [%]", "rot RMSE [deg]"):
+        r.add_column(c, justify="right")
+    for d, v in s["rpe"].items():
+        if v["n_pairs"] == 0:
+            r.add_row(d, "0", "-", "-", "-", "-")
+            continue
+        rot = v["rotation_deg"]["rmse"]
+        r.add_row(d, str(v["n_pairs"]), f"{v['translation']['rmse']:.3f}", f"{v['translation']['median']:.3f}",
+                  f"{v['translation_percent']:.1f}", "-" if not rot == rot else f"{rot:.2f}")
+    console.print(r)

@@ -1,0 +1,110 @@
+"""``uwbimu import``: convert third-party recordings into the dataset format.
+
+Each importer is one subcommand of :data:`import_app`, added by a small
+``_register_<name>(app)`` function below.  A new importer (say
+``uwbimu.io.importers.rosbag``) needs one such function, or can register
+itself from its own CLI module::
+
+    from uwbimu.cli.import_cmd import import_app, run_import
+
+    @import_app.command("rosbag")
+    def rosbag(src: Path, dst: Path, force: bool = False) -> None:
+        \"\"\"Convert a ROS bag ...\"\"\"
+        from uwbimu.io.importers import rosbag as imp
+        run_import(lambda: imp.import_dataset(src, dst, force=force))
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Optional
+
+import typer
+
+import_app = typer.Typer(
+    name="import",
+    help="Convert third-party recordings (INRoL, ...) into the uwbimu dataset format.",
+    no_args_is_help=True,
+)
+
+FORCE_HELP = "Replace DST if it exists and is not empty."
+
+
+def run_import(do_import: Callable[[], object]) -> None:
+    """Run an importer call, print what it changed and where it wrote; exit 1 on a refusal.
+
+    ``do_import`` returns an :class:`uwbimu.io.importers.ImportResult`.
+    """
+    from rich.console import Console
+
+    from uwbimu.io.loader import DatasetError
+
+    console = Console()
+    try:
+        with console.status("converting..."):
+            result = do_import()
+    except (DatasetError, FileExistsError, ValueError) as exc:
+        console.print(f"[red]error:[/red] {exc}", soft_wrap=True)
+        raise typer.Exit(code=1)
+    ds = result.dataset
+    for c in result.changes:
+        console.print(f"[yellow]changed:[/yellow] {c}", soft_wrap=True)
+    n = {k: len(getattr(ds, k)) for k in ("imu", "uwb", "anchors")}
+    if ds.groundtruth is not None:
+        n["groundtruth"] = len(ds.groundtruth)
+    console.print(f"wrote {result.path}: " + ", ".join(f"{k} {v} rows" for k, v in n.items())
+                  + f"; run `uwbimu check {result.path}` to inspect it")
+
+
+def _register_inrol(app: typer.Typer) -> None:
+    @app.command("inrol")
+    def inrol(
+        src: Path = typer.Argument(..., help="INRoL parsed_dataset folder (imu.txt, uwb.txt, anchor.txt, "
+                                             "imu_pose.txt, LICENSE)."),
+        dst: Path = typer.Argument(..., help="Output dataset folder."),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
+        name: Optional[str] = typer.Option(None, "--name", help="Dataset name (default from SRC)."),
+    ) -> None:
+        """Convert an INRoL UWB-IMU sequence (GPL-3.0 data; LICENSE and attribution are copied)."""
+        from uwbimu.io.importers import inrol as imp
+
+        run_import(lambda: imp.import_dataset(src, dst, force=force, name=name))
+
+
+def _register_isas_walk(app: typer.Typer) -> None:
+    @app.command("isas-walk")
+    def isas_walk(
+        src: Path = typer.Argument(..., help="ISAS-Walk CSV folder (imu.csv, uwb_ranges.csv, anchors.csv, "
+                                             "groundtruth_vive.csv, LICENSE)."),
+        dst: Path = typer.Argument(..., help="Output dataset folder."),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
+        no_groundtruth: bool = typer.Option(False, "--no-groundtruth", help="Do not import the Vive ground truth."),
+    ) -> None:
+        """Convert an ISAS-Walk (SFUISE) sequence: fresh ranges only, documented anchor offsets as known biases."""
+        from uwbimu.io.importers import isas_walk as imp
+
+        run_import(lambda: imp.import_dataset(src, dst, force=force, with_groundtruth=not no_groundtruth))
+
+
+def _register_rosbag(app: typer.Typer) -> None:
+    @app.command("rosbag")
+    def rosbag(
+        bag: Path = typer.Argument(..., help="ROS 1 .bag file or ROS 2 bag folder."),
+        dst: Path = typer.Argument(..., help="Output dataset folder."),
+        topics: Path = typer.Option(..., "--topics", help="Mapping YAML: imu/ranges topics, fields, anchors file."),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
+    ) -> None:
+        """Convert a ROS 1 or ROS 2 bag (sensor_msgs/Imu + a configurable range message) with a mapping YAML."""
+        from uwbimu.io.importers import rosbag as imp
+
+        run_import(lambda: imp.import_dataset(bag, dst, topics, force=force))
+
+
+# One line per importer.
+_register_inrol(import_app)
+_register_isas_walk(import_app)
+_register_rosbag(import_app)
+
+
+def register(app: typer.Typer) -> None:
+    app.add_typer(import_app, name="import")

@@ -1,0 +1,143 @@
+"""``uwbimu plan``: observability-aware trajectory design."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+import yaml
+from rich.console import Console
+from rich.table import Table
+
+console = Console()
+
+plan_app = typer.Typer(
+    help="Observability-aware trajectory design (seed OCP, point-mass planning, calibration manoeuvres).",
+    no_args_is_help=True,
+)
+
+
+def _load_yaml(path: Path) -> dict:
+    if not path.is_file():
+        console.print(f"[red]error:[/red] {path}: file not found")
+        raise typer.Exit(code=2)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        console.print(f"[red]error:[/red] {path}: invalid YAML: {exc}")
+        raise typer.Exit(code=2)
+    if not isinstance(data, dict):
+        console.print(f"[red]error:[/red] {path}: top level must be a mapping")
+        raise typer.Exit(code=2)
+    return data
+
+
+def _validation_error(path, exc) -> None:
+    from pydantic import ValidationError
+
+    if isinstance(exc, ValidationError):
+        for e in exc.errors():
+            loc = ".".join(str(x) for x in e["loc"])
+            console.print(f"[red]error:[/red] {path}: field '{loc}': {e['msg']}")
+    else:
+        console.print(f"[red]error:[/red] {path}: {exc}")
+
+
+@plan_app.command("seed-ocp")
+def seed_ocp(
+    out: Path = typer.Option(..., "--out", "-o", help="output folder (plots + plan.json)"),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding SeedOcpConfig fields"),
+) -> None:
+    """Seed 002 sec. XI-XII: 1/det(O)^2 optimal control by PMP and by IPOPT, vs PD."""
+    from pydantic import ValidationError
+
+    from uwbimu.design.trajectory.plots import save_seed_figures
+    from uwbimu.design.trajectory.seed_ocp import SeedOcpConfig, solve_seed_ocp
+    from uwbimu.io.atomic import write_csv, write_json
+
+    try:
+        cfg = SeedOcpConfig.model_validate(_load_yaml(config)) if config else SeedOcpConfig()
+    except (ValidationError, ValueError) as exc:
+        _validation_error(config, exc)
+        raise typer.Exit(code=2)
+    with console.status("solving PD, indirect (PMP) and direct (IPOPT)..."):
+        res = solve_seed_ocp(cfg)
+    summary = res.summary()
+    write_json(out / "plan.json", summary)
+    import numpy as np
+    import pandas as pd
+
+    from uwbimu.design.trajectory.seed_ocp import det_observability
+
+    rows = {"t": cfg.t}
+    for m in (res.pd, res.indirect, res.direct):
+        for i, c in enumerate(("px", "py", "pz", "vx", "vy", "vz")):
+            rows[f"{m.name}_{c}"] = m.x[:, i]
+        rows[f"{m.name}_det"] = det_observability(m.x[:, :3], np.asarray(cfg.beacons))
+    write_csv(out / "trajectories.csv", pd.DataFrame(rows), float_format="%.9g")
+    figs = save_seed_figures(res, out)
+    tab = Table(title="Seed OCP (J = int 1/det(O)^2 + 1/2|p-p_d|^2 + 1/2|u|^2 dt)")
+    for col in ("method", "J", "det term", "track term", "control term", "det mean", "det min", "time [s]", "iter", "max|H_u|"):
+        tab.add_column(col, justify="right")
+    for m in (res.pd, res.indirect, res.direct):
+        c = m.cost
+        tab.add_row(
+            m.name, f"{c['total']:.6f}", f"{c['det_term']:.4f}", f"{c['track_term']:.4f}", f"{c['control_term']:.4f}",
+            f"{c['det_mean']:.4f}", f"{c['det_min']:.4f}", f"{m.solve_time_s:.4f}", str(m.iterations), f"{m.hu_max:.2e}",
+        )  # fmt: skip
+    console.print(tab)
+    ag = res.agreement()
+    console.print(
+        f"indirect vs direct: |dJ|/J = {ag['cost_rel_diff']:.2e}, max|du| = {ag['u_max_abs_diff']:.2e} m/s^2, "
+        f"max|dp| = {ag['p_max_abs_diff']:.2e} m"
+    )
+    console.print(f"wrote {out / 'plan.json'}, {out / 'trajectories.csv'} and {len(figs)} figures")
+    if not (res.indirect.converged and res.direct.converged):
+        console.print("[red]error:[/red] a method did not converge (see plan.json)")
+        raise typer.Exit(code=1)
+
+
+@plan_app.command("calibration")
+def calibration(
+    config: Path = typer.Argument(..., help="calibration design YAML (see docs/trajectory_design.md)"),
+    out: Path = typer.Option(..., "--out", "-o", help="output folder"),
+) -> None:
+    """Design a calibration manoeuvre (lever arm + time offset, E-optimal) for the 19-state model."""
+    from pydantic import ValidationError
+
+    from uwbimu.design.trajectory.calibration import CalibrationDesignConfig, design_and_write
+
+    data = _load_yaml(config)
+    try:
+        cfg = CalibrationDesignConfig.model_validate(data)
+    except (ValidationError, ValueError) as exc:
+        _validation_error(config, exc)
+        raise typer.Exit(code=2)
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn(), console=console) as prog:
+        task = prog.add_task("optimising manoeuvre", total=cfg.optimizer.max_evals)
+
+        def cb(n_evals: int) -> None:
+            prog.update(task, completed=min(n_evals, cfg.optimizer.max_evals))
+
+        try:
+            report = design_and_write(cfg, out, progress=cb, config_path=config)
+        except ValueError as exc:
+            console.print(f"[red]error:[/red] {config}: {exc}")
+            raise typer.Exit(code=1)
+    tab = Table(title="Calibration manoeuvre: predicted 1-sigma (linearised ESKF covariance)")
+    tab.add_column("trajectory")
+    for col in ("lever x [mm]", "lever y [mm]", "lever z [mm]", "t_d [ms]", "lambda_min (scaled info)"):
+        tab.add_column(col, justify="right")
+    for name in ("designed", "figure8"):
+        r = report[name]
+        s = r["sigma_lever_arm_m"]
+        tab.add_row(name, *(f"{1e3 * v:.2f}" for v in s), f"{1e3 * r['sigma_time_offset_s']:.3f}", f"{r['lambda_min_scaled']:.3g}")
+    console.print(tab)
+    console.print(f"wrote {', '.join(str(p) for p in report['files'])}")
+
+
+def register(app: typer.Typer) -> None:
+    app.add_typer(plan_app, name="plan")

@@ -1,0 +1,116 @@
+"""``uwbimu simulate``: simulate a scenario (YAML file or built-in name) into a dataset folder."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+
+def _scenario_table(console: Console) -> None:
+    from uwbimu.sim import builtin_scenario, list_scenarios
+
+    table = Table(title="Built-in scenarios (uwbimu simulate NAME --out DIR)")
+    table.add_column("name", style="bold")
+    table.add_column("trajectory")
+    table.add_column("duration [s]", justify="right")
+    table.add_column("description")
+    for name, desc in list_scenarios().items():
+        sc = builtin_scenario(name)
+        table.add_row(name, sc.trajectory.type, f"{sc.duration:g}", desc)
+    console.print(table)
+
+
+def _summary(console: Console, ds, out: Path, seconds: float) -> None:
+    table = Table(title=f"Simulated {ds.meta.name} -> {out}")
+    table.add_column("quantity")
+    table.add_column("value", justify="right")
+    extra = ds.meta.extra
+    counts = extra.get("uwb_counts", {})
+    table.add_row("duration [s]", f"{extra.get('duration', ds.duration):g}")
+    table.add_row("IMU samples", f"{len(ds.imu)} @ {ds.meta.imu_rate_hz:g} Hz")
+    table.add_row("ranges emitted / scheduled", f"{counts.get('emitted', len(ds.uwb))} / {counts.get('scheduled', '?')}")
+    lost = {k: v for k, v in counts.items() if k.startswith("dropped_") and v}
+    table.add_row("ranges lost", ", ".join(f"{k[8:]} {v}" for k, v in lost.items()) or "0")
+    table.add_row("NLOS ranges", str(counts.get("nlos", 0)))
+    for k, v in extra.get("imu_saturation", {}).items():
+        table.add_row(f"IMU {k.replace('_', ' ')}", str(v))
+    truth = ds.meta.truth
+    table.add_row("anchors", str(len(ds.anchors)))
+    table.add_row("true lever arm [m]", str([round(x, 4) for x in truth.lever_arm]))
+    table.add_row("true time offset [s]", f"{truth.time_offset:g}")
+    table.add_row("wall time [s]", f"{seconds:.2f}")
+    console.print(table)
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("simulate")
+    def simulate_cmd(
+        scenario: Optional[str] = typer.Argument(None, help="scenario YAML file, or a built-in name (see --list)"),
+        out: Optional[Path] = typer.Option(None, "--out", "-o", help="output dataset folder"),
+        force: bool = typer.Option(False, "--force", help="replace a non-empty output folder"),
+        list_: bool = typer.Option(False, "--list", help="list the built-in scenarios and exit"),
+        fmt: str = typer.Option("csv", "--format", help="table format: csv or parquet"),
+    ) -> None:
+        """Simulate a UWB-IMU flight (scenario YAML or built-in) into a dataset folder."""
+        from uwbimu.io.dataset import write_dataset
+        from uwbimu.sim import ScenarioError, TrajectoryFileError, builtin_scenario, list_scenarios, load_scenario
+        from uwbimu.sim.simulate import simulate
+
+        console = Console()
+        err = Console(stderr=True)
+        if list_:
+            _scenario_table(console)
+            return
+        if scenario is None or out is None:
+            err.print("[red]error:[/] give a SCENARIO (YAML file or built-in name) and --out DIR, or --list")
+            raise typer.Exit(code=2)
+        if fmt not in ("csv", "parquet"):
+            err.print(f"[red]error:[/] --format must be csv or parquet, got {fmt!r}")
+            raise typer.Exit(code=2)
+        if out.exists() and (not out.is_dir() or any(out.iterdir())) and not force:
+            err.print(f"[red]refusing:[/] {out} exists and is not empty (use --force to replace it)")
+            raise typer.Exit(code=1)
+        if out.exists() and not out.is_dir():
+            err.print(f"[red]error:[/] {out} is a file, not a folder")
+            raise typer.Exit(code=1)
+
+        path = Path(scenario)
+        try:
+            if path.suffix.lower() in (".yaml", ".yml") or path.is_file():
+                sc = load_scenario(path)
+            elif scenario in list_scenarios():
+                sc = builtin_scenario(scenario)
+            else:
+                err.print(
+                    f"[red]error:[/] {scenario!r} is neither a scenario file nor a built-in name; "
+                    f"built-ins: {', '.join(list_scenarios())}"
+                )
+                raise typer.Exit(code=2)
+        except (ScenarioError, TrajectoryFileError) as exc:
+            err.print(f"[red]error:[/] {exc}")
+            raise typer.Exit(code=1) from None
+
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+        t0 = time.perf_counter()
+        with Progress(
+            TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), console=err, transient=True
+        ) as bar:
+            task = bar.add_task(f"simulating {sc.name}", total=1.0)
+
+            def progress(stage: str, frac: float) -> None:
+                bar.update(task, completed=frac, description=f"simulating {sc.name}: {stage}")
+
+            try:
+                ds = simulate(sc, progress=progress)
+            except TrajectoryFileError as exc:
+                err.print(f"[red]error:[/] {exc}")
+                raise typer.Exit(code=1) from None
+            bar.update(task, description=f"writing {out}")
+            write_dataset(ds, out, overwrite=force, fmt=fmt)
+        _summary(console, ds, out, time.perf_counter() - t0)

@@ -1,0 +1,237 @@
+"""Smooth 6-DoF manoeuvres with few coefficients, bounds and the naive figure-8.
+
+A manoeuvre has six channels (x, y, z [m]; roll, pitch, yaw [rad], Z-Y-X
+Euler angles as in :mod:`uwbimu.sim.trajectory`), each::
+
+    f_c(t) = center_c + w(t) * sum_i A_ci sin(2 pi F_ci t + phi_ci),   0 <= t <= T
+
+with the envelope ``w`` rising from 0 to 1 over ``ramp`` seconds and falling
+back over the last ``ramp`` seconds by the septic smoothstep (``w, w', w'',
+w'''`` vanish at both ends), so the vehicle starts and stops at rest, level,
+at ``center`` -- what the simulator's trajectory-file splines assume.
+
+The designed manoeuvre uses harmonics ``F = k / period`` (k = 1..K) whose
+amplitudes/phases come from ``a_k cos + b_k sin`` coefficients
+(:func:`fourier_maneuver`); the figure-8 baseline uses the same form
+(:func:`figure8_maneuver`).  :func:`fit_to_bounds` scales the position and
+attitude parts so that the flight box, speed, acceleration, tilt and angular
+rate bounds hold on a fine time grid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from uwbimu.models.quaternion import quat_to_rotmat
+from uwbimu.models.reference import G_WORLD
+from uwbimu.sim.trajectory import euler_rates_to_body_rate, euler_zyx_to_quat
+
+TWO_PI = 2.0 * np.pi
+
+
+def envelope(t: np.ndarray, T: float, ramp: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Envelope ``w(t)`` and its first two derivatives (septic smoothstep ramps)."""
+    t = np.asarray(t, dtype=float)
+    w = np.ones_like(t)
+    w1 = np.zeros_like(t)
+    w2 = np.zeros_like(t)
+    if ramp <= 0:
+        return w, w1, w2
+    for u, sgn in (((t / ramp), 1.0), (((T - t) / ramp), -1.0)):
+        m = u < 1.0
+        uu = np.clip(u[m], 0.0, 1.0)
+        S = uu**4 * (35 - 84 * uu + 70 * uu**2 - 20 * uu**3)
+        dS = 140 * uu**3 * (1 - uu) ** 3
+        d2S = 420 * uu**2 * (1 - uu) ** 2 * (1 - 2 * uu)
+        w[m] = w[m] * S
+        w1[m] = sgn * dS / ramp
+        w2[m] = d2S / ramp**2
+    return w, w1, w2
+
+
+@dataclass(frozen=True)
+class Maneuver:
+    """Six sinusoid-sum channels under a rest-to-rest envelope.
+
+    Attributes
+    ----------
+    center : (6,) ``[x, y, z, roll, pitch, yaw]`` at rest [m, rad].
+    amp, freq, phase : (6, M) amplitude [m or rad], frequency [Hz], phase [rad].
+    duration : T [s]; ramp : envelope ramp [s].
+    """
+
+    center: np.ndarray
+    amp: np.ndarray
+    freq: np.ndarray
+    phase: np.ndarray
+    duration: float
+    ramp: float
+
+    def channels(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Values and first two time derivatives of the six channels, each (N, 6)."""
+        t = np.asarray(t, dtype=float)
+        w, w1, w2 = envelope(t, self.duration, self.ramp)
+        om = TWO_PI * self.freq  # (6, M)
+        arg = om[None] * t[:, None, None] + self.phase[None]  # (N, 6, M)
+        s, c = np.sin(arg), np.cos(arg)
+        g = np.sum(self.amp * s, axis=2)
+        g1 = np.sum(self.amp * om * c, axis=2)
+        g2 = -np.sum(self.amp * om * om * s, axis=2)
+        f = self.center + w[:, None] * g
+        f1 = w1[:, None] * g + w[:, None] * g1
+        f2 = w2[:, None] * g + 2 * w1[:, None] * g1 + w[:, None] * g2
+        return f, f1, f2
+
+    def kinematics(self, t: np.ndarray) -> dict[str, np.ndarray]:
+        """Truth along ``t``: ``p, v, a`` (world), ``euler``, ``q``, ``R``, body rate ``w``,
+        specific force ``f = R^T (a + g)`` (IMU frame), tilt [rad]."""
+        f, f1, f2 = self.channels(t)
+        eul, eul1 = f[:, 3:], f1[:, 3:]
+        q = euler_zyx_to_quat(eul)
+        R = quat_to_rotmat(q)
+        a = f2[:, :3]
+        return {
+            "t": np.asarray(t, dtype=float),
+            "p": f[:, :3],
+            "v": f1[:, :3],
+            "a": a,
+            "euler": eul,
+            "q": q,
+            "R": R,
+            "w": euler_rates_to_body_rate(eul, eul1),
+            "f": np.einsum("nji,nj->ni", R, a + G_WORLD),
+            "tilt": np.arccos(np.clip(R[:, 2, 2], -1.0, 1.0)),
+        }
+
+    def scaled(self, s_pos: float, s_att: float) -> "Maneuver":
+        k = np.array([s_pos] * 3 + [s_att] * 3)[:, None]
+        return replace(self, amp=self.amp * k)
+
+
+def fourier_maneuver(theta: np.ndarray, center, duration: float, ramp: float, period: float, n_harm: int) -> Maneuver:
+    """Manoeuvre from ``theta`` = (6, K, 2) cosine/sine coefficients of the harmonics ``k / period``."""
+    th = np.asarray(theta, dtype=float).reshape(6, n_harm, 2)
+    a, b = th[..., 0], th[..., 1]
+    amp = np.hypot(a, b)
+    phase = np.arctan2(a, b)  # a cos + b sin = amp sin(. + phase)
+    freq = np.tile(np.arange(1, n_harm + 1) / period, (6, 1))
+    return Maneuver(np.asarray(center, dtype=float), amp, freq, phase, float(duration), float(ramp))
+
+
+def figure8_maneuver(center, half_size, period: float, duration: float, ramp: float, attitude_amp, attitude_freq) -> Maneuver:
+    """Horizontal lemniscate of Gerono ``x = sx sin(w t)``, ``y = sy sin(2 w t)``, fixed height,
+    with a gentle attitude oscillation (the simulator's ``figure8`` defaults)."""
+    amp = np.zeros((6, 1))
+    freq = np.zeros((6, 1))
+    amp[0, 0], freq[0, 0] = half_size[0], 1.0 / period
+    amp[1, 0], freq[1, 0] = half_size[1], 2.0 / period
+    for i in range(3):
+        amp[3 + i, 0], freq[3 + i, 0] = attitude_amp[i], attitude_freq[i]
+    return Maneuver(np.asarray(center, dtype=float), amp, freq, np.zeros((6, 1)), float(duration), float(ramp))
+
+
+@dataclass(frozen=True)
+class MotionBounds:
+    """Flight box [m], speed [m/s], acceleration [m/s^2], tilt [rad], body rate [rad/s]."""
+
+    box_min: np.ndarray
+    box_max: np.ndarray
+    speed: float
+    accel: float
+    tilt: float
+    rate: float
+
+
+def bound_usage(kin: dict[str, np.ndarray], b: MotionBounds) -> dict[str, float]:
+    """Peak of each bounded quantity divided by its bound (<= 1 is feasible)."""
+    p = kin["p"]
+    lo = np.min(p, axis=0)
+    hi = np.max(p, axis=0)
+    # fraction of the available room used on the worst side (> 1 leaves the box)
+    centre = 0.5 * (b.box_min + b.box_max)
+    half = 0.5 * (b.box_max - b.box_min)
+    box = float(np.max(np.maximum(np.abs(hi - centre), np.abs(lo - centre)) / half))
+    return {
+        "box": box,
+        "speed": float(np.max(np.linalg.norm(kin["v"], axis=1)) / b.speed),
+        "accel": float(np.max(np.linalg.norm(kin["a"], axis=1)) / b.accel),
+        "tilt": float(np.max(kin["tilt"]) / b.tilt),
+        "rate": float(np.max(np.linalg.norm(kin["w"], axis=1)) / b.rate),
+    }
+
+
+def _box_scale(m: Maneuver, t: np.ndarray, b: MotionBounds) -> float:
+    """Largest position scale (about ``center``) keeping the path in the box."""
+    dev = m.channels(t)[0][:, :3] - m.center[:3]
+    s = np.inf
+    for i in range(3):
+        up, down = dev[:, i].max(), -dev[:, i].min()
+        if up > 1e-12:
+            s = min(s, (b.box_max[i] - m.center[i]) / up)
+        if down > 1e-12:
+            s = min(s, (m.center[i] - b.box_min[i]) / down)
+    return s
+
+
+def fit_to_bounds(m: Maneuver, b: MotionBounds, dt: float = 0.02, margin: float = 0.99, grow: bool = True) -> Maneuver:
+    """Scale the position and attitude amplitudes so that every bound holds.
+
+    The position part scales linearly (box, speed, acceleration), so one
+    scale fixes it exactly; tilt and rate are nearly linear in the attitude
+    scale and are fixed by a few multiplicative corrections.  With
+    ``grow=True`` a manoeuvre below its bounds is also enlarged up to them
+    (more motion never costs information here).  Checked on a grid of step
+    ``dt`` with the safety factor ``margin``.
+    """
+    t = np.arange(0.0, m.duration + 0.5 * dt, dt)
+    kin = m.kinematics(t)
+    sp = np.inf
+    vmax = np.max(np.linalg.norm(kin["v"], axis=1))
+    amax = np.max(np.linalg.norm(kin["a"], axis=1))
+    if vmax > 1e-12:
+        sp = min(sp, b.speed / vmax)
+    if amax > 1e-12:
+        sp = min(sp, b.accel / amax)
+    sp = min(sp, _box_scale(m, t, b))
+    if not np.isfinite(sp):
+        sp = 1.0
+    sp *= margin
+    if not grow:
+        sp = min(sp, 1.0)
+    ma = m.scaled(sp, 1.0)
+    # Attitude: roll/pitch (scale s_rp) are limited by the tilt and the rate,
+    # yaw (scale s_y) only by the rate -- separate scales so that a tilt-bound
+    # manoeuvre can still use the rate budget for yaw.
+    s_rp, s_y = 1.0, 1.0
+    for _ in range(12):
+        kin = _scale_att(ma, s_rp, s_y).kinematics(t)
+        tl = np.max(kin["tilt"])
+        rt = np.max(np.linalg.norm(kin["w"], axis=1))
+        f_t = b.tilt / tl if tl > 1e-12 else np.inf
+        f_r = b.rate / rt if rt > 1e-12 else np.inf
+        if not np.isfinite(min(f_t, f_r)):
+            break
+        new_rp = s_rp * min(f_t, f_r) * margin if np.any(ma.amp[3:5] > 0) else s_rp
+        new_y = s_y * f_r * margin if f_r < 1.0 or f_t * margin <= 1.0 + 1e-3 else s_y * min(f_r * margin, 1.25)
+        if f_r < 1.0:  # over the rate: shrink both in proportion
+            new_rp, new_y = min(new_rp, s_rp * f_r * margin), s_y * f_r * margin
+        new_rp, new_y = min(new_rp, 50.0), min(new_y, 50.0)
+        if not grow:
+            new_rp, new_y = min(new_rp, 1.0), min(new_y, 1.0)
+        if abs(new_rp / s_rp - 1.0) < 1e-4 and abs(new_y / s_y - 1.0) < 1e-4:
+            break
+        s_rp, s_y = new_rp, new_y
+    out = _scale_att(ma, s_rp, s_y)
+    # final guarantee on the grid (the loop converges from below in practice)
+    kin = out.kinematics(t)
+    over = max(np.max(kin["tilt"]) / b.tilt, np.max(np.linalg.norm(kin["w"], axis=1)) / b.rate)
+    if over > 1.0:
+        out = _scale_att(out, 1.0 / over * margin, 1.0 / over * margin)
+    return out
+
+
+def _scale_att(m: Maneuver, s_rp: float, s_y: float) -> Maneuver:
+    k = np.array([1.0, 1.0, 1.0, s_rp, s_rp, s_y])[:, None]
+    return replace(m, amp=m.amp * k)

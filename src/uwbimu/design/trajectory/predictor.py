@@ -1,0 +1,177 @@
+"""Predicted calibration accuracy of a trajectory: the linearised ESKF covariance.
+
+For a candidate motion (truth) we run the covariance recursion of the
+19-state error-state filter along it -- no data, only Jacobians -- with the
+IMU noise as process noise and every scheduled range as a scalar update::
+
+    P <- Phi P Phi^T + Q_d,      P <- P - P h h^T P / (h^T P h + sigma^2)
+
+Error dynamics (right/body attitude perturbation, the ESKF's convention,
+``q = q_hat ⊗ Exp(dtheta)``), with ``f`` the specific force and ``w`` the
+body rate of the truth::
+
+    dp' = dv
+    dv' = -R [f]x dth - R db_a + R n_a
+    dth' = -[w]x dth - db_g + n_g
+    db_a' = n_ba,  db_g' = n_bg,  dp_IU' = 0,  dt_d' = 0
+
+``Phi = I + F dt + (F dt)^2 / 2``; ``Q_d = G Q_c G^T dt``.  Range Jacobian of
+``h = |a - p - R Exp(dth) p_IU|`` at IMU time ``t + t_d`` (``u`` the unit
+vector from the antenna to the anchor)::
+
+    dh/dp = -u^T,  dh/dth = u^T R [p_IU]x,  dh/dp_IU = -u^T R,
+    dh/dt_d = -u^T (v + R [w]x p_IU)        (the antenna velocity)
+
+The posterior covariance's calibration block (``dp_IU``, ``dt_d``) gives the
+predicted 1-sigma; its inverse is the Fisher information of the calibration
+block with the 15 navigation states marginalised (Schur complement), whose
+smallest eigenvalue (after scaling by ``scale_lever_arm``,
+``scale_time_offset``) is the E-optimality criterion.  The range Jacobian
+is pinned to :func:`uwbimu.models.reference.range_measurement` by a test.
+This computation is our own (``uwbimu.observability`` offers Lie-derivative
+rank analysis, not a covariance along a trajectory).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from uwbimu.models.quaternion import skew
+
+
+def range_jacobian(kin_meas: dict[str, np.ndarray], anchors: np.ndarray, lever_arm: np.ndarray) -> np.ndarray:
+    """Range Jacobians w.r.t. the 19-dim error state, one row per range.
+
+    Parameters
+    ----------
+    kin_meas : truth at the range instants (``p, v, R, w``: (M, ...)).
+    anchors : (M, 3) anchor of each range [m]; lever_arm : (3,) [m] (IMU frame).
+    """
+    R = kin_meas["R"]
+    l = np.asarray(lever_arm, dtype=float)
+    Rl = R @ l
+    ant = kin_meas["p"] + Rl
+    d = anchors - ant
+    u = d / np.linalg.norm(d, axis=1, keepdims=True)
+    H = np.zeros((len(u), 19))
+    H[:, 0:3] = -u
+    uR = np.einsum("mi,mij->mj", u, R)  # u^T R
+    H[:, 6:9] = uR @ skew(l)
+    H[:, 15:18] = -uR
+    w_l = np.cross(kin_meas["w"], l)  # [w]x l (body)
+    v_ant = kin_meas["v"] + np.einsum("mij,mj->mi", R, w_l)
+    H[:, 18] = -np.sum(u * v_ant, axis=1)
+    return H
+
+
+@njit(cache=True)
+def _cov_run(P0, R, f, w, dt, qa, qg, qba, qbg, meas_step, H, sigma2):
+    """Covariance recursion; updates for measurements assigned to each step after its prediction."""
+    n = R.shape[0]
+    P = P0.copy()
+    F = np.zeros((19, 19))
+    I19 = np.eye(19)
+    m = 0
+    M = meas_step.shape[0]
+    for k in range(n):
+        # updates assigned to step k (ranges in (t_{k-1}, t_k])
+        while m < M and meas_step[m] == k:
+            h = H[m]
+            Ph = P @ h
+            s = h @ Ph + sigma2
+            for i in range(19):
+                for j in range(19):
+                    P[i, j] -= Ph[i] * Ph[j] / s
+            m += 1
+        if k == n - 1:
+            break
+        Rk = R[k]
+        fk = f[k]
+        wk = w[k]
+        F[:, :] = 0.0
+        for i in range(3):
+            F[i, 3 + i] = 1.0
+        # -R [f]x
+        Sf = np.array([[0.0, -fk[2], fk[1]], [fk[2], 0.0, -fk[0]], [-fk[1], fk[0], 0.0]])
+        RSf = Rk @ Sf
+        for i in range(3):
+            for j in range(3):
+                F[3 + i, 6 + j] = -RSf[i, j]
+                F[3 + i, 9 + j] = -Rk[i, j]
+        Sw = np.array([[0.0, -wk[2], wk[1]], [wk[2], 0.0, -wk[0]], [-wk[1], wk[0], 0.0]])
+        for i in range(3):
+            for j in range(3):
+                F[6 + i, 6 + j] = -Sw[i, j]
+            F[6 + i, 12 + i] = -1.0
+        Fd = F * dt
+        Phi = I19 + Fd + 0.5 * (Fd @ Fd)
+        P = Phi @ P @ Phi.T
+        for i in range(3):
+            P[3 + i, 3 + i] += qa * dt  # R n_a: isotropic, R drops out
+            P[6 + i, 6 + i] += qg * dt
+            P[9 + i, 9 + i] += qba * dt
+            P[12 + i, 12 + i] += qbg * dt
+        P = 0.5 * (P + P.T)
+    return P
+
+
+def predict_covariance(
+    kin: dict[str, np.ndarray],
+    kin_meas: dict[str, np.ndarray],
+    meas_anchor: np.ndarray,
+    lever_arm: np.ndarray,
+    P0: np.ndarray,
+    noise,
+    range_sigma: float,
+) -> np.ndarray:
+    """Final 19x19 covariance of the linearised ESKF along a trajectory.
+
+    Parameters
+    ----------
+    kin : truth on a uniform grid (``t, R, f, w``) used for the prediction.
+    kin_meas : truth at the range instants (``t, p, v, R, w``).
+    meas_anchor : (M, 3) anchor of each range [m].
+    lever_arm : (3,) [m]; P0 : (19, 19) prior covariance.
+    noise : :class:`uwbimu.models.imu.ImuNoise` (continuous-time densities).
+    range_sigma : range noise sd [m].
+    """
+    t = kin["t"]
+    dt = float(t[1] - t[0])
+    H = range_jacobian(kin_meas, meas_anchor, lever_arm)
+    step = np.searchsorted(t, kin_meas["t"] - 1e-12).astype(np.int64)  # first grid time >= range time
+    step = np.clip(step, 0, len(t) - 1)
+    order = np.argsort(step, kind="stable")
+    return _cov_run(
+        np.ascontiguousarray(P0, dtype=float),
+        np.ascontiguousarray(kin["R"]),
+        np.ascontiguousarray(kin["f"]),
+        np.ascontiguousarray(kin["w"]),
+        dt,
+        noise.accel_noise_density**2,
+        noise.gyro_noise_density**2,
+        noise.accel_bias_rw**2,
+        noise.gyro_bias_rw**2,
+        step[order],
+        np.ascontiguousarray(H[order]),
+        float(range_sigma) ** 2,
+    )
+
+
+def calibration_metrics(P: np.ndarray, scale_lever_arm: float, scale_time_offset: float) -> dict[str, float | list]:
+    """Predicted sigmas and the E-optimality criterion of the calibration block.
+
+    ``lambda_min_scaled`` is the smallest eigenvalue of the Fisher information
+    of ``(p_IU / scale_lever_arm, t_d / scale_time_offset)`` (navigation states
+    marginalised, prior included): 1 means a 1-sigma of one scale unit along
+    the worst direction.
+    """
+    C = P[15:19, 15:19]
+    S = np.diag([1.0 / scale_lever_arm] * 3 + [1.0 / scale_time_offset])
+    ev = np.linalg.eigvalsh(S @ C @ S)
+    return {
+        "sigma_lever_arm_m": np.sqrt(np.diag(C)[:3]).tolist(),
+        "sigma_time_offset_s": float(np.sqrt(C[3, 3])),
+        "lambda_min_scaled": float(1.0 / ev[-1]),
+        "lambda_max_scaled": float(1.0 / ev[0]),
+    }

@@ -1,0 +1,157 @@
+"""Run diagnostics: IMU gaps, UWB outages and excitation (observability) warnings.
+
+The excitation monitor answers "can this motion calibrate the lever arm /
+time offset?": the lever arm needs rotation (``R p_IU`` must change, else it
+is indistinguishable from a position offset), the time offset needs a
+changing velocity (a constant-velocity shift ``v t_d`` is a position offset
+too).  It measures, over a sliding window, the RMS body rate and the RMS
+world acceleration of the estimated motion, and it checks that the final
+standard deviations really shrank below their priors.  Warnings are plain
+sentences; events carry the intervals.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from uwbimu.estimation.filterpass import REC_ACC, Problem
+from uwbimu.models.quaternion import quat_to_rotmat
+from uwbimu.models.reference import G_WORLD
+
+_MAX_LISTED = 8
+
+
+def imu_gap_events(imu_t: np.ndarray, dt_max: float) -> tuple[list[dict[str, Any]], list[str]]:
+    """Events and warnings for IMU intervals longer than ``dt_max`` (propagated across)."""
+    d = np.diff(imu_t)
+    idx = np.flatnonzero(d > dt_max)
+    events = [{"t": float(imu_t[i]), "kind": "imu_gap", "duration": float(d[i])} for i in idx]
+    warnings = [f"IMU gap of {d[i]:.3f} s at IMU t={imu_t[i]:.3f} s: propagated across (covariance grows)"
+                for i in idx[:_MAX_LISTED]]
+    if len(idx) > _MAX_LISTED:
+        warnings.append(f"... and {len(idx) - _MAX_LISTED} more IMU gaps (see events)")
+    return events, warnings
+
+
+def _intervals(t: np.ndarray, bad: np.ndarray, min_len: float) -> list[tuple[float, float]]:
+    """Maximal runs of ``bad`` longer than ``min_len`` as ``(t_start, t_end)``."""
+    out = []
+    if not len(t):
+        return out
+    b = np.concatenate([[False], bad, [False]]).astype(int)
+    starts = np.flatnonzero(np.diff(b) == 1)
+    ends = np.flatnonzero(np.diff(b) == -1) - 1
+    for s, e in zip(starts, ends):
+        if t[e] - t[s] >= min_len:
+            out.append((float(t[s]), float(t[e])))
+    return out
+
+
+def _sliding_rms(x: np.ndarray, n: int) -> np.ndarray:
+    """Centred sliding RMS of a 1-D signal over ``n`` samples."""
+    n = max(1, min(n, len(x)))
+    c = np.concatenate([[0.0], np.cumsum(x * x)])
+    lo = np.clip(np.arange(len(x)) - n // 2, 0, len(x) - n)
+    return np.sqrt((c[lo + n] - c[lo]) / n)
+
+
+def excitation_profile(prob: Problem, t_imu_out: np.ndarray, X: np.ndarray, window_s: float):
+    """Sliding-window RMS body rate [rad/s] and world acceleration [m/s^2] of the estimated motion.
+
+    Returns ``(t, rot_rms, acc_rms)`` on a decimated IMU grid (about 100 Hz, IMU clock).
+    """
+    step = max(1, int(round(0.01 / prob.dt_nom)))
+    t = prob.imu_t[::step]
+    u = prob.imu_u[::step]
+    if len(t_imu_out) == 0:
+        return t, np.zeros(len(t)), np.zeros(len(t))
+    i = np.clip(np.searchsorted(t_imu_out, t), 0, len(t_imu_out) - 1)
+    xs = X[i]
+    w = u[:, 3:6] - xs[:, 13:16]
+    R = quat_to_rotmat(xs[:, 6:10])
+    acc = np.einsum("nij,nj->ni", R, u[:, :3] - xs[:, 10:13]) - G_WORLD
+    n = max(1, int(round(window_s / (prob.dt_nom * step))))
+    return t, _sliding_rms(np.linalg.norm(w, axis=1), n), _sliding_rms(np.linalg.norm(acc, axis=1), n)
+
+
+def excitation_warnings(prob: Problem, t_imu_out, X, sd, priors, opts) -> tuple[list[str], list[dict[str, Any]]]:
+    """Warnings when the motion does not excite the lever arm or the time offset."""
+    ex = opts.excitation
+    warnings: list[str] = []
+    events: list[dict[str, Any]] = []
+    if len(X) == 0:
+        return warnings, events
+    t, rot, acc = excitation_profile(prob, t_imu_out, X, ex.window_s)
+    checks = []
+    if opts.lever_arm.mode == "estimate":
+        checks.append(("lever arm", "rotation", rot, ex.min_rotation_rate, "rad/s"))
+    if opts.time_offset.mode == "estimate":
+        checks.append(("time offset", "acceleration", acc, ex.min_acceleration, "m/s^2"))
+    for name, what, sig, thr, unit in checks:
+        low = sig < thr
+        frac = float(np.mean(~low)) if len(sig) else 0.0
+        for a, b in _intervals(t, low, ex.window_s):
+            events.append({"t": a, "kind": "low_excitation", "parameter": name, "t_end": b,
+                           "measure": f"RMS {what}", "threshold": thr})
+        if frac < 0.1:
+            warnings.append(
+                f"{name}: weak excitation, RMS {what} >= {thr} {unit} in only {100 * frac:.0f}% of the log "
+                f"(max {float(sig.max()):.3g} {unit}); the {name} is poorly observable from this motion"
+            )
+    # the honest test: did the uncertainty actually shrink?
+    sd_end = sd[-1]
+    if opts.lever_arm.mode == "estimate":
+        prior = priors["sd_lever"]
+        ratio = sd_end[15:18] / np.where(prior > 0, prior, np.nan)
+        if np.any(ratio > ex.sd_ratio_warn):
+            warnings.append(
+                f"lever arm not well determined: final sd {np.round(100 * sd_end[15:18], 1).tolist()} cm "
+                f"vs prior {np.round(100 * prior, 1).tolist()} cm; excite rotations about all axes"
+            )
+    if opts.time_offset.mode == "estimate" and priors["td_sd"] > 0:
+        td_prior = max(priors["td_sd"], opts.init.td_sd_after_grid if priors["search_td"] else 0.0)
+        if sd_end[18] > ex.sd_ratio_warn * td_prior:
+            warnings.append(
+                f"time offset not well determined: final sd {1000 * sd_end[18]:.1f} ms vs prior "
+                f"{1000 * td_prior:.1f} ms; move with changing velocity"
+            )
+    return warnings, events
+
+
+def outage_warnings(prob: Problem, rec: np.ndarray, opts) -> tuple[list[str], list[dict[str, Any]]]:
+    """UWB outages (no accepted range) and silent anchors."""
+    warnings: list[str] = []
+    events: list[dict[str, Any]] = []
+    acc = rec[:, REC_ACC] > 0
+    ta = prob.uwb_t[acc]
+    if len(ta) > 1:
+        gaps = np.diff(ta)
+        idx = np.flatnonzero(gaps > opts.uwb_outage_s)
+        for i in idx:
+            events.append({"t": float(ta[i]), "kind": "uwb_outage", "duration": float(gaps[i])})
+        for i in idx[:_MAX_LISTED]:
+            warnings.append(f"UWB outage: no accepted range for {gaps[i]:.2f} s from t={ta[i]:.2f} s "
+                            f"(IMU-only propagation, covariance grows)")
+        if len(idx) > _MAX_LISTED:
+            warnings.append(f"... and {len(idx) - _MAX_LISTED} more UWB outages (see events)")
+    t0, t1 = (prob.uwb_t[0], prob.uwb_t[-1]) if len(prob.uwb_t) else (0.0, 0.0)
+    listed = 0
+    for ai, name in enumerate(prob.anchor_ids):
+        ts = prob.uwb_t[prob.uwb_a == ai]
+        if len(ts) == 0:
+            warnings.append(f"anchor {name}: no range in the log")
+            continue
+        med = float(np.median(np.diff(ts))) if len(ts) > 1 else np.inf
+        lim = max(opts.uwb_outage_s, 10 * med)
+        full = np.concatenate([[t0], ts, [t1]])
+        gaps = np.diff(full)
+        for i in np.flatnonzero(gaps > lim):
+            events.append({"t": float(full[i]), "kind": "anchor_silent", "anchor": name, "duration": float(gaps[i])})
+            if listed < _MAX_LISTED:
+                warnings.append(f"anchor {name}: no range for {gaps[i]:.2f} s from t={full[i]:.2f} s")
+            listed += 1
+    if listed > _MAX_LISTED:
+        warnings.append(f"... and {listed - _MAX_LISTED} more silent-anchor intervals (see events)")
+    return warnings, events

@@ -1,0 +1,355 @@
+"""Tightly-coupled UWB-IMU error-state EKF with online lever-arm and time-offset calibration.
+
+Public entry point: :func:`run_eskf` (dataset -> :class:`EstimationResult`).
+
+* State and kernels: :mod:`uwbimu.estimation.kernels` (19 + nb error states).
+* One filter pass, time-offset handling: :mod:`uwbimu.estimation.filterpass`.
+* Initialisation from the data: :mod:`uwbimu.estimation.init`.
+* Excitation and outage diagnostics: :mod:`uwbimu.estimation.diagnostics`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from typing import Any, Callable, Optional
+
+import numpy as np
+import pandas as pd
+from scipy.stats import chi2
+
+from uwbimu.estimation import kernels as K
+from uwbimu.estimation.diagnostics import excitation_warnings, imu_gap_events, outage_warnings
+from uwbimu.estimation.filterpass import (
+    REC_ACC, REC_INNOV, REC_NIS, REC_PRED, REC_STATUS, STATUS_NOT_PROCESSED, PassResult, Problem, run_pass,
+)
+from uwbimu.estimation.init import InitialisationError, InitialState, initialise
+from uwbimu.estimation.options import EskfOptions
+from uwbimu.estimation.result import EstimationResult
+from uwbimu.io.dataset import Dataset
+
+log = logging.getLogger("uwbimu.estimation")
+
+_ROBUST = {"none": K.ROBUST_NONE, "huber": K.ROBUST_HUBER, "geman-mcclure": K.ROBUST_GM}
+
+
+def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, Any]]:
+    """Turn a dataset and options into a :class:`Problem` and the calibration priors.
+
+    Returns the problem and a dict of priors / bookkeeping (``warnings``,
+    ``events``, ``imu_noise``, ``range_sigma``, ``tag``, ...).
+    """
+    warnings: list[str] = []
+    events: list[dict[str, Any]] = []
+    imu = ds.imu.sort_values("t", kind="stable")
+    t = imu["t"].to_numpy(float)
+    keep = np.concatenate([[True], np.diff(t) > 0])
+    if not keep.all():
+        warnings.append(f"IMU: {int((~keep).sum())} samples with repeated stamps ignored")
+    imu_t = np.ascontiguousarray(t[keep])
+    imu_u = np.ascontiguousarray(imu[["ax", "ay", "az", "wx", "wy", "wz"]].to_numpy(float)[keep])
+    if len(imu_t) < 10:
+        raise ValueError(f"dataset {ds.meta.name!r}: only {len(imu_t)} IMU samples")
+    uwb = ds.uwb
+    tag = opts.tag
+    if "tag" in uwb.columns:
+        tags = list(pd.unique(uwb["tag"].astype(str)))
+        if tag is None:
+            tag = tags[0]
+        if tag not in tags:
+            raise ValueError(f"tag {tag!r} not in the UWB log (tags: {tags})")
+        if len(tags) > 1:
+            n_other = int((uwb["tag"].astype(str) != tag).sum())
+            warnings.append(f"UWB: {len(tags)} tags in the log; using {tag!r}, {n_other} ranges of other tags not used")
+        uwb = uwb[uwb["tag"].astype(str) == tag]
+    uwb = uwb.sort_values("t", kind="stable")
+    anchor_ids = [str(a) for a in ds.anchors["anchor"]]
+    index = {a: i for i, a in enumerate(anchor_ids)}
+    aid = uwb["anchor"].astype(str).to_numpy()
+    known = np.array([a in index for a in aid], dtype=bool)
+    rng = uwb["range"].to_numpy(float)
+    finite = np.isfinite(rng) & np.isfinite(uwb["t"].to_numpy(float))
+    if (~known).any():
+        warnings.append(f"UWB: {int((~known).sum())} ranges to anchors missing from anchors.csv not used "
+                        f"({sorted(set(aid[~known]))[:5]})")
+    if (known & ~finite).any():
+        warnings.append(f"UWB: {int((known & ~finite).sum())} non-finite ranges not used")
+    sel = known & finite
+    uwb_t = np.ascontiguousarray(uwb["t"].to_numpy(float)[sel])
+    uwb_a = np.ascontiguousarray(np.array([index[a] for a in aid[sel]], dtype=np.int64))
+    uwb_r = np.ascontiguousarray(rng[sel])
+    uwb_anchor_ids = aid[sel]
+    kb = ds.meta.known_anchor_bias or {}
+    for a, b in kb.items():
+        if a in index:
+            uwb_r[uwb_a == index[a]] -= float(b)
+    anchors = ds.anchor_array(anchor_ids).astype(float)
+    if len(uwb_t) < 8:
+        raise ValueError(f"dataset {ds.meta.name!r}: only {len(uwb_t)} usable ranges")
+
+    noise = opts.resolve_imu_noise(ds.meta.imu_noise)
+    rsig = opts.range_sigma or ds.meta.range_sigma or 0.1
+    M = len(anchor_ids)
+    nb = M if opts.anchor_bias.mode != "fixed" else 0
+    N = 19 + nb
+    mask = np.ones(N)
+    if opts.lever_arm.mode != "estimate":
+        mask[15:18] = 0.0
+    if opts.time_offset.mode != "estimate":
+        mask[18] = 0.0
+    if nb and opts.anchor_bias.mode != "estimate":
+        mask[19:] = 0.0
+    bias_idx = np.full(M, -1, dtype=np.int64)
+    if nb:
+        bias_idx[:] = 19 + np.arange(M)
+    dts = np.diff(imu_t)
+    dt_nom = float(np.median(dts))
+    gate = float(chi2.ppf(opts.gating.probability, 1)) if opts.gating.probability < 1 else -1.0
+    lo = anchors.min(axis=0) - opts.supervisor.hull_margin
+    hi = anchors.max(axis=0) + opts.supervisor.hull_margin
+    prob = Problem(
+        imu_t=imu_t, imu_u=imu_u, uwb_t=uwb_t, uwb_a=uwb_a, uwb_r=uwb_r, anchor_ids=anchor_ids,
+        anchors=np.ascontiguousarray(anchors),
+        noise=np.array([noise.accel_noise_density**2, noise.gyro_noise_density**2, noise.accel_bias_rw**2,
+                        noise.gyro_bias_rw**2, opts.lever_arm.random_walk**2, opts.time_offset.random_walk**2]),
+        r_var=float(rsig**2), bias_idx=bias_idx, gain_mask=mask, dt_nom=dt_nom,
+        dt_max=opts.imu_gap_factor * dt_nom, gate=gate, robust_kind=_ROBUST[opts.gating.robust],
+        robust_c=opts.gating.robust_c, reopen_after=opts.gating.reopen_after, cov_every=opts.cov_every,
+        max_lookback=opts.max_lookback_s, out_period=1.0 / opts.output_rate_hz, store_cov=opts.store_covariance,
+        hull_lo=lo, hull_hi=hi, max_pos_var=opts.supervisor.max_position_sd**2,
+        all_reject_run=opts.supervisor.all_reject_run, supervise=opts.supervisor.enabled,
+    )
+    # calibration priors
+    lever = opts.lever_arm.prior
+    if lever is None:
+        tagmeta = [tm for tm in ds.meta.tags if tm.name == tag] or list(ds.meta.tags[:1])
+        lever = tagmeta[0].lever_arm if tagmeta and tagmeta[0].lever_arm is not None else [0.0, 0.0, 0.0]
+    sd_ba = opts.accel_bias_sd or (noise.accel_bias_sigma0 if noise.accel_bias_sigma0 > 0 else 0.1)
+    sd_bg = opts.gyro_bias_sd or (noise.gyro_bias_sigma0 if noise.gyro_bias_sigma0 > 0 else math.radians(1.0))
+    td_mode = opts.time_offset.mode
+    priors = {
+        "lever": np.array(lever, dtype=float),
+        "sd_lever": np.zeros(3) if opts.lever_arm.mode == "fixed" else np.full(3, opts.lever_arm.prior_sd),
+        "anchor_bias": np.zeros(nb),
+        "sd_bias": opts.anchor_bias.prior_sd if nb else 0.0,
+        "ba": np.zeros(3), "bg": np.zeros(3), "sd_ba": sd_ba, "sd_bg": sd_bg,
+        "td": float(opts.time_offset.prior or 0.0),
+        "td_sd": 0.0 if td_mode == "fixed" else opts.time_offset.prior_sd,
+        "search_td": td_mode != "fixed" and opts.time_offset.prior is None and opts.init.search_time_offset,
+    }
+    info = {"warnings": warnings, "events": events, "imu_noise": noise, "range_sigma": rsig, "tag": tag,
+            "priors": priors, "uwb_anchor_ids": uwb_anchor_ids}
+    return prob, info
+
+
+def _reinit(prob: Problem, opts: EskfOptions, priors: dict[str, Any], j: int, last: PassResult) -> InitialState:
+    """Re-initialise after divergence at range ``j``, keeping finite calibration estimates."""
+    pf = dict(priors)
+    x = last.x
+    if np.all(np.isfinite(x[16:19])) and np.all(np.abs(x[16:19]) < 5):
+        pf["lever"] = x[16:19].copy()
+    td_known = float(x[19]) if np.isfinite(x[19]) and abs(x[19]) < 1.0 else None
+    if td_known is not None:
+        pf["td_sd"] = max(priors["td_sd"], 0.02) if priors["td_sd"] > 0 else 0.0
+    return initialise(prob, opts, pf, j0=j, td_known=td_known)
+
+
+def run_eskf(
+    dataset: Dataset,
+    options: Optional[EskfOptions] = None,
+    progress: Optional[Callable[[float], None]] = None,
+    initial: Optional[InitialState] = None,
+) -> EstimationResult:
+    """Run the error-state EKF over a dataset.
+
+    Parameters
+    ----------
+    dataset : the log (IMU on its clock, ranges on the UWB clock, anchors).
+    options : :class:`EskfOptions` (defaults when None).
+    progress : optional callback receiving the fraction of the IMU log done (0..1).
+    initial : optional initial state/covariance (bypasses the data-driven
+        initialiser; used by consistency tests, never filled from ground truth
+        by the estimator itself).
+
+    Returns
+    -------
+    EstimationResult with output stamps on the UWB clock (``t_imu - t_d_hat``).
+    """
+    opts = options or EskfOptions()
+    t_wall = time.perf_counter()
+    prob, info = build_problem(dataset, opts)
+    warnings: list[str] = list(info["warnings"])
+    events: list[dict[str, Any]] = list(info["events"])
+    priors = info["priors"]
+    n_imu = len(prob.imu_t)
+    t_imu0, t_imu1 = prob.imu_t[0], prob.imu_t[-1]
+    cb = None
+    if progress is not None:
+        def cb(k: int) -> None:
+            progress(min(1.0, (prob.imu_t[min(k, n_imu - 1)] - t_imu0) / max(t_imu1 - t_imu0, 1e-9)))
+
+    ev_gap, warn_gap = imu_gap_events(prob.imu_t, prob.dt_max)
+    events += ev_gap
+    warnings += warn_gap
+
+    if initial is None:
+        initial = initialise(prob, opts, priors, j0=0)
+    events.append({"t": float(prob.uwb_t[initial.j]), "kind": "initialised", **_plain(initial.info)})
+    passes: list[PassResult] = []
+    st = initial
+    n_reinit = 0
+    prob_run = prob
+    while True:
+        res = run_pass(prob_run, st.x, st.P, st.k, st.j, progress=cb)
+        passes.append(res)
+        events += res.events
+        if not res.diverged:
+            break
+        t_div = float(prob.imu_t[res.k] - res.x[19]) if np.isfinite(res.x[19]) else float(prob.imu_t[res.k])
+        events.append({"t": t_div, "kind": "divergence", "reason": res.diverged})
+        j = res.j_end
+        if j >= len(prob.uwb_t) - 8:
+            warnings.append(f"divergence at t={t_div:.2f} s ({res.diverged}) near the end of the log; stopped there")
+            break
+        if n_reinit >= opts.supervisor.max_reinit:
+            warnings.append(f"divergence at t={t_div:.2f} s ({res.diverged}); re-initialisation limit "
+                            f"({opts.supervisor.max_reinit}) reached, continuing without supervisor")
+            prob_run = _unsupervised(prob)
+            st = _safe_state(res, prob)
+            st.j = j
+            continue
+        try:
+            st = _reinit(prob, opts, priors, j, res)
+        except InitialisationError as exc:
+            warnings.append(f"divergence at t={t_div:.2f} s ({res.diverged}); re-initialisation failed: {exc}")
+            break
+        n_reinit += 1
+        warnings.append(f"divergence at t={t_div:.2f} s ({res.diverged}); re-initialised from the ranges at "
+                        f"t={prob.uwb_t[j]:.2f} s")
+        events.append({"t": float(prob.uwb_t[j]), "kind": "reinitialised", **_plain(st.info)})
+    result = _assemble(dataset, prob, info, passes, opts)
+    result.warnings = warnings + result.warnings
+    result.events = events + result.events
+    result.runtime_s = time.perf_counter() - t_wall
+    for w in result.warnings:
+        log.warning(w)
+    return result
+
+
+def _unsupervised(prob: Problem) -> Problem:
+    from dataclasses import replace
+
+    return replace(prob, supervise=False)
+
+
+def _safe_state(res: PassResult, prob: Problem) -> InitialState:
+    x = res.x.copy()
+    P = res.P.copy()
+    if not np.all(np.isfinite(x)) or not np.all(np.isfinite(P)):
+        raise RuntimeError("filter state is not finite and cannot be re-initialised")
+    return InitialState(x=x, P=P, k=res.k, j=res.j_end)
+
+
+def _plain(d: dict[str, Any]) -> dict[str, Any]:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, np.ndarray):
+            v = v.tolist()
+        elif isinstance(v, (np.floating, np.integer)):
+            v = v.item()
+        elif isinstance(v, dict):
+            v = _plain(v)
+        out[k] = v
+    return out
+
+
+def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[PassResult],
+              opts: EskfOptions) -> EstimationResult:
+    """Concatenate the passes into an :class:`EstimationResult` and add diagnostics."""
+    warnings: list[str] = []
+    events: list[dict[str, Any]] = []
+    t_imu = np.concatenate([p.t_imu for p in passes])
+    X = np.concatenate([p.states for p in passes])
+    D = np.concatenate([p.cov_diag for p in passes])
+    covs = np.concatenate([p.covs for p in passes]) if opts.store_covariance else None
+    # keep outputs strictly increasing in time (a re-initialisation restarts a bit later)
+    keep = np.concatenate([[True], np.diff(t_imu) > 0]) if len(t_imu) else np.zeros(0, bool)
+    t_imu, X, D = t_imu[keep], X[keep], D[keep]
+    if covs is not None:
+        covs = covs[keep]
+    nb = X.shape[1] - 20
+    t_out = t_imu - X[:, 19]
+    fixed = np.zeros(19, dtype=bool)
+    if opts.lever_arm.mode == "fixed":
+        fixed[15:18] = True
+    if opts.time_offset.mode == "fixed":
+        fixed[18] = True
+    sd = np.sqrt(np.clip(D[:, :19], 0, None))
+    sd[:, fixed] = np.nan
+
+    # per-range records
+    m = len(prob.uwb_t)
+    rec = np.full((m, 7), np.nan)
+    rec[:, REC_STATUS] = STATUS_NOT_PROCESSED
+    rec[:, REC_ACC] = 0.0
+    for p in passes:
+        rec[p.j0:p.j_end] = p.rec
+    processed = rec[:, REC_STATUS] == K.UPD_OK
+    residuals = pd.DataFrame({
+        "t": prob.uwb_t,
+        "anchor": info["uwb_anchor_ids"],
+        "range": prob.uwb_r,
+        "predicted": rec[:, REC_PRED],
+        "innovation": rec[:, REC_INNOV],
+        "nis": rec[:, REC_NIS],
+        "accepted": rec[:, REC_ACC] > 0,
+    })
+    n_unproc = int((~processed).sum())
+    if n_unproc:
+        warnings.append(f"UWB: {n_unproc} of {m} ranges not processed (before initialisation, outside the IMU "
+                        f"log, or older than max_lookback_s); kept in residuals with accepted=false")
+    n_rej = int((processed & (rec[:, REC_ACC] == 0)).sum())
+    if processed.any() and n_rej / processed.sum() > 0.1:
+        warnings.append(f"UWB: {100 * n_rej / processed.sum():.1f}% of the processed ranges rejected by the gate")
+
+    x_end = X[-1]
+    sd_end = np.sqrt(np.clip(D[-1], 0, None))
+    noise = info["imu_noise"]
+    calibration: dict[str, Any] = {
+        "lever_arm": [float(v) for v in x_end[16:19]],
+        "lever_arm_sd": [float(v) if not fixed[15] else 0.0 for v in sd_end[15:18]],
+        "lever_arm_mode": opts.lever_arm.mode,
+        "time_offset": float(x_end[19]),
+        "time_offset_sd": float(sd_end[18]) if not fixed[18] else 0.0,
+        "time_offset_mode": opts.time_offset.mode,
+        "accel_bias": [float(v) for v in x_end[10:13]],
+        "accel_bias_sd": [float(v) for v in sd_end[9:12]],
+        "gyro_bias": [float(v) for v in x_end[13:16]],
+        "gyro_bias_sd": [float(v) for v in sd_end[12:15]],
+    }
+    if nb:
+        calibration["anchor_bias"] = {a: float(x_end[20 + i]) for i, a in enumerate(prob.anchor_ids)}
+        calibration["anchor_bias_sd"] = {a: float(sd_end[19 + i]) for i, a in enumerate(prob.anchor_ids)}
+        calibration["anchor_bias_mode"] = opts.anchor_bias.mode
+
+    # diagnostics: excitation, outages
+    w_exc, e_exc = excitation_warnings(prob, t_imu, X, sd, info["priors"], opts)
+    warnings += w_exc
+    events += e_exc
+    w_out, e_out = outage_warnings(prob, rec, opts)
+    warnings += w_out
+    events += e_out
+
+    cfg = opts.model_dump(mode="json")
+    cfg["resolved"] = {"imu_noise": noise.model_dump(), "range_sigma": float(info["range_sigma"]),
+                       "tag": info["tag"], "gate_nis": float(prob.gate), "imu_rate_hz": 1.0 / prob.dt_nom}
+    res = EstimationResult(
+        t=t_out, states=X[:, :20].copy(), sd=sd, residuals=residuals, calibration=calibration,
+        covariances=covs[:, :19, :19].copy() if covs is not None else None, warnings=warnings, events=events,
+        estimator="eskf", config=cfg, t_imu=t_imu,
+    )
+    if nb:
+        res.extra["anchor_bias_states"] = X[:, 20:].copy()
+        res.extra["anchor_ids"] = list(prob.anchor_ids)
+    return res

@@ -1,0 +1,245 @@
+"""Initialisation of the ESKF from the data alone (never from ground truth).
+
+1. Position and velocity from a multilateration of the first ranges
+   (robust Gauss-Newton on ``p0 + v0 (t - t0)``, lever arm neglected).
+2. Roll and pitch from the averaged accelerometer (specific force points up).
+3. Yaw from a bank of hypotheses: one short filter run per hypothesis over
+   ``bank_window_s``; the hypothesis with the lowest robust negative
+   log-likelihood of its innovations wins.
+4. Time offset from a coarse grid (default -0.25..0.25 s by 0.05 s), scored the
+   same way with the chosen yaw; the winner starts the main run with a prior sd
+   covering the grid step.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from uwbimu.estimation.filterpass import REC_NIS, REC_S, REC_STATUS, Problem, run_pass
+from uwbimu.estimation.options import EskfOptions
+from uwbimu.models.quaternion import quat_multiply, quat_to_rotmat
+
+
+@dataclass
+class InitialState:
+    """Initial extended nominal state ``x`` (20 + nb) and error covariance ``P``
+    at IMU sample ``k`` (IMU clock); ranges from index ``j`` on are processed."""
+
+    x: np.ndarray
+    P: np.ndarray
+    k: int = 0
+    j: int = 0
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+class InitialisationError(RuntimeError):
+    """Not enough data to initialise (e.g. fewer than 4 anchors heard)."""
+
+
+def multilaterate(prob: Problem, j0: int, window: float) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """Fit ``p(t) = p0 + v0 (t - t0)`` to the ranges in ``[t0, t0 + window]`` (UWB clock).
+
+    The window is widened (up to 8x) until at least 4 anchors and 8 ranges are
+    in it.  Returns ``p0`` (3,), ``v0`` (3,), the RMS residual [m] and the number
+    of ranges used.  ``t0 = uwb_t[j0]``.
+    """
+    t = prob.uwb_t
+    t0 = t[j0]
+    for grow in (1, 2, 4, 8):
+        sel = (t >= t0) & (t <= t0 + window * grow)
+        if len(np.unique(prob.uwb_a[sel])) >= 4 and sel.sum() >= 8:
+            break
+    else:
+        raise InitialisationError(
+            f"cannot initialise at t={t0:.3f} s: fewer than 4 anchors / 8 ranges within {8 * window:.1f} s"
+        )
+    a = prob.anchors[prob.uwb_a[sel]]
+    r = prob.uwb_r[sel]
+    dt = t[sel] - t0
+    centre = prob.anchors.mean(axis=0)
+    spread = max(float(np.ptp(prob.anchors, axis=0).max()), 1.0)
+
+    def resid(z):
+        p = z[:3][None, :] + z[3:][None, :] * dt[:, None]
+        return np.linalg.norm(a - p, axis=1) - r
+
+    best = None
+    # two starting points, above and below the anchors' centre: with near-planar
+    # anchors the mirror solution is a local minimum too
+    for dz in (-0.25 * spread, 0.25 * spread, 0.0):
+        z0 = np.concatenate([centre + np.array([0.0, 0.0, dz]), np.zeros(3)])
+        sol = least_squares(resid, z0, loss="soft_l1", f_scale=0.3, max_nfev=200)
+        if best is None or sol.cost < best.cost - 1e-9:
+            best = sol
+    rms = float(np.sqrt(np.mean(resid(best.x) ** 2)))
+    return best.x[:3], best.x[3:], rms, int(sel.sum())
+
+
+def level_attitude(prob: Problem, k0: int, window: float) -> tuple[float, float]:
+    """Roll and pitch [rad] from the mean accelerometer over ``window`` seconds from sample ``k0``."""
+    t = prob.imu_t
+    k1 = int(np.searchsorted(t, t[k0] + window))
+    k1 = max(k1, k0 + 1)
+    a = prob.imu_u[k0:k1, :3].mean(axis=0)
+    roll = math.atan2(a[1], a[2])
+    pitch = math.atan2(-a[0], math.hypot(a[1], a[2]))
+    return roll, pitch
+
+
+def euler_to_quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """``q = Rz(yaw) Ry(pitch) Rx(roll)`` (body -> world), Hamilton ``[w, x, y, z]``."""
+    qz = np.array([math.cos(yaw / 2), 0, 0, math.sin(yaw / 2)])
+    qy = np.array([math.cos(pitch / 2), 0, math.sin(pitch / 2), 0])
+    qx = np.array([math.cos(roll / 2), math.sin(roll / 2), 0, 0])
+    return quat_multiply(qz, quat_multiply(qy, qx))
+
+
+@dataclass
+class Prior:
+    """Everything needed to assemble ``x0``/``P0`` besides the hypothesis (yaw, t_d)."""
+
+    p: np.ndarray
+    v: np.ndarray
+    roll: float
+    pitch: float
+    lever: np.ndarray
+    ba: np.ndarray
+    bg: np.ndarray
+    anchor_bias: np.ndarray
+    sd_p: float
+    sd_v: float
+    sd_rp: float
+    sd_ba: float
+    sd_bg: float
+    sd_lever: np.ndarray  # (3,) zero when fixed
+    sd_bias: float  # zero when fixed
+
+
+def assemble(prob: Problem, pr: Prior, yaw: float, yaw_sd: float, td: float, td_sd: float, k0: int,
+             t0_uwb: float, v_t0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Extended nominal state and covariance for one (yaw, t_d) hypothesis at IMU sample ``k0``."""
+    nb = prob.n_err - 19
+    x = np.zeros(20 + nb)
+    dt = prob.imu_t[k0] - td - t0_uwb  # UWB-time elapsed since the fix
+    x[0:3] = pr.p + v_t0 * dt
+    x[3:6] = pr.v
+    q = euler_to_quat(pr.roll, pr.pitch, yaw)
+    x[6:10] = q
+    x[10:13] = pr.ba
+    x[13:16] = pr.bg
+    x[16:19] = pr.lever
+    x[19] = td
+    x[20:] = pr.anchor_bias
+    P = np.zeros((19 + nb, 19 + nb))
+    P[0:3, 0:3] = np.eye(3) * pr.sd_p**2
+    P[3:6, 3:6] = np.eye(3) * pr.sd_v**2
+    # roll/pitch/yaw uncertainty is about world axes; the error state is a body
+    # (right) perturbation, dtheta_body = R^T dtheta_world
+    R = quat_to_rotmat(q)
+    Cw = np.diag([pr.sd_rp**2, pr.sd_rp**2, yaw_sd**2])
+    P[6:9, 6:9] = R.T @ Cw @ R
+    P[9:12, 9:12] = np.eye(3) * pr.sd_ba**2
+    P[12:15, 12:15] = np.eye(3) * pr.sd_bg**2
+    P[15:18, 15:18] = np.diag(pr.sd_lever**2)
+    P[18, 18] = td_sd**2
+    if nb:
+        P[19:, 19:] = np.eye(nb) * pr.sd_bias**2
+    return x, P
+
+
+def start_index(prob: Problem, t0_uwb: float, td: float) -> int:
+    """First IMU sample at or after IMU time ``t0_uwb + td`` (clamped into the log)."""
+    k = int(np.searchsorted(prob.imu_t, t0_uwb + td))
+    return min(max(k, 0), len(prob.imu_t) - 2)
+
+
+def score_hypothesis(prob: Problem, x0, P0, k0: int, j0: int, t_from: float, t_to: float) -> float:
+    """Robust negative log-likelihood of the innovations of a short run (lower is better)."""
+    res = run_pass(prob, x0, P0, k0, j0, t_uwb_end=t_to, record=False, to_end=False)
+    rec = res.rec
+    if rec.shape[0] == 0:
+        return np.inf
+    tt = prob.uwb_t[j0:j0 + rec.shape[0]]
+    ok = (rec[:, REC_STATUS] == 0) & (tt >= t_from) & np.isfinite(rec[:, REC_NIS])
+    if ok.sum() < 5 or not np.all(np.isfinite(res.x)):
+        return np.inf
+    nis = np.minimum(rec[ok, REC_NIS], 50.0)
+    return float(np.mean(nis + np.log(rec[ok, REC_S])))
+
+
+def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: int = 0,
+               td_known: Optional[float] = None) -> InitialState:
+    """Initial state at range index ``j0`` from the data only.
+
+    ``pr_fixed`` carries the calibration priors (``lever``, ``sd_lever``,
+    ``anchor_bias``, ``sd_bias``, ``ba``, ``bg``, ``sd_ba``, ``sd_bg``, ``td``,
+    ``td_sd``, ``search_td``).  ``td_known`` skips the time-offset grid.
+    """
+    io = opts.init
+    t0 = float(prob.uwb_t[j0])
+    p0, v0, rms, nfix = multilaterate(prob, j0, io.window_s)
+    td_prior = pr_fixed["td"] if td_known is None else td_known
+    k_lvl = start_index(prob, t0, td_prior)
+    roll, pitch = level_attitude(prob, k_lvl, io.window_s)
+    pr = Prior(
+        p=p0, v=v0, roll=roll, pitch=pitch, lever=pr_fixed["lever"], ba=pr_fixed["ba"], bg=pr_fixed["bg"],
+        anchor_bias=pr_fixed["anchor_bias"], sd_p=max(io.position_sd, 2 * rms), sd_v=io.velocity_sd,
+        sd_rp=math.radians(io.roll_pitch_sd_deg), sd_ba=pr_fixed["sd_ba"], sd_bg=pr_fixed["sd_bg"],
+        sd_lever=pr_fixed["sd_lever"], sd_bias=pr_fixed["sd_bias"],
+    )
+    info: dict[str, Any] = {"t0": t0, "fix_position": p0.tolist(), "fix_velocity": v0.tolist(),
+                            "fix_rms": rms, "fix_ranges": nfix, "roll": roll, "pitch": pitch}
+    t_to = t0 + io.bank_window_s
+    t_from = t0 + 0.25 * io.bank_window_s
+    yaw_sd_final = math.radians(io.yaw_sd_deg)
+
+    def run_bank(yaws, tds, yaw_sd, td_sd):
+        scores = np.full((len(yaws), len(tds)), np.inf)
+        for a, yaw in enumerate(yaws):
+            for b, td in enumerate(tds):
+                k0 = start_index(prob, t0, td)
+                x0, P0 = assemble(prob, pr, yaw, yaw_sd, td, td_sd, k0, t0, v0)
+                try:
+                    scores[a, b] = score_hypothesis(prob, x0, P0, k0, j0, t_from, t_to)
+                except (FloatingPointError, np.linalg.LinAlgError):
+                    scores[a, b] = np.inf
+        return scores
+
+    search_td = pr_fixed["search_td"] and td_known is None
+    td = td_prior
+    td_sd = pr_fixed["td_sd"]
+    if io.yaw is not None:
+        yaw = float(io.yaw)
+    elif io.yaw_hypotheses > 1:
+        yaws = np.arange(io.yaw_hypotheses) * 2 * np.pi / io.yaw_hypotheses
+        # the time offset is unknown at this stage: let each hypothesis estimate it
+        td_sd_bank = max(td_sd, 0.1) if search_td else td_sd
+        s = run_bank(yaws, [td], math.pi / io.yaw_hypotheses, td_sd_bank)[:, 0]
+        yaw = float(yaws[int(np.argmin(s))]) if np.any(np.isfinite(s)) else 0.0
+        info["yaw_bank"] = {"yaws": yaws.tolist(), "scores": s.tolist()}
+    else:
+        yaw = 0.0
+    if search_td and len(io.td_grid) > 1:
+        grid = list(io.td_grid)
+        s = run_bank([yaw], grid, yaw_sd_final, io.td_sd_after_grid)[0]
+        if np.any(np.isfinite(s)):
+            td = float(grid[int(np.argmin(s))])
+            td_sd = io.td_sd_after_grid
+        info["td_grid"] = {"grid": grid, "scores": s.tolist()}
+        if io.yaw is None and io.yaw_hypotheses > 1 and abs(td - td_prior) > 1e-12:
+            # refine the yaw choice with the chosen time offset
+            yaws = np.arange(io.yaw_hypotheses) * 2 * np.pi / io.yaw_hypotheses
+            s2 = run_bank(yaws, [td], math.pi / io.yaw_hypotheses, td_sd)[:, 0]
+            if np.any(np.isfinite(s2)):
+                yaw = float(yaws[int(np.argmin(s2))])
+            info["yaw_bank_refined"] = {"yaws": yaws.tolist(), "scores": s2.tolist()}
+    info.update({"yaw": yaw, "td": td, "td_sd": td_sd})
+    k0 = start_index(prob, t0, td)
+    x0, P0 = assemble(prob, pr, yaw, yaw_sd_final if io.yaw_hypotheses > 1 or io.yaw is not None else math.pi,
+                      td, td_sd, k0, t0, v0)
+    return InitialState(x=x0, P=P0, k=k0, j=j0, info=info)

@@ -1,0 +1,52 @@
+"""Dense NumPy error-state Jacobians (reference for the numba kernels and for tests).
+
+Candidates to move into :mod:`uwbimu.models` once another estimator needs them.
+The error state is ``dp dv dtheta db_a db_g dp_IU dt_d`` (+ range biases) with a
+right attitude perturbation; the noise vector is ``n = [n_a, n_g, n_ba, n_bg]``
+(12) with the IMU model ``a_m = a + b_a + n_a``, ``w_m = w + b_g + n_g``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import expm
+
+from uwbimu.models.quaternion import quat_to_rotmat, skew
+
+
+def error_F(x: np.ndarray, u: np.ndarray, n_err: int = 19) -> np.ndarray:
+    """Continuous-time error-state Jacobian ``F`` (n_err x n_err) at state ``x`` and input ``u``."""
+    R = quat_to_rotmat(x[6:10])
+    a = u[0:3] - x[10:13]
+    w = u[3:6] - x[13:16]
+    F = np.zeros((n_err, n_err))
+    F[0:3, 3:6] = np.eye(3)
+    F[3:6, 6:9] = -R @ skew(a)
+    F[3:6, 9:12] = -R
+    F[6:9, 6:9] = -skew(w)
+    F[6:9, 12:15] = -np.eye(3)
+    return F
+
+
+def error_G(x: np.ndarray, n_err: int = 19) -> np.ndarray:
+    """Continuous-time noise Jacobian ``G`` (n_err x 12) for ``[n_a, n_g, n_ba, n_bg]``."""
+    R = quat_to_rotmat(x[6:10])
+    G = np.zeros((n_err, 12))
+    G[3:6, 0:3] = -R
+    G[6:9, 3:6] = -np.eye(3)
+    G[9:12, 6:9] = np.eye(3)
+    G[12:15, 9:12] = np.eye(3)
+    return G
+
+
+def van_loan(F: np.ndarray, G: np.ndarray, Qc: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact discretisation ``(Phi, Qd)`` of ``dx' = F dx + G n``, ``E[n n^T] = Qc delta(t)``."""
+    n = F.shape[0]
+    A = np.zeros((2 * n, 2 * n))
+    A[:n, :n] = -F
+    A[:n, n:] = G @ Qc @ G.T
+    A[n:, n:] = F.T
+    B = expm(A * dt)
+    Phi = B[n:, n:].T
+    Qd = Phi @ B[:n, n:]
+    return Phi, 0.5 * (Qd + Qd.T)

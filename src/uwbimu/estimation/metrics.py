@@ -1,0 +1,137 @@
+"""Accuracy and consistency metrics of an :class:`EstimationResult` against ground truth.
+
+Works for any estimator filling the shared result type.  Ground truth is on
+the UWB clock.  A state output at IMU time ``s`` describes the motion at UWB
+time ``s - t_d``; when the true time offset is known (``dataset.meta.truth``)
+the truth is taken there, which scores the state itself; otherwise at the
+result's own stamps ``result.t`` (``s - t_d_hat``).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Optional
+
+import numpy as np
+
+from uwbimu.io.dataset import Dataset
+from uwbimu.models.quaternion import quat_conjugate, quat_log, quat_multiply, quat_normalize
+
+
+def truth_at(dataset: Dataset, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, Optional[np.ndarray], np.ndarray]:
+    """Ground truth interpolated at UWB times ``t``.
+
+    Returns ``p`` (K, 3), ``q`` (K, 4) (normalised linear interpolation),
+    ``v`` (K, 3) (from the table, else finite differences of ``p``; None when
+    the truth has fewer than 2 rows) and ``valid`` (K,) bool (inside the truth span).
+    """
+    gt = dataset.groundtruth
+    if gt is None or len(gt) == 0:
+        raise ValueError("the dataset has no ground truth")
+    gt = gt.sort_values("t")
+    tg = gt["t"].to_numpy(float)
+    t = np.asarray(t, dtype=float)
+    valid = (t >= tg[0]) & (t <= tg[-1])
+    P = gt[["px", "py", "pz"]].to_numpy(float)
+    Q = gt[["qw", "qx", "qy", "qz"]].to_numpy(float)
+    # make the quaternion sequence continuous in sign before interpolating
+    s = np.sign(np.sum(Q[1:] * Q[:-1], axis=1))
+    s = np.concatenate([[1.0], np.cumprod(np.where(s == 0, 1.0, s))])
+    Q = Q * s[:, None]
+    p = np.column_stack([np.interp(t, tg, P[:, i]) for i in range(3)])
+    q = quat_normalize(np.column_stack([np.interp(t, tg, Q[:, i]) for i in range(4)]))
+    if all(c in gt.columns for c in ("vx", "vy", "vz")):
+        V = gt[["vx", "vy", "vz"]].to_numpy(float)
+    elif len(tg) > 1:
+        V = np.gradient(P, tg, axis=0)
+    else:
+        V = None
+    v = None if V is None else np.column_stack([np.interp(t, tg, V[:, i]) for i in range(3)])
+    return p, q, v, valid
+
+
+def attitude_error(q_est: np.ndarray, q_true: np.ndarray) -> np.ndarray:
+    """Right-perturbation attitude error ``Log(q_est^-1 ⊗ q_true)`` (K, 3) [rad]."""
+    return quat_log(quat_multiply(quat_conjugate(q_est), q_true))
+
+
+def nees_series(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """``e_k^T P_k^-1 e_k`` for each row (K, d) with covariances (K, d, d)."""
+    out = np.full(len(err), np.nan)
+    for i in range(len(err)):
+        try:
+            out[i] = float(err[i] @ np.linalg.solve(cov[i], err[i]))
+        except np.linalg.LinAlgError:
+            pass
+    return out
+
+
+def compute_metrics(result, dataset: Dataset, skip_s: float = 10.0) -> dict[str, Any]:
+    """Accuracy and consistency of ``result`` against the dataset's ground truth.
+
+    Returns a plain dict: ``position_rmse`` [m] (whole run), ``position_rmse_after``
+    [m] (after the first ``skip_s`` seconds), ``orientation_rmse_deg``,
+    ``velocity_rmse`` (when available), ``nees_mean`` (pose + velocity + known
+    calibration blocks; ``nees_dof`` its dimension), and when the truth
+    calibration is in ``dataset.yaml``: ``lever_arm_error`` [m] per axis,
+    ``lever_arm_error_norm``, ``lever_arm_within_3sigma``, ``time_offset_error``
+    [s], ``time_offset_within_3sigma``.
+    """
+    truth = dataset.meta.truth
+    td_true = truth.time_offset if truth is not None else None
+    lever_true = None
+    if truth is not None:
+        lever_true = truth.lever_arm
+    if result.t_imu is not None and td_true is not None:
+        tt = np.asarray(result.t_imu) - td_true
+    else:
+        tt = np.asarray(result.t)
+    p, q, v, valid = truth_at(dataset, tt)
+    X = result.states
+    ok = valid & np.all(np.isfinite(X[:, :10]), axis=1)
+    if not ok.any():
+        raise ValueError("no estimate overlaps the ground truth")
+    ep = X[:, 0:3] - p
+    eth = attitude_error(X[:, 6:10], q)
+    t0 = tt[ok][0]
+    after = ok & (tt >= t0 + skip_s)
+    out: dict[str, Any] = {
+        "estimator": result.estimator,
+        "n_outputs": int(ok.sum()),
+        "position_rmse": float(np.sqrt(np.mean(np.sum(ep[ok] ** 2, axis=1)))),
+        "position_rmse_after": float(np.sqrt(np.mean(np.sum(ep[after] ** 2, axis=1)))) if after.any() else None,
+        "position_rmse_after_skip_s": float(skip_s),
+        "position_rmse_axes": np.sqrt(np.mean(ep[ok] ** 2, axis=0)).tolist(),
+        "orientation_rmse_deg": float(np.degrees(np.sqrt(np.mean(np.sum(eth[ok] ** 2, axis=1))))),
+    }
+    if v is not None:
+        ev = X[:, 3:6] - v
+        out["velocity_rmse"] = float(np.sqrt(np.mean(np.sum(ev[ok] ** 2, axis=1))))
+    # NEES on the blocks with truth (error = truth ⊟ estimate)
+    blocks = [(slice(0, 3), -ep), (slice(6, 9), eth)]
+    if v is not None:
+        blocks.append((slice(3, 6), v - X[:, 3:6]))
+    if lever_true is not None and np.all(np.isfinite(result.sd[:, 15:18])):
+        blocks.append((slice(15, 18), np.asarray(lever_true) - X[:, 16:19]))
+    if td_true is not None and np.all(np.isfinite(result.sd[:, 18])):
+        blocks.append((slice(18, 19), (td_true - X[:, 19])[:, None]))
+    idx = np.concatenate([np.arange(19)[s] for s, _ in blocks])
+    err = np.concatenate([e for _, e in blocks], axis=1)  # truth ⊟ estimate
+    if result.covariances is not None:
+        cov = result.covariances[:, idx][:, :, idx]
+    else:
+        cov = np.stack([np.diag(r[idx] ** 2) for r in result.sd])
+    nees = nees_series(err[ok], cov[ok])
+    out["nees_mean"] = float(np.nanmean(nees))
+    out["nees_dof"] = int(len(idx))
+    if lever_true is not None:
+        e = X[-1, 16:19] - np.asarray(lever_true)
+        sdl = result.sd[-1, 15:18]
+        out["lever_arm_error"] = e.tolist()
+        out["lever_arm_error_norm"] = float(np.linalg.norm(e))
+        out["lever_arm_within_3sigma"] = bool(np.all(np.abs(e) <= 3 * sdl)) if np.all(np.isfinite(sdl)) else None
+    if td_true is not None:
+        e = float(X[-1, 19] - td_true)
+        s = float(result.sd[-1, 18])
+        out["time_offset_error"] = e
+        out["time_offset_within_3sigma"] = bool(abs(e) <= 3 * s) if np.isfinite(s) else None
+    return out

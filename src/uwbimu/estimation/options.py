@@ -1,0 +1,144 @@
+"""Options of the error-state EKF, in one typed place (pydantic, loadable from YAML).
+
+Every number the estimator uses is here; ``examples/estimator.yaml`` lists
+them all with their defaults.  Calibration parameters have a *mode*:
+
+* ``estimate``: in the state and corrected by the updates;
+* ``consider``: kept in the covariance with its prior but never corrected
+  (Schmidt / consider update: the uncertainty of a frozen value is accounted
+  for in every other state's covariance);
+* ``fixed``: taken as exactly known (zero covariance).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal, Optional, Union
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field
+
+from uwbimu.models.imu import ImuNoise, imu_preset
+
+Mode = Literal["estimate", "consider", "fixed"]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class LeverArmOptions(_Strict):
+    mode: Mode = "estimate"
+    prior: Optional[list[float]] = Field(
+        default=None, min_length=3, max_length=3,
+        description="prior lever arm [m] (IMU frame); None: the dataset's tag lever arm, else zero",
+    )
+    prior_sd: float = Field(default=0.3, gt=0, description="prior sd per axis [m]")
+    random_walk: float = Field(default=0.0, ge=0, description="process noise density [m/sqrt(s)]")
+
+
+class TimeOffsetOptions(_Strict):
+    mode: Mode = "estimate"
+    prior: Optional[float] = Field(default=None, description="prior t_d [s]; None: from the initialiser's grid search (or 0)")
+    prior_sd: float = Field(default=0.1, gt=0, description="prior sd [s] when no grid search is made")
+    random_walk: float = Field(default=0.0, ge=0, description="process noise density [s/sqrt(s)]")
+
+
+class AnchorBiasOptions(_Strict):
+    mode: Mode = "fixed"
+    prior_sd: float = Field(default=0.1, gt=0, description="prior sd of each anchor's constant range bias [m]")
+
+
+class GatingOptions(_Strict):
+    probability: float = Field(default=0.999, gt=0, le=1, description="chi2(1) gate level; 1 disables the gate")
+    robust: Literal["none", "huber", "geman-mcclure"] = "huber"
+    robust_c: float = Field(default=2.5, gt=0, description="robust-loss threshold in innovation sigmas")
+    reopen_after: int = Field(default=20, ge=1, description="accept an anchor's range after this many consecutive rejections")
+
+
+class InitOptions(_Strict):
+    window_s: float = Field(default=1.0, gt=0, description="ranges / accelerometer window for the first fix [s]")
+    position_sd: float = Field(default=0.3, gt=0, description="[m]")
+    velocity_sd: float = Field(default=0.5, gt=0, description="[m/s]")
+    roll_pitch_sd_deg: float = Field(default=5.0, gt=0)
+    yaw: Optional[float] = Field(default=None, description="known initial yaw [rad]; None: search a bank of hypotheses")
+    yaw_sd_deg: float = Field(default=15.0, gt=0, description="yaw sd after the bank search (or around `yaw`)")
+    yaw_hypotheses: int = Field(default=12, ge=1)
+    bank_window_s: float = Field(default=8.0, gt=0, description="length of data each hypothesis is scored on [s]")
+    search_time_offset: bool = True
+    td_grid: list[float] = Field(
+        default_factory=lambda: [round(-0.25 + 0.05 * i, 3) for i in range(11)],
+        description="time-offset hypotheses [s] of the coarse grid search",
+    )
+    td_sd_after_grid: float = Field(default=0.03, gt=0, description="t_d prior sd around the best grid point [s]")
+
+
+class SupervisorOptions(_Strict):
+    enabled: bool = True
+    max_position_sd: float = Field(default=20.0, gt=0, description="[m]; above: divergence")
+    hull_margin: float = Field(default=10.0, gt=0, description="[m] beyond the anchors' bounding box: divergence")
+    all_reject_run: int = Field(default=100, ge=1, description="consecutive rejections (all anchors): divergence")
+    max_reinit: int = Field(default=5, ge=0)
+
+
+class ExcitationOptions(_Strict):
+    window_s: float = Field(default=5.0, gt=0, description="sliding window [s]")
+    min_rotation_rate: float = Field(default=0.3, gt=0, description="RMS body rate below which the lever arm is not excited [rad/s]")
+    min_acceleration: float = Field(default=0.3, gt=0, description="RMS world acceleration below which t_d is not excited [m/s^2]")
+    sd_ratio_warn: float = Field(default=0.5, gt=0, le=1, description="warn when a final sd exceeds this fraction of its prior")
+
+
+class EskfOptions(_Strict):
+    """All settings of :func:`uwbimu.estimation.run_eskf`."""
+
+    imu_noise: Optional[Union[str, ImuNoise]] = Field(
+        default=None, description="preset name or densities; None: the dataset's imu_noise, else 'bmi088'"
+    )
+    imu_noise_scale: float = Field(default=1.0, gt=0, description="multiplies every IMU density (tuning)")
+    range_sigma: Optional[float] = Field(default=None, gt=0, description="[m]; None: the dataset's, else 0.1")
+    accel_bias_sd: Optional[float] = Field(default=None, gt=0, description="initial sd [m/s^2]; None: from the IMU noise")
+    gyro_bias_sd: Optional[float] = Field(default=None, gt=0, description="initial sd [rad/s]; None: from the IMU noise")
+    lever_arm: LeverArmOptions = Field(default_factory=LeverArmOptions)
+    time_offset: TimeOffsetOptions = Field(default_factory=TimeOffsetOptions)
+    anchor_bias: AnchorBiasOptions = Field(default_factory=AnchorBiasOptions)
+    gating: GatingOptions = Field(default_factory=GatingOptions)
+    init: InitOptions = Field(default_factory=InitOptions)
+    supervisor: SupervisorOptions = Field(default_factory=SupervisorOptions)
+    excitation: ExcitationOptions = Field(default_factory=ExcitationOptions)
+    tag: Optional[str] = Field(default=None, description="tag to use when the log has several; None: the first")
+    cov_every: int = Field(default=1, ge=1, description="IMU samples per covariance step (preintegrated block)")
+    output_rate_hz: float = Field(default=20.0, gt=0)
+    store_covariance: bool = True
+    max_lookback_s: float = Field(default=0.6, gt=0, description="how far back a range may be predicted [s]")
+    imu_gap_factor: float = Field(default=3.0, gt=1, description="an IMU interval longer than this many nominal periods is a gap")
+    uwb_outage_s: float = Field(default=1.0, gt=0, description="no accepted range for this long: outage warning [s]")
+    verbose: bool = Field(default=False, description="print warnings to the console as they happen")
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "EskfOptions":
+        """Load options from a YAML file (unknown keys are an error naming the key)."""
+        path = Path(path)
+        try:
+            data = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise ValueError(f"{path}: not valid YAML: {exc}") from exc
+        if not isinstance(data, dict):
+            raise ValueError(f"{path}: expected a mapping of options at top level")
+        if "estimator" in data and isinstance(data["estimator"], dict) and len(data) == 1:
+            data = data["estimator"]
+        try:
+            return cls.model_validate(data)
+        except Exception as exc:  # pydantic ValidationError names the field
+            raise ValueError(f"{path}: invalid estimator options:\n{exc}") from exc
+
+    def resolve_imu_noise(self, dataset_noise: Optional[ImuNoise]) -> ImuNoise:
+        """IMU noise densities to use (option > dataset.yaml > BMI088 preset), scaled."""
+        if isinstance(self.imu_noise, str):
+            n = imu_preset(self.imu_noise)
+        elif isinstance(self.imu_noise, ImuNoise):
+            n = self.imu_noise
+        elif dataset_noise is not None:
+            n = dataset_noise
+        else:
+            n = imu_preset("bmi088")
+        return n.scaled(self.imu_noise_scale) if self.imu_noise_scale != 1.0 else n

@@ -1,0 +1,216 @@
+"""Files written for an estimation run (``uwbimu estimate DATASET --out OUT``).
+
+* ``trajectory.csv``: ``t, px, py, pz, qw, qx, qy, qz, vx, vy, vz`` and the
+  standard deviations ``sd_px .. sd_vz, sd_thx .. sd_thz`` (UWB clock, pose of
+  the IMU frame; attitude sd of the body-frame error, rad);
+* ``states.csv``: every output with the full state and the 19 sd (biases,
+  lever arm, time offset over time);
+* ``calibration.yaml``: calibration values and sd, the configuration, the
+  uwbimu version, the warnings;
+* ``residuals.csv``: ``t, anchor, range, predicted, innovation, nis, accepted``;
+* ``events.yaml``: the machine-readable event log;
+* with ground truth: ``metrics.yaml`` and PNG plots (trajectory, position
+  errors with +/-3 sigma, lever arm and time offset with +/-3 sigma bands,
+  NIS histogram against chi-square(1)).
+
+Everything is written atomically; works for any :class:`EstimationResult`.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+import pandas as pd
+from scipy.stats import chi2
+
+import uwbimu
+from uwbimu.io import atomic
+from uwbimu.io.dataset import Dataset
+from uwbimu.models.state import ERROR_STATE_NAMES, NOMINAL_STATE_NAMES
+
+TRAJ_COLUMNS = ["t", "px", "py", "pz", "qw", "qx", "qy", "qz", "vx", "vy", "vz"]
+TRAJ_SD = ["sd_px", "sd_py", "sd_pz", "sd_vx", "sd_vy", "sd_vz", "sd_thx", "sd_thy", "sd_thz"]
+RESIDUAL_COLUMNS = ["t", "anchor", "range", "predicted", "innovation", "nis", "accepted"]
+
+
+def trajectory_frame(result) -> pd.DataFrame:
+    """``trajectory.csv`` as a DataFrame."""
+    X = result.states
+    df = pd.DataFrame({"t": result.t})
+    for i, c in enumerate(["px", "py", "pz"]):
+        df[c] = X[:, i]
+    for i, c in enumerate(["qw", "qx", "qy", "qz"]):
+        df[c] = X[:, 6 + i]
+    for i, c in enumerate(["vx", "vy", "vz"]):
+        df[c] = X[:, 3 + i]
+    for i, c in enumerate(TRAJ_SD):
+        df[c] = result.sd[:, i]
+    return df
+
+
+def states_frame(result) -> pd.DataFrame:
+    """Full state and error-state sd at every output (``states.csv``)."""
+    df = pd.DataFrame({"t": result.t})
+    if result.t_imu is not None:
+        df["t_imu"] = result.t_imu
+    for i, c in enumerate(NOMINAL_STATE_NAMES):
+        df[c] = result.states[:, i]
+    for i, c in enumerate(ERROR_STATE_NAMES):
+        df[f"sd_{c}"] = result.sd[:, i]
+    return df
+
+
+def residual_table(result) -> pd.DataFrame:
+    """Per-anchor residual statistics: count, accepted, rejected %, median, MAD of innovations [m]."""
+    r = result.residuals
+    rows = []
+    for a, g in r.groupby("anchor", sort=True):
+        inn = g["innovation"].to_numpy(float)
+        proc = np.isfinite(inn)
+        acc = g["accepted"].to_numpy(bool)
+        med = float(np.median(inn[proc])) if proc.any() else math.nan
+        mad = float(np.median(np.abs(inn[proc] - med))) if proc.any() else math.nan
+        rows.append({
+            "anchor": str(a), "ranges": int(len(g)), "processed": int(proc.sum()), "accepted": int(acc.sum()),
+            "rejected_pct": float(100.0 * (proc & ~acc).sum() / max(proc.sum(), 1)),
+            "median": med, "mad": mad,
+        })
+    return pd.DataFrame(rows, columns=["anchor", "ranges", "processed", "accepted", "rejected_pct", "median", "mad"])
+
+
+def _plain(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _plain(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        return None if not np.isfinite(obj) else float(obj)
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
+def write_outputs(result, dataset: Dataset, out_dir: str | Path, plots: bool = True,
+                  metrics: Optional[dict[str, Any]] = None) -> dict[str, Any]:
+    """Write the files of an estimation run into ``out_dir`` (created if needed).
+
+    Returns ``{"files": [paths], "residual_table": DataFrame, "metrics": dict or None}``.
+    """
+    from uwbimu.estimation.metrics import compute_metrics
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files: list[Path] = []
+    fmt = "%.9g"
+    files.append(atomic.write_csv(out / "trajectory.csv", trajectory_frame(result), float_format=fmt))
+    files.append(atomic.write_csv(out / "states.csv", states_frame(result), float_format=fmt))
+    res = result.residuals.reindex(columns=RESIDUAL_COLUMNS)
+    files.append(atomic.write_csv(out / "residuals.csv", res, float_format=fmt))
+    calib = {
+        **_plain(result.calibration),
+        "estimator": result.estimator,
+        "dataset": dataset.meta.name,
+        "uwbimu_version": uwbimu.__version__,
+        "runtime_s": _plain(result.runtime_s),
+        "warnings": list(result.warnings),
+        "config": _plain(result.config),
+    }
+    files.append(atomic.write_yaml(out / "calibration.yaml", calib))
+    files.append(atomic.write_yaml(out / "events.yaml", _plain(result.events)))
+    table = residual_table(result)
+    files.append(atomic.write_csv(out / "residual_table.csv", table, float_format="%.6g"))
+    m = metrics
+    if dataset.groundtruth is not None and len(dataset.groundtruth) > 1:
+        if m is None:
+            m = compute_metrics(result, dataset)
+        files.append(atomic.write_yaml(out / "metrics.yaml", _plain(m)))
+        if plots:
+            files += _plots(result, dataset, out)
+    return {"files": files, "residual_table": table, "metrics": m}
+
+
+def _plots(result, dataset: Dataset, out: Path) -> list[Path]:
+    """PNG plots against ground truth (object API: no global pyplot state)."""
+    from matplotlib.figure import Figure
+
+    from uwbimu.estimation.metrics import truth_at
+
+    files = []
+    truth = dataset.meta.truth
+    td_true = truth.time_offset if truth is not None else None
+    tt = result.t_imu - td_true if (result.t_imu is not None and td_true is not None) else result.t
+    p, q, v, valid = truth_at(dataset, tt)
+    X, sd, t = result.states, result.sd, result.t
+    anchors = dataset.anchors[["x", "y", "z"]].to_numpy(float)
+
+    fig = Figure(figsize=(11, 5))
+    ax = fig.add_subplot(1, 2, 1)
+    ax.plot(p[valid, 0], p[valid, 1], "k-", lw=1, label="truth")
+    ax.plot(X[:, 0], X[:, 1], "C0-", lw=0.8, label="ESKF")
+    ax.plot(anchors[:, 0], anchors[:, 1], "r^", label="anchors")
+    ax.set_xlabel("x [m]"); ax.set_ylabel("y [m]"); ax.set_aspect("equal", adjustable="datalim"); ax.legend()
+    ax.set_title("trajectory (top view)")
+    ax = fig.add_subplot(1, 2, 2)
+    ax.plot(t[valid], p[valid, 2], "k-", lw=1, label="truth z")
+    ax.plot(t, X[:, 2], "C0-", lw=0.8, label="ESKF z")
+    ax.set_xlabel("t [s]"); ax.set_ylabel("z [m]"); ax.legend()
+    files.append(atomic.save_figure(out / "trajectory.png", fig))
+
+    fig = Figure(figsize=(10, 7))
+    for i, c in enumerate("xyz"):
+        ax = fig.add_subplot(3, 1, i + 1)
+        e = X[:, i] - p[:, i]
+        ax.plot(t[valid], e[valid], "C0-", lw=0.8, label=f"error {c}")
+        ax.fill_between(t, -3 * sd[:, i], 3 * sd[:, i], color="C1", alpha=0.3, label="±3σ")
+        ax.set_ylabel(f"{c} [m]")
+        lim = np.nanpercentile(np.abs(e[valid]), 99) * 2 if valid.any() else 1.0
+        ax.set_ylim(-max(lim, 1e-3), max(lim, 1e-3))
+        if i == 0:
+            ax.legend(loc="upper right")
+            ax.set_title("position error with ±3σ")
+    ax.set_xlabel("t [s]")
+    files.append(atomic.save_figure(out / "position_error.png", fig))
+
+    fig = Figure(figsize=(10, 8))
+    lever_true = truth.lever_arm if truth is not None else None
+    for i, c in enumerate("xyz"):
+        ax = fig.add_subplot(4, 1, i + 1)
+        ax.plot(t, X[:, 16 + i], "C0-", lw=0.8, label="estimate")
+        ax.fill_between(t, X[:, 16 + i] - 3 * sd[:, 15 + i], X[:, 16 + i] + 3 * sd[:, 15 + i], color="C0", alpha=0.2,
+                        label="±3σ")
+        if lever_true is not None:
+            ax.axhline(lever_true[i], color="k", ls="--", lw=1, label="truth")
+        ax.set_ylabel(f"p_IU {c} [m]")
+        if i == 0:
+            ax.legend(loc="upper right")
+            ax.set_title("lever arm and time offset")
+    ax = fig.add_subplot(4, 1, 4)
+    ax.plot(t, 1000 * X[:, 19], "C0-", lw=0.8)
+    ax.fill_between(t, 1000 * (X[:, 19] - 3 * sd[:, 18]), 1000 * (X[:, 19] + 3 * sd[:, 18]), color="C0", alpha=0.2)
+    if td_true is not None:
+        ax.axhline(1000 * td_true, color="k", ls="--", lw=1)
+    ax.set_ylabel("t_d [ms]"); ax.set_xlabel("t [s]")
+    files.append(atomic.save_figure(out / "calibration.png", fig))
+
+    fig = Figure(figsize=(6, 4))
+    ax = fig.add_subplot(1, 1, 1)
+    nis = result.residuals["nis"].to_numpy(float)
+    nis = nis[np.isfinite(nis)]
+    if len(nis):
+        hi = max(float(np.percentile(nis, 99)), 8.0)
+        bins = np.linspace(0, hi, 60)
+        ax.hist(np.clip(nis, 0, hi), bins=bins, density=True, alpha=0.6, label="NIS")
+        xs = np.linspace(bins[1] / 2, hi, 300)
+        ax.plot(xs, chi2.pdf(xs, 1), "k-", label="χ²(1)")
+        ax.set_yscale("log")
+        ax.set_title(f"NIS (mean {np.mean(nis):.2f}, expected 1)")
+    ax.set_xlabel("NIS"); ax.legend()
+    files.append(atomic.save_figure(out / "nis.png", fig))
+    return files

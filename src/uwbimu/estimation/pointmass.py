@@ -1,0 +1,578 @@
+"""The seed's 6-state point-mass EKF (seed 002, sections IV and IX).
+
+State ``X = [p, v]`` (world frame, m and m/s), input the world-frame
+acceleration ``U = a_w`` (m/s^2), dynamics ``X' = A X + B U`` (seed eq. 1) and
+range updates ``h = || p_anchor - (p + R p_IU) ||`` (the reference range model
+of :func:`uwbimu.models.reference.range_measurement` with the lever arm and
+time offset *fixed*, not estimated).
+
+Where the world-frame acceleration comes from
+---------------------------------------------
+The seed assumes the inertial-frame acceleration is available from a separate
+attitude system.  Our datasets only hold body-frame IMU readings, so this
+estimator builds its own attitude (ground truth is never used):
+
+* ``attitude="gyro"`` (default): roll and pitch from the mean accelerometer
+  reading over the first ``init_window`` seconds (the vehicle is assumed
+  still, or at least unaccelerated, then), the gyro bias as the mean gyro
+  reading over the same window (only if that window looks static), then pure
+  gyro integration.  Yaw cannot be observed from ranges by a point-mass model,
+  so it comes from outside: ``initial_yaw`` when given, otherwise a bank of
+  ``yaw_hypotheses`` initial yaws (then 5 finer ones around the best) is run
+  over the first ``yaw_window`` seconds and the yaw with the smallest sum of
+  range NIS is kept (needs horizontal acceleration in that window).  The world
+  acceleration is ``R(q) a_m - g``; the accelerometer bias is not estimated.
+  Attitude errors and accelerometer bias enter as extra white acceleration
+  process noise (``accel_error_sd``).
+* ``attitude="identity"``: the IMU axes are taken to be world-aligned, i.e. the
+  IMU columns already hold world-frame specific force — the seed's own
+  simulation assumption; only valid for datasets whose IMU frame does not
+  rotate.
+
+Kernels are numba-compiled; tests pin them to the reference model
+(:mod:`uwbimu.models.reference`) and to finite differences.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Callable, Literal, Optional
+
+import numpy as np
+import pandas as pd
+from numba import njit
+from pydantic import BaseModel, ConfigDict, Field
+
+from uwbimu.estimation.result import EstimationResult
+from uwbimu.models import state as S
+from uwbimu.models.quaternion import quat_exp, quat_multiply, quat_normalize, quat_to_rotmat
+from uwbimu.models.reference import G_WORLD, GRAVITY
+
+__all__ = [
+    "PointMassOptions",
+    "run_pointmass",
+    "PointMassEstimator",
+    "range_and_jacobian",
+    "predict_step",
+    "integrate_attitude",
+    "multilaterate",
+]
+
+
+class PointMassOptions(BaseModel):
+    """Options of the 6-state point-mass EKF (all SI units)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    attitude: Literal["gyro", "identity"] = Field(
+        "gyro", description="source of the body->world rotation used to build world accelerations"
+    )
+    init_window: float = Field(0.25, gt=0, description="s; levelling / gyro-bias / multilateration window")
+    initial_yaw: Optional[float] = Field(
+        None, description="rad; yaw of the IMU at start; None: best of a bank of hypotheses scored on the ranges"
+    )
+    yaw_hypotheses: int = Field(12, ge=1, description="initial-yaw hypotheses of the bank (then 5 finer ones)")
+    yaw_window: float = Field(8.0, gt=0, description="s of data each yaw hypothesis is scored on (sum of NIS)")
+    estimate_gyro_bias: bool = Field(True, description="gyro bias = mean gyro over a static init window")
+    static_gyro_max: float = Field(0.05, gt=0, description="rad/s; max gyro sd for the window to count as static")
+    accel_noise_density: Optional[float] = Field(
+        None, ge=0, description="m/s^2/sqrt(Hz); default: dataset imu_noise, else 0.01"
+    )
+    accel_error_sd: float = Field(
+        0.1, ge=0, description="m/s^2; unmodelled acceleration error (bias, attitude) as extra white noise over 1 s"
+    )
+    range_sigma: Optional[float] = Field(None, gt=0, description="m; default: dataset range_sigma, else 0.1")
+    gate_sigma: float = Field(5.0, gt=0, description="reject ranges with |innovation| > gate_sigma * sqrt(S)")
+    initial_position: Optional[list[float]] = Field(None, min_length=3, max_length=3)
+    initial_position_sd: float = Field(1.0, gt=0, description="m; sd when initial_position is given")
+    initial_velocity_sd: float = Field(1.0, gt=0, description="m/s; initial velocity is zero")
+    mirror: Literal["upper", "lower"] = Field(
+        "upper", description="with 3 (or coplanar) anchors: which mirror solution of the multilateration to take"
+    )
+    lever_arm: Optional[list[float]] = Field(
+        None, min_length=3, max_length=3, description="m, IMU frame; default: dataset tag lever arm, else 0"
+    )
+    time_offset: float = Field(0.0, description="s; fixed (not estimated) t_d")
+    full_covariance: bool = Field(
+        False, description="also return (K, 19, 19) covariances (p, v block filled, NaN elsewhere)"
+    )
+
+
+# --------------------------------------------------------------------------
+# Kernels (numba).  Same relations as models.reference; pinned by tests.
+# --------------------------------------------------------------------------
+@njit(cache=True)
+def _quat_mul(p, q):
+    return np.array(
+        [
+            p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3],
+            p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2],
+            p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1],
+            p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0],
+        ]
+    )
+
+
+@njit(cache=True)
+def _quat_exp(phi):
+    a = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
+    if a < 1e-8:
+        k = 0.5 - a * a / 48.0
+    else:
+        k = math.sin(0.5 * a) / a
+    return np.array([math.cos(0.5 * a), k * phi[0], k * phi[1], k * phi[2]])
+
+
+@njit(cache=True)
+def _integrate_attitude(q0, t, w, b_g):
+    """Gyro integration ``q_{k+1} = q_k ⊗ Exp(dt (w_k + w_{k+1})/2 - dt b_g)``."""
+    n = t.shape[0]
+    out = np.empty((n, 4))
+    q = q0.copy()
+    out[0] = q
+    for k in range(n - 1):
+        dt = t[k + 1] - t[k]
+        phi = dt * (0.5 * (w[k] + w[k + 1]) - b_g)
+        q = _quat_mul(q, _quat_exp(phi))
+        q = q / math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+        out[k + 1] = q
+    return out
+
+
+@njit(cache=True)
+def _predict(x, P, a0, a1, h, q2):
+    """Exact propagation of ``p' = v, v' = a`` over ``h`` with ``a`` linear from a0 to a1.
+
+    Process noise: white acceleration of spectral density ``q2`` [m^2/s^3].
+    """
+    for i in range(3):
+        x[i] += h * x[3 + i] + h * h * (a0[i] / 3.0 + a1[i] / 6.0)
+        x[3 + i] += 0.5 * h * (a0[i] + a1[i])
+    # P <- F P F^T + Q with F = [[I, hI], [0, I]] written block-wise (cheap, exact).
+    Ppp = P[0:3, 0:3].copy()
+    Ppv = P[0:3, 3:6].copy()
+    Pvv = P[3:6, 3:6].copy()
+    P[0:3, 0:3] = Ppp + h * (Ppv + Ppv.T) + h * h * Pvv
+    P[0:3, 3:6] = Ppv + h * Pvv
+    P[3:6, 0:3] = P[0:3, 3:6].T
+    for i in range(3):
+        P[i, i] += q2 * h * h * h / 3.0
+        P[i, 3 + i] += q2 * h * h / 2.0
+        P[3 + i, i] += q2 * h * h / 2.0
+        P[3 + i, 3 + i] += q2 * h
+
+
+@njit(cache=True)
+def _range_h(x, anchor, offset):
+    """Range from antenna ``p + offset`` to ``anchor`` and its Jacobian w.r.t. ``[p, v]``."""
+    d0 = anchor[0] - x[0] - offset[0]
+    d1 = anchor[1] - x[1] - offset[1]
+    d2 = anchor[2] - x[2] - offset[2]
+    r = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    H = np.zeros(6)
+    if r > 1e-9:
+        H[0] = -d0 / r
+        H[1] = -d1 / r
+        H[2] = -d2 / r
+    return r, H
+
+
+@njit(cache=True)
+def _filter(s, aw, x0, P0, q2, tau, anchors, offsets, ranges, sigma, gate):
+    """Run the EKF over IMU stamps ``s`` with ranges at IMU-clock times ``tau`` (sorted).
+
+    Returns states (N, 6), covariances (N, 6, 6) and, per range, predicted
+    range, innovation, NIS and accepted flag.
+    """
+    n = s.shape[0]
+    m = tau.shape[0]
+    X = np.empty((n, 6))
+    Pd = np.empty((n, 6, 6))
+    pred = np.full(m, np.nan)
+    innov = np.full(m, np.nan)
+    nis = np.full(m, np.nan)
+    acc = np.zeros(m, dtype=np.bool_)
+    x = x0.copy()
+    P = P0.copy()
+    X[0] = x
+    Pd[0] = P
+    j = 0
+    while j < m and tau[j] < s[0]:
+        j += 1  # before the first IMU sample: not usable (counted by the caller)
+    r2 = sigma * sigma
+    for k in range(n - 1):
+        dt = s[k + 1] - s[k]
+        tc = s[k]
+        ac = aw[k].copy()
+        while j < m and tau[j] < s[k + 1]:
+            frac = (tau[j] - s[k]) / dt
+            aj = aw[k] + frac * (aw[k + 1] - aw[k])
+            _predict(x, P, ac, aj, tau[j] - tc, q2)
+            tc = tau[j]
+            ac = aj
+            r, H = _range_h(x, anchors[j], offsets[j])
+            PHt = P @ H
+            Sv = H @ PHt + r2
+            y = ranges[j] - r
+            pred[j] = r
+            innov[j] = y
+            nis[j] = y * y / Sv
+            if nis[j] <= gate * gate:
+                K = PHt / Sv
+                x += K * y
+                # Joseph form keeps P symmetric positive definite.
+                IKH = np.eye(6) - np.outer(K, H)
+                P = IKH @ P @ np.ascontiguousarray(IKH.T) + r2 * np.outer(K, K)
+                acc[j] = True
+            j += 1
+        _predict(x, P, ac, aw[k + 1], s[k + 1] - tc, q2)
+        X[k + 1] = x
+        Pd[k + 1] = P
+    return X, Pd, pred, innov, nis, acc
+
+
+# --------------------------------------------------------------------------
+# Python-level helpers (also the functions tests pin to the reference)
+# --------------------------------------------------------------------------
+def range_and_jacobian(x6: np.ndarray, anchor: np.ndarray, offset=(0.0, 0.0, 0.0)) -> tuple[float, np.ndarray]:
+    """Predicted range [m] and its (6,) Jacobian w.r.t. ``[p, v]`` (world frame).
+
+    ``offset`` is the world-frame antenna offset ``R(q) p_IU`` [m].
+    """
+    r, H = _range_h(np.asarray(x6, float), np.asarray(anchor, float), np.asarray(offset, float))
+    return float(r), H
+
+
+def predict_step(x6, P, a0, a1, h: float, q2: float) -> tuple[np.ndarray, np.ndarray]:
+    """One prediction over ``h`` seconds with world accelerations ``a0 -> a1`` (copies in, out)."""
+    x = np.array(x6, float)
+    Pc = np.array(P, float)
+    _predict(x, Pc, np.asarray(a0, float), np.asarray(a1, float), float(h), float(q2))
+    return x, Pc
+
+
+def integrate_attitude(q0, t, w, b_g=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """(N, 4) attitudes from gyro readings ``w`` (N, 3) [rad/s] starting at ``q0``."""
+    return _integrate_attitude(
+        np.asarray(q0, float), np.asarray(t, float), np.ascontiguousarray(w, float), np.asarray(b_g, float)
+    )
+
+
+def multilaterate(
+    anchors: np.ndarray, ranges: np.ndarray, mirror: str = "upper", iters: int = 30
+) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Least-squares position from ranges to anchors (Gauss-Newton).
+
+    Returns ``(p, cov_unit, ambiguous)``: ``cov_unit`` is ``(J^T J)^-1`` (multiply
+    by the range variance); ``ambiguous`` is true when the anchors are coplanar
+    (always the case for 3), in which case the solution mirrored through the
+    anchor plane fits equally well and ``mirror`` picks the one with the larger
+    (``"upper"``) or smaller (``"lower"``) height.
+    """
+    A = np.asarray(anchors, float)
+    rr = np.asarray(ranges, float)
+    c = A.mean(axis=0)
+    _, sv, vt = np.linalg.svd(A - c)
+    ambiguous = len(A) < 4 or sv[-1] < 1e-3 * max(sv[0], 1e-9)
+    n = vt[-1]
+    if n[2] < 0 or (abs(n[2]) < 1e-9 and n[0] < 0):
+        n = -n
+    p = c + (n if mirror == "upper" else -n) * max(float(np.mean(rr)), 1.0) * 0.5
+    if not ambiguous:
+        p = c.copy()
+    for _ in range(iters):
+        d = p - A
+        r = np.linalg.norm(d, axis=1)
+        J = d / np.maximum(r, 1e-9)[:, None]
+        step, *_ = np.linalg.lstsq(J, rr - r, rcond=None)
+        p = p + step
+        if np.linalg.norm(step) < 1e-9:
+            break
+    if ambiguous:
+        # Gauss-Newton may converge onto the other side; reflect onto the requested one.
+        side = float((p - c) @ n)
+        if (mirror == "upper" and side < 0) or (mirror == "lower" and side > 0):
+            p = p - 2.0 * side * n
+    d = p - A
+    J = d / np.maximum(np.linalg.norm(d, axis=1), 1e-9)[:, None]
+    cov = np.linalg.pinv(J.T @ J)
+    return p, cov, bool(ambiguous)
+
+
+def _euler_to_quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    qz = quat_exp(np.array([0.0, 0.0, yaw]))
+    qy = quat_exp(np.array([0.0, pitch, 0.0]))
+    qx = quat_exp(np.array([roll, 0.0, 0.0]))
+    return quat_normalize(quat_multiply(qz, quat_multiply(qy, qx)))
+
+
+def _lever_arms(ds, opts: PointMassOptions) -> dict[str, np.ndarray]:
+    arms = {}
+    for tag in ds.meta.tags:
+        arms[tag.name] = np.array(tag.lever_arm if tag.lever_arm is not None else [0.0, 0.0, 0.0], float)
+    if opts.lever_arm is not None:
+        arms = {k: np.array(opts.lever_arm, float) for k in (arms or {"tag0": None})}
+    return arms
+
+
+# --------------------------------------------------------------------------
+# The estimator
+# --------------------------------------------------------------------------
+def run_pointmass(
+    dataset, options: PointMassOptions | dict | None = None, progress: Optional[Callable[[float], Any]] = None
+) -> EstimationResult:
+    """Run the 6-state point-mass EKF over a dataset.
+
+    Parameters
+    ----------
+    dataset : :class:`uwbimu.io.dataset.Dataset` (IMU readings in the IMU frame on
+        the IMU clock, ranges on the UWB clock).
+    options : :class:`PointMassOptions` or a dict of its fields.
+    progress : optional callable receiving the fraction done (0 then 1; the
+        filter loop itself is compiled and does not report).
+
+    Returns
+    -------
+    :class:`EstimationResult` with output at every IMU sample (stamps on the
+    UWB clock).  Position and velocity carry standard deviations; attitude is
+    the integrated attitude (sd NaN), biases are zero except the gyro bias of
+    the static window (sd NaN), lever arm and time offset are the fixed values
+    (sd NaN).
+    """
+    t_start = time.perf_counter()
+    if options is None:
+        opts = PointMassOptions()
+    elif isinstance(options, PointMassOptions):
+        opts = options
+    else:
+        opts = PointMassOptions.model_validate(options)
+    if progress is not None:
+        progress(0.0)
+    warnings: list[str] = []
+    events: list[dict[str, Any]] = []
+
+    s = dataset.imu_t
+    u = dataset.imu_u
+    if len(s) < 2:
+        raise ValueError("point-mass EKF needs at least two IMU samples")
+    if np.any(np.diff(s) <= 0):
+        raise ValueError("IMU stamps must be strictly increasing")
+    t_d = float(opts.time_offset)
+
+    # ---- attitude source (yaw 0 first; a yaw is a left rotation about world z) ----
+    win = s <= s[0] + opts.init_window
+    if win.sum() < 2:
+        win[:2] = True
+    b_g = np.zeros(3)
+    if opts.attitude == "gyro":
+        f = u[win, 0:3].mean(axis=0)
+        roll = math.atan2(f[1], f[2])
+        pitch = math.atan2(-f[0], math.hypot(f[1], f[2]))
+        q0 = _euler_to_quat(roll, pitch, 0.0)
+        static = bool(np.all(u[win, 3:6].std(axis=0) < opts.static_gyro_max)) and abs(np.linalg.norm(f) - GRAVITY) < 0.3
+        if opts.estimate_gyro_bias:
+            if static:
+                b_g = u[win, 3:6].mean(axis=0)
+            else:
+                warnings.append(
+                    f"initial window ({opts.init_window:g} s) is not static: gyro bias not estimated, levelling may be off"
+                )
+                events.append({"t": float(s[0] - t_d), "kind": "init_not_static"})
+        quats0 = integrate_attitude(q0, s, u[:, 3:6], b_g)
+        R0 = quat_to_rotmat(quats0)
+        f_world0 = np.einsum("nij,nj->ni", R0, u[:, 0:3])
+    else:
+        quats0 = np.tile(np.array([1.0, 0.0, 0.0, 0.0]), (len(s), 1))
+        R0 = np.broadcast_to(np.eye(3), (len(s), 3, 3))
+        f_world0 = u[:, 0:3].copy()
+
+    # ---- ranges ----------------------------------------------------------
+    uwb = dataset.uwb.sort_values("t", kind="stable")
+    anchor_pos = dataset.anchor_positions()
+    ids = uwb["anchor"].astype(str).to_numpy()
+    unknown = sorted(set(ids) - set(anchor_pos))
+    if unknown:
+        raise ValueError(f"uwb ranges reference anchors not in anchors table: {unknown}")
+    rng_meas = uwb["range"].to_numpy(float).copy()
+    if dataset.meta.known_anchor_bias:
+        for a, b in dataset.meta.known_anchor_bias.items():
+            rng_meas[ids == str(a)] -= b
+    tau = uwb["t"].to_numpy(float) + t_d  # IMU-clock time of each range
+    A = dataset.anchor_array(ids) if len(ids) else np.zeros((0, 3))
+    arms = _lever_arms(dataset, opts)
+    if "tag" in uwb.columns:
+        tags = uwb["tag"].astype(str).to_numpy()
+        missing = sorted(set(tags) - set(arms))
+        if missing:
+            raise ValueError(f"uwb ranges from tags without a lever arm in dataset.yaml: {missing}")
+        arm_per = np.array([arms[tg] for tg in tags]) if len(tags) else np.zeros((0, 3))
+    else:
+        arm0 = next(iter(arms.values())) if arms else np.zeros(3)
+        arm_per = np.tile(arm0, (len(ids), 1))
+    kk = np.clip(np.searchsorted(s, tau), 0, len(s) - 1)
+    off_world0 = np.einsum("nij,nj->ni", R0[kk], arm_per) if len(ids) else np.zeros((0, 3))
+
+    def inputs(yaw: float):
+        """World accelerations and antenna offsets for an initial yaw (rotation about world z)."""
+        c, sn = math.cos(yaw), math.sin(yaw)
+        Rz = np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]])
+        aw = np.ascontiguousarray(f_world0 @ Rz.T - G_WORLD)
+        return aw, np.ascontiguousarray(off_world0 @ Rz.T), Rz
+    n_before = int(np.sum(tau < s[0]))
+    n_after = int(np.sum(tau >= s[-1]))
+    if n_before or n_after:
+        warnings.append(f"{n_before + n_after} ranges outside the IMU time span were not used")
+
+    meta_noise = dataset.meta.imu_noise
+    dens = opts.accel_noise_density
+    if dens is None:
+        dens = meta_noise.accel_noise_density if meta_noise is not None else 0.01
+    q2 = dens**2 + opts.accel_error_sd**2  # (m/s^2)^2/Hz; the extra term is "sd over 1 s"
+    sigma = opts.range_sigma or dataset.meta.range_sigma or 0.1
+
+    # ---- initial state ---------------------------------------------------
+    x0 = np.zeros(6)
+    P0 = np.zeros((6, 6))
+    p_ant = None
+    if opts.initial_position is not None:
+        x0[0:3] = opts.initial_position
+        P0[0:3, 0:3] = np.eye(3) * opts.initial_position_sd**2
+    else:
+        first = tau <= s[0] + opts.init_window
+        if len(set(ids[first])) < 3:
+            first = np.zeros(len(tau), bool)
+            seen: set = set()
+            for i, a in enumerate(ids):
+                first[i] = True
+                seen.add(a)
+                if len(seen) >= 4 or (len(seen) == len(anchor_pos) and len(seen) >= 3):
+                    break
+        win_ids = ids[first]
+        uniq = sorted(set(win_ids))
+        if len(uniq) < 3:
+            raise ValueError("cannot initialise: fewer than 3 anchors heard and no initial_position given")
+        med = np.array([np.median(rng_meas[first][win_ids == a]) for a in uniq])
+        p_ant, cov, ambiguous = multilaterate(np.array([anchor_pos[a] for a in uniq]), med, opts.mirror)
+        P0[0:3, 0:3] = cov * sigma**2 + np.eye(3) * 0.05**2
+        if ambiguous:
+            warnings.append(
+                f"initial position from {len(uniq)} coplanar anchors is ambiguous (mirror solution); "
+                f"took the {opts.mirror} one"
+            )
+            events.append({"t": float(s[0] - t_d), "kind": "init_mirror_ambiguity", "choice": opts.mirror})
+    P0[3:6, 3:6] = np.eye(3) * opts.initial_velocity_sd**2
+    arm0 = next(iter(arms.values())) if arms else np.zeros(3)
+    tau_c = np.ascontiguousarray(tau)
+    A_c = np.ascontiguousarray(A)
+
+    def start(Rz):
+        x = x0.copy()
+        if p_ant is not None:
+            x[0:3] = p_ant - Rz @ (R0[0] @ arm0)
+        return x
+
+    # ---- initial yaw: given, or the best of a bank of hypotheses ---------
+    if opts.attitude == "identity":
+        yaw = 0.0
+    elif opts.initial_yaw is not None:
+        yaw = float(opts.initial_yaw)
+    else:
+        n_w = int(np.searchsorted(s, s[0] + opts.yaw_window)) + 1
+        n_w = min(max(n_w, 2), len(s))
+        m_w = int(np.searchsorted(tau_c, s[n_w - 1]))
+        gate2 = float(opts.gate_sigma) ** 2
+
+        def score(y):
+            aw_y, off_y, Rz = inputs(y)
+            out = _filter(s[:n_w], aw_y[:n_w], start(Rz), P0, q2, tau_c[:m_w], A_c[:m_w], off_y[:m_w],
+                          rng_meas[:m_w], float(sigma), float(opts.gate_sigma))
+            nis_y = out[4]
+            return float(np.sum(np.minimum(np.nan_to_num(nis_y, nan=0.0), gate2)))
+
+        K = opts.yaw_hypotheses
+        grid = 2 * math.pi * np.arange(K) / K
+        scores = [score(y) for y in grid]
+        best = float(grid[int(np.argmin(scores))])
+        step = 2 * math.pi / K
+        fine = best + step * np.linspace(-0.5, 0.5, 5)
+        fine_scores = [score(y) for y in fine]
+        yaw = float(math.remainder(float(fine[int(np.argmin(fine_scores))]), 2 * math.pi))
+        events.append({"t": float(s[0] - t_d), "kind": "yaw_bank", "yaw": yaw, "hypotheses": K + 5})
+    aw, offsets, Rz = inputs(yaw)
+    quats = quat_normalize(quat_multiply(quat_exp(np.array([0.0, 0.0, yaw])), quats0)) if yaw != 0.0 else quats0
+
+    X, Pd, pred, innov, nis, accepted = _filter(
+        s, aw, start(Rz), P0, q2, tau_c, A_c, offsets, rng_meas, float(sigma), float(opts.gate_sigma)
+    )
+    in_span = (tau >= s[0]) & (tau < s[-1])
+    n_rej = int(np.sum(in_span & ~accepted))
+    if n_rej:
+        warnings.append(f"{n_rej} of {int(in_span.sum())} ranges rejected by the {opts.gate_sigma:g}-sigma gate")
+
+    # ---- assemble the common result -------------------------------------
+    n = len(s)
+    states = np.zeros((n, S.NOMINAL_DIM))
+    states[:, S.P] = X[:, 0:3]
+    states[:, S.V] = X[:, 3:6]
+    states[:, S.Q] = quats
+    states[:, S.BG] = b_g
+    lever = next(iter(arms.values())) if arms else np.zeros(3)
+    states[:, S.PIU] = lever
+    states[:, S.TD] = t_d
+    sd = np.full((n, S.ERROR_DIM), np.nan)
+    sd[:, 0:6] = np.sqrt(np.maximum(np.diagonal(Pd, axis1=1, axis2=2), 0.0))
+    covariances = None
+    if opts.full_covariance:
+        covariances = np.full((n, S.ERROR_DIM, S.ERROR_DIM), np.nan)
+        covariances[:, 0:6, 0:6] = Pd
+    residuals = pd.DataFrame(
+        {
+            "t": uwb["t"].to_numpy(float),
+            "anchor": ids,
+            "range": rng_meas,
+            "predicted": pred,
+            "innovation": innov,
+            "nis": nis,
+            "accepted": accepted,
+        }
+    )
+    calibration = {
+        "lever_arm": lever.tolist(),
+        "lever_arm_sd": [float("nan")] * 3,
+        "time_offset": t_d,
+        "time_offset_sd": float("nan"),
+        "accel_bias": [0.0, 0.0, 0.0],
+        "accel_bias_sd": [float("nan")] * 3,
+        "gyro_bias": b_g.tolist(),
+        "gyro_bias_sd": [float("nan")] * 3,
+    }
+    if progress is not None:
+        progress(1.0)
+    return EstimationResult(
+        t=s - t_d,
+        states=states,
+        sd=sd,
+        residuals=residuals,
+        calibration=calibration,
+        covariances=covariances,
+        warnings=warnings,
+        events=events,
+        estimator="pointmass",
+        config=opts.model_dump(),
+        runtime_s=time.perf_counter() - t_start,
+        t_imu=s.copy(),
+        extra={"initial_yaw": yaw},
+    )
+
+
+class PointMassEstimator:
+    """:class:`uwbimu.estimation.result.Estimator` wrapper of :func:`run_pointmass`."""
+
+    name = "pointmass"
+
+    def __init__(self, options: PointMassOptions | dict | None = None):
+        self.options = options
+
+    def run(self, dataset, progress: Any = None) -> EstimationResult:
+        return run_pointmass(dataset, self.options, progress)

@@ -1,0 +1,211 @@
+"""Monte Carlo outputs: merged table, per-cell aggregates and plots.
+
+Reads the chunk files of a study folder (see :mod:`uwbimu.eval.montecarlo`) and
+writes ``montecarlo.csv``, ``summary.json`` and the figures:
+
+* ``rmse_distribution.png`` — per-axis position RMSE of every run, box plots
+  per scenario x estimator;
+* ``nees.png`` — position NEES averaged over runs against time, with the
+  two-sided 95% chi-square band for that many runs (3 dof each), per
+  scenario x estimator;
+* ``error_vs_time_<estimator>.png`` — position error per axis against time,
+  one column per scenario (median, 5-95% band and the 2-sigma envelope), in the
+  layout of the seed's figures 2 and 3.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from uwbimu.eval.montecarlo import CHUNK_DIR, ROW_COLUMNS, read_done
+
+AXES = ("x", "y", "z")
+
+
+def _nanstats(x: np.ndarray) -> dict[str, Any]:
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)]
+    if not len(x):
+        return {"n": 0}
+    return {
+        "n": int(len(x)),
+        "mean": float(np.mean(x)),
+        "median": float(np.median(x)),
+        "std": float(np.std(x, ddof=1)) if len(x) > 1 else 0.0,
+        "p05": float(np.percentile(x, 5)),
+        "p95": float(np.percentile(x, 95)),
+        "max": float(np.max(x)),
+    }
+
+
+def summarize(df: pd.DataFrame, cfg, runs: int) -> dict:
+    """Aggregates per scenario x estimator (means, medians, percentiles)."""
+    from scipy import stats
+
+    cells = []
+    for sc in cfg.scenarios:
+        for est in cfg.estimators:
+            d = df[(df["scenario"] == sc.name) & (df["estimator"] == est.name)]
+            ok = d[d["status"] == "ok"]
+            cell: dict[str, Any] = {
+                "scenario": sc.name,
+                "estimator": est.name,
+                "kind": est.kind,
+                "runs": int(len(d)),
+                "failed": int((d["status"] != "ok").sum()),
+                "failure_messages": sorted(set(d.loc[d["status"] != "ok", "error"].astype(str)))[:5],
+            }
+            for c in ("rmse_x", "rmse_y", "rmse_z", "rmse_3d", "max_err_3d", "nees_pos_mean", "lever_arm_err",
+                      "time_offset_err", "ranges_accepted", "sim_s", "est_s"):
+                cell[c] = _nanstats(ok[c].to_numpy(float)) if c in ok else {"n": 0}
+            # RMS over runs of the per-run RMSE: the "per-axis RMSE over all seeds".
+            for a in AXES:
+                v = ok[f"rmse_{a}"].to_numpy(float)
+                v = v[np.isfinite(v)]
+                cell[f"rmse_{a}_all_runs"] = float(np.sqrt(np.mean(v**2))) if len(v) else None
+            nees = ok["nees_pos_mean"].to_numpy(float)
+            nees = nees[np.isfinite(nees)]
+            if len(nees):
+                # Time-averaged NEES of a run is not chi-square (samples are correlated);
+                # report the share of runs within the per-run 95% band of a single sample
+                # as a coarse indicator, and the mean against 3.
+                lo, hi = stats.chi2.ppf([0.025, 0.975], 3)
+                cell["nees_runs_within_single_sample_band"] = float(np.mean((nees > lo) & (nees < hi)))
+                cell["nees_kind"] = sorted(set(ok["nees_kind"].dropna().astype(str)))
+            cells.append(cell)
+    return {"name": cfg.name, "description": cfg.description, "runs_per_scenario": runs,
+            "seed_base": cfg.seed_base, "skip_initial_s": cfg.skip_initial_s, "cells": cells}
+
+
+def load_traces(out: Path, scenario: str, runs: int) -> dict | None:
+    """Concatenate the trace files of one scenario (runs ``< runs``), sorted by run."""
+    files = sorted((out / CHUNK_DIR).glob(f"{scenario}__*.npz"))
+    parts = []
+    for f in files:
+        with np.load(f, allow_pickle=False) as z:
+            parts.append({k: z[k] for k in z.files})
+    if not parts:
+        return None
+    runs_all = np.concatenate([p["runs"] for p in parts])
+    order = np.argsort(runs_all, kind="stable")
+    keep = runs_all[order] < runs
+    idx = order[keep]
+    cat = {k: np.concatenate([p[k] for p in parts], axis=0)[idx] for k in ("err", "sd", "nees")}
+    cat["t"] = parts[0]["t"]
+    cat["estimators"] = [str(x) for x in parts[0]["estimators"]]
+    cat["runs"] = runs_all[idx]
+    return cat
+
+
+def finalize(out: Path, cfg, runs: int, plots: bool = True) -> dict:
+    """Merge chunks into ``montecarlo.csv``, aggregate, plot; return the summary."""
+    from uwbimu.io.atomic import write_csv
+
+    df = read_done(out)
+    df = df[df["run"].astype(int) < runs] if len(df) else df
+    df = df.reindex(columns=ROW_COLUMNS)
+    if len(df):
+        df = df.sort_values(["scenario", "run", "estimator"], kind="stable").reset_index(drop=True)
+    write_csv(out / "montecarlo.csv", df, float_format="%.17g")
+    summary = summarize(df, cfg, runs)
+    if plots and len(df):
+        summary["figures"] = make_plots(out, df, cfg, runs)
+    return summary
+
+
+def make_plots(out: Path, df: pd.DataFrame, cfg, runs: int) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+    from scipy import stats
+
+    from uwbimu.io.atomic import save_figure
+
+    written = []
+    ok = df[df["status"] == "ok"]
+    cells = [(s.name, e.name) for s in cfg.scenarios for e in cfg.estimators]
+
+    # --- error distributions ------------------------------------------------
+    fig = Figure(figsize=(4 + 1.6 * len(cells), 4.2))
+    axs = fig.subplots(1, 3, sharey=True)
+    for a, ax in zip(AXES, axs):
+        data = [ok[(ok["scenario"] == s) & (ok["estimator"] == e)][f"rmse_{a}"].dropna().to_numpy() for s, e in cells]
+        ax.boxplot([d if len(d) else [np.nan] for d in data], showfliers=True)
+        ax.set_xticks(range(1, len(cells) + 1), [f"{s}\n{e}" for s, e in cells], rotation=60, fontsize=7)
+        ax.set_title(f"RMSE {a}")
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+    axs[0].set_ylabel("position RMSE per run [m]")
+    fig.suptitle(f"{cfg.name}: per-axis position RMSE over {runs} runs")
+    save_figure(out / "rmse_distribution.png", fig)
+    written.append("rmse_distribution.png")
+
+    # --- NEES against chi-square bounds --------------------------------------
+    traces = {s.name: load_traces(out, s.name, runs) for s in cfg.scenarios}
+    fig = Figure(figsize=(5 * len(cfg.estimators), 3.2 * len(cfg.scenarios)))
+    axs = np.atleast_2d(fig.subplots(len(cfg.scenarios), len(cfg.estimators), squeeze=False))
+    for i, s in enumerate(cfg.scenarios):
+        tr = traces[s.name]
+        for j, e in enumerate(cfg.estimators):
+            ax = axs[i, j]
+            if tr is None or e.name not in tr["estimators"]:
+                continue
+            k = tr["estimators"].index(e.name)
+            nees = tr["nees"][:, k, :]
+            n_ok = np.sum(np.isfinite(nees), axis=0)
+            with np.errstate(invalid="ignore"):
+                avg = np.nanmean(np.where(np.isfinite(nees), nees, np.nan), axis=0)
+            n = max(int(np.max(n_ok)) if n_ok.size else 0, 1)
+            lo, hi = stats.chi2.ppf([0.025, 0.975], 3 * n) / n
+            ax.semilogy(tr["t"], avg, lw=1, label=f"mean over {n} runs")
+            ax.axhline(3, color="k", lw=0.8, ls="--", label="3 (dof)")
+            ax.axhspan(lo, hi, color="g", alpha=0.2, label="95% band")
+            ax.set_title(f"{s.name} / {e.name}", fontsize=9)
+            ax.set_xlabel("t [s]")
+            ax.set_ylabel("position NEES")
+            ax.grid(alpha=0.3)
+            if i == 0 and j == 0:
+                ax.legend(fontsize=7)
+    save_figure(out / "nees.png", fig)
+    written.append("nees.png")
+
+    # --- error vs time per axis, one figure per estimator (seed figs 2-3) ---
+    for e in cfg.estimators:
+        fig = Figure(figsize=(5 * len(cfg.scenarios), 7))
+        axs = fig.subplots(3, len(cfg.scenarios), squeeze=False, sharex=True)
+        for j, s in enumerate(cfg.scenarios):
+            tr = traces[s.name]
+            if tr is None or e.name not in tr["estimators"]:
+                continue
+            k = tr["estimators"].index(e.name)
+            for a in range(3):
+                ax = axs[a, j]
+                err = tr["err"][:, k, :, a]
+                sd = tr["sd"][:, k, :, a]
+                if not np.any(np.isfinite(err)):
+                    continue
+                with np.errstate(invalid="ignore"):
+                    lo, med, hi = np.nanpercentile(err, [5, 50, 95], axis=0)
+                    sd_med = np.nanmedian(sd, axis=0)
+                ax.fill_between(tr["t"], lo, hi, alpha=0.3, label="5-95% of runs")
+                ax.plot(tr["t"], med, lw=1, label="median")
+                ax.plot(tr["t"], err[0], lw=0.6, color="0.3", label=f"run {int(tr['runs'][0])}")
+                ax.plot(tr["t"], 2 * sd_med, "r--", lw=0.7, label="±2 sd (median)")
+                ax.plot(tr["t"], -2 * sd_med, "r--", lw=0.7)
+                ax.set_ylabel(f"error {AXES[a]} [m]")
+                ax.grid(alpha=0.3)
+                if a == 0:
+                    ax.set_title(s.name, fontsize=10)
+                if a == 0 and j == 0:
+                    ax.legend(fontsize=7)
+            axs[2, j].set_xlabel("t [s]")
+        fig.suptitle(f"{e.name}: position error per axis over {runs} runs")
+        name = f"error_vs_time_{e.name}.png"
+        save_figure(out / name, fig)
+        written.append(name)
+    return written

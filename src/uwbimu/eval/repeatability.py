@@ -1,0 +1,202 @@
+"""Repeatability of the calibration: split a log into K windows and calibrate each.
+
+If the filter's uncertainty is honest, the K window estimates of the lever
+arm and the time offset scatter about as much as the sigma the filter
+reports for each window.  For each parameter we compute
+
+* the spread (sample sd) of the K estimates and the RMS of their reported
+  sigmas, and their ratio (≈ 1 when consistent);
+* ``chi2 = Σ_k (x_k − x̄)² / σ_k²`` with ``x̄`` the inverse-variance weighted
+  mean; for independent windows and honest sigmas it follows χ²(K − 1).
+  A tiny p-value (spread ≫ sigma) means over-confidence — or a parameter
+  that really changes between windows; a chi2 in the lower 1 % tail means
+  the sigmas are conservative.
+
+The estimator is any callable ``dataset -> result`` where ``result`` has a
+``calibration`` dict (an :class:`~uwbimu.estimation.result.EstimationResult`)
+or is that dict, with keys ``lever_arm``, ``lever_arm_sd``, ``time_offset``,
+``time_offset_sd``; the CLI uses :func:`uwbimu.estimation.run_eskf`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Optional
+
+import numpy as np
+from scipy.stats import chi2 as _chi2
+
+from uwbimu.io.dataset import Dataset
+
+PARAMS = ("lx", "ly", "lz", "td")
+
+
+def split_windows(ds: Dataset, k: int, t_range: Optional[tuple[float, float]] = None) -> list[Dataset]:
+    """Cut a dataset into ``k`` consecutive, non-overlapping, equal-length windows.
+
+    Windows are cut on the IMU time span (IMU clock ≈ UWB clock up to the
+    small time offset; a range near a window edge may fall just outside).
+
+    Parameters
+    ----------
+    ds : the dataset.
+    k : number of windows (>= 2).
+    t_range : optional ``(t0, t1)`` [s] to split instead of the whole IMU span.
+
+    Returns
+    -------
+    list of datasets sharing ``anchors`` and ``meta``.
+    """
+    if k < 2:
+        raise ValueError(f"need at least 2 windows, got {k}")
+    t_imu = ds.imu_t
+    t0, t1 = t_range if t_range is not None else (float(t_imu[0]), float(t_imu[-1]))
+    if not t1 > t0:
+        raise ValueError(f"empty time range {t0}..{t1}")
+    edges = np.linspace(t0, t1, k + 1)
+    out = []
+    for i in range(k):
+        a, b = edges[i], edges[i + 1]
+        last = i == k - 1
+
+        def sel(df):
+            t = df["t"].to_numpy(float)
+            m = (t >= a) & ((t <= b) if last else (t < b))
+            return df[m].reset_index(drop=True)
+
+        gt = sel(ds.groundtruth) if ds.groundtruth is not None else None
+        meta = ds.meta.model_copy(update={"name": f"{ds.meta.name}[window {i + 1}/{k}]"})
+        out.append(Dataset(imu=sel(ds.imu), uwb=sel(ds.uwb), anchors=ds.anchors, groundtruth=gt, meta=meta))
+    return out
+
+
+def _calibration_of(result: Any) -> dict:
+    cal = getattr(result, "calibration", result)
+    if not isinstance(cal, dict):
+        raise TypeError(f"estimator returned {type(result).__name__} without a calibration dict")
+    return cal
+
+
+def _values(cal: dict) -> tuple[dict, dict]:
+    la = cal.get("lever_arm")
+    las = cal.get("lever_arm_sd")
+    vals, sds = {}, {}
+    if la is not None:
+        for i, n in enumerate(("lx", "ly", "lz")):
+            vals[n] = float(la[i])
+            sds[n] = float(las[i]) if las is not None and las[i] is not None else float("nan")
+    if cal.get("time_offset") is not None:
+        vals["td"] = float(cal["time_offset"])
+        s = cal.get("time_offset_sd")
+        sds["td"] = float(s) if s is not None else float("nan")
+    return vals, sds
+
+
+def consistency(values: np.ndarray, sds: np.ndarray, level: float = 0.01) -> dict:
+    """Spread of repeated estimates against their predicted sigmas.
+
+    Parameters
+    ----------
+    values : (K,) estimates of one parameter.
+    sds : (K,) their reported 1-sigma.
+    level : two-sided significance level of the χ²(K−1) test.
+
+    Returns
+    -------
+    dict: n, mean (weighted), std (sample), rms_sd, ratio, chi2, dof, p_value, verdict
+    (``consistent``, ``over-confident`` (spread ≫ σ), ``under-confident`` (σ ≫ spread),
+    or ``not estimated`` when σ is zero/NaN).
+    """
+    x = np.asarray(values, float)
+    s = np.asarray(sds, float)
+    ok = np.isfinite(x) & np.isfinite(s) & (s > 0)
+    n = int(ok.sum())
+    out = {"n": n, "mean": float(np.nanmean(x)) if len(x) else float("nan"),
+           "std": float(np.std(x[np.isfinite(x)], ddof=1)) if np.isfinite(x).sum() > 1 else float("nan"),
+           "rms_sd": float("nan"), "ratio": float("nan"), "chi2": float("nan"), "dof": max(n - 1, 0),
+           "p_value": float("nan"), "verdict": "not estimated"}
+    if n < 2:
+        if n < 2 and np.isfinite(x).sum() >= 2:
+            out["verdict"] = "not estimated (sigma zero or missing)"
+        return out
+    x, s = x[ok], s[ok]
+    w = 1.0 / s**2
+    xbar = float(np.sum(w * x) / np.sum(w))
+    c2 = float(np.sum((x - xbar) ** 2 * w))
+    dof = n - 1
+    p_hi = float(_chi2.sf(c2, dof))  # probability of a spread at least this large
+    p_lo = float(_chi2.cdf(c2, dof))
+    verdict = "consistent"
+    if p_hi < level / 2:
+        verdict = "over-confident"
+    elif p_lo < level / 2:
+        verdict = "under-confident"
+    rms = float(np.sqrt(np.mean(s**2)))
+    std = float(np.std(x, ddof=1))
+    out.update(mean=xbar, std=std, rms_sd=rms, ratio=std / rms, chi2=c2, dof=dof, p_value=p_hi, verdict=verdict)
+    return out
+
+
+def repeatability(
+    ds: Dataset,
+    k: int,
+    estimator: Callable[[Dataset], Any],
+    level: float = 0.01,
+    progress: Optional[Callable[[int, int], None]] = None,
+    t_range: Optional[tuple[float, float]] = None,
+) -> dict:
+    """Calibrate each of ``k`` windows with ``estimator`` and test the spread.
+
+    Parameters
+    ----------
+    ds : the log.
+    k : number of windows.
+    estimator : callable ``Dataset -> EstimationResult`` (or calibration dict).
+    level : significance level of the consistency test.
+    progress : optional callback ``(done, total)``.
+
+    Returns
+    -------
+    dict (JSON-serialisable): ``k``, ``window_s``, ``windows`` (per window:
+    ``t0, t1, t_mid, values, sd, warnings`` or ``error``), ``parameters``
+    (per parameter: :func:`consistency` + ``truth``/``mean_error`` when the
+    dataset's truth is known), ``n_failed``.
+    """
+    wins = split_windows(ds, k, t_range=t_range)
+    records = []
+    for i, w in enumerate(wins):
+        t0, t1 = float(w.imu_t[0]) if len(w.imu) else float("nan"), float(w.imu_t[-1]) if len(w.imu) else float("nan")
+        rec: dict = {"i": i, "t0": t0, "t1": t1, "t_mid": 0.5 * (t0 + t1), "n_imu": len(w.imu), "n_uwb": len(w.uwb)}
+        try:
+            res = estimator(w)
+            vals, sds = _values(_calibration_of(res))
+            rec["values"], rec["sd"] = vals, sds
+            rec["warnings"] = list(getattr(res, "warnings", []) or [])
+        except Exception as exc:  # a window that fails is reported, not fatal
+            rec["error"] = f"{type(exc).__name__}: {exc}"
+        records.append(rec)
+        if progress is not None:
+            progress(i + 1, len(wins))
+    truth = {}
+    if ds.meta.truth is not None:
+        if ds.meta.truth.lever_arm is not None:
+            truth.update(dict(zip(("lx", "ly", "lz"), map(float, ds.meta.truth.lever_arm))))
+        if ds.meta.truth.time_offset is not None:
+            truth["td"] = float(ds.meta.truth.time_offset)
+    params = {}
+    for p in PARAMS:
+        ok = [r for r in records if p in r.get("values", {})]
+        if not ok:
+            continue
+        st = consistency(np.array([r["values"][p] for r in ok]), np.array([r["sd"][p] for r in ok]), level=level)
+        if p in truth:
+            st["truth"] = truth[p]
+            st["mean_error"] = st["mean"] - truth[p]
+        params[p] = st
+    return {
+        "k": k,
+        "window_s": float(np.mean([r["t1"] - r["t0"] for r in records])),
+        "level": level,
+        "windows": records,
+        "parameters": params,
+        "n_failed": int(sum("error" in r for r in records)),
+    }

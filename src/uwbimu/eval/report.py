@@ -1,0 +1,607 @@
+"""One self-contained HTML calibration report for an estimator output folder.
+
+:func:`write_report` reads what ``uwbimu estimate`` (and optionally
+``uwbimu evaluate``, ``uwbimu repeatability`` and the observability analysis)
+wrote into ``OUT`` and renders ``OUT/report.html``: every plot is an embedded
+base64 PNG, there is no script and no external URL, so the file opens offline
+and can be mailed as is.
+
+Sections (``<section id=...>``; a section whose input is missing says so):
+
+``calibration``    lever arm and time offset ± 1 sigma (and the documented/true
+                   value with its z-score when known), IMU biases
+``convergence``    lever arm and time offset over time with ±3 sigma bands
+                   (``states.csv`` or ``trajectory.csv`` columns ``lx, ly, lz, td`` + ``sd_*``)
+``residuals``      per-anchor innovation table: median, MAD, rejected %, flags
+``nis``            histogram of the range NIS against the chi-square(1) density
+``trajectory``     top view (and errors with ±3 sigma when ground truth exists)
+``repeatability``  spread over windows vs predicted sigma (``repeatability.json``)
+``observability``  excitation / observability timeline (``observability.csv``)
+``warnings``       estimator warnings
+"""
+
+from __future__ import annotations
+
+import base64
+import datetime as _dt
+import html
+import io
+import json
+import os
+from pathlib import Path
+from typing import Any, Optional, Sequence, Union
+
+import numpy as np
+import pandas as pd
+
+from uwbimu.eval.files import EvalInputError, load_yaml
+from uwbimu.eval.report_template import PAGE
+from uwbimu.io.atomic import write_text
+
+#: Accepted column names of the calibration history in trajectory.csv (first match wins).
+CAL_COLUMNS = {
+    "lx": ("lx", "lever_x", "p_iu_x", "piu_x", "lever_arm_x"),
+    "ly": ("ly", "lever_y", "p_iu_y", "piu_y", "lever_arm_y"),
+    "lz": ("lz", "lever_z", "p_iu_z", "piu_z", "lever_arm_z"),
+    "td": ("td", "t_d", "time_offset"),
+}
+SECTION_TITLES = {
+    "calibration": "Calibration",
+    "convergence": "Convergence",
+    "residuals": "Per-anchor residuals",
+    "nis": "NIS",
+    "trajectory": "Trajectory and errors",
+    "repeatability": "Repeatability",
+    "observability": "Observability / excitation",
+    "warnings": "Warnings",
+}
+
+
+# --------------------------------------------------------------------------- helpers
+def figure_data_uri(fig, dpi: int = 90) -> str:
+    """PNG of a matplotlib ``Figure`` as a ``data:`` URI (figure is not kept)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    FigureCanvasAgg(fig)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _fig(name: str, fig, caption: str) -> str:
+    return (
+        f'<figure id="fig-{name}"><img alt="{html.escape(caption)}" src="{figure_data_uri(fig)}">'
+        f"<figcaption>{caption}</figcaption></figure>"
+    )
+
+
+def _e(x: Any) -> str:
+    return html.escape(str(x))
+
+
+def _fmt(x: Any, nd: int = 4) -> str:
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return _e(x)
+    if not np.isfinite(v):
+        return "–"
+    return f"{v:.{nd}f}"
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]], row_classes: Optional[Sequence[str]] = None,
+           left: int = 1) -> str:
+    h = "".join(f'<th class="l">{_e(c)}</th>' if i < left else f"<th>{_e(c)}</th>" for i, c in enumerate(header))
+    body = []
+    for k, r in enumerate(rows):
+        cls = f' class="{row_classes[k]}"' if row_classes and row_classes[k] else ""
+        cells = "".join(f'<td class="l">{c}</td>' if i < left else f"<td>{c}</td>" for i, c in enumerate(r))
+        body.append(f"<tr{cls}>{cells}</tr>")
+    return f"<table><thead><tr>{h}</tr></thead><tbody>{''.join(body)}</tbody></table>"
+
+
+def _missing(text: str) -> str:
+    return f'<p class="note">Not available: {text}</p>'
+
+
+def _find_col(df: pd.DataFrame, names: Sequence[str]) -> Optional[str]:
+    lower = {c.lower(): c for c in df.columns}
+    for n in names:
+        if n.lower() in lower:
+            return lower[n.lower()]
+    return None
+
+
+def _sd_col(df: pd.DataFrame, col: str) -> Optional[str]:
+    return _find_col(df, (f"sd_{col}", f"{col}_sd", f"sigma_{col}"))
+
+
+def _read_csv(path: Path) -> Optional[pd.DataFrame]:
+    if not path.is_file():
+        return None
+    try:
+        return pd.read_csv(path)
+    except Exception as exc:  # malformed file: report, do not crash the report
+        raise EvalInputError(f"cannot read {path}: {exc}") from exc
+
+
+def _as_bool(s: pd.Series) -> np.ndarray:
+    if s.dtype == bool:
+        return s.to_numpy()
+    return s.astype(str).str.strip().str.lower().isin(["true", "1", "yes", "1.0"]).to_numpy()
+
+
+# --------------------------------------------------------------------------- inputs
+class ReportInputs:
+    """Everything the report reads from an output folder (each item may be missing)."""
+
+    def __init__(self, out_dir: Path, dataset=None):
+        self.out = out_dir
+        self.dataset = dataset
+        self.calibration = load_yaml(out_dir / "calibration.yaml")
+        self.metrics = load_yaml(out_dir / "metrics.yaml")
+        self.trajectory = _read_csv(out_dir / "trajectory.csv")
+        self.residuals = _read_csv(out_dir / "residuals.csv")
+        # calibration history: states.csv of `uwbimu estimate` (lx, ly, lz, td + sd_*)
+        self.states = _read_csv(out_dir / "states.csv")
+        self.cal_history = _read_csv(out_dir / "calibration_history.csv")
+        self.observability = _read_csv(out_dir / "observability.csv")
+        self.eval_errors = _read_csv(out_dir / "evaluation_errors.csv")
+        self.evaluation = None
+        if (out_dir / "evaluation.json").is_file():
+            self.evaluation = json.loads((out_dir / "evaluation.json").read_text())
+        self.repeatability = None
+        if (out_dir / "repeatability.json").is_file():
+            self.repeatability = json.loads((out_dir / "repeatability.json").read_text())
+        self.warnings: list[str] = []
+        for src in (self.calibration or {}, self.metrics or {}):
+            w = src.get("warnings")
+            if isinstance(w, list):
+                self.warnings += [str(x) for x in w]
+        if (out_dir / "warnings.txt").is_file():
+            self.warnings += [ln for ln in (out_dir / "warnings.txt").read_text().splitlines() if ln.strip()]
+        # ground truth from a dataset given in memory, if no evaluation was written
+        if self.evaluation is None and dataset is not None and dataset.groundtruth is not None and self.trajectory is not None:
+            self._evaluate_in_memory()
+
+    def _evaluate_in_memory(self) -> None:
+        from uwbimu.eval.evaluate import evaluation_table
+        from uwbimu.eval.metrics import evaluate_trajectory
+
+        align = str((self.dataset.meta.extra or {}).get("groundtruth_align", "none"))
+        try:
+            ev = evaluate_trajectory(self.trajectory, self.dataset.groundtruth, align=align)
+        except (ValueError, KeyError) as exc:
+            self.warnings.append(f"report: could not evaluate against the dataset's ground truth: {exc}")
+            return
+        self.evaluation = ev.summary
+        self.eval_errors = evaluation_table(ev)
+
+    def reference_lever_arm(self) -> tuple[Optional[list], str]:
+        """Documented or true lever arm, with a label saying which."""
+        ds = self.dataset
+        if ds is not None:
+            if ds.meta.truth is not None and ds.meta.truth.lever_arm is not None:
+                note = (ds.meta.extra or {}).get("lever_arm_note")
+                return list(ds.meta.truth.lever_arm), "documented" if note else "true"
+            if ds.meta.tags and ds.meta.tags[0].lever_arm is not None:
+                return list(ds.meta.tags[0].lever_arm), "nominal"
+        return None, ""
+
+    def reference_time_offset(self) -> Optional[float]:
+        ds = self.dataset
+        if ds is not None and ds.meta.truth is not None:
+            return ds.meta.truth.time_offset
+        return None
+
+
+# --------------------------------------------------------------------------- sections
+def _calibration_section(inp: ReportInputs) -> str:
+    c = inp.calibration
+    if c is None:
+        return _missing("<code>calibration.yaml</code> not found in the output folder.")
+    ref_l, ref_label = inp.reference_lever_arm()
+    ref_td = inp.reference_time_offset()
+    rows, classes = [], []
+    la = c.get("lever_arm")
+    las = c.get("lever_arm_sd") or [float("nan")] * 3
+    header = ["parameter", "estimate", "± 1σ", f"{ref_label or 'reference'}", "error", "z = error/σ"]
+
+    def add(name, v, s, ref, unit, scale=1.0, nd=4):
+        err = (v - ref) if (ref is not None and v is not None) else None
+        z = err / s if (err is not None and s and np.isfinite(s) and s > 0) else None
+        flag = z is not None and abs(z) > 3
+        rows.append([
+            _e(f"{name} [{unit}]"), _fmt(None if v is None else v * scale, nd), _fmt(None if s is None else s * scale, nd),
+            "–" if ref is None else _fmt(ref * scale, nd), "–" if err is None else _fmt(err * scale, nd),
+            "–" if z is None else f'<span class="{"bad" if flag else "ok"}">{z:+.2f}</span>',
+        ])
+        classes.append("flag" if flag else "")
+
+    if la is not None:
+        for i, ax in enumerate("xyz"):
+            add(f"lever arm {ax}", float(la[i]), float(las[i]) if las[i] is not None else None,
+                None if ref_l is None else float(ref_l[i]), "m")
+    if c.get("time_offset") is not None:
+        add("time offset", float(c["time_offset"]), c.get("time_offset_sd"), ref_td, "ms", scale=1000.0, nd=2)
+    parts = [_table(header, rows, classes)]
+    mode_bits = [f"{k}: <code>{_e(c[k])}</code>" for k in ("lever_arm_mode", "time_offset_mode", "anchor_bias_mode") if k in c]
+    if mode_bits:
+        parts.append(f'<p class="note">Modes — {", ".join(mode_bits)}.</p>')
+    if ref_label == "documented":
+        parts.append(f'<p class="note">Reference lever arm: {_e((inp.dataset.meta.extra or {}).get("lever_arm_note"))}</p>')
+    brows = []
+    for key, unit in (("accel_bias", "m/s²"), ("gyro_bias", "rad/s")):
+        if c.get(key) is not None:
+            sd = c.get(f"{key}_sd") or [float("nan")] * 3
+            brows.append([_e(f"{key.replace('_', ' ')} [{unit}]")] + [f"{_fmt(v, 4)} ± {_fmt(s, 4)}" for v, s in zip(c[key], sd)])
+    if brows:
+        parts.append(_table(["IMU bias", "x", "y", "z"], brows))
+    if isinstance(c.get("anchor_bias"), dict):
+        sd = c.get("anchor_bias_sd") or {}
+        kb = (inp.dataset.meta.known_anchor_bias or {}) if inp.dataset is not None else {}
+        arows = [[_e(a), _fmt(v, 3), _fmt(sd.get(a), 3), _fmt(kb.get(a), 3) if a in kb else "–"] for a, v in c["anchor_bias"].items()]
+        parts.append(_table(["anchor", "estimated bias [m]", "± 1σ", "known bias [m]"], arows))
+    if inp.metrics:
+        mrows = [[_e(k), _fmt(v, 4) if not isinstance(v, (list, dict)) else _e(v)] for k, v in inp.metrics.items()
+                 if not isinstance(v, dict) and k != "warnings"]
+        if mrows:
+            parts.append("<h3>metrics.yaml</h3>" + _table(["metric", "value"], mrows))
+    return "".join(parts)
+
+
+def _calibration_history(inp: ReportInputs) -> tuple[Optional[pd.DataFrame], dict]:
+    for df in (inp.trajectory, inp.states, inp.cal_history):
+        if df is None or "t" not in df.columns:
+            continue
+        cols = {k: _find_col(df, names) for k, names in CAL_COLUMNS.items()}
+        if any(v is not None for v in cols.values()):
+            return df, cols
+    return None, {}
+
+
+def _convergence_section(inp: ReportInputs) -> str:
+    from matplotlib.figure import Figure
+
+    df, cols = _calibration_history(inp)
+    if df is None:
+        return _missing("no calibration history: neither <code>states.csv</code> nor <code>trajectory.csv</code> "
+                        "has lever-arm / time-offset columns (<code>lx, ly, lz, td</code> with <code>sd_lx</code>, ...).")
+    t = df["t"].to_numpy(float)
+    ref_l, ref_label = inp.reference_lever_arm()
+    ref_td = inp.reference_time_offset()
+    fig = Figure(figsize=(9.0, 7.0))
+    keys = [k for k in ("lx", "ly", "lz", "td") if cols.get(k)]
+    for n, k in enumerate(keys):
+        ax = fig.add_subplot(len(keys), 1, n + 1)
+        scale, unit = (1000.0, "ms") if k == "td" else (1.0, "m")
+        v = df[cols[k]].to_numpy(float) * scale
+        ax.plot(t, v, "C0-", lw=1.0, label="estimate")
+        sdc = _sd_col(df, cols[k])
+        if sdc is not None:
+            s = df[sdc].to_numpy(float) * scale
+            ax.fill_between(t, v - 3 * s, v + 3 * s, color="C0", alpha=0.2, lw=0, label="±3σ")
+        ref = (ref_td if k == "td" else (None if ref_l is None else ref_l["xyz".index(k[1])]))
+        if ref is not None:
+            ax.axhline(ref * scale, color="k", ls="--", lw=0.9, label=ref_label or "reference")
+        ax.set_ylabel(f"{k} [{unit}]")
+        ax.grid(True, alpha=0.3)
+        if n == 0:
+            ax.legend(loc="upper right", fontsize=8, ncol=3)
+    fig.axes[-1].set_xlabel("t [s] (UWB clock)")
+    return _fig("convergence", fig, "Lever arm (IMU frame) and time offset over time with ±3σ bands of the filter.")
+
+
+def anchor_residual_table(res: pd.DataFrame) -> pd.DataFrame:
+    """Per-anchor innovation statistics with suspicion flags.
+
+    Columns: ``anchor, n, processed, median, mad, robust_sd, rejected_pct, flags``.
+    ``median``/``mad`` use accepted innovations [m]; ``rejected_pct`` is over
+    processed ranges (finite NIS).  Flags: ``biased`` when |median| exceeds half
+    the overall robust sd and 5 cm, ``noisy`` when the anchor's robust sd is
+    twice the overall one, ``rejections`` when its rejection rate is twice the
+    overall rate and above 10 %.
+    """
+    acc = _as_bool(res["accepted"]) if "accepted" in res.columns else np.ones(len(res), bool)
+    innov = pd.to_numeric(res["innovation"], errors="coerce").to_numpy(float)
+    nis = pd.to_numeric(res["nis"], errors="coerce").to_numpy(float) if "nis" in res.columns else np.full(len(res), np.nan)
+    processed = np.isfinite(nis) | acc
+    anchors = res["anchor"].astype(str).to_numpy()
+    ok_all = acc & np.isfinite(innov)
+    med_all = np.median(innov[ok_all]) if ok_all.any() else np.nan
+    rsd_all = 1.4826 * np.median(np.abs(innov[ok_all] - med_all)) if ok_all.any() else np.nan
+    rej_all = 100.0 * np.sum(processed & ~acc) / max(processed.sum(), 1)
+    rows = []
+    for a in sorted(set(anchors), key=lambda s: (len(s), s)):
+        m = anchors == a
+        ok = m & ok_all
+        x = innov[ok]
+        med = float(np.median(x)) if len(x) else np.nan
+        mad = float(np.median(np.abs(x - med))) if len(x) else np.nan
+        rsd = 1.4826 * mad
+        nproc = int((m & processed).sum())
+        rej = 100.0 * int((m & processed & ~acc).sum()) / max(nproc, 1)
+        flags = []
+        if np.isfinite(med) and np.isfinite(rsd_all) and abs(med) > max(0.5 * rsd_all, 0.05):
+            flags.append(f"biased ({med:+.3f} m)")
+        if np.isfinite(rsd) and np.isfinite(rsd_all) and rsd > 2.0 * rsd_all and rsd > 0.02:
+            flags.append("noisy")
+        if rej > max(2.0 * rej_all, 10.0):
+            flags.append("rejections")
+        if nproc == 0:
+            flags.append("never used")
+        rows.append({"anchor": a, "n": int(m.sum()), "processed": nproc, "median": med, "mad": mad,
+                     "robust_sd": rsd, "rejected_pct": rej, "flags": ", ".join(flags)})
+    return pd.DataFrame(rows)
+
+
+def _residuals_section(inp: ReportInputs) -> str:
+    res = inp.residuals
+    if res is None:
+        return _missing("<code>residuals.csv</code> not found.")
+    need = [c for c in ("anchor", "innovation") if c not in res.columns]
+    if need:
+        return _missing(f"<code>residuals.csv</code> lacks column(s) {need}.")
+    tab = anchor_residual_table(res)
+    rows = [[_e(r.anchor), str(r.n), str(r.processed), _fmt(r.median, 3), _fmt(r.mad, 3), _fmt(r.robust_sd, 3),
+             _fmt(r.rejected_pct, 1), _e(r.flags) or '<span class="ok">ok</span>'] for r in tab.itertuples()]
+    classes = ["flag" if r.flags else "" for r in tab.itertuples()]
+    n_flag = int((tab["flags"] != "").sum())
+    head = (f'<p class="{"warn" if n_flag else "note"}">{n_flag} of {len(tab)} anchors flagged as suspicious.</p>')
+    return head + _table(["anchor", "ranges", "processed", "median innov. [m]", "MAD [m]", "robust σ [m]",
+                          "rejected %", "flags"], rows, classes) + (
+        '<p class="note">Innovation = measured − predicted range over accepted updates. Flags: <i>biased</i> '
+        "|median| &gt; max(0.5·overall robust σ, 5 cm); <i>noisy</i> robust σ &gt; 2× overall; <i>rejections</i> "
+        "rejection rate &gt; max(2× overall, 10 %).</p>")
+
+
+def _nis_section(inp: ReportInputs) -> str:
+    from matplotlib.figure import Figure
+    from scipy.stats import chi2
+
+    res = inp.residuals
+    if res is None or "nis" not in res.columns:
+        return _missing("<code>residuals.csv</code> with a <code>nis</code> column not found.")
+    nis = pd.to_numeric(res["nis"], errors="coerce").to_numpy(float)
+    acc = _as_bool(res["accepted"]) if "accepted" in res.columns else np.ones(len(res), bool)
+    nis_f = nis[np.isfinite(nis)]
+    if len(nis_f) == 0:
+        return _missing("no finite NIS values.")
+    bound = chi2.ppf(0.95, 1)
+    frac = float(np.mean(nis_f > bound))
+    fig = Figure(figsize=(7.5, 4.0))
+    ax = fig.add_subplot(111)
+    hi = max(10.0, float(np.percentile(nis_f, 99)))
+    bins = np.linspace(0, hi, 60)
+    ax.hist(np.clip(nis_f, 0, hi), bins=bins, density=True, color="C0", alpha=0.6, label="all processed")
+    acc_nis = nis[np.isfinite(nis) & acc]
+    if len(acc_nis):
+        ax.hist(np.clip(acc_nis, 0, hi), bins=bins, density=True, histtype="step", color="C1", label="accepted")
+    x = np.linspace(bins[1] / 2, hi, 300)
+    ax.plot(x, chi2.pdf(x, 1), "k-", lw=1.2, label="χ²(1) density")
+    ax.axvline(bound, color="r", ls="--", lw=0.9, label="95 % bound")
+    ax.set_yscale("log")
+    ax.set_xlabel("NIS (range innovation² / S)")
+    ax.set_ylabel("density")
+    ax.legend(fontsize=8)
+    ax.grid(True, alpha=0.3)
+    stats = (f"<p>{len(nis_f)} processed ranges: mean NIS {np.mean(nis_f):.2f} (χ²(1): 1.00), median "
+             f"{np.median(nis_f):.2f} (χ²(1): 0.45), {100 * frac:.1f} % above the 95 % bound {bound:.2f} (expected 5 %).</p>")
+    return stats + _fig("nis", fig, "Normalised innovation squared of the range updates against the χ²(1) density.")
+
+
+def _trajectory_section(inp: ReportInputs) -> str:
+    from matplotlib.figure import Figure
+
+    parts = []
+    traj = inp.trajectory
+    ev = inp.evaluation
+    ee = inp.eval_errors
+    if ev is not None and ee is not None and len(ee):
+        a = ev["ate_position"]
+        ar = ev.get("ate_rotation_deg")
+        asc = ev["association"]
+        parts.append(
+            f"<p>Against ground truth after <b>{_e(ev['align']['mode'])}</b> alignment: position ATE RMSE "
+            f"<b>{a['rmse']:.3f} m</b> (mean {a['mean']:.3f}, median {a['median']:.3f}, max {a['max']:.3f} m, n={a['n']})"
+            + (f"; attitude RMSE {ar['rmse']:.2f}°" if ar else "")
+            + f". Ground-truth glitches excluded: {asc['n_groundtruth_glitches_excluded']} (position), "
+            f"{asc.get('n_groundtruth_attitude_glitches_excluded', 0)} (attitude).</p>")
+        rrows = [[_e(d), str(v["n_pairs"]), _fmt(v["translation"]["rmse"], 3), _fmt(v.get("translation_percent"), 1),
+                  _fmt(v["rotation_deg"]["rmse"], 2)] for d, v in ev.get("rpe", {}).items()]
+        if rrows:
+            parts.append(_table(["RPE distance [m]", "pairs", "trans. RMSE [m]", "drift %", "rot. RMSE [deg]"], rrows))
+        fig = Figure(figsize=(6.0, 5.0))
+        ax = fig.add_subplot(111)
+        ax.plot(ee["px_gt"], ee["py_gt"], "k-", lw=1.2, label="ground truth")
+        ax.plot(ee["px_est"], ee["py_est"], "C0-", lw=0.9, label="estimate (aligned)")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.legend(fontsize=8)
+        ax.grid(True, alpha=0.3)
+        parts.append(_fig("trajectory", fig, "Top view, ground-truth frame."))
+        fig2 = Figure(figsize=(9.0, 4.0))
+        ax2 = fig2.add_subplot(111)
+        t = ee["t"].to_numpy(float)
+        e = ee[["ex", "ey", "ez"]].to_numpy(float)
+        sd = None
+        if traj is not None and all(c in traj.columns for c in ("sd_px", "sd_py", "sd_pz")):
+            sd = np.column_stack([np.interp(t, traj["t"].to_numpy(float), traj[c].to_numpy(float))
+                                  for c in ("sd_px", "sd_py", "sd_pz")])
+        if ev["align"]["mode"] in ("none", "position"):
+            for i, c in enumerate("xyz"):
+                ax2.plot(t, e[:, i], f"C{i}-", lw=0.8, label=f"e{c}")
+                if sd is not None:
+                    ax2.fill_between(t, -3 * sd[:, i], 3 * sd[:, i], color=f"C{i}", alpha=0.12, lw=0)
+            cap = "Position error per axis with the filter's ±3σ bands."
+        else:
+            ax2.plot(t, np.linalg.norm(e, axis=1), "k-", lw=0.8, label="|e|")
+            if sd is not None:
+                ax2.plot(t, 3 * np.linalg.norm(sd, axis=1), "C3--", lw=0.8, label="3σ (norm)")
+            cap = ("Position error norm (rotation-invariant after SE(3) alignment) against 3× the norm of the "
+                   "filter's position σ.")
+        ax2.set_xlabel("t [s]")
+        ax2.set_ylabel("error [m]")
+        ax2.legend(fontsize=8, ncol=4)
+        ax2.grid(True, alpha=0.3)
+        parts.append(_fig("errors", fig2, cap))
+        return "".join(parts)
+    if traj is None or not all(c in traj.columns for c in ("px", "py")):
+        return _missing("<code>trajectory.csv</code> not found.")
+    fig = Figure(figsize=(6.0, 5.0))
+    ax = fig.add_subplot(111)
+    ax.plot(traj["px"], traj["py"], "C0-", lw=0.9, label="estimate")
+    if inp.dataset is not None:
+        an = inp.dataset.anchors
+        ax.plot(an["x"], an["y"], "k^", ms=7, label="anchors")
+        for r in an.itertuples(index=False):
+            ax.annotate(str(r.anchor), (r.x, r.y), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x [m] (anchor frame)")
+    ax.set_ylabel("y [m]")
+    ax.legend(fontsize=8)
+    ax.grid(True, alpha=0.3)
+    parts.append('<p class="note">No ground truth evaluation (run <code>uwbimu evaluate OUT --groundtruth FILE</code>).</p>')
+    parts.append(_fig("trajectory", fig, "Estimated trajectory, top view."))
+    return "".join(parts)
+
+
+def _repeatability_section(inp: ReportInputs) -> str:
+    from matplotlib.figure import Figure
+
+    rep = inp.repeatability
+    if rep is None:
+        return _missing("<code>repeatability.json</code> not found (run <code>uwbimu repeatability DATASET --out OUT</code>).")
+    params = rep.get("parameters", {})
+    rows, classes = [], []
+    for name, p in params.items():
+        scale = 1000.0 if name == "td" else 100.0
+        unit = "ms" if name == "td" else "cm"
+        verdict = p.get("verdict", "")
+        rows.append([_e(f"{name} [{unit}]"), str(p.get("n", "")), _fmt(p.get("mean", np.nan) * scale, 2),
+                     _fmt(p.get("std", np.nan) * scale, 2), _fmt(p.get("rms_sd", np.nan) * scale, 2),
+                     _fmt(p.get("ratio"), 2), _fmt(p.get("chi2"), 2), str(p.get("dof", "")), _fmt(p.get("p_value"), 3),
+                     f'<span class="{"ok" if verdict == "consistent" else "bad"}">{_e(verdict)}</span>'])
+        classes.append("" if verdict == "consistent" else "flag")
+    parts = [f"<p>{rep.get('k', '?')} windows of {_fmt(rep.get('window_s'), 1)} s "
+             f"({len(rep.get('windows', []))} calibrated).</p>",
+             _table(["parameter", "windows", "mean", "spread (sd)", "predicted σ (RMS)", "spread/σ", "χ²", "dof",
+                     "p", "verdict"], rows, classes),
+             '<p class="note">χ² = Σ (x_k − x̄)² / σ_k² over windows, compared with χ²(K−1): a spread much larger '
+             "than the filter's σ means over-confidence (or a parameter that changes between windows).</p>"]
+    wins = rep.get("windows", [])
+    if wins:
+        fig = Figure(figsize=(9.0, 6.0))
+        names = list(params)
+        for n, name in enumerate(names):
+            ax = fig.add_subplot(len(names), 1, n + 1)
+            scale = 1000.0 if name == "td" else 1.0
+            xs = [w["t_mid"] for w in wins if name in w.get("values", {})]
+            vs = np.array([w["values"][name] for w in wins if name in w.get("values", {})], float) * scale
+            ss = np.array([w["sd"][name] for w in wins if name in w.get("values", {})], float) * scale
+            ax.errorbar(xs, vs, yerr=3 * ss, fmt="o", ms=4, capsize=3)
+            ax.axhline(params[name].get("mean", np.nan) * scale, color="k", lw=0.8)
+            ax.set_ylabel(f"{name} [{'ms' if name == 'td' else 'm'}]")
+            ax.grid(True, alpha=0.3)
+        fig.axes[-1].set_xlabel("window centre [s]")
+        parts.append(_fig("repeatability", fig, "Per-window estimates with ±3σ error bars; the line is the mean."))
+    return "".join(parts)
+
+
+def _observability_section(inp: ReportInputs) -> str:
+    from matplotlib.figure import Figure
+
+    df = inp.observability
+    if df is None:
+        return _missing("<code>observability.csv</code> not found.")
+    tcol = "t" if "t" in df.columns else df.columns[0]
+    num = [c for c in df.columns if c != tcol and pd.api.types.is_numeric_dtype(df[c])][:8]
+    if not num:
+        return _missing("<code>observability.csv</code> has no numeric columns.")
+    t = pd.to_numeric(df[tcol], errors="coerce").to_numpy(float)
+    fig = Figure(figsize=(9.0, 1.6 * len(num) + 1.0))
+    for n, c in enumerate(num):
+        ax = fig.add_subplot(len(num), 1, n + 1)
+        y = df[c].to_numpy(float)
+        ax.plot(t, y, "C0-", lw=0.9)
+        pos = y[np.isfinite(y)]
+        if len(pos) and np.all(pos > 0) and pos.max() / max(pos.min(), 1e-300) > 1e3:
+            ax.set_yscale("log")
+        ax.set_ylabel(c, fontsize=8)
+        ax.grid(True, alpha=0.3)
+    fig.axes[-1].set_xlabel(f"{tcol} [s]")
+    return _fig("observability", fig, f"Observability / excitation indicators over time ({', '.join(num)}).")
+
+
+def _warnings_section(inp: ReportInputs) -> str:
+    if not inp.warnings:
+        return '<p class="note">No warnings recorded.</p>'
+    return "".join(f'<div class="warn">{_e(w)}</div>' for w in inp.warnings)
+
+
+SECTIONS = {
+    "calibration": _calibration_section,
+    "convergence": _convergence_section,
+    "residuals": _residuals_section,
+    "nis": _nis_section,
+    "trajectory": _trajectory_section,
+    "repeatability": _repeatability_section,
+    "observability": _observability_section,
+    "warnings": _warnings_section,
+}
+
+
+def render_report(out_dir: Union[str, os.PathLike], dataset=None, title: Optional[str] = None) -> str:
+    """Render the report of ``out_dir`` as an HTML string (nothing written)."""
+    out = Path(out_dir)
+    if not out.is_dir():
+        raise EvalInputError(f"{out}: output folder not found")
+    if isinstance(dataset, (str, os.PathLike)):
+        from uwbimu.io.loader import load_dataset
+
+        dataset = load_dataset(dataset)
+    inp = ReportInputs(out, dataset)
+    if inp.calibration is None and inp.trajectory is None and inp.residuals is None:
+        raise EvalInputError(f"{out}: no estimator output (calibration.yaml, trajectory.csv, residuals.csv) found")
+    body = []
+    for key, fn in SECTIONS.items():
+        try:
+            content = fn(inp)
+        except EvalInputError:
+            raise
+        except Exception as exc:  # one broken input must not lose the whole report; say what failed
+            content = f'<div class="warn">This section failed: {_e(type(exc).__name__)}: {_e(exc)}</div>'
+        body.append(f'<section id="{key}"><h2>{SECTION_TITLES[key]}</h2>{content}</section>')
+    try:
+        from importlib.metadata import version
+
+        ver = version("uwbimu")
+    except Exception:  # not installed (source checkout)
+        ver = "unknown"
+    if title is None:
+        name = dataset.meta.name if dataset is not None else out.name
+        title = f"uwbimu calibration report — {name}"
+    nav = "".join(f'<a href="#{k}">{SECTION_TITLES[k]}</a>' for k in SECTIONS)
+    return PAGE.substitute(
+        title=_e(title), version=_e(ver), out_dir=_e(out),
+        generated=_dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        nav=nav, sections="\n".join(body),
+    )
+
+
+def write_report(out_dir: Union[str, os.PathLike], dataset=None, path: Optional[Union[str, os.PathLike]] = None,
+                 title: Optional[str] = None) -> Path:
+    """Write ``OUT/report.html`` (or ``path``) atomically and return its path.
+
+    Parameters
+    ----------
+    out_dir : estimator output folder (``uwbimu estimate ... --out OUT``).
+    dataset : optional :class:`~uwbimu.io.dataset.Dataset` or dataset folder: adds
+        anchors, the documented/true calibration and, when ``OUT/evaluation.json``
+        is absent, an evaluation against the dataset's ground truth (alignment
+        from ``meta.extra.groundtruth_align``, default ``none``).
+    """
+    html_text = render_report(out_dir, dataset=dataset, title=title)
+    target = Path(path) if path is not None else Path(out_dir) / "report.html"
+    return write_text(target, html_text)

@@ -1,0 +1,666 @@
+"""Validating reader of the dataset folder format.
+
+:func:`load_dataset` reads a dataset folder (see :mod:`uwbimu.io.dataset` and
+``docs/dataset_format.md``) and refuses bad input with a :class:`DatasetError`
+whose message names the file, the row and the column.
+
+Row convention
+--------------
+For CSV files the location is the *line number in the file*, counting the
+header as line 1 (so the first data row is line 2); the 1-based data row is
+given too: ``imu.csv line 7 (data row 6), column 'ax'``.  Parquet files have
+no header line, so they are located by 1-based data row: ``imu.parquet data
+row 6, column 'ax'``.
+
+Repairs
+-------
+Nothing is dropped or changed unless asked for through :class:`LoadOptions`
+(``drop_duplicate_rows``, ``sort``, ``gyro_units``, ``accel_units``); every
+repair is counted in the :class:`LoadReport` attached to the returned dataset
+(``ds.report``) and announced with :func:`warnings.warn`.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Optional
+
+import numpy as np
+import pandas as pd
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from uwbimu.io.dataset import (
+    ANCHOR_COLUMNS,
+    GT_COLUMNS,
+    GT_VEL_COLUMNS,
+    IMU_COLUMNS,
+    UWB_COLUMNS,
+    Dataset,
+    DatasetMeta,
+)
+
+__all__ = [
+    "DatasetError",
+    "LoadOptions",
+    "LoadReport",
+    "LoadRepairWarning",
+    "load_dataset",
+    "load_meta",
+    "MAX_RANGE_M",
+]
+
+#: Ranges above this are refused as absurd for UWB two-way ranging [m].
+MAX_RANGE_M = 1000.0
+#: Largest plausible |angular rate| of a MEMS gyro in rad/s (2000 deg/s full scale).
+GYRO_MAX_RAD_S = math.radians(2000.0)
+#: Accepted band for the median specific-force norm [m/s^2] (gravity included).
+ACCEL_NORM_BAND = (4.0, 30.0)
+#: Quaternions whose norm differs from 1 by more than this are refused.
+QUAT_NORM_TOL = 1e-2
+
+_TEXT_COLUMNS = ("anchor", "tag")
+
+
+class DatasetError(ValueError):
+    """A dataset that cannot be used as is.
+
+    Attributes
+    ----------
+    file : name of the offending file (or None)
+    row : location in that file (CSV: line number with the header as line 1;
+        parquet: 1-based data row), or None when the problem is file-wide
+    column : offending column / key (or None)
+    """
+
+    def __init__(self, message: str, file: Optional[str] = None, row: Optional[int] = None,
+                 column: Optional[str] = None):
+        super().__init__(message)
+        self.file = file
+        self.row = row
+        self.column = column
+
+
+class LoadRepairWarning(UserWarning):
+    """Emitted when :func:`load_dataset` repaired (dropped, sorted, rescaled) data on request."""
+
+
+class LoadOptions(BaseModel):
+    """Options of :func:`load_dataset` (all repairs are off by default)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    drop_duplicate_rows: bool = Field(
+        default=False,
+        description="drop rows that repeat an earlier row exactly (same key and same values); "
+        "counted in the report. Duplicates with different values are still refused.",
+    )
+    sort: bool = Field(default=False, description="sort every table by time (stable); counted in the report")
+    gyro_units: Literal["rad/s", "deg/s"] = Field(
+        default="rad/s", description="unit of wx, wy, wz in the file; deg/s is converted (x pi/180)"
+    )
+    accel_units: Literal["m/s^2", "g"] = Field(
+        default="m/s^2", description="unit of ax, ay, az in the file; g is converted (x 9.81)"
+    )
+    check_units: bool = Field(default=True, description="refuse gyro/accelerometer data that looks like deg/s or g")
+    max_range: float = Field(default=MAX_RANGE_M, gt=0, description="largest accepted range, m")
+
+
+@dataclass
+class LoadReport:
+    """What :func:`load_dataset` read and every repair it made."""
+
+    path: Path
+    files: dict[str, str] = field(default_factory=dict)
+    rows_read: dict[str, int] = field(default_factory=dict)
+    rows_kept: dict[str, int] = field(default_factory=dict)
+    dropped: dict[str, int] = field(default_factory=dict)  # "imu: duplicate rows" -> count
+    reordered: dict[str, int] = field(default_factory=dict)  # table -> rows that were out of order
+    actions: list[str] = field(default_factory=list)  # human-readable repairs
+    notes: list[str] = field(default_factory=list)  # harmless observations (extra columns...)
+
+    @property
+    def repaired(self) -> bool:
+        return bool(self.actions)
+
+    def summary(self) -> str:
+        lines = [f"loaded {self.path}: " + ", ".join(f"{k} {v} rows" for k, v in self.rows_kept.items())]
+        lines += [f"repair: {a}" for a in self.actions]
+        lines += [f"note: {n}" for n in self.notes]
+        return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------
+# Locating rows in files
+# ---------------------------------------------------------------------------
+@dataclass
+class _Source:
+    """A table file and how to name a location in it."""
+
+    table: str
+    path: Path
+
+    @property
+    def name(self) -> str:
+        return self.path.name
+
+    @property
+    def is_csv(self) -> bool:
+        return self.path.suffix != ".parquet"
+
+    def row_number(self, idx: int) -> int:
+        """Location number of 0-based data row ``idx`` (CSV: file line, header = 1)."""
+        return int(idx) + 2 if self.is_csv else int(idx) + 1
+
+    def at(self, idx: Optional[int] = None, column: Optional[str] = None) -> str:
+        parts = [self.name]
+        if idx is not None:
+            if self.is_csv:
+                parts.append(f"line {int(idx) + 2} (data row {int(idx) + 1})")
+            else:
+                parts.append(f"data row {int(idx) + 1}")
+        if column is not None:
+            parts.append(f"column '{column}'")
+        return ", ".join(parts)
+
+    def rows_span(self, df: pd.DataFrame) -> str:
+        if self.is_csv:
+            return f"lines {int(df.index.min()) + 2}-{int(df.index.max()) + 2} (all data rows)"
+        return f"data rows 1-{int(df.index.max()) + 1} (all)"
+
+    def error(self, msg: str, idx: Optional[int] = None, column: Optional[str] = None) -> DatasetError:
+        return DatasetError(f"{self.at(idx, column)}: {msg}", file=self.name,
+                            row=None if idx is None else self.row_number(idx), column=column)
+
+
+# ---------------------------------------------------------------------------
+# Reading one table
+# ---------------------------------------------------------------------------
+def _find_table(folder: Path, table: str, required: bool) -> Optional[_Source]:
+    found = [p for p in (folder / f"{table}.csv", folder / f"{table}.parquet") if p.is_file()]
+    if len(found) > 1:
+        raise DatasetError(
+            f"{folder}: both {found[0].name} and {found[1].name} exist; keep only one of them",
+            file=found[0].name)
+    if not found:
+        if required:
+            present = sorted(p.name for p in folder.iterdir()) if folder.is_dir() else []
+            raise DatasetError(
+                f"{folder}: required file {table}.csv (or {table}.parquet) is missing; "
+                f"the folder holds: {', '.join(present) if present else '(nothing)'}",
+                file=f"{table}.csv")
+        return None
+    return _Source(table, found[0])
+
+
+def _read_raw(src: _Source) -> pd.DataFrame:
+    """Read a table file, keeping row positions aligned with file lines."""
+    if src.is_csv:
+        if src.path.stat().st_size == 0:
+            raise DatasetError(f"{src.name}: file is empty (no header, no data)", file=src.name)
+        try:
+            df = pd.read_csv(src.path, dtype={c: str for c in _TEXT_COLUMNS},
+                             skip_blank_lines=False, skipinitialspace=True)
+        except pd.errors.EmptyDataError:
+            raise DatasetError(f"{src.name}: file is empty (no header, no data)", file=src.name) from None
+        except pd.errors.ParserError as exc:
+            raise DatasetError(f"{src.name}: malformed CSV: {exc}", file=src.name) from None
+        except UnicodeDecodeError as exc:
+            raise DatasetError(f"{src.name}: not a text CSV file ({exc})", file=src.name) from None
+    else:
+        try:
+            df = pd.read_parquet(src.path)
+        except Exception as exc:  # pyarrow raises many types for a broken file
+            raise DatasetError(f"{src.name}: cannot read parquet file: {exc}", file=src.name) from None
+        df = df.reset_index(drop=True)
+    df.columns = [str(c).strip() for c in df.columns]
+    if src.is_csv and len(df):
+        # Blank lines at the end of a file are not data: strip them.  Blank
+        # lines inside the data are refused below (they would shift nothing,
+        # but usually mean a broken export).
+        blank = df.isna().all(axis=1).to_numpy()
+        n_trailing = 0
+        while n_trailing < len(blank) and blank[len(blank) - 1 - n_trailing]:
+            n_trailing += 1
+        if n_trailing:
+            df = df.iloc[: len(df) - n_trailing]
+        inner = np.flatnonzero(df.isna().all(axis=1).to_numpy())
+        if len(inner):
+            raise src.error("blank line inside the data; remove it", int(inner[0]))
+    if len(df) == 0:
+        raise DatasetError(f"{src.name}: file has a header but no data rows", file=src.name)
+    return df
+
+
+def _require_columns(src: _Source, df: pd.DataFrame, required: list[str], report: LoadReport,
+                     optional: tuple[str, ...] = ()) -> None:
+    missing = [c for c in required if c not in df.columns]
+    if missing:
+        raise DatasetError(
+            f"{src.name}: missing column(s) {', '.join(repr(c) for c in missing)}; "
+            f"found {', '.join(repr(c) for c in df.columns)}; required: {', '.join(required)}",
+            file=src.name, row=1 if src.is_csv else None, column=missing[0])
+    extra = [c for c in df.columns if c not in required and c not in optional]
+    if extra:
+        report.notes.append(f"{src.name}: extra column(s) ignored: {', '.join(extra)}")
+    dup = df.columns[df.columns.duplicated()].tolist()
+    if dup:
+        raise DatasetError(f"{src.name}: column(s) {dup} appear more than once in the header",
+                           file=src.name, column=dup[0])
+
+
+def _to_numeric(src: _Source, df: pd.DataFrame, columns: list[str]) -> pd.DataFrame:
+    """Convert ``columns`` to float, refusing text, missing values, NaN and inf."""
+    out = df.copy()
+    for col in columns:
+        raw = df[col]
+        if pd.api.types.is_bool_dtype(raw):
+            raise src.error("boolean values where numbers are expected", int(raw.index[0]), col)
+        if pd.api.types.is_numeric_dtype(raw):
+            vals = raw.astype(float)
+        else:
+            vals = pd.to_numeric(raw, errors="coerce")
+            bad = vals.isna() & raw.notna()
+            if bad.any():
+                i = bad.idxmax()
+                raise src.error(f"non-numeric value {str(raw[i])!r}", i, col)
+            vals = vals.astype(float)
+        arr = vals.to_numpy()
+        nan = np.isnan(arr)
+        if nan.any():
+            i = vals.index[int(np.argmax(nan))]
+            raise src.error("missing or NaN value", i, col)
+        inf = np.isinf(arr)
+        if inf.any():
+            i = vals.index[int(np.argmax(inf))]
+            raise src.error(f"infinite value ({arr[int(np.argmax(inf))]})", i, col)
+        out[col] = arr
+    return out
+
+
+def _to_text(src: _Source, df: pd.DataFrame, col: str) -> pd.DataFrame:
+    """Normalise an id column to stripped, non-empty strings."""
+    raw = df[col]
+    if pd.api.types.is_float_dtype(raw):
+        # Parquet with float ids: 3.0 -> "3" (never silently different ids).
+        vals = raw.astype(float)
+        if vals.isna().any():
+            i = vals.index[int(np.argmax(vals.isna().to_numpy()))]
+            raise src.error("empty id", i, col)
+        if not np.all(np.mod(vals.to_numpy(), 1) == 0):
+            i = vals.index[int(np.argmax(np.mod(vals.to_numpy(), 1) != 0))]
+            raise src.error(f"id {vals[i]!r} is a non-integer number; use text ids", i, col)
+        txt = vals.astype(np.int64).astype(str)
+    else:
+        missing = raw.isna()
+        if missing.any():
+            raise src.error("empty id", missing.idxmax(), col)
+        txt = raw.astype(str).str.strip()
+    empty = txt == ""
+    if empty.any():
+        raise src.error("empty id", empty.idxmax(), col)
+    out = df.copy()
+    out[col] = txt.astype(object)
+    return out
+
+
+def _sort_by_time(src: _Source, df: pd.DataFrame, report: LoadReport) -> pd.DataFrame:
+    t = df["t"].to_numpy()
+    out_of_order = int(np.sum(t < np.maximum.accumulate(t)))
+    if out_of_order:
+        df = df.sort_values("t", kind="stable")
+        report.actions.append(f"{src.name}: sorted by t ({out_of_order} rows were out of order)")
+        report.reordered[src.table] = out_of_order
+    return df
+
+
+def _check_time_order(src: _Source, df: pd.DataFrame) -> None:
+    t = df["t"].to_numpy()
+    back = np.flatnonzero(np.diff(t) < 0)
+    if len(back):
+        k = int(back[0])
+        i_prev, i = df.index[k], df.index[k + 1]
+        raise src.error(
+            f"timestamp goes backwards: t={t[k + 1]!r} after t={t[k]!r} "
+            f"(at {src.at(i_prev).split(', ', 1)[1]}); pass sort=True (--sort) to sort the rows by time",
+            i, "t")
+
+
+def _drop_or_refuse_duplicates(src: _Source, df: pd.DataFrame, key: list[str], what: str,
+                               options: LoadOptions, report: LoadReport) -> pd.DataFrame:
+    """Refuse rows whose ``key`` repeats; drop exact repeats if asked to."""
+    dup_key = df.duplicated(subset=key, keep="first")
+    if not dup_key.any():
+        return df
+    exact = df.duplicated(keep="first")
+    if options.drop_duplicate_rows:
+        conflicting = dup_key & ~exact
+        if conflicting.any():
+            i = conflicting.idxmax()
+            first = df.index[(df[key] == df.loc[i, key]).all(axis=1).to_numpy()][0]
+            raise src.error(
+                f"duplicate {what} {_key_text(df, i, key)} with different values than "
+                f"{src.at(first).split(', ', 1)[1]}; cannot choose which to keep", i, key[-1] if len(key) > 1 else key[0])
+        n = int(exact.sum())
+        report.dropped[f"{src.table}: duplicate rows"] = n
+        report.actions.append(f"{src.name}: dropped {n} exact duplicate row(s)")
+        return df[~exact]
+    i = dup_key.idxmax()
+    first = df.index[(df[key] == df.loc[i, key]).all(axis=1).to_numpy()][0]
+    hint = ("; it repeats that row exactly: pass drop_duplicate_rows=True (--drop-duplicates) to drop such rows"
+            if exact[i] else "; the values differ, fix the file")
+    raise src.error(f"duplicate {what} {_key_text(df, i, key)}, first at "
+                    f"{src.at(first).split(', ', 1)[1]}{hint}", i, key[0])
+
+
+def _key_text(df: pd.DataFrame, i, key: list[str]) -> str:
+    return ", ".join(f"{k}={df.loc[i, k]!r}" for k in key)
+
+
+# ---------------------------------------------------------------------------
+# Per-table validation
+# ---------------------------------------------------------------------------
+def _load_imu(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
+    df = _read_raw(src)
+    report.rows_read["imu"] = len(df)
+    _require_columns(src, df, IMU_COLUMNS, report)
+    df = _to_numeric(src, df, IMU_COLUMNS)
+    if options.sort:
+        df = _sort_by_time(src, df, report)
+    _check_time_order(src, df)
+    df = _drop_or_refuse_duplicates(src, df, ["t"], "IMU timestamp", options, report)
+    if options.gyro_units == "deg/s":
+        df[["wx", "wy", "wz"]] = df[["wx", "wy", "wz"]] * (math.pi / 180.0)
+        report.actions.append(f"{src.name}: gyro converted from deg/s to rad/s (x pi/180)")
+    if options.accel_units == "g":
+        df[["ax", "ay", "az"]] = df[["ax", "ay", "az"]] * 9.81
+        report.actions.append(f"{src.name}: accelerometer converted from g to m/s^2 (x 9.81)")
+    if options.check_units:
+        _check_imu_units(src, df)
+    return df[IMU_COLUMNS]
+
+
+def _check_imu_units(src: _Source, df: pd.DataFrame) -> None:
+    acc = df[["ax", "ay", "az"]].to_numpy()
+    gyr = df[["wx", "wy", "wz"]].to_numpy()
+    a_med = float(np.median(np.linalg.norm(acc, axis=1)))
+    where = src.rows_span(df)
+    if 0.5 <= a_med <= 2.0:
+        raise DatasetError(
+            f"{src.name}, {where}, columns 'ax', 'ay', 'az': the accelerometer looks like it is in g "
+            f"(median |a| = {a_med:.3f}, expected about 9.81 m/s^2 with gravity included); "
+            f"multiply ax, ay, az by 9.81 or load with accel_units='g' (--accel-units g)",
+            file=src.name, row=src.row_number(df.index[0]), column="ax")
+    if not ACCEL_NORM_BAND[0] <= a_med <= ACCEL_NORM_BAND[1]:
+        hint = ("gravity seems to have been removed; this toolkit needs specific force (gravity included)"
+                if a_med < ACCEL_NORM_BAND[0] else "the unit looks wrong (mg? ft/s^2?); m/s^2 is expected")
+        raise DatasetError(
+            f"{src.name}, {where}, columns 'ax', 'ay', 'az': median |a| = {a_med:.3g} is implausible for "
+            f"specific force in m/s^2 (about 9.81 expected): {hint}",
+            file=src.name, row=src.row_number(df.index[0]), column="ax")
+    w_norm = np.linalg.norm(gyr, axis=1)
+    w99 = float(np.percentile(w_norm, 99))
+    if w99 > GYRO_MAX_RAD_S:
+        raise DatasetError(
+            f"{src.name}, {where}, columns 'wx', 'wy', 'wz': the gyro looks like it is in deg/s "
+            f"(99th percentile of |w| = {w99:.1f}, above the {GYRO_MAX_RAD_S:.1f} rad/s (2000 deg/s) full "
+            f"scale of MEMS gyros); multiply wx, wy, wz by pi/180 or load with gyro_units='deg/s' "
+            f"(--gyro-units deg)",
+            file=src.name, row=src.row_number(df.index[0]), column="wx")
+
+
+def _check_gyro_against_truth(src: _Source, imu: pd.DataFrame, gt: pd.DataFrame) -> None:
+    """Compare gyro magnitude with the ground-truth rotation rate (catches slow deg/s data)."""
+    t_gt = gt["t"].to_numpy()
+    q = gt[["qw", "qx", "qy", "qz"]].to_numpy()
+    # Rotation rate over ~0.1 s windows: robust to jittered mocap stamps.
+    step = max(1, int(round(0.1 / max(np.median(np.diff(t_gt)), 1e-6)))) if len(t_gt) > 1 else 1
+    if len(t_gt) <= step + 2:
+        return
+    dots = np.abs(np.sum(q[step:] * q[:-step], axis=1)).clip(0.0, 1.0)
+    dt = t_gt[step:] - t_gt[:-step]
+    ok = dt > 0
+    if not ok.any():
+        return
+    rate_gt = 2.0 * np.arccos(dots[ok]) / dt[ok]
+    g90 = float(np.percentile(rate_gt, 90))
+    t0, t1 = t_gt[0], t_gt[-1]
+    t_imu = imu["t"].to_numpy()
+    sel = (t_imu >= t0) & (t_imu <= t1)
+    if g90 < 0.1 or sel.sum() < 10:
+        return  # not enough rotation to tell
+    w90 = float(np.percentile(np.linalg.norm(imu[["wx", "wy", "wz"]].to_numpy()[sel], axis=1), 90))
+    ratio = w90 / g90
+    if 25.0 < ratio < 130.0:
+        raise DatasetError(
+            f"{src.name}, {src.rows_span(imu)}, columns 'wx', 'wy', 'wz': the gyro looks like it is in deg/s "
+            f"(90th percentile |w| = {w90:.2f} is {ratio:.0f} times the ground-truth rotation rate "
+            f"{g90:.3f} rad/s; 57.3 is expected for deg/s); multiply wx, wy, wz by pi/180 or load with "
+            f"gyro_units='deg/s' (--gyro-units deg)",
+            file=src.name, row=src.row_number(imu.index[0]), column="wx")
+
+
+def _load_uwb(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
+    df = _read_raw(src)
+    report.rows_read["uwb"] = len(df)
+    _require_columns(src, df, UWB_COLUMNS, report, optional=("tag",))
+    df = _to_numeric(src, df, ["t", "range"])
+    df = _to_text(src, df, "anchor")
+    has_tag = "tag" in df.columns
+    if has_tag:
+        df = _to_text(src, df, "tag")
+    if options.sort:
+        df = _sort_by_time(src, df, report)
+    _check_time_order(src, df)
+    r = df["range"].to_numpy()
+    bad = np.flatnonzero(r <= 0)
+    if len(bad):
+        i = df.index[bad[0]]
+        raise src.error(f"range {r[bad[0]]!r} m is not positive", i, "range")
+    bad = np.flatnonzero(r > options.max_range)
+    if len(bad):
+        i = df.index[bad[0]]
+        raise src.error(f"range {r[bad[0]]!r} m is absurd (> {options.max_range:g} m); ranges are in metres",
+                        i, "range")
+    key = ["t", "anchor"] + (["tag"] if has_tag else [])
+    df = _drop_or_refuse_duplicates(src, df, key, "range (same time and anchor)", options, report)
+    return df[UWB_COLUMNS + (["tag"] if has_tag else [])]
+
+
+def _load_anchors(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
+    df = _read_raw(src)
+    report.rows_read["anchors"] = len(df)
+    _require_columns(src, df, ANCHOR_COLUMNS, report)
+    df = _to_text(src, df, "anchor")
+    df = _to_numeric(src, df, ["x", "y", "z"])
+    df = _drop_or_refuse_duplicates(src, df, ["anchor"], "anchor id", options, report)
+    return df[ANCHOR_COLUMNS]
+
+
+def _load_groundtruth(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
+    df = _read_raw(src)
+    report.rows_read["groundtruth"] = len(df)
+    _require_columns(src, df, GT_COLUMNS, report, optional=tuple(GT_VEL_COLUMNS))
+    vel = [c for c in GT_VEL_COLUMNS if c in df.columns]
+    if vel and len(vel) != 3:
+        missing = [c for c in GT_VEL_COLUMNS if c not in vel]
+        raise DatasetError(f"{src.name}: velocity columns must come as vx, vy, vz together; "
+                           f"missing {missing}, found {list(df.columns)}", file=src.name,
+                           row=1 if src.is_csv else None, column=missing[0])
+    df = _to_numeric(src, df, GT_COLUMNS + vel)
+    if options.sort:
+        df = _sort_by_time(src, df, report)
+    _check_time_order(src, df)
+    df = _drop_or_refuse_duplicates(src, df, ["t"], "ground-truth timestamp", options, report)
+    q = df[["qw", "qx", "qy", "qz"]].to_numpy()
+    n = np.linalg.norm(q, axis=1)
+    bad = np.flatnonzero(np.abs(n - 1.0) > QUAT_NORM_TOL)
+    if len(bad):
+        i = df.index[bad[0]]
+        raise src.error(f"quaternion (qw, qx, qy, qz) has norm {n[bad[0]]:.4f}, not 1 "
+                        f"(columns qw..qz must hold a unit Hamilton quaternion)", i, "qw")
+    # Renormalise small rounding deviations (not a repair: the rotation is
+    # unchanged); rows already unit to 1e-9 are left bit-exact.
+    fix = np.abs(n - 1.0) > 1e-9
+    if fix.any():
+        q[fix] = q[fix] / n[fix, None]
+        df[["qw", "qx", "qy", "qz"]] = q
+    return df[GT_COLUMNS + vel]
+
+
+# ---------------------------------------------------------------------------
+# dataset.yaml
+# ---------------------------------------------------------------------------
+def _yaml_line(text: str, loc: tuple) -> Optional[int]:
+    """1-based line of the node at ``loc`` (pydantic error location) in a YAML text."""
+    try:
+        node = yaml.compose(text)
+    except yaml.YAMLError:
+        return None
+    line = None
+    for key in loc:
+        if isinstance(node, yaml.MappingNode):
+            nxt = None
+            for k, v in node.value:
+                if k.value == str(key):
+                    nxt, line = v, k.start_mark.line + 1
+                    break
+            if nxt is None:
+                return line
+            node = nxt
+        elif isinstance(node, yaml.SequenceNode) and isinstance(key, int) and key < len(node.value):
+            node = node.value[key]
+            line = node.start_mark.line + 1
+        else:
+            return line
+    return line
+
+
+def load_meta(path: str | Path) -> DatasetMeta:
+    """Read and validate a ``dataset.yaml``; errors name the file, line and key."""
+    path = Path(path)
+    text = path.read_text()
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        line = mark.line + 1 if mark is not None else None
+        raise DatasetError(f"{path.name}{f', line {line}' if line else ''}: invalid YAML: {exc}",
+                           file=path.name, row=line) from None
+    if data is None:
+        return DatasetMeta()
+    if not isinstance(data, dict):
+        raise DatasetError(f"{path.name}: must hold a mapping of keys (name, description, ...), "
+                           f"got {type(data).__name__}", file=path.name, row=1)
+    try:
+        return DatasetMeta.model_validate(data)
+    except ValidationError as exc:
+        problems = []
+        first_line, first_key = None, None
+        for err in exc.errors():
+            loc = tuple(err["loc"])
+            key = ".".join(str(k) for k in loc)
+            line = _yaml_line(text, loc)
+            if first_key is None:
+                first_line, first_key = line, key
+            msg = "unknown key (not allowed here)" if err["type"] == "extra_forbidden" else err["msg"]
+            problems.append(f"{path.name}{f', line {line}' if line else ''}, key '{key}': {msg}"
+                            f" (got {err.get('input')!r})")
+        allowed = ", ".join(DatasetMeta.model_fields)
+        raise DatasetError("; ".join(problems) + f". Top-level keys allowed: {allowed}",
+                           file=path.name, row=first_line, column=first_key) from None
+
+
+# ---------------------------------------------------------------------------
+# The loader
+# ---------------------------------------------------------------------------
+def load_dataset(path: str | Path, options: Optional[LoadOptions] = None, **kwargs: Any) -> Dataset:
+    """Read and validate a dataset folder.
+
+    Parameters
+    ----------
+    path : the dataset folder (or its ``dataset.yaml``).
+    options : :class:`LoadOptions`; keyword arguments (``drop_duplicate_rows=True``,
+        ``sort=True``, ``gyro_units="deg/s"``, ...) are accepted as a shortcut.
+
+    Returns
+    -------
+    Dataset with ``imu`` (IMU clock, m/s^2, rad/s, IMU frame), ``uwb`` (UWB
+    clock, anchor ids as strings, m), ``anchors`` (world, m), optional
+    ``groundtruth`` (UWB clock) and ``meta``; ``ds.report`` is the
+    :class:`LoadReport` (rows read/kept, repairs made).
+
+    Raises
+    ------
+    DatasetError
+        naming the file, the row (CSV: line with the header as line 1) and the column.
+    """
+    if options is None:
+        options = LoadOptions(**kwargs)
+    elif kwargs:
+        options = options.model_copy(update=kwargs)
+    folder = Path(path)
+    if folder.is_file() and folder.name in ("dataset.yaml", "dataset.yml"):
+        folder = folder.parent
+    if not folder.exists():
+        raise DatasetError(f"{folder}: no such dataset folder", file=str(folder))
+    if not folder.is_dir():
+        raise DatasetError(f"{folder}: a dataset is a folder (imu.csv, uwb.csv, anchors.csv, ...), "
+                           f"not a file", file=str(folder))
+    report = LoadReport(path=folder)
+
+    srcs = {
+        "imu": _find_table(folder, "imu", True),
+        "uwb": _find_table(folder, "uwb", True),
+        "anchors": _find_table(folder, "anchors", True),
+        "groundtruth": _find_table(folder, "groundtruth", False),
+    }
+    for k, s in srcs.items():
+        if s is not None:
+            report.files[k] = s.name
+
+    meta_path = next((folder / n for n in ("dataset.yaml", "dataset.yml") if (folder / n).is_file()), None)
+    meta = load_meta(meta_path) if meta_path is not None else DatasetMeta()
+    if meta_path is not None:
+        report.files["meta"] = meta_path.name
+
+    imu = _load_imu(srcs["imu"], options, report)
+    uwb = _load_uwb(srcs["uwb"], options, report)
+    anchors = _load_anchors(srcs["anchors"], options, report)
+    gt = _load_groundtruth(srcs["groundtruth"], options, report) if srcs["groundtruth"] else None
+
+    # Every anchor that ranges must have a position.
+    known = set(anchors["anchor"])
+    unknown = [a for a in pd.unique(uwb["anchor"]) if a not in known]
+    if unknown:
+        usrc = srcs["uwb"]
+        firsts = [f"'{a}' (first at {usrc.at(uwb.index[(uwb['anchor'] == a).to_numpy()][0]).split(', ', 1)[1]})"
+                  for a in unknown]
+        i0 = uwb.index[(uwb["anchor"] == unknown[0]).to_numpy()][0]
+        raise DatasetError(
+            f"{usrc.name}, column 'anchor': anchor id(s) used in {usrc.name} but missing from "
+            f"{srcs['anchors'].name}: {', '.join(firsts)}; {srcs['anchors'].name} has: "
+            f"{', '.join(sorted(known))}",
+            file=usrc.name, row=usrc.row_number(i0), column="anchor")
+
+    if gt is not None and options.check_units and options.gyro_units == "rad/s":
+        _check_gyro_against_truth(srcs["imu"], imu, gt)
+
+    for name, df in (("imu", imu), ("uwb", uwb), ("anchors", anchors), ("groundtruth", gt)):
+        if df is not None:
+            report.rows_kept[name] = len(df)
+    ds = Dataset(
+        imu=imu.reset_index(drop=True),
+        uwb=uwb.reset_index(drop=True),
+        anchors=anchors.reset_index(drop=True),
+        groundtruth=None if gt is None else gt.reset_index(drop=True),
+        meta=meta,
+        path=folder,
+        report=report,
+    )
+    if report.actions:
+        warnings.warn("; ".join(report.actions), LoadRepairWarning, stacklevel=2)
+    return ds

@@ -1,0 +1,155 @@
+"""Options of the observability analyses (one typed place, loadable from YAML).
+
+A configuration describes *what* is analysed: the model, the anchors, the
+excitation and the points at which the rank test is evaluated.  Example
+(``examples/observability/theorem2_generic.yaml``)::
+
+    model: uwb_imu            # or point_mass
+    anchors: [[0, 0, 0], [5, 0, 0.5], [0, 5, 1.0]]
+    lever_arm: [0.1, 0.05, 0.2]
+    lie_order: 3
+    excitation: {accel: [x, y, z], gyro: [x, y, z]}
+    random_points: 20
+    seed: 0
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Literal, Optional, Union
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+Axis = Literal["x", "y", "z"]
+Vec3 = list[float]
+
+
+class ConfigError(ValueError):
+    """A configuration file that cannot be used (message names file and field)."""
+
+
+class Excitation(BaseModel):
+    """Which input channels are excited (their input fields enter the words).
+
+    A channel that is not excited is held at its constant ``nominal_input``
+    value, which enters the drift.  ``None`` = model default: all six IMU axes
+    for ``uwb_imu``, none for ``point_mass`` (seed 002 analyses the drift only).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    accel: Optional[list[Axis]] = None
+    gyro: Optional[list[Axis]] = None
+
+    @field_validator("accel", "gyro")
+    @classmethod
+    def _unique(cls, v):
+        if v is not None and len(set(v)) != len(v):
+            raise ValueError("axes must not repeat")
+        return v
+
+
+class PointSpec(BaseModel):
+    """An evaluation point; omitted blocks are drawn at random (seeded)."""
+
+    model_config = ConfigDict(extra="forbid")
+    p: Optional[Vec3] = Field(default=None, min_length=3, max_length=3)
+    v: Optional[Vec3] = Field(default=None, min_length=3, max_length=3)
+    q: Optional[list[float]] = Field(default=None, min_length=4, max_length=4)
+    b_a: Optional[Vec3] = Field(default=None, min_length=3, max_length=3)
+    b_g: Optional[Vec3] = Field(default=None, min_length=3, max_length=3)
+    #: put the *antenna* (p + R p_IU) at this world position (overrides ``p``)
+    antenna: Optional[Vec3] = Field(default=None, min_length=3, max_length=3)
+
+
+class ObservabilityConfig(BaseModel):
+    """Configuration of ``uwbimu observability structural|delay``.
+
+    Attributes
+    ----------
+    model : ``uwb_imu`` (seed 001, 19 numbers / 18 tangent dims without t_d) or
+        ``point_mass`` (seed 002, 6 states).
+    anchors : anchor (beacon) positions, world frame [m].
+    lever_arm : ``p_IU`` [m, IMU frame]; None = random per point (uwb_imu).
+    altimeter : add a height measurement ``z`` (point_mass only).
+    lie_order : maximal word length of the Lie derivatives.
+    excitation : excited input axes (see :class:`Excitation`).
+    nominal_input : constant input of the non-excited channels, ``[a_m, w_m]``
+        (6, uwb_imu) or world acceleration (3, point_mass); None = random.
+    points : explicit evaluation points; with none, ``random_points`` random ones.
+    random_points : number of random points when ``points`` is empty.
+    seed : RNG seed of every random draw.
+    tolerance : relative singular-value tolerance of the rank decision.
+    time_offset : ``t_d`` [s] used by the numeric check of Theorem 1.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    name: str = "unnamed"
+    description: str = ""
+    model: Literal["uwb_imu", "point_mass"] = "uwb_imu"
+    anchors: list[Vec3] = Field(min_length=1)
+    lever_arm: Optional[Vec3] = Field(default=None, min_length=3, max_length=3)
+    altimeter: bool = False
+    lie_order: int = Field(default=3, ge=0, le=4)
+    excitation: Excitation = Field(default_factory=Excitation)
+    nominal_input: Optional[list[float]] = None
+    points: list[PointSpec] = Field(default_factory=list)
+    random_points: int = Field(default=1, ge=1, le=1000)
+    seed: int = 0
+    tolerance: float = Field(default=1e-8, gt=0, lt=1)
+    time_offset: float = Field(default=0.01, gt=0)
+
+    @field_validator("anchors")
+    @classmethod
+    def _three(cls, v):
+        for i, a in enumerate(v):
+            if len(a) != 3:
+                raise ValueError(f"anchor {i} must have 3 coordinates, got {len(a)}")
+        return v
+
+    def accel_axes(self) -> tuple[str, ...]:
+        if self.excitation.accel is not None:
+            return tuple(sorted(self.excitation.accel))
+        return ("x", "y", "z") if self.model == "uwb_imu" else ()
+
+    def gyro_axes(self) -> tuple[str, ...]:
+        if self.model != "uwb_imu":
+            return ()
+        return tuple(sorted(self.excitation.gyro)) if self.excitation.gyro is not None else ("x", "y", "z")
+
+
+def load_config(source: Union[str, os.PathLike, dict, ObservabilityConfig]) -> ObservabilityConfig:
+    """Read and validate a configuration (path to YAML, dict or config)."""
+    if isinstance(source, ObservabilityConfig):
+        return source
+    where = "<dict>"
+    if isinstance(source, (str, os.PathLike)):
+        path = Path(source)
+        where = str(path)
+        if not path.is_file():
+            raise ConfigError(f"{path}: no such configuration file")
+        try:
+            data = yaml.safe_load(path.read_text())
+        except yaml.YAMLError as e:
+            raise ConfigError(f"{path}: not valid YAML: {e}") from None
+    else:
+        data = source
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected a mapping at the top level")
+    try:
+        cfg = ObservabilityConfig.model_validate(data)
+    except ValidationError as e:
+        lines = [f"{where}: invalid configuration"]
+        for err in e.errors():
+            loc = ".".join(str(p) for p in err["loc"])
+            lines.append(f"  field '{loc}': {err['msg']}")
+        raise ConfigError("\n".join(lines)) from None
+    n_in = 6 if cfg.model == "uwb_imu" else 3
+    if cfg.nominal_input is not None and len(cfg.nominal_input) != n_in:
+        raise ConfigError(f"{where}: field 'nominal_input' must have {n_in} numbers for model {cfg.model}")
+    if cfg.model == "point_mass" and cfg.excitation.gyro:
+        raise ConfigError(f"{where}: field 'excitation.gyro' is not defined for model point_mass")
+    if cfg.model == "uwb_imu" and cfg.altimeter:
+        raise ConfigError(f"{where}: field 'altimeter' is only available for model point_mass")
+    return cfg

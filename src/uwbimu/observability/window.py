@@ -1,0 +1,467 @@
+"""Per-window observability of a trajectory or a real log.
+
+For each time window the Fisher information of the 19-dim error state at the
+window start ``dx0 = (dp, dv, dtheta, db_a, db_g, dp_IU, dt_d)`` (right/body
+attitude perturbation, :mod:`uwbimu.models.state`) given the window's ranges is
+
+    I = sum_r  (H_r Phi(t_r + t_d, t0))^T (H_r Phi(t_r + t_d, t0)) / s_r^2,
+
+i.e. the linearised, noise-weighted observability Gramian along the recorded
+IMU and UWB stamps.  ``Phi`` is the error-state transition of the linearised
+kinematics (seed eq. 4-7) along the trajectory, ``H_r`` the range Jacobian
+(seed eq. 8) including the time-offset column ``-e^T (v + R (w x p_IU))``.
+
+IMU noise is included as an inflation of each range's variance,
+``s_r^2 = sigma_r^2 + H_r P_imu(t_r) H_r^T`` where ``P_imu`` is the covariance
+that IMU white noise and bias random walks accumulate from the window start.
+Correlations between ranges through the shared IMU noise are neglected (so the
+bound is approximate; it is exact for a noise-free IMU).
+
+Per window the module reports the Cramér-Rao lower bounds on the standard
+deviations ``sqrt(diag(I^-1))`` (SI units), and — on the information matrix
+made dimensionless with typical scales ``D`` (``D I D``; 1 m, 1 m/s, 1 rad,
+0.1 m/s^2, 0.01 rad/s, 0.1 m, 0.01 s by default) — its smallest eigenvalue,
+condition number and weakest direction (named as in
+:mod:`uwbimu.observability.directions`).  A window whose lever-arm (time-offset)
+bound exceeds a threshold is flagged as not exciting it.
+
+The inner loop (transition and IMU covariance along ~4000 IMU samples) is a
+numba kernel re-expressing the linearised reference kinematics; tests pin it to
+finite differences of :func:`uwbimu.models.reference.propagate` and
+:func:`uwbimu.models.reference.range_measurement`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+import pandas as pd
+from numba import njit
+
+from uwbimu.models.imu import BMI088, ImuNoise
+from uwbimu.models.quaternion import quat_normalize, quat_slerp, quat_to_rotmat
+from uwbimu.models.state import ERROR_STATE_NAMES
+from uwbimu.observability.directions import candidates_for, name_directions
+
+#: Typical magnitudes used to make the information dimensionless (per block).
+DEFAULT_SCALES = {"p": 1.0, "v": 1.0, "th": 1.0, "ba": 0.1, "bg": 0.01, "l": 0.1, "td": 0.01}
+
+
+@dataclass
+class Trajectory:
+    """Linearisation trajectory on the UWB clock.
+
+    Attributes
+    ----------
+    t : (K,) UWB-clock stamps [s].
+    p, v : (K, 3) IMU position / velocity, world [m, m/s].
+    q : (K, 4) attitude quaternions (body -> world).
+    b_a, b_g : (K, 3) or (3,) biases (IMU frame).
+    lever_arm : (3,) ``p_IU`` [m]; t_d : time offset [s].
+    """
+
+    t: np.ndarray
+    p: np.ndarray
+    v: np.ndarray
+    q: np.ndarray
+    b_a: np.ndarray
+    b_g: np.ndarray
+    lever_arm: np.ndarray
+    t_d: float = 0.0
+
+
+@dataclass
+class WindowOptions:
+    """Options of :func:`window_observability`."""
+
+    window: float = 20.0
+    range_sigma: Optional[float] = None  # None: dataset meta, else 0.1 m
+    imu_noise: Optional[ImuNoise] = None  # None: dataset meta, else BMI088
+    include_imu_noise: bool = True
+    lever_sd_threshold: float = 0.1  # m
+    td_sd_threshold: float = 0.03  # s
+    scales: dict = field(default_factory=lambda: dict(DEFAULT_SCALES))
+    min_ranges: int = 10
+
+
+# --------------------------------------------------------------------------
+# trajectories
+# --------------------------------------------------------------------------
+def trajectory_from_groundtruth(ds, lever_arm=None, t_d: Optional[float] = None) -> Trajectory:
+    """Ground-truth trajectory of a dataset (biases zero, calibration from meta)."""
+    gt = ds.groundtruth
+    if gt is None or len(gt) < 2:
+        raise ValueError("the dataset has no ground truth; pass an estimator trajectory")
+    t = gt["t"].to_numpy(float)
+    p = gt[["px", "py", "pz"]].to_numpy(float)
+    q = quat_normalize(gt[["qw", "qx", "qy", "qz"]].to_numpy(float))
+    if all(c in gt.columns for c in ("vx", "vy", "vz")) and not gt[["vx", "vy", "vz"]].isna().any().any():
+        v = gt[["vx", "vy", "vz"]].to_numpy(float)
+    else:
+        v = np.gradient(p, t, axis=0)
+    meta = ds.meta
+    if lever_arm is None:
+        truth = meta.truth.lever_arm if meta.truth is not None else None
+        tag = meta.tags[0].lever_arm if meta.tags else None
+        lever_arm = truth if truth is not None else (tag if tag is not None else [0.0, 0.0, 0.0])
+    if t_d is None:
+        t_d = meta.truth.time_offset if meta.truth is not None and meta.truth.time_offset is not None else 0.0
+    z = np.zeros(3)
+    return Trajectory(t, p, v, q, z, z, np.asarray(lever_arm, float), float(t_d))
+
+
+def trajectory_from_result(result) -> Trajectory:
+    """Trajectory of an :class:`uwbimu.estimation.result.EstimationResult`."""
+    X = np.asarray(result.states, float)
+    return Trajectory(
+        np.asarray(result.t, float), X[:, 0:3], X[:, 3:6], quat_normalize(X[:, 6:10]),
+        X[:, 10:13], X[:, 13:16], np.nanmedian(X[:, 16:19], axis=0), float(np.nanmedian(X[:, 19])),
+    )  # fmt: skip
+
+
+def _interp_traj(tr: Trajectory, t: np.ndarray):
+    """Interpolate p, v, q, biases at UWB-clock times ``t`` (clamped to the ends)."""
+    tt = np.clip(t, tr.t[0], tr.t[-1])
+    idx = np.clip(np.searchsorted(tr.t, tt, side="right") - 1, 0, len(tr.t) - 2)
+    a = (tt - tr.t[idx]) / np.maximum(tr.t[idx + 1] - tr.t[idx], 1e-12)
+    lin = lambda X: X[idx] + a[:, None] * (X[idx + 1] - X[idx])  # noqa: E731
+    q = quat_slerp(tr.q[idx], tr.q[idx + 1], a)
+    ba = lin(tr.b_a) if np.ndim(tr.b_a) == 2 else np.broadcast_to(tr.b_a, (len(t), 3))
+    bg = lin(tr.b_g) if np.ndim(tr.b_g) == 2 else np.broadcast_to(tr.b_g, (len(t), 3))
+    return lin(tr.p), lin(tr.v), quat_normalize(q), ba, bg
+
+
+# --------------------------------------------------------------------------
+# Jacobians (re-expressed physics, pinned to the reference by tests)
+# --------------------------------------------------------------------------
+def range_jacobians(p, v, R, omega, lever, anchors) -> tuple[np.ndarray, np.ndarray]:
+    """Range predictions and Jacobians w.r.t. the 19-dim error state (batched).
+
+    Parameters
+    ----------
+    p, v : (M, 3) IMU position / velocity at the ranges' instants (world).
+    R : (M, 3, 3) attitude; omega : (M, 3) body rate ``w_m - b_g`` [rad/s].
+    lever : (3,) ``p_IU`` [m]; anchors : (M, 3) anchor of each range [m].
+
+    Returns
+    -------
+    h : (M,) ranges [m]; H : (M, 19) ``d h / d dx`` with ``dx`` as in
+    :mod:`uwbimu.models.state` (the ``t_d`` column is ``d h / d t_d`` of a range
+    that observes the motion at IMU time ``t + t_d``).
+    """
+    pU = p + R @ lever
+    d = anchors - pU
+    h = np.linalg.norm(d, axis=1)
+    e = d / h[:, None]
+    H = np.zeros((len(h), 19))
+    H[:, 0:3] = -e
+    # d pU / d dtheta = -R [l]x  ->  d h / d dtheta = e^T R [l]x
+    lx = _skew(lever)
+    H[:, 6:9] = np.einsum("mi,mij->mj", e, R @ lx)
+    H[:, 15:18] = -np.einsum("mi,mij->mj", e, R)
+    vel_U = v + np.einsum("mij,mj->mi", R, np.cross(omega, lever))
+    H[:, 18] = -np.sum(e * vel_U, axis=1)
+    return h, H
+
+
+def _skew(w):
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+@njit(cache=True)
+def _step_rows(M, R, f, E, dt):
+    """In place ``M <- F M`` on the rows 0:15 of an error-state matrix.
+
+    ``F = I + A dt`` except the attitude block, which is exact, ``E = Exp(-w dt)``;
+    ``A``: dp' = dv, dv' = -R [f]x dth - R dba, dth' = -[w]x dth - dbg.
+    """
+    # Rf = R [f]x, written out (no allocation in the hot loop)
+    Rf00 = R[0, 1] * f[2] - R[0, 2] * f[1]
+    Rf01 = -R[0, 0] * f[2] + R[0, 2] * f[0]
+    Rf02 = R[0, 0] * f[1] - R[0, 1] * f[0]
+    Rf10 = R[1, 1] * f[2] - R[1, 2] * f[1]
+    Rf11 = -R[1, 0] * f[2] + R[1, 2] * f[0]
+    Rf12 = R[1, 0] * f[1] - R[1, 1] * f[0]
+    Rf20 = R[2, 1] * f[2] - R[2, 2] * f[1]
+    Rf21 = -R[2, 0] * f[2] + R[2, 2] * f[0]
+    Rf22 = R[2, 0] * f[1] - R[2, 1] * f[0]
+    for c in range(M.shape[1]):
+        v0, v1, v2 = M[3, c], M[4, c], M[5, c]
+        t0, t1, t2 = M[6, c], M[7, c], M[8, c]
+        a0, a1, a2 = M[9, c], M[10, c], M[11, c]
+        M[0, c] += dt * v0
+        M[1, c] += dt * v1
+        M[2, c] += dt * v2
+        M[3, c] = v0 - dt * (Rf00 * t0 + Rf01 * t1 + Rf02 * t2 + R[0, 0] * a0 + R[0, 1] * a1 + R[0, 2] * a2)
+        M[4, c] = v1 - dt * (Rf10 * t0 + Rf11 * t1 + Rf12 * t2 + R[1, 0] * a0 + R[1, 1] * a1 + R[1, 2] * a2)
+        M[5, c] = v2 - dt * (Rf20 * t0 + Rf21 * t1 + Rf22 * t2 + R[2, 0] * a0 + R[2, 1] * a1 + R[2, 2] * a2)
+        M[6, c] = E[0, 0] * t0 + E[0, 1] * t1 + E[0, 2] * t2 - dt * M[12, c]
+        M[7, c] = E[1, 0] * t0 + E[1, 1] * t1 + E[1, 2] * t2 - dt * M[13, c]
+        M[8, c] = E[2, 0] * t0 + E[2, 1] * t1 + E[2, 2] * t2 - dt * M[14, c]
+
+
+@njit(cache=True)
+def _exp_neg(w, dt, E):
+    """``E <- Exp(-w dt)`` (Rodrigues), in place."""
+    a0, a1, a2 = -w[0] * dt, -w[1] * dt, -w[2] * dt
+    th2 = a0 * a0 + a1 * a1 + a2 * a2
+    if th2 < 1e-18:
+        s1, s2 = 1.0, 0.5
+    else:
+        th = np.sqrt(th2)
+        s1 = np.sin(th) / th
+        s2 = (1.0 - np.cos(th)) / th2
+    # E = I + s1 K + s2 K^2 with K = [a]x, K^2 = a a^T - |a|^2 I
+    E[0, 0] = 1.0 + s2 * (a0 * a0 - th2)
+    E[1, 1] = 1.0 + s2 * (a1 * a1 - th2)
+    E[2, 2] = 1.0 + s2 * (a2 * a2 - th2)
+    E[0, 1] = -s1 * a2 + s2 * a0 * a1
+    E[1, 0] = s1 * a2 + s2 * a0 * a1
+    E[0, 2] = s1 * a1 + s2 * a0 * a2
+    E[2, 0] = -s1 * a1 + s2 * a0 * a2
+    E[1, 2] = -s1 * a0 + s2 * a1 * a2
+    E[2, 1] = s1 * a0 + s2 * a1 * a2
+
+
+@njit(cache=True)
+def _window_information(R, f, w, dt, rng_idx, Hr, sig2, qdiag, use_noise):
+    """Information matrix (19x19) of one window.
+
+    R (K,3,3), f (K,3), w (K,3), dt (K,) per IMU step; ranges sorted by
+    ``rng_idx`` (IMU step index at which they observe the state), with
+    Jacobians ``Hr`` (M,19) and variances ``sig2`` (M,).  ``qdiag`` (15,)
+    continuous noise densities squared for (p, v, th, ba, bg).
+    """
+    K = R.shape[0]
+    M = Hr.shape[0]
+    Phi = np.eye(19)
+    P = np.zeros((15, 15))
+    PT = np.zeros((15, 15))
+    E = np.zeros((3, 3))
+    info = np.zeros((19, 19))
+    j = 0
+    row = np.empty(19)
+    for k in range(K):
+        while j < M and rng_idx[j] == k:
+            s2 = sig2[j]
+            if use_noise:
+                for a in range(15):
+                    ha = Hr[j, a]
+                    if ha != 0.0:
+                        for b in range(15):
+                            s2 += ha * P[a, b] * Hr[j, b]
+            for c in range(19):
+                s = 0.0
+                for a in range(18):
+                    s += Hr[j, a] * Phi[a, c]
+                row[c] = s
+            row[18] += Hr[j, 18]  # t_d is a constant: its column of Phi is e_18
+            for a in range(19):
+                ra = row[a] / s2
+                for b in range(a, 19):
+                    info[a, b] += ra * row[b]
+            j += 1
+        if k == K - 1:
+            break
+        _exp_neg(w[k], dt[k], E)
+        _step_rows(Phi, R[k], f[k], E, dt[k])
+        if use_noise:
+            _step_rows(P, R[k], f[k], E, dt[k])  # F P
+            for a in range(15):
+                for b in range(15):
+                    PT[a, b] = P[b, a]
+            _step_rows(PT, R[k], f[k], E, dt[k])  # F (F P)^T = F P F^T
+            for a in range(15):
+                for b in range(15):
+                    P[a, b] = PT[a, b]
+                P[a, a] += qdiag[a] * dt[k]
+    for a in range(19):
+        for b in range(a):
+            info[a, b] = info[b, a]
+    return info
+
+
+# --------------------------------------------------------------------------
+# analysis of one information matrix
+# --------------------------------------------------------------------------
+def _scale_vector(scales: dict) -> np.ndarray:
+    keys = ["p"] * 3 + ["v"] * 3 + ["th"] * 3 + ["ba"] * 3 + ["bg"] * 3 + ["l"] * 3 + ["td"]
+    return np.array([scales[k] for k in keys], float)
+
+
+def analyse_information(info: np.ndarray, scales: dict, x_ref=None, anchors=None) -> dict:
+    """Smallest eigenvalue, condition number, weakest direction and CRLB sd."""
+    D = _scale_vector(scales)
+    Is = D[:, None] * info * D[None, :]
+    lam, V = np.linalg.eigh(0.5 * (Is + Is.T))
+    lmax = max(lam[-1], 1e-300)
+    lmin = lam[0]
+    cond = float(lmax / lmin) if lmin > 1e-14 * lmax else float("inf")
+    good = lam > 1e-14 * lmax
+    # CRLB in SI: (D Is^-1 D) with Is^-1 = V diag(1/lam) V^T over the good eigenvalues;
+    # components touching a (numerically) singular direction are unbounded.
+    inv_diag = (V[:, good] ** 2) @ (1.0 / lam[good])
+    sd = D * np.sqrt(inv_diag)
+    bad = (V[:, ~good] ** 2).sum(axis=1) > 1e-6
+    sd[bad] = np.inf
+    weakest = V[:, 0] / np.linalg.norm(V[:, 0])
+    names = list(ERROR_STATE_NAMES)
+    label = None
+    if x_ref is not None and anchors is not None:
+        # name in scaled coordinates: map the generator candidates through D^-1
+        cands = candidates_for("uwb_imu", names[:18], x_ref, anchors)
+        for c in cands:
+            c.basis = c.basis / D[:18, None]
+        named = name_directions(weakest[:18, None] if abs(weakest[18]) < 0.5 else np.zeros((18, 0)), cands, names[:18])
+        if named and not named[0]["name"].startswith("unnamed"):
+            label = named[0]["name"]
+    if label is None:
+        order = np.argsort(-np.abs(weakest))[:3]
+        label = " ".join(f"{weakest[i]:+.2f} {names[i]}" for i in order if abs(weakest[i]) > 0.15)
+    return {"min_eigenvalue": float(lmin), "condition_number": cond, "weakest_direction": label, "sd": sd}
+
+
+# --------------------------------------------------------------------------
+# driver
+# --------------------------------------------------------------------------
+def _prepare(ds, tr: Trajectory, opts: WindowOptions):
+    imu_t = ds.imu_t
+    u = ds.imu_u
+    order = np.argsort(imu_t, kind="stable")
+    imu_t, u = imu_t[order], u[order]
+    # motion at IMU stamp s is at UWB time s - t_d
+    p, v, q, ba, bg = _interp_traj(tr, imu_t - tr.t_d)
+    R = quat_to_rotmat(q)
+    f = u[:, 0:3] - ba
+    w = u[:, 3:6] - bg
+    dt = np.r_[np.diff(imu_t), 0.0]
+
+    uwb = ds.uwb.sort_values("t", kind="stable")
+    anchors_pos = ds.anchor_positions()
+    ids = uwb["anchor"].astype(str).to_numpy()
+    known = np.array([i in anchors_pos for i in ids], bool)
+    uwb_t = uwb["t"].to_numpy(float)[known]
+    ids = ids[known]
+    A = np.array([anchors_pos[i] for i in ids]).reshape(-1, 3)
+    pr, vr, qr, _, bgr = _interp_traj(tr, uwb_t)
+    Rr = quat_to_rotmat(qr)
+    # body rate at the IMU time that the range observes
+    t_imu = uwb_t + tr.t_d
+    wr = np.column_stack([np.interp(t_imu, imu_t, u[:, 3 + i]) for i in range(3)]) - bgr
+    _, H = range_jacobians(pr, vr, Rr, wr, tr.lever_arm, A)
+    # nearest IMU step at or before the observed IMU time
+    ridx = np.clip(np.searchsorted(imu_t, t_imu, side="right") - 1, 0, len(imu_t) - 1)
+    inside = (t_imu >= imu_t[0]) & (t_imu <= imu_t[-1])
+    return {
+        "imu_t": imu_t, "R": R, "f": f, "w": w, "dt": dt,
+        "uwb_t": uwb_t[inside], "H": H[inside], "ridx": ridx[inside], "anchors": A[inside],
+        "n_unknown_anchor": int((~known).sum()), "n_outside": int((~inside).sum()),
+        "traj_at_imu": (p, v, q, ba, bg),
+    }  # fmt: skip
+
+
+def window_observability(ds, trajectory: Optional[Trajectory] = None, options: Optional[WindowOptions] = None) -> tuple[pd.DataFrame, dict]:
+    """Per-window information analysis of a dataset along a trajectory.
+
+    Parameters
+    ----------
+    ds : :class:`uwbimu.io.dataset.Dataset` (IMU, UWB, anchors).
+    trajectory : linearisation trajectory; default the dataset's ground truth.
+    options : :class:`WindowOptions`.
+
+    Returns
+    -------
+    table : one row per window: ``t_start, t_end`` (IMU clock, s),
+        ``min_eigenvalue, condition_number`` (of the scaled information),
+        ``weakest_direction``, ``sd_<state>`` (CRLB, SI units) for the 19
+        error states, ``n_ranges``, ``gyro_rms`` (rad/s), ``lever_arm_excited``,
+        ``time_offset_excited``.
+    info : counts of ranges dropped (unknown anchor, outside the IMU span) and
+        the noise values used.
+    """
+    opts = options or WindowOptions()
+    if opts.window <= 0:
+        raise ValueError(f"window must be positive, got {opts.window}")
+    tr = trajectory if trajectory is not None else trajectory_from_groundtruth(ds)
+    sigma = opts.range_sigma or (ds.meta.range_sigma if ds.meta.range_sigma else 0.1)
+    noise = opts.imu_noise or (ds.meta.imu_noise if ds.meta.imu_noise is not None else BMI088)
+    qd = np.zeros(15)
+    qd[3:6] = noise.accel_noise_density**2
+    qd[6:9] = noise.gyro_noise_density**2
+    qd[9:12] = noise.accel_bias_rw**2
+    qd[12:15] = noise.gyro_bias_rw**2
+    pre = _prepare(ds, tr, opts)
+    imu_t = pre["imu_t"]
+    edges = np.arange(imu_t[0], imu_t[-1] + 1e-9, opts.window)
+    if len(edges) < 2 or edges[-1] < imu_t[-1] - 1e-9:
+        edges = np.r_[edges, imu_t[-1]]
+    rows = []
+    p, v, q, _, _ = pre["traj_at_imu"]
+    for t0, t1 in zip(edges[:-1], edges[1:]):
+        k0 = int(np.searchsorted(imu_t, t0, side="left"))
+        k1 = int(np.searchsorted(imu_t, t1, side="right"))
+        sel = (pre["ridx"] >= k0) & (pre["ridx"] < k1)
+        nr = int(sel.sum())
+        row = {"t_start": float(t0), "t_end": float(t1), "n_ranges": nr}
+        gyro = pre["w"][k0:k1]
+        row["gyro_rms"] = float(np.sqrt(np.mean(np.sum(gyro**2, axis=1)))) if len(gyro) else 0.0
+        if nr < opts.min_ranges or k1 - k0 < 2:
+            row.update({"min_eigenvalue": 0.0, "condition_number": float("inf"), "weakest_direction": "no data"})
+            row.update({f"sd_{n}": float("inf") for n in ERROR_STATE_NAMES})
+        else:
+            info = _window_information(
+                np.ascontiguousarray(pre["R"][k0:k1]), np.ascontiguousarray(pre["f"][k0:k1]),
+                np.ascontiguousarray(pre["w"][k0:k1]), np.ascontiguousarray(pre["dt"][k0:k1]),
+                pre["ridx"][sel] - k0, np.ascontiguousarray(pre["H"][sel]),
+                np.full(nr, sigma**2), qd, bool(opts.include_imu_noise),
+            )  # fmt: skip
+            x_ref = np.r_[p[k0], v[k0], q[k0], np.zeros(6), tr.lever_arm]
+            res = analyse_information(info, opts.scales, x_ref, np.unique(pre["anchors"][sel], axis=0))
+            row.update({k: res[k] for k in ("min_eigenvalue", "condition_number", "weakest_direction")})
+            row.update({f"sd_{n}": float(s) for n, s in zip(ERROR_STATE_NAMES, res["sd"])})
+        row["lever_arm_excited"] = bool(max(row["sd_lx"], row["sd_ly"], row["sd_lz"]) < opts.lever_sd_threshold)
+        row["time_offset_excited"] = bool(row["sd_td"] < opts.td_sd_threshold)
+        rows.append(row)
+    cols = ["t_start", "t_end", "min_eigenvalue", "condition_number", "weakest_direction"]
+    cols += [f"sd_{n}" for n in ERROR_STATE_NAMES] + ["n_ranges", "gyro_rms", "lever_arm_excited", "time_offset_excited"]
+    table = pd.DataFrame(rows)[cols]
+    meta = {
+        "range_sigma": sigma,
+        "imu_noise": noise.model_dump(),
+        "include_imu_noise": opts.include_imu_noise,
+        "ranges_unknown_anchor": pre["n_unknown_anchor"],
+        "ranges_outside_imu_span": pre["n_outside"],
+        "windows": len(rows),
+        "lever_arm": tr.lever_arm.tolist(),
+        "time_offset": tr.t_d,
+    }
+    return table, meta
+
+
+def plot_timeline(table: pd.DataFrame, path) -> None:
+    """Timeline PNG: min eigenvalue, CRLB of lever arm and time offset, flags."""
+    from matplotlib.figure import Figure
+
+    from uwbimu.io.atomic import save_figure
+
+    tc = 0.5 * (table["t_start"] + table["t_end"])
+    fig = Figure(figsize=(9, 7))
+    ax = fig.subplots(3, 1, sharex=True)
+    ax[0].semilogy(tc, np.maximum(table["min_eigenvalue"], 1e-20), "o-")
+    ax[0].set_ylabel("min eigenvalue\n(scaled information)")
+    for n in ("lx", "ly", "lz"):
+        ax[1].semilogy(tc, table[f"sd_{n}"].replace(np.inf, np.nan), "o-", label=f"sd {n}")
+    ax[1].set_ylabel("CRLB lever arm [m]")
+    ax[1].legend(fontsize=8)
+    ax[2].semilogy(tc, table["sd_td"].replace(np.inf, np.nan), "o-", color="C3")
+    ax[2].set_ylabel("CRLB t_d [s]")
+    ax[2].set_xlabel("window centre, IMU clock [s]")
+    for i, r in table.iterrows():
+        if not r["lever_arm_excited"]:
+            ax[1].axvspan(r["t_start"], r["t_end"], color="orange", alpha=0.15)
+        if not r["time_offset_excited"]:
+            ax[2].axvspan(r["t_start"], r["t_end"], color="orange", alpha=0.15)
+    fig.suptitle("Per-window observability (shaded: not excited)")
+    save_figure(path, fig)

@@ -1,0 +1,115 @@
+"""Built-in named scenarios (``uwbimu simulate --list``).
+
+All fly in the ``room8`` layout (10 x 8 x 3 m, 8 anchors at two heights) with
+a BMI088-class IMU at 200 Hz, 50 Hz round-robin ranging (sigma 5 cm), lever
+arm ``[0.12, -0.08, 0.14]`` m and time offset 0.03 s, unless stated.  Motion
+stays within small-drone limits (speed <= 2 m/s, acceleration <= 3 m/s^2,
+body rate <= 2 rad/s; checked by ``tests/test_sim_builtin.py``).
+"""
+
+from __future__ import annotations
+
+import copy
+
+from uwbimu.sim.scenario import Scenario
+
+#: The demo default's common part.
+_BASE: dict = {
+    "duration": 60.0,
+    "imu": {"rate_hz": 200.0, "noise": "bmi088"},
+    "uwb": {"rate_hz": 50.0, "schedule": "round_robin", "sigma": 0.05},
+    "anchors": "room8",
+    "lever_arm": [0.12, -0.08, 0.14],
+    "time_offset": 0.03,
+    "seeds": {"truth": 0, "noise": 1, "init": 2},
+}
+
+_LISSAJOUS = {"type": "lissajous"}  # defaults of LissajousSpec: the excited calibration flight
+
+_BUILTINS: dict[str, dict] = {
+    "calibration-flight": {
+        "description": "Demo default: 60 s 3-D Lissajous with attitude excitation, room8, BMI088, 50 Hz UWB",
+        "trajectory": _LISSAJOUS,
+    },
+    "excited-90s": {
+        "description": "The calibration flight for 90 s",
+        "duration": 90.0,
+        "trajectory": _LISSAJOUS,
+    },
+    "lissajous": {
+        "description": "3-D Lissajous with stronger roll/pitch/yaw excitation",
+        "trajectory": {
+            "type": "lissajous",
+            "amplitude": [2.5, 2.0, 0.7],
+            "frequency": [0.08, 0.11, 0.15],
+            "attitude": {"amplitude": [0.45, 0.45, 1.0], "frequency": [0.35, 0.27, 0.07]},
+        },
+    },
+    "hover": {"description": "Near-hover at the room centre (weak excitation)", "trajectory": {"type": "hover"}},
+    "circle": {"description": "Horizontal circle r = 2 m, 10 s per lap, heading along the path", "trajectory": {"type": "circle"}},
+    "figure8": {"description": "Horizontal figure-8, 6 x 3 m, 20 s period, gentle attitude motion", "trajectory": {"type": "figure8"}},
+    "random": {"description": "Seeded random smooth motion (sum of sinusoids, seeds.truth)", "trajectory": {"type": "random"}},
+    "translation": {
+        "description": "Pure translation, constant attitude (angular velocity exactly zero)",
+        "trajectory": {"type": "translation"},
+    },
+    "rotation": {"description": "Pure rotation about a fixed point (roll, pitch, yaw)", "trajectory": {"type": "rotation"}},
+    "nlos": {
+        "description": "Calibration flight with NLOS: 2 % background, bursts on A1 and A6",
+        "trajectory": _LISSAJOUS,
+        "uwb": {
+            "nlos_prob": 0.02,
+            "nlos_scale": 0.4,
+            "nlos_bursts": [
+                {"t0": 15.0, "t1": 25.0, "anchor": "A1", "prob": 0.8},
+                {"t0": 35.0, "t1": 42.0, "anchor": "A6", "prob": 0.8},
+            ],
+        },
+    },
+    "outage": {
+        "description": "Calibration flight with anchor A2 out for 10 s (20-30 s)",
+        "trajectory": _LISSAJOUS,
+        "uwb": {"outages": [[20.0, 30.0, "A2"]]},
+    },
+    "two-tags": {
+        "description": "Calibration flight with two tags (front/back lever arms), ranges carry a tag column",
+        "trajectory": _LISSAJOUS,
+        "lever_arm": None,
+        "tags": [
+            {"name": "front", "lever_arm": [0.12, -0.08, 0.14]},
+            {"name": "back", "lever_arm": [-0.15, 0.06, 0.10]},
+        ],
+    },
+    "ideal": {
+        "description": "Calibration flight with a noise-free, bias-free IMU and exact ranges (for tests)",
+        "trajectory": _LISSAJOUS,
+        "imu": {"noise": "ideal", "accel_bias": [0, 0, 0], "gyro_bias": [0, 0, 0]},
+        "uwb": {"sigma": 0.0},
+    },
+}
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        if v is None:
+            out.pop(k, None)
+        elif isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = copy.deepcopy(v)
+    return out
+
+
+def list_scenarios() -> dict[str, str]:
+    """Built-in scenario names mapped to their one-line descriptions."""
+    return {name: spec["description"] for name, spec in _BUILTINS.items()}
+
+
+def builtin_scenario(name: str) -> Scenario:
+    """A fresh :class:`Scenario` for a built-in name (see :func:`list_scenarios`)."""
+    if name not in _BUILTINS:
+        raise KeyError(f"unknown built-in scenario {name!r}; choose one of {sorted(_BUILTINS)}")
+    data = _merge(_BASE, _BUILTINS[name])
+    data["name"] = name
+    return Scenario.model_validate(data)

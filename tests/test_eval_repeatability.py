@@ -1,0 +1,81 @@
+"""Repeatability: window splitting and the chi-square consistency of window estimates."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from uwbimu.eval.repeatability import consistency, repeatability, split_windows
+from uwbimu.io.dataset import Dataset, DatasetMeta, TruthMeta
+
+
+def _dataset(duration=40.0):
+    t = np.arange(0, duration, 0.01)
+    imu = pd.DataFrame({"t": t, "ax": 0.0, "ay": 0.0, "az": 9.81, "wx": 0.0, "wy": 0.0, "wz": 0.0})
+    tu = np.arange(0, duration, 0.05)
+    uwb = pd.DataFrame({"t": tu, "anchor": "1", "range": 2.0})
+    gt = pd.DataFrame({"t": t, "px": 0.0, "py": 0.0, "pz": 0.0, "qw": 1.0, "qx": 0.0, "qy": 0.0, "qz": 0.0})
+    an = pd.DataFrame({"anchor": ["1"], "x": [1.0], "y": [0.0], "z": [0.0]})
+    meta = DatasetMeta(name="stub", truth=TruthMeta(lever_arm=[0.1, 0.0, 0.05], time_offset=0.02))
+    return Dataset(imu=imu, uwb=uwb, anchors=an, groundtruth=gt, meta=meta)
+
+
+def test_split_windows_partition_without_overlap():
+    ds = _dataset()
+    wins = split_windows(ds, 4)
+    assert len(wins) == 4
+    assert sum(len(w.imu) for w in wins) == len(ds.imu)
+    assert sum(len(w.uwb) for w in wins) == len(ds.uwb)
+    assert sum(len(w.groundtruth) for w in wins) == len(ds.groundtruth)
+    for a, b in zip(wins[:-1], wins[1:]):
+        assert a.imu["t"].max() < b.imu["t"].min()
+    with pytest.raises(ValueError):
+        split_windows(ds, 1)
+
+
+class StubEstimator:
+    """Returns truth + Gaussian noise of ``true_sd`` while reporting ``claimed_sd``."""
+
+    def __init__(self, true_sd, claimed_sd, seed=0, fail_on=None):
+        self.rng = np.random.default_rng(seed)
+        self.true_sd, self.claimed_sd, self.calls, self.fail_on = true_sd, claimed_sd, 0, fail_on
+
+    def __call__(self, w: Dataset):
+        self.calls += 1
+        if self.fail_on == self.calls:
+            raise RuntimeError("diverged")
+        la = np.array(w.meta.truth.lever_arm) + self.rng.normal(0, self.true_sd, 3)
+        return {"lever_arm": la.tolist(), "lever_arm_sd": [self.claimed_sd] * 3,
+                "time_offset": 0.02 + self.rng.normal(0, self.true_sd / 10), "time_offset_sd": self.claimed_sd / 10}
+
+
+def test_honest_sigmas_are_consistent_and_overconfident_ones_are_flagged():
+    ds = _dataset()
+    good = repeatability(ds, 8, StubEstimator(0.01, 0.01, seed=1))
+    for p in ("lx", "ly", "lz", "td"):
+        assert good["parameters"][p]["verdict"] == "consistent", good["parameters"][p]
+        assert 0.4 < good["parameters"][p]["ratio"] < 1.8
+    assert abs(good["parameters"]["lx"]["mean_error"]) < 0.02
+    over = repeatability(ds, 8, StubEstimator(0.05, 0.005, seed=2))
+    for p in ("lx", "ly", "lz", "td"):
+        assert over["parameters"][p]["verdict"] == "over-confident"
+        assert over["parameters"][p]["ratio"] > 4
+    under = repeatability(ds, 8, StubEstimator(0.001, 0.05, seed=3))
+    assert under["parameters"]["lx"]["verdict"] == "under-confident"
+
+
+def test_failed_window_is_reported_not_fatal():
+    rep = repeatability(_dataset(), 4, StubEstimator(0.01, 0.01, fail_on=2))
+    assert rep["n_failed"] == 1
+    assert "diverged" in rep["windows"][1]["error"]
+    assert rep["parameters"]["lx"]["n"] == 3
+
+
+def test_consistency_chi_square_calibration():
+    # under honest sigmas the p-value is uniform: about 1 % of trials fall below 0.01
+    rng = np.random.default_rng(7)
+    p = np.array([consistency(rng.normal(0, 1, 6), np.ones(6))["p_value"] for _ in range(2000)])
+    assert 0.005 < np.mean(p < 0.01) < 0.02
+    assert 0.45 < np.mean(p < 0.5) < 0.55
+    assert consistency(np.array([1.0, 1.1]), np.array([0.0, 0.0]))["verdict"].startswith("not estimated")

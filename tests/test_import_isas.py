@@ -1,0 +1,87 @@
+"""ISAS-Walk importer on the bundled excerpt (GPL-3.0 data, see tests/data/isas_walk_excerpt/ATTRIBUTION.md)."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from uwbimu.io.importers.isas_walk import LEVER_ARM, TOA_OFFSET, convert, import_dataset
+from uwbimu.io.loader import DatasetError, load_dataset
+
+EXCERPT = Path(__file__).parent / "data" / "isas_walk_excerpt"
+
+
+def test_import_excerpt_roundtrip(tmp_path):
+    dst = tmp_path / "ds"
+    res = import_dataset(EXCERPT, dst)
+    ds = load_dataset(dst)
+    raw_u = pd.read_csv(EXCERPT / "uwb_ranges.csv")
+    raw_i = pd.read_csv(EXCERPT / "imu.csv")
+    raw_g = pd.read_csv(EXCERPT / "groundtruth_vive.csv")
+    # only fresh ranges, as SFUISE; the drop is counted
+    fresh = raw_u[raw_u.ra_valid == 1]
+    assert len(ds.uwb) == len(fresh)
+    assert any(f"dropped {int((raw_u.ra_valid != 1).sum())} stale" in c for c in res.changes)
+    assert len(ds.imu) == len(raw_i) and len(ds.groundtruth) == len(raw_g)
+    # one common time origin (header stamps), microseconds kept
+    t0 = ds.meta.extra["time_origin_unix_s"]
+    np.testing.assert_allclose(ds.imu["t"].to_numpy() + t0, raw_i.t_header_s.to_numpy(), atol=2e-6, rtol=0)
+    np.testing.assert_allclose(np.sort(ds.uwb["t"].to_numpy() + t0), np.sort(fresh.t_header_s.to_numpy()), atol=2e-6, rtol=0)
+    # ranges unchanged, matched by (stamp, anchor)
+    m = ds.uwb.assign(ts=np.round(ds.uwb.t + t0, 6)).merge(
+        fresh.assign(ts=np.round(fresh.t_header_s, 6), anchor=fresh.anchor_id.astype(str)), on=["ts", "anchor"])
+    assert len(m) == len(ds.uwb)
+    np.testing.assert_allclose(m["range"], m["range_m"])
+    # gyro/accel columns mapped in order
+    np.testing.assert_allclose(ds.imu[["ax", "wz"]].to_numpy(), raw_i[["ax_mps2", "gz_radps"]].to_numpy())
+    # ground truth quaternion reordered to [qw, qx, qy, qz]
+    np.testing.assert_allclose(ds.groundtruth["qw"].to_numpy(), raw_g["qw"].to_numpy(), atol=1e-6)  # loader renormalises
+    # documented calibration: known biases with measured = true + bias = true - toa_offset
+    assert ds.meta.known_anchor_bias == {a: -v for a, v in TOA_OFFSET.items()}
+    assert ds.meta.known_anchor_bias["9524"] == pytest.approx(-0.1539)
+    assert ds.meta.tags[0].lever_arm == LEVER_ARM == ds.meta.truth.lever_arm
+    assert ds.meta.extra["groundtruth_align"] == "se3"
+    assert "VIVE" in ds.meta.description
+    # licence travels with the data
+    assert (dst / "LICENSE").read_bytes() == (EXCERPT / "LICENSE").read_bytes()
+
+
+def test_refuses_nonempty_destination_without_force(tmp_path):
+    dst = tmp_path / "ds"
+    dst.mkdir()
+    (dst / "keep.txt").write_text("user file")
+    with pytest.raises(FileExistsError, match="not empty"):
+        import_dataset(EXCERPT, dst)
+    assert (dst / "keep.txt").read_text() == "user file"
+    import_dataset(EXCERPT, dst, force=True)
+    assert (dst / "imu.csv").is_file()
+
+
+def test_bad_source_errors_name_file_line_column(tmp_path):
+    src = tmp_path / "src"
+    shutil.copytree(EXCERPT, src)
+    lines = (src / "imu.csv").read_text().splitlines()
+    cells = lines[5].split(",")
+    cells[2] = "abc"
+    lines[5] = ",".join(cells)
+    (src / "imu.csv").write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetError, match=r"imu.csv, line 6, column 'ax_mps2'"):
+        convert(src)
+    (src / "uwb_ranges.csv").unlink()
+    with pytest.raises(DatasetError, match="uwb_ranges.csv"):
+        convert(src)
+
+
+def test_cli_isas_walk(tmp_path):
+    from uwbimu.cli.main import app
+
+    r = CliRunner().invoke(app, ["import", "isas-walk", str(EXCERPT), str(tmp_path / "ds"), "--no-groundtruth"])
+    assert r.exit_code == 0, r.output
+    assert not (tmp_path / "ds" / "groundtruth.csv").exists()
+    r = CliRunner().invoke(app, ["import", "isas-walk", str(EXCERPT), str(tmp_path / "ds")])
+    assert r.exit_code == 1 and "not empty" in r.output
