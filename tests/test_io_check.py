@@ -19,6 +19,7 @@ from uwbimu.io.check import (
     interpolate_pose,
     lever_arm_for,
     range_residuals,
+    residual_score,
     stream_summary,
 )
 from uwbimu.io.dataset import DatasetMeta, TagMeta, TruthMeta, write_dataset
@@ -161,6 +162,10 @@ def test_check_per_tag_lever_arms_from_simulator():
     sigma = ds.meta.range_sigma or 0.1
     assert r.lever_arm is None
     assert np.all(np.abs(r.residual_table["median"]) < sigma)
+    # Per-tag lever arms matter: one lever arm for both tags fits the other tag worse.
+    back = r.residuals["tag"] != r.residuals["tag"].iloc[0]
+    one = range_residuals(ds, lever_arm=lever_arm_for(ds.meta, str(r.residuals["tag"].iloc[0]))[0])
+    assert residual_score(one["residual"][back.to_numpy()]) > 1.2 * residual_score(r.residuals["residual"][back])
 
 
 # --- CLI ----------------------------------------------------------------------

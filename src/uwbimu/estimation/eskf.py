@@ -123,6 +123,8 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
     # calibration priors
     lever = opts.lever_arm.prior
     if lever is None:
+        lever = [0.0, 0.0, 0.0]
+    elif lever == "dataset":
         tagmeta = [tm for tm in ds.meta.tags if tm.name == tag] or list(ds.meta.tags[:1])
         lever = tagmeta[0].lever_arm if tagmeta and tagmeta[0].lever_arm is not None else [0.0, 0.0, 0.0]
     sd_ba = opts.accel_bias_sd or (noise.accel_bias_sigma0 if noise.accel_bias_sigma0 > 0 else 0.1)

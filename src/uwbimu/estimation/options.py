@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Literal, Optional, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from uwbimu.models.imu import ImuNoise, imu_preset
 
@@ -29,9 +29,18 @@ class _Strict(BaseModel):
 
 class LeverArmOptions(_Strict):
     mode: Mode = "estimate"
-    prior: Optional[list[float]] = Field(
-        default=None, min_length=3, max_length=3,
-        description="prior lever arm [m] (IMU frame); None: the dataset's tag lever arm, else zero",
+
+    @field_validator("prior")
+    @classmethod
+    def _three(cls, v):
+        if isinstance(v, list) and len(v) != 3:
+            raise ValueError("lever_arm.prior must have 3 components [x, y, z] in metres")
+        return v
+
+    prior: Optional[Union[list[float], Literal["dataset"]]] = Field(
+        default=None,
+        description="prior lever arm [m] (IMU frame) as [x, y, z]; 'dataset': the tag's nominal lever arm "
+        "from dataset.yaml (zero when absent); None: zero",
     )
     prior_sd: float = Field(default=0.3, gt=0, description="prior sd per axis [m]")
     random_walk: float = Field(default=0.0, ge=0, description="process noise density [m/sqrt(s)]")

@@ -85,8 +85,9 @@ class EstimatorEntry(_Strict):
     options: dict[str, Any] = Field(default_factory=dict, description="EskfOptions / PointMassOptions fields")
     initial_position_sd: Optional[float] = Field(
         default=None, gt=0,
-        description="point-mass only: start from the true initial position plus N(0, sd^2) noise (seeds.init) "
-        "instead of multilateration (a surveyed take-off point)",
+        description="start from a surveyed take-off point: the true initial position plus N(0, sd^2) per axis "
+        "(seeds.init), instead of the estimator's multilateration (needed by the ESKF with 3 anchors; see "
+        "uwbimu.eval.montecarlo_eskf)",
     )
 
 
@@ -196,19 +197,31 @@ def run_seeds(seed_base: int, run: int) -> tuple[int, int, int]:
 # --------------------------------------------------------------------------
 # One run (executed on workers)
 # --------------------------------------------------------------------------
+def _surveyed_start(entry: dict, ds, seed_init: int):
+    """True initial position plus N(0, sd^2) per axis (the run's init seed), or None."""
+    sd = entry.get("initial_position_sd")
+    if not sd:
+        return None, None
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed_init), 0x9E5]))
+    p0 = ds.groundtruth[["px", "py", "pz"]].to_numpy(float)[0] + rng.normal(size=3) * float(sd)
+    return p0, float(sd)
+
+
 def _estimate(entry: dict, ds, seed_init: int):
-    opts = dict(entry["options"])
+    opts = copy.deepcopy(entry["options"])
+    p0, sd = _surveyed_start(entry, ds, seed_init)
     if entry["kind"] == "pointmass":
         from uwbimu.estimation.pointmass import run_pointmass
 
-        if entry.get("initial_position_sd"):
-            sd = float(entry["initial_position_sd"])
-            rng = np.random.default_rng(np.random.SeedSequence([seed_init, 0x9E5]))
-            p0 = ds.groundtruth[["px", "py", "pz"]].to_numpy(float)[0] + rng.normal(size=3) * sd
+        if p0 is not None:
             opts.setdefault("initial_position", p0.tolist())
             opts.setdefault("initial_position_sd", sd)
         opts.setdefault("full_covariance", True)
         return run_pointmass(ds, opts)
+    if p0 is not None:
+        from uwbimu.eval.montecarlo_eskf import run_eskf_from_fix
+
+        return run_eskf_from_fix(ds, opts, p0, sd)
     from uwbimu.estimation import EskfOptions, run_eskf
 
     return run_eskf(ds, EskfOptions.model_validate(opts))
@@ -258,12 +271,13 @@ def run_metrics(result, ds, skip_initial_s: float = 0.0) -> tuple[dict, dict]:
     truth = ds.meta.truth
     cal = result.calibration or {}
     la_sd = np.asarray(cal.get("lever_arm_sd", [np.nan] * 3), float)
-    if truth is not None and truth.lever_arm is not None and np.all(np.isfinite(la_sd)):
+    # A calibration the estimator keeps fixed (sd NaN or 0) has no estimation error to report.
+    if truth is not None and truth.lever_arm is not None and np.all(np.isfinite(la_sd)) and np.any(la_sd > 0):
         d = np.asarray(cal["lever_arm"], float) - np.asarray(truth.lever_arm, float)
         row.update(lever_arm_err=float(np.linalg.norm(d)), lever_arm_err_x=d[0], lever_arm_err_y=d[1],
                    lever_arm_err_z=d[2])
     td_sd = cal.get("time_offset_sd", np.nan)
-    if truth is not None and truth.time_offset is not None and td_sd is not None and np.isfinite(td_sd):
+    if truth is not None and truth.time_offset is not None and td_sd is not None and np.isfinite(td_sd) and td_sd > 0:
         row["time_offset_err"] = float(cal["time_offset"] - truth.time_offset)
     res = result.residuals
     if res is not None and len(res) and "accepted" in res:
@@ -273,6 +287,23 @@ def run_metrics(result, ds, skip_initial_s: float = 0.0) -> tuple[dict, dict]:
 
 
 def run_chunk(task: dict) -> dict:
+    """Quiet wrapper of :func:`_run_chunk`: per-run warnings are counted in the rows
+    (``n_warnings``) instead of flooding the console from every worker."""
+    import logging
+    import warnings
+
+    log = logging.getLogger("uwbimu")
+    level = log.level
+    log.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return _run_chunk(task)
+    finally:
+        log.setLevel(level)
+
+
+def _run_chunk(task: dict) -> dict:
     """Simulate and estimate the runs of one task (a scenario x a chunk of run indices).
 
     ``task``: ``scenario_name``, ``scenario`` (resolved dict), ``runs`` (list of

@@ -129,7 +129,7 @@ def _write_table(df: pd.DataFrame, path: Path) -> None:
     if path.suffix == ".parquet":
         df.to_parquet(path, index=False)
     else:
-        df.to_csv(path, index=False, float_format="%.9g")
+        df.to_csv(path, index=False)
 
 
 def write_dataset(ds: Dataset, folder: str | os.PathLike, overwrite: bool = False, fmt: str = "csv") -> Path:

@@ -82,6 +82,9 @@ class ObservabilityConfig(BaseModel):
     seed : RNG seed of every random draw.
     tolerance : relative singular-value tolerance of the rank decision.
     time_offset : ``t_d`` [s] used by the numeric check of Theorem 1.
+    all_words : always use every Lie word up to ``lie_order`` (slower; gives
+        the 4-vector ``raw_rank`` too), instead of words selected at a generic
+        point with the all-words fallback on rank deficiency.
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -99,6 +102,7 @@ class ObservabilityConfig(BaseModel):
     seed: int = 0
     tolerance: float = Field(default=1e-8, gt=0, lt=1)
     time_offset: float = Field(default=0.01, gt=0)
+    all_words: bool = False
 
     @field_validator("anchors")
     @classmethod

@@ -178,7 +178,8 @@ def structural_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[st
     ``conditions`` (the seeds' sufficient conditions at the weakest point),
     and as evidence ``tolerance``, ``gap_decades`` (min over points),
     ``raw_rank``/``raw_dimension`` (quaternion as a 4-vector, the seed's
-    19-column count), ``points`` (per-point rank and gap), ``words``,
+    19-column count; ``raw_rank`` only when all words were used, set
+    ``all_words: true`` to force it), ``points`` (per-point rank and gap), ``words``,
     ``state_names`` and ``elapsed_s``.
     """
     t0 = time.perf_counter()
@@ -187,7 +188,7 @@ def structural_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[st
     A = np.asarray(cfg.anchors, dtype=float)
     results = []
     for x, p in evaluation_points(cfg):
-        results.append((x, p, engine.rank_test(x, p, tol=cfg.tolerance)))
+        results.append((x, p, engine.rank_test(x, p, tol=cfg.tolerance, words="all" if cfg.all_words else "auto")))
     # weakest point: lowest rank, then smallest gap
     iw = min(range(len(results)), key=lambda i: (results[i][2].rank, results[i][2].gap_decades))
     xw, pw, rw = results[iw]
@@ -199,7 +200,7 @@ def structural_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[st
             "gap_decades": round(r.gap_decades, 2),
             "smallest_kept": r.smallest_kept,
             "largest_dropped": r.largest_dropped,
-            "raw_rank": r.raw_rank,
+            "raw_rank": r.raw_rank if r.words == "all" else None,
             "words": r.words,
             "state": x.tolist(),
         }
@@ -217,7 +218,9 @@ def structural_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[st
         "conditions": cond_fn(cfg, xw, A),
         "tolerance": cfg.tolerance,
         "gap_decades": round(float(min(r.gap_decades for _, _, r in results)), 2),
-        "raw_rank": rw.raw_rank,
+        # with pruned words (selected on tangent columns, <= 18 rows) the
+        # 4-vector count is not meaningful: reported only for all words
+        "raw_rank": rw.raw_rank if rw.words == "all" else None,
         "raw_dimension": rw.raw_dim,
         "words": rw.words,
         "rows": rw.rows,

@@ -98,7 +98,10 @@ class ImuSpec(_Spec):
     @classmethod
     def _known_preset(cls, v):
         if isinstance(v, str):
-            imu_preset(v)  # raises KeyError listing the choices
+            try:
+                imu_preset(v)
+            except KeyError as exc:  # pydantic reports ValueErrors with the field path
+                raise ValueError(exc.args[0]) from None
         return v
 
     def noise_model(self) -> ImuNoise:

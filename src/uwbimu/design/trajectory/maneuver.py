@@ -213,10 +213,9 @@ def fit_to_bounds(m: Maneuver, b: MotionBounds, dt: float = 0.02, margin: float 
         f_r = b.rate / rt if rt > 1e-12 else np.inf
         if not np.isfinite(min(f_t, f_r)):
             break
-        new_rp = s_rp * min(f_t, f_r) * margin if np.any(ma.amp[3:5] > 0) else s_rp
-        new_y = s_y * f_r * margin if f_r < 1.0 or f_t * margin <= 1.0 + 1e-3 else s_y * min(f_r * margin, 1.25)
-        if f_r < 1.0:  # over the rate: shrink both in proportion
-            new_rp, new_y = min(new_rp, s_rp * f_r * margin), s_y * f_r * margin
+        has_rp = bool(np.any(ma.amp[3:5] > 0))
+        new_rp = s_rp * min(f_t, f_r) * margin if has_rp else s_rp
+        new_y = s_y * f_r * margin
         new_rp, new_y = min(new_rp, 50.0), min(new_y, 50.0)
         if not grow:
             new_rp, new_y = min(new_rp, 1.0), min(new_y, 1.0)

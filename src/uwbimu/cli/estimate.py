@@ -1,0 +1,125 @@
+"""``uwbimu estimate``: run the error-state EKF on a dataset and write trajectory, calibration, residuals."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.table import Table
+
+#: Files ``uwbimu estimate`` writes; an output folder holding anything else is refused without --force.
+OUTPUT_FILES = {
+    "trajectory.csv", "states.csv", "calibration.yaml", "residuals.csv", "events.yaml", "residual_table.csv",
+    "metrics.yaml", "trajectory.png", "position_error.png", "calibration.png", "nis.png",
+}
+
+
+def calibration_table(result, dataset=None, title: str = "Calibration (value ± 1σ)") -> Table:
+    """Rich table of the estimated calibration with 1-sigma and, when known, the truth."""
+    cal = result.calibration
+    truth = dataset.meta.truth if dataset is not None else None
+    table = Table(title=title)
+    table.add_column("parameter")
+    table.add_column("estimate ± σ", justify="right")
+    table.add_column("truth", justify="right")
+    table.add_column("error / σ", justify="right")
+    for i, c in enumerate("xyz"):
+        v, s = cal["lever_arm"][i], cal["lever_arm_sd"][i]
+        tv = truth.lever_arm[i] if truth is not None and truth.lever_arm is not None else None
+        table.add_row(f"lever arm {c} [cm]", f"{100 * v:.2f} ± {100 * s:.2f}",
+                      f"{100 * tv:.2f}" if tv is not None else "-",
+                      f"{(v - tv) / s:+.1f}" if tv is not None and s > 0 else "-")
+    v, s = cal["time_offset"], cal["time_offset_sd"]
+    tv = truth.time_offset if truth is not None else None
+    table.add_row("time offset [ms]", f"{1000 * v:.2f} ± {1000 * s:.2f}", f"{1000 * tv:.2f}" if tv is not None else "-",
+                  f"{(v - tv) / s:+.1f}" if tv is not None and s > 0 else "-")
+    for name, key, scale, unit in (("accel bias", "accel_bias", 1.0, "m/s²"), ("gyro bias", "gyro_bias", 180 / np.pi, "deg/s")):
+        vals = ", ".join(f"{scale * a:.4f}±{scale * b:.4f}" for a, b in zip(cal[key], cal[key + "_sd"]))
+        table.add_row(f"{name} [{unit}]", vals, "-", "-")
+    for a, b in (cal.get("anchor_bias") or {}).items():
+        s = cal["anchor_bias_sd"][a]
+        tv = (truth.anchor_bias or {}).get(a) if truth is not None else None
+        table.add_row(f"range bias {a} [cm]", f"{100 * b:.2f} ± {100 * s:.2f}", f"{100 * tv:.2f}" if tv is not None else "-",
+                      f"{(b - tv) / s:+.1f}" if tv is not None and s > 0 else "-")
+    return table
+
+
+def residual_rich_table(table_df) -> Table:
+    t = Table(title="Range residuals per anchor")
+    for c in ("anchor", "ranges", "accepted", "rejected %", "median [cm]", "MAD [cm]"):
+        t.add_column(c, justify="right" if c != "anchor" else "left")
+    for r in table_df.itertuples(index=False):
+        t.add_row(r.anchor, str(r.ranges), str(r.accepted), f"{r.rejected_pct:.1f}",
+                  f"{100 * r.median:.2f}", f"{100 * r.mad:.2f}")
+    return t
+
+
+def run_with_progress(dataset, options, console: Console):
+    """Run the ESKF with a rich progress bar."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from uwbimu.estimation import run_eskf
+
+    with Progress(TextColumn("[bold]ESKF"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
+                  TimeElapsedColumn(), console=console, transient=True) as prog:
+        task = prog.add_task("eskf", total=1.0)
+        return run_eskf(dataset, options, progress=lambda f: prog.update(task, completed=f))
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("estimate")
+    def estimate_cmd(
+        dataset: Path = typer.Argument(..., help="dataset folder (imu.csv, uwb.csv, anchors.csv [, groundtruth.csv])"),
+        out: Path = typer.Option(..., "--out", "-o", help="output folder"),
+        config: Optional[Path] = typer.Option(None, "--config", "-c", help="estimator options YAML (see examples/estimator.yaml)"),
+        plots: bool = typer.Option(True, "--plots/--no-plots", help="PNG plots when ground truth exists"),
+        force: bool = typer.Option(False, "--force", help="write into a folder that holds other files"),
+    ) -> None:
+        """Estimate trajectory, lever arm and time offset with the UWB-IMU error-state EKF."""
+        from uwbimu.estimation import EskfOptions, InitialisationError, write_outputs
+        from uwbimu.io.loader import DatasetError, load_dataset
+
+        console = Console()
+        err = Console(stderr=True)
+        try:
+            opts = EskfOptions.from_yaml(config) if config is not None else EskfOptions()
+        except (OSError, ValueError) as exc:
+            err.print(f"[red]error:[/] {exc}")
+            raise typer.Exit(code=2)
+        if out.exists() and not out.is_dir():
+            err.print(f"[red]error:[/] {out} is a file, not a folder")
+            raise typer.Exit(code=2)
+        if out.resolve() == dataset.resolve():
+            err.print("[red]refusing:[/] --out is the dataset folder; the input is never overwritten")
+            raise typer.Exit(code=1)
+        if out.exists() and not force:
+            other = sorted(p.name for p in out.iterdir() if p.name not in OUTPUT_FILES and not p.name.startswith("."))
+            if other:
+                err.print(f"[red]refusing:[/] {out} holds other files ({', '.join(other[:5])}); use --force or another folder")
+                raise typer.Exit(code=1)
+        try:
+            ds = load_dataset(dataset)
+        except (DatasetError, FileNotFoundError, NotADirectoryError) as exc:
+            err.print(f"[red]invalid dataset:[/] {exc}")
+            raise typer.Exit(code=1)
+        try:
+            res = run_with_progress(ds, opts, console)
+        except (InitialisationError, ValueError) as exc:
+            err.print(f"[red]estimation failed:[/] {exc}")
+            raise typer.Exit(code=1)
+        written = write_outputs(res, ds, out, plots=plots)
+        console.print(residual_rich_table(written["residual_table"]))
+        console.print(calibration_table(res, ds))
+        m = written["metrics"]
+        if m is not None:
+            line = (f"position RMSE {100 * m['position_rmse']:.1f} cm (after 10 s: "
+                    f"{100 * (m['position_rmse_after'] or float('nan')):.1f} cm), orientation RMSE "
+                    f"{m['orientation_rmse_deg']:.2f} deg, NEES {m['nees_mean']:.1f} (dof {m['nees_dof']})")
+            console.print(f"[bold]vs ground truth:[/] {line}")
+        for w in res.warnings:
+            console.print(f"[yellow]warning:[/] {w}")
+        console.print(f"{len(ds.imu)} IMU samples, {len(ds.uwb)} ranges in {res.runtime_s:.1f} s; "
+                      f"wrote {len(written['files'])} files to {out}")

@@ -1,0 +1,97 @@
+"""``uwbimu montecarlo``: scenarios x seeds x estimators on a process pool or Dask."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+
+def _fmt(cell: dict, key: str, stat: str = "median", scale: float = 1.0, digits: int = 3) -> str:
+    v = cell.get(key) or {}
+    if not v.get("n"):
+        return "-"
+    return f"{v[stat] * scale:.{digits}f}"
+
+
+def summary_table(summary: dict) -> Table:
+    table = Table(title=f"{summary['name']}: {summary['runs_per_scenario']} runs per scenario")
+    for col in ("scenario", "estimator", "ok/runs", "RMSE x [m]", "RMSE y [m]", "RMSE z [m]", "NEES pos",
+                "lever err [mm]", "t_d err [ms]", "est. [s/run]"):
+        table.add_column(col, justify="left" if col in ("scenario", "estimator") else "right")
+    for c in summary["cells"]:
+        table.add_row(
+            c["scenario"], c["estimator"], f"{c['runs'] - c['failed']}/{c['runs']}",
+            *(f"{c[f'rmse_{a}_all_runs']:.3f}" if c.get(f"rmse_{a}_all_runs") is not None else "-" for a in "xyz"),
+            _fmt(c, "nees_pos_mean", "mean", digits=2), _fmt(c, "lever_arm_err", "median", 1e3, 1),
+            _fmt(c, "time_offset_err", "median", 1e3, 1), _fmt(c, "est_s", "mean", digits=2),
+        )
+    return table
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("montecarlo")
+    def montecarlo_cmd(
+        config: Optional[Path] = typer.Argument(None, help="study YAML (scenarios, estimators, seed_base)"),
+        out: Path = typer.Option(..., "--out", "-o", help="output folder (a rerun with the same folder resumes)"),
+        runs: Optional[int] = typer.Option(None, "--runs", "-n", help="seeds per scenario (default: the config's)"),
+        workers: Optional[int] = typer.Option(None, "--workers", "-j", help="processes / Dask workers (default: all cores)"),
+        scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address, e.g. tcp://host:8786"),
+        dask_local: bool = typer.Option(False, "--dask-local", help="run on a loopback Dask LocalCluster"),
+        example: Optional[str] = typer.Option(None, "--example", help="a built-in study instead of CONFIG (seed-anchor-planes)"),
+        no_plots: bool = typer.Option(False, "--no-plots", help="skip the figures"),
+    ) -> None:
+        """Monte Carlo study: scenarios x seeds x estimators -> montecarlo.csv, summary.json, plots."""
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+        from uwbimu.eval.montecarlo import MonteCarloError, config_from_dict, load_config, run_study
+        from uwbimu.eval.montecarlo_examples import EXAMPLES, example_config
+
+        console = Console()
+        err = Console(stderr=True)
+        if (config is None) == (example is None):
+            err.print("[red]error:[/] give a CONFIG file or --example NAME "
+                      f"(examples: {', '.join(sorted(EXAMPLES))})")
+            raise typer.Exit(code=2)
+        if scheduler and dask_local:
+            err.print("[red]error:[/] --scheduler and --dask-local are exclusive")
+            raise typer.Exit(code=2)
+        if workers is not None and workers < 1:
+            err.print("[red]error:[/] --workers must be at least 1")
+            raise typer.Exit(code=2)
+        try:
+            if example is not None:
+                try:
+                    cfg = config_from_dict(example_config(example), f"example {example}")
+                except KeyError as exc:
+                    err.print(f"[red]error:[/] {exc.args[0]}")
+                    raise typer.Exit(code=2) from None
+            else:
+                cfg = load_config(config)
+            n_runs = runs if runs is not None else cfg.runs
+            with Progress(TextColumn("[bold]runs"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                          console=console, transient=False) as bar:
+                task = bar.add_task("runs", total=n_runs * len(cfg.scenarios))
+
+                def progress(done: int, total: int) -> None:
+                    bar.update(task, completed=done, total=total)
+
+                summary = run_study(cfg, out, runs=runs, workers=workers, scheduler=scheduler,
+                                    dask_local=dask_local, progress=progress, plots=not no_plots)
+        except MonteCarloError as exc:
+            err.print(f"[red]error:[/] {exc}")
+            raise typer.Exit(code=1) from None
+        console.print(summary_table(summary))
+        ex = summary["execution"]
+        console.print(
+            f"{ex['backend']} x{ex['workers']}, chunks of {ex['chunk_size']} runs, "
+            f"{ex['runs_resumed_from_disk']} runs resumed from disk, {ex['wall_s_this_call']:.1f} s. "
+            f"Wrote {out / 'montecarlo.csv'}, {out / 'summary.json'}"
+            + (f" and {len(summary.get('figures', []))} figures" if summary.get("figures") else "")
+        )
+        failed = sum(c["failed"] for c in summary["cells"])
+        if failed:
+            err.print(f"[yellow]{failed} run(s) failed[/] (status=failed rows in montecarlo.csv carry the message)")

@@ -1,0 +1,188 @@
+"""``uwbimu observability``: structural rank test, time-offset identifiability, per-window log analysis."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+obs_app = typer.Typer(
+    name="observability",
+    help="Observability and identifiability: Lie-derivative rank test, time offset, per-window analysis of logs.",
+    no_args_is_help=True,
+    add_completion=False,
+)
+
+
+def _fail(console: Console, msg: str) -> None:
+    console.print(f"[red]error:[/red] {msg}")
+    raise typer.Exit(code=2)
+
+
+def _jsonable(obj):
+    import numpy as np
+
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, (np.floating, float)):
+        f = float(obj)
+        return f if math.isfinite(f) else str(f)
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
+@obs_app.command("structural")
+def structural(
+    config: Path = typer.Argument(..., help="configuration YAML (see examples/observability/)"),
+    as_json: bool = typer.Option(False, "--json", help="print the verdict as JSON"),
+) -> None:
+    """Lie-derivative observability rank test of a configuration."""
+    from uwbimu.observability.config import ConfigError
+    from uwbimu.observability.structural import structural_verdict
+
+    console = Console()
+    try:
+        v = structural_verdict(config)
+    except ConfigError as e:
+        _fail(console, str(e))
+    if as_json:
+        keys = ["rank", "dimension", "observable", "lie_order", "singular_values", "unobservable_directions", "conditions"]
+        extra = ["name", "model", "tolerance", "gap_decades", "raw_rank", "raw_dimension", "words", "rows", "state_names", "excitation", "n_points"]
+        typer.echo(json.dumps(_jsonable({k: v[k] for k in keys + extra}), indent=2))
+        return
+    print_structural(console, v)
+
+
+def print_structural(console: Console, v: dict) -> None:
+    """Rich rendering of a :func:`structural_verdict` result."""
+    ok = "[green]observable[/green]" if v["observable"] else "[yellow]NOT observable[/yellow]"
+    console.print(
+        f"[bold]{v['name']}[/bold] ({v['model']}, Lie order {v['lie_order']}, {v['n_points']} point(s)): {ok} - "
+        f"rank {v['rank']} / {v['dimension']} tangent dims"
+        + (f" (quaternion as 4-vector: {v['raw_rank']} / {v['raw_dimension']})" if v["raw_rank"] is not None else "")
+        + "; "
+        f"gap {v['gap_decades']:.1f} decades at tol {v['tolerance']:g}"
+    )
+    t = Table(title="seed conditions (sufficient)")
+    t.add_column("condition")
+    t.add_column("holds")
+    for k, c in v["conditions"].items():
+        t.add_row(k, "yes" if c else "no")
+    console.print(t)
+    if v["unobservable_directions"]:
+        t = Table(title="unobservable directions (weakest point)")
+        t.add_column("#")
+        t.add_column("direction")
+        for i, d in enumerate(v["unobservable_directions"]):
+            t.add_row(str(i), d["name"])
+        console.print(t)
+
+
+@obs_app.command("delay")
+def delay(
+    config: Path = typer.Argument(..., help="configuration YAML (model uwb_imu)"),
+    as_json: bool = typer.Option(False, "--json", help="print the verdict as JSON"),
+) -> None:
+    """Time-offset identifiability (seed 001 Theorem 1, T1-T3) with a numeric check."""
+    from uwbimu.observability.config import ConfigError
+    from uwbimu.observability.delay import delay_verdict
+
+    console = Console()
+    try:
+        v = delay_verdict(config)
+    except (ConfigError, ValueError) as e:
+        _fail(console, str(e))
+    if as_json:
+        keys = ["identifiable", "conditions", "theorem1", "numeric", "basis", "agree", "n_points", "name"]
+        typer.echo(json.dumps(_jsonable({k: v[k] for k in keys}), indent=2))
+        return
+    ok = "[green]identifiable[/green]" if v["identifiable"] else "[yellow]NOT identifiable[/yellow]"
+    console.print(f"[bold]{v['name']}[/bold]: t_d {ok} (basis: {v['basis']})")
+    t = Table(title="Theorem 1")
+    t.add_column("condition")
+    t.add_column("holds")
+    for k, c in v["conditions"].items():
+        t.add_row(k, "yes" if c else "no")
+    t.add_row("T1 and (T2 or T3)", "yes" if v["theorem1"] else "no")
+    console.print(t)
+    t = Table(title=f"max |d range / d u(t_r - t_d)| at t_d = {v['numeric']['time_offset']:g} s")
+    t.add_column("excited input")
+    t.add_column("sensitivity", justify="right")
+    for k, s in v["numeric"]["sensitivity"].items():
+        t.add_row(k, f"{s:.3e}")
+    console.print(t)
+
+
+@obs_app.command("log")
+def log(
+    dataset: Path = typer.Argument(..., help="dataset folder"),
+    window: float = typer.Option(20.0, "--window", help="window length [s]"),
+    out: Path = typer.Option(..., "--out", "-o", help="output folder (observability.csv, observability.png)"),
+    range_sigma: Optional[float] = typer.Option(None, "--range-sigma", help="range sd [m] (default: dataset meta, else 0.1)"),
+    no_imu_noise: bool = typer.Option(False, "--no-imu-noise", help="ignore IMU noise (noise-free IMU)"),
+    lever_sd: float = typer.Option(0.1, "--lever-sd-threshold", help="lever arm counts as excited below this CRLB [m]"),
+    td_sd: float = typer.Option(0.03, "--td-sd-threshold", help="time offset counts as excited below this CRLB [s]"),
+    force: bool = typer.Option(False, "--force", help="replace existing outputs in OUT"),
+) -> None:
+    """Per-window information (Gramian), CRLB and excitation flags of a log."""
+    from uwbimu.io.atomic import write_csv, write_json
+    from uwbimu.observability.window import WindowOptions, plot_timeline, window_observability
+
+    console = Console()
+    if window <= 0:
+        _fail(console, f"--window must be positive, got {window}")
+    csv_path, png_path = out / "observability.csv", out / "observability.png"
+    if not force and (csv_path.exists() or png_path.exists()):
+        _fail(console, f"{out} already holds observability outputs; pass --force to replace them")
+    try:
+        from uwbimu.io.loader import DatasetError, load_dataset
+    except ImportError:  # pragma: no cover - loader is part of the package
+        _fail(console, "the dataset loader (uwbimu.io.loader) is not available")
+    try:
+        ds = load_dataset(dataset)
+    except (DatasetError, FileNotFoundError, ValueError) as e:
+        _fail(console, str(e))
+    if ds.groundtruth is None:
+        _fail(console, f"{dataset}: no groundtruth table; the per-window analysis needs a trajectory to linearise about")
+    opts = WindowOptions(
+        window=window, range_sigma=range_sigma, include_imu_noise=not no_imu_noise,
+        lever_sd_threshold=lever_sd, td_sd_threshold=td_sd,
+    )  # fmt: skip
+    with console.status("computing per-window information"):
+        table, meta = window_observability(ds, options=opts)
+    write_csv(csv_path, table)
+    write_json(out / "observability_meta.json", meta)
+    plot_timeline(table, png_path)
+    t = Table(title=f"{dataset} - {len(table)} window(s) of {window:g} s")
+    for c in ("t_start", "t_end", "min eig", "cond", "weakest", "sd lever max [m]", "sd t_d [s]", "lever", "t_d"):
+        t.add_column(c)
+    for r in table.itertuples(index=False):
+        sdl = max(r.sd_lx, r.sd_ly, r.sd_lz)
+        t.add_row(
+            f"{r.t_start:.1f}", f"{r.t_end:.1f}", f"{r.min_eigenvalue:.3g}", f"{r.condition_number:.3g}",
+            str(r.weakest_direction)[:40], f"{sdl:.3g}", f"{r.sd_td:.3g}",
+            "ok" if r.lever_arm_excited else "[yellow]weak[/yellow]", "ok" if r.time_offset_excited else "[yellow]weak[/yellow]",
+        )  # fmt: skip
+    console.print(t)
+    dropped = meta["ranges_unknown_anchor"] + meta["ranges_outside_imu_span"]
+    if dropped:
+        console.print(
+            f"[yellow]{meta['ranges_unknown_anchor']} range(s) with an unknown anchor and "
+            f"{meta['ranges_outside_imu_span']} outside the IMU span were not used[/yellow]"
+        )
+    console.print(f"wrote {csv_path}, {png_path}")
+
+
+def register(app: typer.Typer) -> None:
+    """Attach the ``observability`` sub-app to the main CLI."""
+    app.add_typer(obs_app, name="observability")
