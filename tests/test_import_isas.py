@@ -47,6 +47,10 @@ def test_import_excerpt_roundtrip(tmp_path):
     assert ds.meta.tags[0].lever_arm == LEVER_ARM == ds.meta.truth.lever_arm
     assert ds.meta.extra["groundtruth_align"] == "se3"
     assert "VIVE" in ds.meta.description
+    # white noise measured over the stationary start (the board is noisier than the ICM-20948 datasheet)
+    assert "measured at rest" in ds.meta.extra["imu_noise_note"]
+    assert 5e-4 < ds.meta.imu_noise.gyro_noise_density < 5e-3
+    assert ds.meta.imu_noise.accel_bias_sigma0 > 0.17  # covers |a| - g = 0.175 m/s^2 at rest
     # licence travels with the data
     assert (dst / "LICENSE").read_bytes() == (EXCERPT / "LICENSE").read_bytes()
 

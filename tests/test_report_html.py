@@ -214,3 +214,25 @@ def test_report_renders_in_headless_chromium(tmp_path):
     assert ALL_FIGURES <= figs
     for fig, complete, w, h in res:
         assert complete and w > 100 and h > 100, (fig, w, h)
+
+
+def test_report_observability_window_table(tmp_path):
+    """The per-window table written by `uwbimu observability` (t_start, t_end, sd_*, flags)."""
+    from uwbimu.models.state import ERROR_STATE_NAMES
+
+    out = make_output(tmp_path / "out", with_eval=False, with_extras=False)
+    n = 6
+    tab = {"t_start": np.arange(n) * 5.0, "t_end": np.arange(1, n + 1) * 5.0,
+           "min_eigenvalue": np.logspace(-6, -1, n), "condition_number": np.logspace(6, 2, n),
+           "weakest_direction": ["lever arm x"] * n}
+    for name in ERROR_STATE_NAMES:
+        tab[f"sd_{name}"] = np.r_[np.inf, np.logspace(-1, -3, n - 1)]
+    tab.update(n_ranges=np.arange(n) * 10, gyro_rms=np.linspace(0, 1, n),
+               lever_arm_excited=[False, False, True, True, True, True],
+               time_offset_excited=[False, True, True, True, True, True])
+    pd.DataFrame(tab).to_csv(out / "observability.csv", index=False)
+    text = render_report(out)
+    c = _parse(text)
+    assert "fig-observability" in c.figures
+    assert "lever arm not excited" in text and "0.0–5.0" in text and "5.0–10.0" in text
+    assert "time offset not excited" in text

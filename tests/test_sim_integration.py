@@ -5,15 +5,12 @@ is integrated from the true initial state with the reference kinematics
 (:func:`uwbimu.models.reference.continuous_dynamics`, classical RK4) and must
 stay within 1 mm of the ground truth.
 
-Note on the integrator: :func:`uwbimu.models.reference.integrate_imu`
-interpolates the IMU input *linearly* inside each interval, which leaves an
-O(dt^2) attitude error that does not cancel when the body rotates (coning);
-at 200 Hz it drifts 3-90 mm in 60 s on the rotating trajectories (numbers in
-``test_reference_integrator_error_is_its_input_interpolation``).  The RK4
-below differs only in the mid-interval input, taken from the 4-point cubic
-interpolation of the neighbouring samples (one-sided at the two ends); the
-lead has been asked to adopt it
-in ``models/reference.py``.
+Note on the integrator: :func:`uwbimu.models.reference.integrate_imu` takes
+the mid-interval IMU input from the 4-point cubic through the neighbouring
+samples (:func:`uwbimu.models.reference.midpoint_inputs`).  The plain linear
+average (``cubic=False``) leaves an O(dt^2) attitude error that does not
+cancel when the body rotates (coning): at 200 Hz it drifts 3-90 mm in 60 s on
+the rotating trajectories (``test_linear_input_error_is_its_interpolation``).
 """
 
 import numpy as np
@@ -23,6 +20,7 @@ from uwbimu.models import reference as M
 from uwbimu.models import state as S
 from uwbimu.models.quaternion import quat_conjugate, quat_log, quat_multiply, quat_slerp
 from uwbimu.sim import Scenario, builtin_scenario, simulate, simulate_full, write_trajectory_file
+from uwbimu.models.reference import midpoint_inputs
 from uwbimu.sim.trajectory import euler_zyx_to_quat
 
 TYPES = ["hover", "circle", "figure8", "lissajous", "random", "translation", "rotation"]
@@ -31,34 +29,6 @@ TYPES = ["hover", "circle", "figure8", "lissajous", "random", "translation", "ro
 def ideal(sc: Scenario, **update) -> Scenario:
     imu = {"noise": "ideal", "accel_bias": (0, 0, 0), "gyro_bias": (0, 0, 0)}
     return sc.updated(imu=imu, uwb={"sigma": 0.0}, **update)
-
-
-def cubic_midpoints(u: np.ndarray) -> np.ndarray:
-    """IMU input at interval midpoints from the cubic through 4 neighbouring samples
-    (centred inside, one-sided on the first and last interval); uniform sampling."""
-    um = np.empty((len(u) - 1, u.shape[1]))
-    um[1:-1] = (-u[:-3] + 9.0 * u[1:-2] + 9.0 * u[2:-1] - u[3:]) / 16.0
-    um[0] = (5.0 * u[0] + 15.0 * u[1] - 5.0 * u[2] + u[3]) / 16.0
-    um[-1] = (u[-4] - 5.0 * u[-3] + 15.0 * u[-2] + 5.0 * u[-1]) / 16.0
-    return um
-
-
-def integrate_rk4_cubic(x0, t, u):
-    """RK4 on the reference kinematics with cubic mid-interval input."""
-    f = M.continuous_dynamics
-    um = cubic_midpoints(u)
-    out = np.empty((len(t), S.NOMINAL_DIM))
-    out[0] = x = np.asarray(x0, dtype=float)
-    for k in range(len(t) - 1):
-        dt = t[k + 1] - t[k]
-        k1 = f(x, u[k])
-        k2 = f(x + 0.5 * dt * k1, um[k])
-        k3 = f(x + 0.5 * dt * k2, um[k])
-        k4 = f(x + dt * k3, u[k + 1])
-        x = x + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
-        x[S.Q] /= np.linalg.norm(x[S.Q])
-        out[k + 1] = x
-    return out
 
 
 def truth_arrays(ds):
@@ -86,7 +56,7 @@ def initial_state(ds, p_IU=(0, 0, 0), t_d=0.0):
 def check_recovers_truth(ds):
     assert ds.duration == pytest.approx(60.0)
     assert len(ds.imu) == 12001
-    X = integrate_rk4_cubic(initial_state(ds), ds.imu_t, ds.imu_u)
+    X = M.integrate_imu(initial_state(ds), ds.imu_t, ds.imu_u)
     dp, dv, dth = errors(ds, X)
     assert dp.max() < 1e-3, f"position drift {dp.max() * 1e3:.3f} mm"
     assert dv.max() < 1e-4, f"velocity error {dv.max():.2e} m/s"
@@ -187,19 +157,32 @@ def test_noise_free_ranges_equal_geometric_distance(name):
     assert np.abs(no_lever - pred).max() > 0.05
 
 
-def test_reference_integrator_error_is_its_input_interpolation():
-    """reference.integrate_imu (linear input) is exact enough without rotation, and on a
+def test_linear_input_error_is_its_interpolation():
+    """reference.integrate_imu with cubic=False (linear input) is exact enough without rotation, and on a
     rotating trajectory its drift falls ~4x when the rate doubles (O(dt^2) interpolation
     error of the integrator, not a simulator inconsistency)."""
     ds = simulate(ideal(builtin_scenario("translation"), time_offset=0.0))
-    X = M.integrate_imu(initial_state(ds), ds.imu_t, ds.imu_u)
+    X = M.integrate_imu(initial_state(ds), ds.imu_t, ds.imu_u, cubic=False)
     assert errors(ds, X)[0].max() < 1e-4
 
     drift = {}
     for rate in (100.0, 200.0):
         sc = ideal(builtin_scenario("rotation"), time_offset=0.0, duration=10.0).updated(imu={"rate_hz": rate})
         ds = simulate(sc)
-        X = M.integrate_imu(initial_state(ds), ds.imu_t, ds.imu_u)
+        X = M.integrate_imu(initial_state(ds), ds.imu_t, ds.imu_u, cubic=False)
         drift[rate] = errors(ds, X)[2][-1]  # attitude error at the end [rad]
     ratio = drift[100.0] / drift[200.0]
     assert 3.0 < ratio < 5.0, (drift, ratio)
+
+
+def test_midpoint_inputs_exact_for_cubics_on_any_grid():
+    rng = np.random.default_rng(4)
+    t = np.cumsum(rng.uniform(0.002, 0.008, 40))
+    c = rng.normal(size=(4, 6))
+    poly = lambda x: c[0] + np.outer(x, c[1]) + np.outer(x**2, c[2]) + np.outer(x**3, c[3])  # noqa: E731
+    um = midpoint_inputs(t, poly(t))
+    np.testing.assert_allclose(um, poly(0.5 * (t[:-1] + t[1:])), rtol=1e-9, atol=1e-9)
+    tu = np.arange(10) * 0.005
+    u = rng.normal(size=(10, 6))
+    np.testing.assert_allclose(midpoint_inputs(tu, u)[1:-1], (-u[:-3] + 9 * u[1:-2] + 9 * u[2:-1] - u[3:]) / 16, atol=1e-12)
+    np.testing.assert_allclose(midpoint_inputs(tu[:3], u[:3]), 0.5 * (u[:2] + u[1:3]))

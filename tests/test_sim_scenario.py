@@ -121,6 +121,16 @@ def test_numeric_anchor_ids_become_text(tmp_path):
     assert set(ds.uwb["anchor"]) == {"1", "2", "3"} and ds.meta.truth.anchor_bias["2"] == 0.1
 
 
+def test_explicit_noise_densities_room4_and_all_schedule(tmp_path):
+    noise = {"gyro_noise_density": 1e-3, "accel_noise_density": 2e-2, "gyro_bias_rw": 0.0, "accel_bias_rw": 0.0}
+    data = {"duration": 5, "imu": {"noise": noise}, "anchors": "room4", "uwb": {"schedule": "all", "rate_hz": 10}}
+    sc = load_scenario(write_yaml(tmp_path, data))
+    ds = simulate(sc)
+    assert ds.meta.imu_noise.accel_noise_density == 2e-2 and ds.meta.imu_noise.accel_bias_sigma0 == 0.0
+    assert len(ds.anchors) == 4 and len(ds.uwb) == 4 * 51
+    assert (ds.uwb.groupby("t").size() == 4).all()
+
+
 def test_trajectory_file_path_is_relative_to_the_scenario(tmp_path):
     sub = tmp_path / "flights"
     sub.mkdir()

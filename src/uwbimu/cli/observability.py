@@ -162,7 +162,7 @@ def log(
         table, meta = window_observability(ds, options=opts)
     write_csv(csv_path, table)
     write_json(out / "observability_meta.json", meta)
-    plot_timeline(table, png_path)
+    plot_timeline(table, png_path, lever_sd, td_sd)
     t = Table(title=f"{dataset} - {len(table)} window(s) of {window:g} s")
     for c in ("t_start", "t_end", "min eig", "cond", "weakest", "sd lever max [m]", "sd t_d [s]", "lever", "t_d"):
         t.add_column(c)
@@ -179,6 +179,13 @@ def log(
         console.print(
             f"[yellow]{meta['ranges_unknown_anchor']} range(s) with an unknown anchor and "
             f"{meta['ranges_outside_imu_span']} outside the IMU span were not used[/yellow]"
+        )
+    res_med = meta["range_residual_median"]
+    if res_med > max(5 * meta["range_sigma"], 0.3):
+        console.print(
+            f"[yellow]warning: median |range - predicted range| along the trajectory is {res_med:.2f} m: "
+            "the trajectory may not be in the anchors' frame (or the lever arm / anchors are off); "
+            "the Jacobians are only as good as the trajectory[/yellow]"
         )
     console.print(f"wrote {csv_path}, {png_path}")
 

@@ -131,12 +131,19 @@ def calibration(
     tab.add_column("trajectory")
     for col in ("lever x [mm]", "lever y [mm]", "lever z [mm]", "t_d [ms]", "lambda_min (scaled info)"):
         tab.add_column(col, justify="right")
-    for name in ("designed", "figure8"):
-        r = report[name]
+    for name in ("designed", "figure8", "figure8_excited"):
+        r = report[f"{name}_flown"]  # evaluated on the splines the simulator flies
         s = r["sigma_lever_arm_m"]
         tab.add_row(name, *(f"{1e3 * v:.2f}" for v in s), f"{1e3 * r['sigma_time_offset_s']:.3f}", f"{r['lambda_min_scaled']:.3g}")
     console.print(tab)
-    console.print(f"wrote {', '.join(str(p) for p in report['files'])}")
+    for key in ("figure8", "figure8_excited"):
+        r = report[f"predicted_ratio_{key}_over_designed"]
+        console.print(
+            f"predicted sigma ratio {key} / designed: lever arm (norm) {r['lever_arm_sigma_norm']:.2f}x, "
+            f"time offset {r['time_offset_sigma']:.2f}x"
+        )
+    console.print(f"optimised in {report['design_time_s']:.1f} s ({report['n_evals']} evaluations)")
+    console.print(f"wrote {len(report['files'])} files into {out}; fly with: uwbimu simulate {out / 'designed_scenario.yaml'}")
 
 
 def register(app: typer.Typer) -> None:

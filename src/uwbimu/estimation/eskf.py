@@ -146,15 +146,14 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
 
 
 def _reinit(prob: Problem, opts: EskfOptions, priors: dict[str, Any], j: int, last: PassResult) -> InitialState:
-    """Re-initialise after divergence at range ``j``, keeping finite calibration estimates."""
-    pf = dict(priors)
-    x = last.x
-    if np.all(np.isfinite(x[16:19])) and np.all(np.abs(x[16:19]) < 5):
-        pf["lever"] = x[16:19].copy()
-    td_known = float(x[19]) if np.isfinite(x[19]) and abs(x[19]) < 1.0 else None
-    if td_known is not None:
-        pf["td_sd"] = max(priors["td_sd"], 0.02) if priors["td_sd"] > 0 else 0.0
-    return initialise(prob, opts, pf, j0=j, td_known=td_known)
+    """Re-initialise after divergence at range ``j``: a fresh data-driven initialisation.
+
+    The calibration estimates of a diverged filter cannot be trusted (the
+    divergence usually corrupts them first), so the priors of the options are
+    used again and the yaw / time-offset search is repeated on the data that
+    follows.
+    """
+    return initialise(prob, opts, priors, j0=j)
 
 
 def run_eskf(

@@ -190,10 +190,13 @@ def run_pass(
         rec[i] = o
         if o[REC_ACC] > 0:
             if force:
+                # a reopened gate does not prove the filter healthy: keep counting towards divergence
                 events.append({"t": float(tj), "kind": "gate_reopened", "anchor": prob.anchor_ids[a],
                                "after_rejections": int(consec[a])})
+                all_rej += 1
+            else:
+                all_rej = 0
             consec[a] = 0
-            all_rej = 0
         elif o[REC_STATUS] == K.UPD_OK:
             consec[a] += 1
             all_rej += 1

@@ -91,6 +91,35 @@ def level_attitude(prob: Problem, k0: int, window: float) -> tuple[float, float]
     return roll, pitch
 
 
+def motion_start(prob: Problem, k0: int, max_s: float, smooth_s: float = 0.1,
+                 rate_thr: float = 0.15, acc_thr: float = 0.4) -> float:
+    """IMU time at which the vehicle starts moving, searching ``max_s`` seconds from sample ``k0``.
+
+    Motion is a (0.1 s moving-average) body rate or specific-force magnitude
+    departing from the values of the first 0.3 s by more than ``rate_thr``
+    [rad/s] or ``acc_thr`` [m/s^2].  Returns ``imu_t[k0]`` when moving from the
+    start and ``inf`` when no motion is found.
+    """
+    t = prob.imu_t
+    k1 = int(np.searchsorted(t, t[k0] + max_s))
+    if k1 - k0 < 10:
+        return float(t[k0])
+    u = prob.imu_u[k0:k1]
+    n = max(1, int(round(smooth_s / prob.dt_nom)))
+    ker = np.ones(n) / n
+    w = np.column_stack([np.convolve(u[:, 3 + i], ker, mode="same") for i in range(3)])
+    a = np.linalg.norm(np.column_stack([np.convolve(u[:, i], ker, mode="same") for i in range(3)]), axis=1)
+    m = max(n, int(round(0.3 / prob.dt_nom)))
+    w0 = w[n:m].mean(axis=0) if m > n else w[0]
+    a0 = a[n:m].mean() if m > n else a[0]
+    moving = (np.linalg.norm(w - w0, axis=1) > rate_thr) | (np.abs(a - a0) > acc_thr)
+    moving[: n] = False  # edge effect of the moving average
+    idx = np.flatnonzero(moving)
+    if len(idx) == 0:
+        return float("inf")
+    return float(t[k0 + idx[0]]) if idx[0] > m else float(t[k0])
+
+
 def euler_to_quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
     """``q = Rz(yaw) Ry(pitch) Rx(roll)`` (body -> world), Hamilton ``[w, x, y, z]``."""
     qz = np.array([math.cos(yaw / 2), 0, 0, math.sin(yaw / 2)])
@@ -194,8 +223,33 @@ def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: i
     )
     info: dict[str, Any] = {"t0": t0, "fix_position": p0.tolist(), "fix_velocity": v0.tolist(),
                             "fix_rms": rms, "fix_ranges": nfix, "roll": roll, "pitch": pitch}
-    t_to = t0 + io.bank_window_s
-    t_from = t0 + 0.25 * io.bank_window_s
+    # yaw and time offset are only observable once the vehicle moves: score the
+    # hypotheses on a window that contains bank_window_s of motion
+    t_move = motion_start(prob, k_lvl, io.max_wait_s)
+    pf = dict(pr_fixed)
+    if np.isfinite(t_move):
+        t_move_uwb = t_move - td_prior
+        t_from = max(t0 + 0.25 * io.bank_window_s, t_move_uwb + 0.5)
+        t_to = max(t0 + io.bank_window_s, t_move_uwb + 0.75 * io.bank_window_s)
+        still = t_move - prob.imu_t[k_lvl]
+        info["motion_start"] = float(t_move_uwb)
+        if still >= 1.0:
+            # a stationary start: the mean gyro reading is the gyro bias (Earth rate neglected)
+            k_m = int(np.searchsorted(prob.imu_t, t_move - 0.2))
+            wmean = prob.imu_u[k_lvl:k_m, 3:6].mean(axis=0)
+            sd_g = max(3.0 * math.sqrt(prob.noise[1] / max(still - 0.2, 0.1)), 1e-3)
+            if np.all(np.abs(wmean) < 3 * pr_fixed["sd_bg"] + 0.01):
+                pf["bg"] = wmean
+                pf["sd_bg"] = min(sd_g, pr_fixed["sd_bg"])
+                info["stationary_gyro_bias"] = wmean.tolist()
+    else:
+        t_from = t0 + 0.25 * io.bank_window_s
+        t_to = t0 + io.bank_window_s
+        info["motion_start"] = None
+        info["note"] = f"no motion within {io.max_wait_s:g} s: yaw and time offset not observable at start"
+    pr.bg = pf["bg"]
+    pr.sd_bg = pf["sd_bg"]
+    info["bank_window"] = [float(t_from), float(t_to)]
     yaw_sd_final = math.radians(io.yaw_sd_deg)
 
     def run_bank(yaws, tds, yaw_sd, td_sd):

@@ -74,6 +74,7 @@ class InitOptions(_Strict):
     yaw_sd_deg: float = Field(default=15.0, gt=0, description="yaw sd after the bank search (or around `yaw`)")
     yaw_hypotheses: int = Field(default=12, ge=1)
     bank_window_s: float = Field(default=8.0, gt=0, description="length of data each hypothesis is scored on [s]")
+    max_wait_s: float = Field(default=30.0, gt=0, description="how long to look for the start of motion [s]")
     search_time_offset: bool = True
     td_grid: list[float] = Field(
         default_factory=lambda: [round(-0.25 + 0.05 * i, 3) for i in range(11)],
@@ -121,7 +122,6 @@ class EskfOptions(_Strict):
     max_lookback_s: float = Field(default=0.6, gt=0, description="how far back a range may be predicted [s]")
     imu_gap_factor: float = Field(default=3.0, gt=1, description="an IMU interval longer than this many nominal periods is a gap")
     uwb_outage_s: float = Field(default=1.0, gt=0, description="no accepted range for this long: outage warning [s]")
-    verbose: bool = Field(default=False, description="print warnings to the console as they happen")
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "EskfOptions":

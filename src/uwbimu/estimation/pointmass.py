@@ -145,17 +145,18 @@ def _predict(x, P, a0, a1, h, q2):
     """Exact propagation of ``p' = v, v' = a`` over ``h`` with ``a`` linear from a0 to a1.
 
     Process noise: white acceleration of spectral density ``q2`` [m^2/s^3].
+    Scalar loops (no BLAS) keep the compile time short.
     """
     for i in range(3):
         x[i] += h * x[3 + i] + h * h * (a0[i] / 3.0 + a1[i] / 6.0)
         x[3 + i] += 0.5 * h * (a0[i] + a1[i])
-    # P <- F P F^T + Q with F = [[I, hI], [0, I]] written block-wise (cheap, exact).
-    Ppp = P[0:3, 0:3].copy()
-    Ppv = P[0:3, 3:6].copy()
-    Pvv = P[3:6, 3:6].copy()
-    P[0:3, 0:3] = Ppp + h * (Ppv + Ppv.T) + h * h * Pvv
-    P[0:3, 3:6] = Ppv + h * Pvv
-    P[3:6, 0:3] = P[0:3, 3:6].T
+    # P <- F P F^T + Q with F = [[I, hI], [0, I]]: rows then columns.
+    for i in range(3):
+        for j in range(6):
+            P[i, j] += h * P[3 + i, j]
+    for j in range(3):
+        for i in range(6):
+            P[i, j] += h * P[i, 3 + j]
     for i in range(3):
         P[i, i] += q2 * h * h * h / 3.0
         P[i, 3 + i] += q2 * h * h / 2.0
@@ -212,18 +213,22 @@ def _filter(s, aw, x0, P0, q2, tau, anchors, offsets, ranges, sigma, gate):
             tc = tau[j]
             ac = aj
             r, H = _range_h(x, anchors[j], offsets[j])
-            PHt = P @ H
-            Sv = H @ PHt + r2
+            # H is non-zero on the position block only.
+            PHt = np.zeros(6)
+            for i in range(6):
+                PHt[i] = P[i, 0] * H[0] + P[i, 1] * H[1] + P[i, 2] * H[2]
+            Sv = H[0] * PHt[0] + H[1] * PHt[1] + H[2] * PHt[2] + r2
             y = ranges[j] - r
             pred[j] = r
             innov[j] = y
             nis[j] = y * y / Sv
             if nis[j] <= gate * gate:
-                K = PHt / Sv
-                x += K * y
-                # Joseph form keeps P symmetric positive definite.
-                IKH = np.eye(6) - np.outer(K, H)
-                P = IKH @ P @ np.ascontiguousarray(IKH.T) + r2 * np.outer(K, K)
+                for i in range(6):
+                    x[i] += PHt[i] * y / Sv
+                # P - K S K^T with K = P H^T / S, written to stay exactly symmetric.
+                for i in range(6):
+                    for k2 in range(6):
+                        P[i, k2] -= PHt[i] * PHt[k2] / Sv
                 acc[j] = True
             j += 1
         _predict(x, P, ac, aw[k + 1], s[k + 1] - tc, q2)

@@ -62,3 +62,59 @@ def multilaterate(
             rows.append((float(np.mean(t[sel])), *sol.x, rms, int(ok.sum())))
             x0 = sol.x
     return pd.DataFrame(rows, columns=["t", "px", "py", "pz", "rms", "n"])
+
+
+def gyro_truth_time_offset(
+    ds: Dataset,
+    max_shift: float = 0.5,
+    resolution: float = 0.005,
+    half_step: float = 0.1,
+) -> dict:
+    """Time offset between the IMU and the ground-truth clock from rotation rates.
+
+    The gyro magnitude ``|w_imu(s)|`` (IMU clock) is cross-correlated with the
+    ground-truth rotation rate ``|w_gt(t)|`` (finite difference of attitudes
+    over ``±half_step``, robust to jittered stamps).  The returned ``shift``
+    maximises the correlation of ``|w_imu(t + shift)|`` with ``|w_gt(t)|``,
+    i.e. an IMU sample stamped ``s`` describes the motion at ground-truth time
+    ``s − shift``: with ground truth on the UWB clock, ``shift`` estimates the
+    time offset ``t_d`` of the convention.  Magnitudes make it independent of
+    the unknown body/tracker rotation; it needs rotation, not only translation.
+
+    Returns
+    -------
+    dict ``shift`` [s], ``correlation`` (at the best shift), ``correlation_at_zero``.
+    """
+    from uwbimu.models.quaternion import quat_conjugate, quat_log, quat_multiply, quat_normalize, quat_slerp
+
+    if ds.groundtruth is None or len(ds.groundtruth) < 10:
+        raise ValueError("gyro_truth_time_offset needs ground truth with attitudes")
+    g = ds.groundtruth
+    tg = g["t"].to_numpy(float)
+    q = quat_normalize(g[["qw", "qx", "qy", "qz"]].to_numpy(float))
+    ti = ds.imu_t
+    w_imu = np.linalg.norm(ds.imu[["wx", "wy", "wz"]].to_numpy(float), axis=1)
+    lo = max(tg[0], ti[0]) + max_shift + half_step
+    hi = min(tg[-1], ti[-1]) - max_shift - half_step
+    if hi - lo < 10 * half_step:
+        raise ValueError("IMU and ground truth overlap too little for a time-offset scan")
+    grid = np.arange(lo, hi, 0.01)
+
+    def q_at(t):
+        i = np.clip(np.searchsorted(tg, t) - 1, 0, len(tg) - 2)
+        a = np.clip((t - tg[i]) / np.maximum(tg[i + 1] - tg[i], 1e-9), 0.0, 1.0)
+        return quat_slerp(q[i], q[i + 1], a)
+
+    w_gt = np.linalg.norm(quat_log(quat_multiply(quat_conjugate(q_at(grid - half_step)), q_at(grid + half_step))),
+                          axis=1) / (2 * half_step)
+    # average the gyro over the same window as the finite difference
+    csum = np.r_[0.0, np.cumsum(0.5 * (w_imu[1:] + w_imu[:-1]) * np.diff(ti))]
+
+    def w_mean(t):
+        return (np.interp(t + half_step, ti, csum) - np.interp(t - half_step, ti, csum)) / (2 * half_step)
+
+    shifts = np.arange(-max_shift, max_shift + resolution / 2, resolution)
+    corr = np.array([np.corrcoef(w_mean(grid + s), w_gt)[0, 1] for s in shifts])
+    k = int(np.nanargmax(corr))
+    return {"shift": float(shifts[k]), "correlation": float(corr[k]),
+            "correlation_at_zero": float(corr[int(np.argmin(np.abs(shifts)))])}

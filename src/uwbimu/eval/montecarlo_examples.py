@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import copy
 
-_ANCHOR_XY = [("A", 0.5, 0.5), ("B", 9.5, 1.0), ("C", 4.0, 7.5)]
+_ANCHOR_XY = [("A", 0.3, 1.0), ("B", 1.0, 4.0), ("C", 0.5, 7.0)]
 
 
 def _scenario(heights: list[float]) -> dict:
@@ -53,7 +53,7 @@ EXAMPLES: dict[str, dict] = {
         "skip_initial_s": 0.0,
         "trace_rate_hz": 5.0,
         "scenarios": [
-            {"name": "different-heights", "scenario": _scenario([0.3, 2.7, 1.2])},
+            {"name": "different-heights", "scenario": _scenario([0.3, 2.7, 1.0])},
             {"name": "horizontal-plane", "scenario": _scenario([1.5, 1.5, 1.5])},
         ],
         "estimators": [

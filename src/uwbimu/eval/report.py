@@ -182,8 +182,7 @@ class ReportInputs:
         ds = self.dataset
         if ds is not None:
             if ds.meta.truth is not None and ds.meta.truth.lever_arm is not None:
-                note = (ds.meta.extra or {}).get("lever_arm_note")
-                return list(ds.meta.truth.lever_arm), "documented" if note else "true"
+                return list(ds.meta.truth.lever_arm), "reference"
             if ds.meta.tags and ds.meta.tags[0].lever_arm is not None:
                 return list(ds.meta.tags[0].lever_arm), "nominal"
         return None, ""
@@ -228,8 +227,10 @@ def _calibration_section(inp: ReportInputs) -> str:
     mode_bits = [f"{k}: <code>{_e(c[k])}</code>" for k in ("lever_arm_mode", "time_offset_mode", "anchor_bias_mode") if k in c]
     if mode_bits:
         parts.append(f'<p class="note">Modes — {", ".join(mode_bits)}.</p>')
-    if ref_label == "documented":
-        parts.append(f'<p class="note">Reference lever arm: {_e((inp.dataset.meta.extra or {}).get("lever_arm_note"))}</p>')
+    if ref_label:
+        note = (inp.dataset.meta.extra or {}).get("lever_arm_note", "")
+        parts.append(f'<p class="note">Reference lever arm: <code>{"truth.lever_arm" if ref_label == "reference" else "tags[0].lever_arm"}</code> '
+                     f'of dataset.yaml (simulation truth, or the value documented by the source for real data). {_e(note)}</p>')
     brows = []
     for key, unit in (("accel_bias", "m/s²"), ("gyro_bias", "rad/s")):
         if c.get(key) is not None:
@@ -243,8 +244,14 @@ def _calibration_section(inp: ReportInputs) -> str:
         arows = [[_e(a), _fmt(v, 3), _fmt(sd.get(a), 3), _fmt(kb.get(a), 3) if a in kb else "–"] for a, v in c["anchor_bias"].items()]
         parts.append(_table(["anchor", "estimated bias [m]", "± 1σ", "known bias [m]"], arows))
     if inp.metrics:
-        mrows = [[_e(k), _fmt(v, 4) if not isinstance(v, (list, dict)) else _e(v)] for k, v in inp.metrics.items()
-                 if not isinstance(v, dict) and k != "warnings"]
+        def mval(v):
+            if isinstance(v, list):
+                return "[" + ", ".join(_fmt(x, 4) for x in v) + "]"
+            if isinstance(v, (bool, str)) or v is None:
+                return _e(v)
+            return _fmt(v, 4)
+
+        mrows = [[_e(k), mval(v)] for k, v in inp.metrics.items() if not isinstance(v, dict) and k != "warnings"]
         if mrows:
             parts.append("<h3>metrics.yaml</h3>" + _table(["metric", "value"], mrows))
     return "".join(parts)
@@ -284,6 +291,16 @@ def _convergence_section(inp: ReportInputs) -> str:
         ref = (ref_td if k == "td" else (None if ref_l is None else ref_l["xyz".index(k[1])]))
         if ref is not None:
             ax.axhline(ref * scale, color="k", ls="--", lw=0.9, label=ref_label or "reference")
+        # zoom on the converged part: the prior's wide band would flatten everything else
+        late = t >= t[0] + 0.1 * (t[-1] - t[0])
+        if sdc is not None and late.any():
+            lo = np.nanmin((v - 3 * s)[late])
+            hi = np.nanmax((v + 3 * s)[late])
+            if ref is not None:
+                lo, hi = min(lo, ref * scale), max(hi, ref * scale)
+            if np.isfinite(lo) and np.isfinite(hi) and hi > lo:
+                pad = 0.15 * (hi - lo)
+                ax.set_ylim(lo - pad, hi + pad)
         ax.set_ylabel(f"{k} [{unit}]")
         ax.grid(True, alpha=0.3)
         if n == 0:
@@ -509,12 +526,71 @@ def _repeatability_section(inp: ReportInputs) -> str:
     return "".join(parts)
 
 
+def _observability_windows(df: pd.DataFrame) -> str:
+    """Timeline of the per-window table of ``uwbimu observability`` (t_start, t_end, sd_*, flags)."""
+    from matplotlib.figure import Figure
+
+    t0 = pd.to_numeric(df["t_start"], errors="coerce").to_numpy(float)
+    t1 = pd.to_numeric(df["t_end"], errors="coerce").to_numpy(float)
+    tc = 0.5 * (t0 + t1)
+
+    def col(c):
+        return pd.to_numeric(df[c], errors="coerce").replace([np.inf, -np.inf], np.nan).to_numpy(float)
+
+    panels = []
+    if "min_eigenvalue" in df.columns:
+        panels.append(("min eigenvalue\n(scaled info)", [("min_eigenvalue", col("min_eigenvalue"))], None))
+    lev = [(f"sd {n}", col(f"sd_{n}")) for n in ("lx", "ly", "lz") if f"sd_{n}" in df.columns]
+    if lev:
+        panels.append(("CRLB lever arm [m]", lev, "lever_arm_excited"))
+    if "sd_td" in df.columns:
+        panels.append(("CRLB t_d [s]", [("sd td", col("sd_td"))], "time_offset_excited"))
+    if "gyro_rms" in df.columns:
+        panels.append(("gyro RMS [rad/s]", [("gyro rms", col("gyro_rms"))], None))
+    fig = Figure(figsize=(9.0, 1.9 * len(panels) + 1.0))
+    for n, (label, series, flag) in enumerate(panels):
+        ax = fig.add_subplot(len(panels), 1, n + 1)
+        for name, y in series:
+            ax.plot(tc, y, "o-", ms=3, lw=0.9, label=name)
+        ys = np.concatenate([y[np.isfinite(y)] for _, y in series]) if series else np.array([])
+        if len(ys) and np.all(ys > 0):
+            ax.set_yscale("log")
+        if flag is not None and flag in df.columns:
+            bad = ~_as_bool(df[flag])
+            for a, b in zip(t0[bad], t1[bad]):
+                ax.axvspan(a, b, color="orange", alpha=0.2, lw=0)
+        ax.set_ylabel(label, fontsize=8)
+        ax.grid(True, alpha=0.3)
+        if len(series) > 1:
+            ax.legend(fontsize=7, ncol=3)
+    fig.axes[-1].set_xlabel("window centre [s]")
+    parts = [_fig("observability", fig, "Per-window observability: Cramér-Rao bounds of the lever arm and time offset "
+                  "(shaded: window flagged as not exciting the parameter).")]
+    rows = []
+    for k in range(len(df)):
+        flags = []
+        if "lever_arm_excited" in df.columns and not _as_bool(df["lever_arm_excited"].iloc[[k]])[0]:
+            flags.append("lever arm not excited")
+        if "time_offset_excited" in df.columns and not _as_bool(df["time_offset_excited"].iloc[[k]])[0]:
+            flags.append("time offset not excited")
+        if flags:
+            wd = _e(df["weakest_direction"].iloc[k]) if "weakest_direction" in df.columns else ""
+            rows.append([f"{t0[k]:.1f}–{t1[k]:.1f}", _e(", ".join(flags)), wd])
+    if rows:
+        parts.append(_table(["window [s]", "flag", "weakest direction"], rows[:40], left=3))
+    else:
+        parts.append('<p class="note">Every window excites the lever arm and the time offset.</p>')
+    return "".join(parts)
+
+
 def _observability_section(inp: ReportInputs) -> str:
     from matplotlib.figure import Figure
 
     df = inp.observability
     if df is None:
-        return _missing("<code>observability.csv</code> not found.")
+        return _missing("<code>observability.csv</code> not found (<code>uwbimu observability ... --out OUT</code>).")
+    if {"t_start", "t_end"} <= set(df.columns):
+        return _observability_windows(df)
     tcol = "t" if "t" in df.columns else df.columns[0]
     num = [c for c in df.columns if c != tcol and pd.api.types.is_numeric_dtype(df[c])][:8]
     if not num:
@@ -523,7 +599,7 @@ def _observability_section(inp: ReportInputs) -> str:
     fig = Figure(figsize=(9.0, 1.6 * len(num) + 1.0))
     for n, c in enumerate(num):
         ax = fig.add_subplot(len(num), 1, n + 1)
-        y = df[c].to_numpy(float)
+        y = pd.to_numeric(df[c], errors="coerce").replace([np.inf, -np.inf], np.nan).to_numpy(float)
         ax.plot(t, y, "C0-", lw=0.9)
         pos = y[np.isfinite(y)]
         if len(pos) and np.all(pos > 0) and pos.max() / max(pos.min(), 1e-300) > 1e3:

@@ -227,24 +227,59 @@ def _normalize_q(x):
     return x
 
 
-def propagate(x: np.ndarray, u0: np.ndarray, u1: np.ndarray, dt: float) -> np.ndarray:
+def midpoint_inputs(t: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """IMU input at the midpoint of every interval, ``(N-1, m)``.
+
+    Lagrange cubic through the four samples around the interval (centred
+    inside, one-sided on the first and last interval); exact for inputs that
+    are cubic polynomials of time, on any strictly increasing ``t``.  With
+    fewer than four samples, the linear average.
+
+    Why not the plain average of the two ends: for a rotating body the
+    linear-input error does not cancel (coning); at 200 Hz over 60 s it drifts
+    3-90 mm on the simulator's rotating trajectories, against < 0.03 mm with
+    the cubic midpoint (``tests/test_sim_integration.py``).
+    """
+    t = np.asarray(t, dtype=float)
+    u = np.asarray(u, dtype=float)
+    n = len(t)
+    if n < 4:
+        return 0.5 * (u[:-1] + u[1:])
+    k = np.arange(n - 1)
+    first = np.clip(k - 1, 0, n - 4)  # index of the first of the 4 nodes
+    nodes = first[:, None] + np.arange(4)  # (n-1, 4)
+    tn = t[nodes]
+    tm = 0.5 * (t[k] + t[k + 1])
+    w = np.ones((n - 1, 4))
+    for j in range(4):
+        for m in range(4):
+            if m != j:
+                w[:, j] *= (tm - tn[:, m]) / (tn[:, j] - tn[:, m])
+    return np.einsum("kj,kjc->kc", w, u[nodes])
+
+
+def propagate(
+    x: np.ndarray, u0: np.ndarray, u1: np.ndarray, dt: float, um: np.ndarray | None = None
+) -> np.ndarray:
     """Propagate the nominal state over one IMU interval (noise-free).
 
     Classical Runge-Kutta 4 on :func:`continuous_dynamics` with the IMU input
-    interpolated linearly between the samples ``u0`` (at the start) and ``u1``
-    (at the end).  Local error O(dt^5) for the kinematics and O(dt^3) from the
-    input interpolation, which telescopes (trapezoid rule), so the global
-    drift stays well below a millimetre over a minute at 200 Hz.
+    ``u0`` at the start, ``um`` at the middle and ``u1`` at the end of the
+    interval.  ``um`` defaults to the average of the ends (linear
+    interpolation); :func:`integrate_imu` passes the cubic
+    :func:`midpoint_inputs`, which keeps the global drift well below a
+    millimetre over a minute at 200 Hz.
 
     Parameters
     ----------
     x : (20,) nominal state at the start of the interval.
     u0, u1 : (6,) IMU readings ``[a_m, w_m]`` at the start and end [m/s^2, rad/s].
     dt : interval length [s]; may be negative (backward propagation).
+    um : (6,) optional IMU reading at the middle of the interval.
     """
     u0 = np.asarray(u0, dtype=float)
     u1 = np.asarray(u1, dtype=float)
-    um = 0.5 * (u0 + u1)
+    um = 0.5 * (u0 + u1) if um is None else np.asarray(um, dtype=float)
     k1 = continuous_dynamics(x, u0)
     k2 = continuous_dynamics(x + 0.5 * dt * k1, um)
     k3 = continuous_dynamics(x + 0.5 * dt * k2, um)
@@ -252,7 +287,7 @@ def propagate(x: np.ndarray, u0: np.ndarray, u1: np.ndarray, dt: float) -> np.nd
     return _normalize_q(x + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4))
 
 
-def integrate_imu(x0: np.ndarray, t: np.ndarray, u: np.ndarray) -> np.ndarray:
+def integrate_imu(x0: np.ndarray, t: np.ndarray, u: np.ndarray, cubic: bool = True) -> np.ndarray:
     """Integrate a whole IMU stream with :func:`propagate`.
 
     Parameters
@@ -260,13 +295,18 @@ def integrate_imu(x0: np.ndarray, t: np.ndarray, u: np.ndarray) -> np.ndarray:
     x0 : (20,) state at ``t[0]``.
     t : (N,) IMU stamps [s].
     u : (N, 6) IMU readings ``[ax, ay, az, wx, wy, wz]``.
+    cubic : mid-interval input from :func:`midpoint_inputs` (default) or the
+        linear average of the interval's ends.
 
     Returns
     -------
     (N, 20) states at each stamp.
     """
+    t = np.asarray(t, dtype=float)
+    u = np.asarray(u, dtype=float)
+    um = midpoint_inputs(t, u) if cubic else 0.5 * (u[:-1] + u[1:])
     out = np.empty((len(t), S.NOMINAL_DIM))
     out[0] = x0
     for k in range(len(t) - 1):
-        out[k + 1] = propagate(out[k], u[k], u[k + 1], t[k + 1] - t[k])
+        out[k + 1] = propagate(out[k], u[k], u[k + 1], t[k + 1] - t[k], um[k])
     return out

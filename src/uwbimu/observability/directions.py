@@ -7,11 +7,11 @@ of known generators, in order of physical meaning:
 1. world translations ``dp = t`` (a translation along the normal of the
    anchors' plane at a tag in that plane is the first-order trace of the
    mirror-image ambiguity and is named so);
-2. infinitesimal rigid motions of the world, ``dp = w x p + t, dv = w x v,
+2. single state blocks (e.g. "accelerometer bias along body z");
+3. infinitesimal rigid motions of the world, ``dp = w x p + t, dv = w x v,
    dtheta = R^T w`` (named by their screw axis: yaw about a vertical line
    through a point, rotation about the line through two anchors, ...);
-3. lever-arm / position trade-off ``dp = R e_j, dp_IU = -e_j`` (UWB-IMU model);
-4. single state blocks (e.g. "accelerometer bias along body z");
+4. lever-arm / position trade-off ``dp = R e_j, dp_IU = -e_j`` (UWB-IMU model);
 5. pairs of blocks ("gyro bias / attitude trade-off", "lever arm / accelerometer
    bias trade-off", ...).
 
@@ -107,23 +107,40 @@ def _rigid_candidates(names, x_tangent_info, anchors) -> list[Candidate]:
                 return "displacement normal to the anchors' plane at a tag in that plane (mirror-image ambiguity)"
         return f"translation along {_axis_name(t, 'world')}"
 
+    # The rigid-motion columns can be dependent at a point (point mass: a
+    # rotation about the velocity direction plus a translation moves nothing);
+    # the coefficients are then fixed up to that kernel, resolved below by
+    # preferring a pure rotation (zero pitch).
+    _, sv, Vt = np.linalg.svd(Rg)
+    kernel = Vt[int(np.sum(sv > 1e-9 * sv[0])) :]
+
     def name_rigid(c, vec):
+        c = np.array(c, dtype=float)
+        if len(kernel) == 1:
+            k = kernel[0]
+            w0, t0, kw, kt = c[:3], c[3:], k[:3], k[3:]
+            roots = np.roots([kw @ kt, w0 @ kt + kw @ t0, w0 @ t0]) if abs(kw @ kt) + abs(w0 @ kt + kw @ t0) > 0 else []
+            real = [r.real for r in np.atleast_1d(roots) if abs(r.imag) < 1e-12]
+            if real:
+                c = c + min(real, key=abs) * k
         w, t = c[:3], c[3:]
         nw = np.linalg.norm(w)
         if nw < 1e-9 * max(1.0, np.linalg.norm(t)):
             return name_translation(t, vec)
         n = w / nw
         cpt = np.cross(w, t) / nw**2  # point on the axis closest to the origin
+        cpt[np.abs(cpt) < 1e-9 * scale] = 0.0
         pitch = float(w @ t) / nw**2
         on_axis = [
             k for k, a in enumerate(anchors) if np.linalg.norm(np.cross(a - cpt, n)) < 1e-6 * scale
         ]
         screw = f" with pitch {pitch:+.3g} m/rad" if abs(pitch) > 1e-6 * scale else ""
-        if abs(n[2]) > 0.999:
-            where = f"through anchor {on_axis[0]}" if len(on_axis) == 1 else f"through ({cpt[0]:.3g}, {cpt[1]:.3g})"
-            return f"global yaw about the vertical line {where}{screw}"
         if len(on_axis) >= 2:
-            return f"rotation about the line through anchors {on_axis[0]} and {on_axis[1]}{screw}"
+            kind = "global yaw about the vertical line" if abs(n[2]) > 0.999 else "rotation about the line"
+            return f"{kind} through anchors {on_axis[0]} and {on_axis[1]}{screw}"
+        if abs(n[2]) > 0.999:
+            where = f"through anchor {on_axis[0]}" if on_axis else f"through ({cpt[0]:.3g}, {cpt[1]:.3g})"
+            return f"global yaw about the vertical line {where}{screw}"
         where = f"anchor {on_axis[0]}" if on_axis else "(" + ", ".join(f"{c_:.3g}" for c_ in cpt) + ")"
         return f"rotation about axis {_fmt_vec(n)} through {where}{screw}"
 
@@ -144,10 +161,12 @@ def _anchor_plane_normal(anchors: np.ndarray) -> Optional[np.ndarray]:
     return None
 
 
-def _block_candidates(names, R=None) -> list[Candidate]:
+def _block_candidates(names) -> tuple[list[Candidate], list[Candidate]]:
+    """Single-block and pair-of-blocks candidates."""
     blocks = _blocks(names)
     d = len(names)
     cands = []
+    pairs = []
     keys = list(blocks)
     for key in keys:
         label, frame = BLOCK_LABELS.get(key, (key, ""))
@@ -172,12 +191,15 @@ def _block_candidates(names, R=None) -> list[Candidate]:
             def namer(c, vec, la=la, lb=lb):
                 return f"{la} / {lb} trade-off: {dominant_components(vec, names)}"
 
-            cands.append(Candidate(B, namer))
-    return cands
+            pairs.append(Candidate(B, namer))
+    return cands, pairs
 
 
 def candidates_for(model_kind: str, names: Sequence[str], x: np.ndarray, anchors) -> list[Candidate]:
-    """Candidate generator subspaces at a state of a built-in model.
+    """Candidate generator subspaces at a state of a built-in model, in naming order.
+
+    Order: translations, single state blocks, rigid motions, lever-arm /
+    position trade-off (UWB-IMU), pairs of blocks.
 
     Parameters
     ----------
@@ -188,12 +210,11 @@ def candidates_for(model_kind: str, names: Sequence[str], x: np.ndarray, anchors
     """
     x = np.asarray(x, dtype=float)
     info = {"p": x[0:3], "v": x[3:6]}
-    cands: list[Candidate] = []
+    extra: list[Candidate] = []
     if model_kind == "uwb_imu":
         R = quat_to_rotmat(x[6:10])
         info["R"] = R
         info["tag"] = x[0:3] + R @ x[16:19]
-        cands += _rigid_candidates(names, info, anchors)
         blocks = _blocks(names)
         L = np.zeros((len(names), 3))
         for j in range(3):
@@ -203,11 +224,10 @@ def candidates_for(model_kind: str, names: Sequence[str], x: np.ndarray, anchors
         def name_lever(c, vec):
             return f"position / lever-arm trade-off along body {_axis_name(c)} (antenna fixed, IMU moves)"
 
-        cands.append(Candidate(L, name_lever))
-    else:
-        cands += _rigid_candidates(names, info, anchors)
-    cands += _block_candidates(names)
-    return cands
+        extra.append(Candidate(L, name_lever))
+    translation, rigid = _rigid_candidates(names, info, anchors)
+    singles, pairs = _block_candidates(names)
+    return [translation] + singles + [rigid] + extra + pairs
 
 
 def _orth(B: np.ndarray) -> np.ndarray:

@@ -50,6 +50,11 @@ _SELECT_TOL = 1e-7
 #: fake extra rank.  Genuine rows of the shipped models are > 1e-7 relative.
 ZERO_ROW_TOL = 1e-10
 
+#: The pruned words hold only ~dim rows, so a point where they are nearly
+#: dependent gives a weak (if formally full-rank) verdict.  Below this ratio
+#: sigma_min / sigma_max the decision is re-taken with all words.
+PRUNED_MARGIN = 1e-4
+
 
 @dataclass
 class ControlAffineModel:
@@ -301,7 +306,8 @@ class LieObservability:
         """Decide the rank at ``(x, p)``.
 
         ``words="auto"`` uses the pruned words and falls back to all words when
-        they do not give full rank (see module docstring).
+        they do not give full rank, or give it with ``sigma_min / sigma_max <
+        PRUNED_MARGIN`` (see module docstring).
         """
         x, p = _as_dm(x), _as_dm(p)
         T = self.tangent_basis(x, p)
@@ -309,7 +315,8 @@ class LieObservability:
         if words in ("auto", "pruned") and self._pruned_fn is not None:
             O_raw = np.asarray(self._pruned_fn(x, p))
             rank, s, Vt = numerical_rank(O_raw @ T, tol)
-            if rank < T.shape[1] and words == "auto":
+            weak = rank == T.shape[1] and s[rank - 1] < PRUNED_MARGIN * s[0]
+            if (rank < T.shape[1] or weak) and words == "auto":
                 used = "all"
         else:
             used = "all"

@@ -283,6 +283,30 @@ def _window_information(R, f, w, dt, rng_idx, Hr, sig2, qdiag, use_noise):
     return info
 
 
+@njit(cache=True)
+def _transition(R, f, w, dt):
+    Phi = np.eye(19)
+    E = np.zeros((3, 3))
+    for k in range(R.shape[0] - 1):
+        _exp_neg(w[k], dt[k], E)
+        _step_rows(Phi, R[k], f[k], E, dt[k])
+    return Phi
+
+
+def transition_matrix(R, f, w, dt) -> np.ndarray:
+    """Error-state transition ``Phi(t_{K-1}, t_0)`` along K IMU samples (the kernel's).
+
+    Parameters
+    ----------
+    R : (K, 3, 3) attitude; f : (K, 3) specific force ``a_m - b_a`` (body);
+    w : (K, 3) rate ``w_m - b_g`` (body); dt : (K,) step to the next sample [s].
+    """
+    return _transition(
+        np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(f, dtype=float),
+        np.ascontiguousarray(w, dtype=float), np.ascontiguousarray(dt, dtype=float),
+    )  # fmt: skip
+
+
 # --------------------------------------------------------------------------
 # analysis of one information matrix
 # --------------------------------------------------------------------------
@@ -350,7 +374,10 @@ def _prepare(ds, tr: Trajectory, opts: WindowOptions):
     # body rate at the IMU time that the range observes
     t_imu = uwb_t + tr.t_d
     wr = np.column_stack([np.interp(t_imu, imu_t, u[:, 3 + i]) for i in range(3)]) - bgr
-    _, H = range_jacobians(pr, vr, Rr, wr, tr.lever_arm, A)
+    hpred, H = range_jacobians(pr, vr, Rr, wr, tr.lever_arm, A)
+    # consistency of trajectory and ranges (a ground truth in another frame
+    # would make every Jacobian meaningless): median |measured - predicted|
+    meas = uwb["range"].to_numpy(float)[known]
     # nearest IMU step at or before the observed IMU time
     ridx = np.clip(np.searchsorted(imu_t, t_imu, side="right") - 1, 0, len(imu_t) - 1)
     inside = (t_imu >= imu_t[0]) & (t_imu <= imu_t[-1])
@@ -358,6 +385,7 @@ def _prepare(ds, tr: Trajectory, opts: WindowOptions):
         "imu_t": imu_t, "R": R, "f": f, "w": w, "dt": dt,
         "uwb_t": uwb_t[inside], "H": H[inside], "ridx": ridx[inside], "anchors": A[inside],
         "n_unknown_anchor": int((~known).sum()), "n_outside": int((~inside).sum()),
+        "residual_median": float(np.median(np.abs(meas - hpred))) if len(meas) else float("nan"),
         "traj_at_imu": (p, v, q, ba, bg),
     }  # fmt: skip
 
@@ -378,8 +406,10 @@ def window_observability(ds, trajectory: Optional[Trajectory] = None, options: O
         ``weakest_direction``, ``sd_<state>`` (CRLB, SI units) for the 19
         error states, ``n_ranges``, ``gyro_rms`` (rad/s), ``lever_arm_excited``,
         ``time_offset_excited``.
-    info : counts of ranges dropped (unknown anchor, outside the IMU span) and
-        the noise values used.
+    info : counts of ranges dropped (unknown anchor, outside the IMU span),
+        the noise values used and ``range_residual_median`` (median |measured -
+        predicted| range along the trajectory [m]; large values mean the
+        trajectory is not in the anchors' frame or the calibration is off).
     """
     opts = options or WindowOptions()
     if opts.window <= 0:
@@ -434,14 +464,15 @@ def window_observability(ds, trajectory: Optional[Trajectory] = None, options: O
         "ranges_unknown_anchor": pre["n_unknown_anchor"],
         "ranges_outside_imu_span": pre["n_outside"],
         "windows": len(rows),
+        "range_residual_median": pre["residual_median"],
         "lever_arm": tr.lever_arm.tolist(),
         "time_offset": tr.t_d,
     }
     return table, meta
 
 
-def plot_timeline(table: pd.DataFrame, path) -> None:
-    """Timeline PNG: min eigenvalue, CRLB of lever arm and time offset, flags."""
+def plot_timeline(table: pd.DataFrame, path, lever_sd_threshold: Optional[float] = None, td_sd_threshold: Optional[float] = None) -> None:
+    """Timeline PNG: min eigenvalue, CRLB of lever arm and time offset, flags (thresholds dashed)."""
     from matplotlib.figure import Figure
 
     from uwbimu.io.atomic import save_figure
@@ -453,6 +484,10 @@ def plot_timeline(table: pd.DataFrame, path) -> None:
     ax[0].set_ylabel("min eigenvalue\n(scaled information)")
     for n in ("lx", "ly", "lz"):
         ax[1].semilogy(tc, table[f"sd_{n}"].replace(np.inf, np.nan), "o-", label=f"sd {n}")
+    if lever_sd_threshold:
+        ax[1].axhline(lever_sd_threshold, ls="--", color="k", lw=0.8)
+    if td_sd_threshold:
+        ax[2].axhline(td_sd_threshold, ls="--", color="k", lw=0.8)
     ax[1].set_ylabel("CRLB lever arm [m]")
     ax[1].legend(fontsize=8)
     ax[2].semilogy(tc, table["sd_td"].replace(np.inf, np.nan), "o-", color="C3")
