@@ -1,12 +1,189 @@
-"""``uwbimu demo``: the main job on built-in defaults."""
+"""``uwbimu demo``: the main job on built-in defaults.
+
+Simulates the default calibration flight (room with 8 anchors, 60 s),
+validates it exactly as a user's dataset would be validated, prints the
+structural observability verdict of the set-up, runs the ESKF with online
+lever-arm and time-offset calibration, compares the calibration with the
+truth, computes the per-window observability timeline and writes the HTML
+report.  Everything lands in one output folder.
+"""
 
 from __future__ import annotations
 
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
 import typer
+from rich.console import Console
+from rich.table import Table
+
+#: A file the demo leaves in its output folder so that a rerun may replace the
+#: folder; any other non-empty folder is a user's and is never overwritten.
+DEMO_MARKER = ".uwbimu-demo"
+
+
+def _prepare_out(out: Path, force: bool) -> None:
+    if out.exists() and any(out.iterdir()):
+        if not (out / DEMO_MARKER).exists() and not force:
+            raise typer.BadParameter(
+                f"{out} exists, is not empty and was not written by `uwbimu demo`; "
+                "choose another --out or pass --force",
+                param_hint="--out",
+            )
+        shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / DEMO_MARKER).write_text("written by uwbimu demo; the folder is replaced on the next run\n")
+
+
+def _summary_table(ds, seconds: float) -> Table:
+    t = Table(title="Simulated calibration flight", show_header=True)
+    t.add_column("item")
+    t.add_column("value", justify="right")
+    imu_t = ds.imu_t
+    t.add_row("duration", f"{imu_t[-1] - imu_t[0]:.1f} s")
+    t.add_row("IMU samples", f"{len(ds.imu)} ({(len(imu_t) - 1) / (imu_t[-1] - imu_t[0]):.0f} Hz)")
+    t.add_row("UWB ranges", f"{len(ds.uwb)} to {ds.uwb['anchor'].nunique()} anchors")
+    truth = ds.meta.truth
+    if truth is not None and truth.lever_arm is not None:
+        t.add_row("true lever arm", "[" + ", ".join(f"{v:+.3f}" for v in truth.lever_arm) + "] m")
+    if truth is not None and truth.time_offset is not None:
+        t.add_row("true time offset", f"{1e3 * truth.time_offset:+.1f} ms")
+    t.add_row("simulation time", f"{seconds:.2f} s")
+    return t
+
+
+def _structural_table(verdict: dict, delay: dict) -> Table:
+    t = Table(title="Observability of this set-up (Lie-derivative rank test, seed 001 section 3)")
+    t.add_column("question")
+    t.add_column("answer")
+    t.add_row(
+        "state without t_d locally weakly observable?",
+        f"{'yes' if verdict['observable'] else 'NO'}: rank {verdict['rank']} of {verdict['dimension']} "
+        f"(Lie order {verdict['lie_order']})",
+    )
+    conds = verdict.get("conditions") or {}
+    if conds:
+        t.add_row("Theorem 2 conditions", ", ".join(f"{k}={'yes' if v else 'no'}" for k, v in conds.items()
+                                                    if isinstance(v, bool)))
+    dconds = delay.get("conditions") or {}
+    t.add_row(
+        "time offset identifiable (Theorem 1)?",
+        f"{'yes' if delay['identifiable'] else 'NO'} ("
+        + ", ".join(f"{k}={'yes' if v else 'no'}" for k, v in dconds.items() if isinstance(v, bool))
+        + ")",
+    )
+    names = [d["name"] for d in verdict.get("unobservable_directions", [])]
+    if names:
+        t.add_row("unobservable directions", "; ".join(names))
+    return t
+
+
+def _truth_comparison(result, ds) -> Table:
+    cal = result.calibration
+    truth = ds.meta.truth
+    t = Table(title="Online calibration: estimate ± 1σ against the truth")
+    for c, j in (("quantity", "left"), ("estimate ± 1σ", "right"), ("truth", "right"),
+                 ("error", "right"), ("|error| / σ", "right")):
+        t.add_column(c, justify=j)
+    la = np.asarray(cal["lever_arm"], float)
+    la_sd = np.asarray(cal["lever_arm_sd"], float)
+    la_true = np.asarray(truth.lever_arm, float)
+    for i, ax in enumerate("xyz"):
+        err = la[i] - la_true[i]
+        t.add_row(f"lever arm {ax}", f"{100 * la[i]:+.2f} ± {100 * la_sd[i]:.2f} cm", f"{100 * la_true[i]:+.2f} cm",
+                  f"{100 * err:+.2f} cm", f"{abs(err) / la_sd[i]:.2f}")
+    td, td_sd, td_true = float(cal["time_offset"]), float(cal["time_offset_sd"]), float(truth.time_offset)
+    t.add_row("time offset", f"{1e3 * td:+.2f} ± {1e3 * td_sd:.2f} ms", f"{1e3 * td_true:+.2f} ms",
+              f"{1e3 * (td - td_true):+.2f} ms", f"{abs(td - td_true) / td_sd:.2f}")
+    return t
+
+
+def run_demo(out: Path, console: Console, force: bool = False, duration: float | None = None) -> dict:
+    """Run the whole demo into ``out``; returns the key figures (for tests)."""
+    from uwbimu.cli.check import print_check
+    from uwbimu.cli.estimate import run_with_progress
+    from uwbimu.estimation import EskfOptions, compute_metrics, write_outputs
+    from uwbimu.eval.report import write_report
+    from uwbimu.io.atomic import write_csv
+    from uwbimu.io.check import check_dataset
+    from uwbimu.io.dataset import write_dataset
+    from uwbimu.io.loader import load_dataset
+    from uwbimu.observability import delay_verdict, structural_verdict
+    from uwbimu.observability.window import WindowOptions, trajectory_from_result, window_observability
+    from uwbimu.sim import builtin_scenario, simulate
+
+    _prepare_out(out, force)
+    figures: dict = {}
+
+    # 1. simulate the default calibration flight and write it as a dataset
+    t0 = time.perf_counter()
+    scenario = builtin_scenario("calibration-flight")
+    if duration is not None:
+        scenario = scenario.updated(duration=duration)
+    with console.status("simulating the calibration flight"):
+        sim = simulate(scenario)
+        data_dir = write_dataset(sim, out / "dataset")
+    console.print(_summary_table(sim, time.perf_counter() - t0))
+
+    # 2. validate it exactly as a user's dataset
+    ds = load_dataset(data_dir)
+    check = check_dataset(ds)
+    print_check(console, ds, check)
+    figures["flags"] = [f.anchor for f in check.flags]
+
+    # 3. structural observability of this set-up
+    anchors = ds.anchor_array(ds.anchors["anchor"]).tolist()
+    lever = list(ds.meta.truth.lever_arm)
+    with console.status("Lie-derivative rank test"):
+        verdict = structural_verdict(
+            {"model": "uwb_imu", "anchors": anchors, "lever_arm": lever, "lie_order": 2, "random_points": 3,
+             "seed": 0}
+        )
+        delay = delay_verdict({"model": "uwb_imu", "anchors": anchors, "lever_arm": lever, "seed": 0})
+    console.print(_structural_table(verdict, delay))
+    figures["observable"] = bool(verdict["observable"])
+    figures["td_identifiable"] = bool(delay["identifiable"])
+
+    # 4. estimate: ESKF with online lever arm and time offset (no ground truth used)
+    est_dir = out / "estimate"
+    result = run_with_progress(ds, EskfOptions(), console)
+    write_outputs(result, ds, est_dir)
+    metrics = compute_metrics(result, ds)
+    console.print(_truth_comparison(result, ds))
+    console.print(
+        f"position RMSE {100 * metrics['position_rmse']:.1f} cm, orientation RMSE "
+        f"{metrics['orientation_rmse_deg']:.2f} deg, mean NEES {metrics['nees_mean']:.1f} (19 states), "
+        f"ESKF run time {result.runtime_s:.2f} s"
+    )
+    for w in result.warnings:
+        console.print(f"[yellow]warning:[/yellow] {w}")
+    figures.update(metrics)
+    figures["calibration"] = result.calibration
+
+    # 5. observability timeline along the estimated trajectory
+    with console.status("per-window observability"):
+        obs, _info = window_observability(ds, trajectory_from_result(result), WindowOptions(window=5.0))
+        write_csv(est_dir / "observability.csv", obs)
+    figures["observability_windows"] = len(obs)
+
+    # 6. the report
+    report = write_report(est_dir, dataset=ds)
+    figures["report"] = str(report)
+    console.print(f"[bold green]report:[/bold green] {report}")
+    return figures
 
 
 def register(app: typer.Typer) -> None:
     @app.command("demo")
-    def demo() -> None:
-        """Simulate a default calibration flight, validate it, estimate and report."""
-        raise typer.Exit(code=1)
+    def demo(
+        out: Path = typer.Option(Path("uwbimu-demo"), "--out", help="output folder (replaced if a previous demo wrote it)"),
+        force: bool = typer.Option(False, "--force", help="replace --out even if another program wrote it"),
+        duration: float = typer.Option(None, "--duration", help="flight duration in s (default: the scenario's 60 s)"),
+    ) -> None:
+        """Simulate a calibration flight, validate it, analyse, estimate and write the report."""
+        console = Console()
+        t0 = time.perf_counter()
+        run_demo(out, console, force=force, duration=duration)
+        console.print(f"demo finished in {time.perf_counter() - t0:.1f} s; everything is in {out}/")
