@@ -24,10 +24,17 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import shutil
 import tempfile
 import time
 from pathlib import Path
+
+
+def _cpu_children() -> float:
+    """User + system CPU seconds of terminated child processes (pool / Dask workers)."""
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
 
 
 def main() -> None:
@@ -73,17 +80,21 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="bench_mc_"))
     try:
         # 2. local process pool
+        c0 = _cpu_children()
         t0 = time.perf_counter()
         s_pool = mc.run_study(cfg, tmp / "pool", workers=args.workers, plots=False)
         wall_pool = time.perf_counter() - t0
+        cpu_pool = _cpu_children() - c0
         ok = sum(c["runs"] - c["failed"] for c in s_pool["cells"])
         print(f"process pool: {wall_pool:.1f} s wall for {args.runs} runs ({ok} ok), "
-              f"chunk size {s_pool['execution']['chunk_size']}  [target < 60 s]")
+              f"chunk size {s_pool['execution']['chunk_size']}  [target < 60 s]; worker CPU {cpu_pool:.1f} s "
+              f"(= {cpu_pool / args.workers:.1f} s on {args.workers} otherwise idle cores)")
         if args.skip_dask:
             return
         # 3. Dask LocalCluster (loopback), same job
         from distributed import Client, LocalCluster
 
+        c0 = _cpu_children()
         t0 = time.perf_counter()
         with LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True, host="127.0.0.1",
                           dashboard_address=None) as cluster, Client(cluster) as client:
@@ -92,10 +103,11 @@ def main() -> None:
             mc.run_study(cfg, tmp / "dask", client=client, workers=args.workers, plots=False)
             wall_dask_job = time.perf_counter() - t1
         wall_dask = time.perf_counter() - t0
+        cpu_dask = _cpu_children() - c0
         print(f"dask LocalCluster: {wall_dask:.1f} s wall incl. start-up/shutdown ({t_up:.1f} s start-up), "
-              f"{wall_dask_job:.1f} s for the job itself")
+              f"{wall_dask_job:.1f} s for the job itself; worker CPU {cpu_dask:.1f} s")
         print(f"ratio dask / pool: {wall_dask / wall_pool:.2f} incl. cluster start-up, "
-              f"{wall_dask_job / wall_pool:.2f} job only  [target <= 1.3]")
+              f"{wall_dask_job / wall_pool:.2f} job only  [target <= 1.3]; CPU ratio {cpu_dask / max(cpu_pool, 1e-9):.2f}")
         diffs = list(mc.iter_rows_equal_ignoring_timing(pd.read_csv(tmp / "pool" / "montecarlo.csv"),
                                                         pd.read_csv(tmp / "dask" / "montecarlo.csv")))
         print("metrics bit-identical between backends:", "yes" if not diffs else f"NO: {diffs[:3]}")

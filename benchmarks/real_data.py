@@ -14,7 +14,9 @@ For each sequence in ``shared/datasets`` this script
    --groundtruth DATASET/groundtruth.csv --align none|se3``),
 5. optionally calibrates K windows (``uwbimu repeatability DATASET --out OUT
    --windows K``),
-6. writes the HTML report (``uwbimu report OUT --dataset DATASET``),
+6. computes the observability timeline about the estimate (``uwbimu
+   observability log DATASET --out OUT --trajectory OUT``),
+7. writes the HTML report (``uwbimu report OUT --dataset DATASET``),
 
 and prints one table: position error, estimated lever arm ± 1σ against the
 documented one, estimated time offset ± 1σ, and the commands that reproduce
@@ -25,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -128,12 +131,21 @@ def run_sequence(name, verb, src, align, work: Path, windows: int, baseline: boo
                                 for k, v in rep["parameters"].items()}
         row["repeatability_failed"] = rep["n_failed"]
         row["repeatability_s"] = time.perf_counter() - t0
+    # observability / excitation timeline, linearised about the estimate (ground truth may be in another frame)
+    obs_cmd = ["uwbimu", "observability", "log", str(dsdir), "--out", str(out), "--window", "10",
+               "--trajectory", str(out), "--force"]
+    try:
+        proc = subprocess.run(obs_cmd, capture_output=True, text=True, timeout=600)
+        row["observability"] = "ok" if proc.returncode == 0 else f"failed: {proc.stdout[-300:]} {proc.stderr[-300:]}"
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        row["observability"] = f"failed: {exc}"
     row["report"] = str(write_report(out, dataset=ds))
     row["commands"] = [
         f"uwbimu import {verb} {src} {dsdir}",
         f"uwbimu estimate {dsdir} --out {out}",
         f"uwbimu evaluate {out} --groundtruth {dsdir}/groundtruth.csv --align {align}",
     ] + ([f"uwbimu repeatability {dsdir} --out {out} --windows {windows}"] if windows >= 2 else []) + [
+        " ".join(obs_cmd),
         f"uwbimu report {out} --dataset {dsdir}",
     ]
     return row

@@ -111,3 +111,29 @@ def test_write_outputs_without_ground_truth(tmp_path, short_ds):
     w = write_outputs(res, ds_nogt, tmp_path)
     assert w["metrics"] is None and not (tmp_path / "metrics.yaml").exists()
     assert (tmp_path / "trajectory.csv").is_file() and len(w["residual_table"]) == len(ds.anchors)
+
+
+def test_metrics_and_outputs_for_a_result_without_attitude(tmp_path, short_ds):
+    """compute_metrics / write_outputs accept any EstimationResult, e.g. a position-only estimator."""
+    from uwbimu.estimation import EstimationResult
+    from uwbimu.estimation.metrics import truth_at
+
+    gt = short_ds.groundtruth
+    t = gt["t"].to_numpy()[::20]
+    p, q, v, _ = truth_at(short_ds, t)
+    X = np.zeros((len(t), 20))
+    X[:, :3] = p + 0.05
+    X[:, 3:6] = v
+    X[:, 6] = 1.0
+    sd = np.full((len(t), 19), np.nan)
+    sd[:, :6] = 0.05
+    res = EstimationResult(t=t, states=X, sd=sd, residuals=pd.DataFrame(columns=["t", "anchor", "range", "predicted",
+                           "innovation", "nis", "accepted"]), calibration={}, estimator="pointmass")
+    m = compute_metrics(res, short_ds)
+    assert m["position_rmse"] == pytest.approx(0.05 * np.sqrt(3), rel=1e-6)
+    assert m["orientation_rmse_deg"] is None and m["nees_dof"] == 6
+    assert "lever_arm_error" not in m
+    assert m["nees_mean"] == pytest.approx(3.0, rel=0.05)  # position 3 x (0.05/0.05)^2, velocity exact
+    w = write_outputs(res, short_ds, tmp_path)
+    assert (tmp_path / "metrics.yaml").is_file() and (tmp_path / "position_error.png").is_file()
+    assert w["residual_table"].empty

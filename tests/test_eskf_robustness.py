@@ -54,6 +54,10 @@ def test_half_second_imu_gap_is_propagated_across_with_a_warning():
     gaps = [e for e in res.events if e["kind"] == "imu_gap"]
     assert len(gaps) == 1 and gaps[0]["duration"] == pytest.approx(0.505, abs=0.01)
     assert any("IMU gap" in w for w in res.warnings)
+    r = res.residuals
+    in_gap = (r["t"] + res.calibration["time_offset"] > 15.0) & (r["t"] + res.calibration["time_offset"] < 15.49)
+    assert in_gap.sum() >= 20 and not r.loc[in_gap, "accepted"].any()
+    assert any("inside IMU gaps" in w for w in res.warnings)
 
 
 def test_uwb_outage_grows_covariance_and_warns():

@@ -79,3 +79,23 @@ def test_consistency_chi_square_calibration():
     assert 0.005 < np.mean(p < 0.01) < 0.02
     assert 0.45 < np.mean(p < 0.5) < 0.55
     assert consistency(np.array([1.0, 1.1]), np.array([0.0, 0.0]))["verdict"].startswith("not estimated")
+
+
+def test_repeatability_cli_with_stub_estimator(tmp_path, monkeypatch):
+    import json
+    from pathlib import Path
+
+    from typer.testing import CliRunner
+
+    import uwbimu.estimation as est
+    from uwbimu.cli.main import app
+    from uwbimu.io.importers.isas_walk import import_dataset
+
+    import_dataset(Path(__file__).parent / "data" / "isas_walk_excerpt", tmp_path / "ds")
+    stub = StubEstimator(0.01, 0.01, seed=4)
+    monkeypatch.setattr(est, "run_eskf", lambda ds, opts=None: stub(ds))
+    r = CliRunner().invoke(app, ["repeatability", str(tmp_path / "ds"), "--out", str(tmp_path / "out"), "--windows", "3"])
+    assert r.exit_code == 0, r.output
+    rep = json.loads((tmp_path / "out" / "repeatability.json").read_text())
+    assert stub.calls == 3 and rep["k"] == 3 and set(rep["parameters"]) == {"lx", "ly", "lz", "td"}
+    assert rep["parameters"]["lx"]["truth"] == 0.10  # ISAS documented lever arm

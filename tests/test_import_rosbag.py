@@ -60,7 +60,8 @@ def _write_bag(path: Path, ros: int, n_imu: int = 60, scalar: bool = False) -> N
             writer.write(ci, bag_ns, ser(m, "sensor_msgs/msg/Imu"))
             if k % 5 == 0:
                 if scalar:
-                    r = R(header=header(k, t), anchor=7, distance_mm=np.float32(1500.0 + k))
+                    # k == 10: a failed ranging published as 0 (dropped and counted by the importer)
+                    r = R(header=header(k, t), anchor=7, distance_mm=np.float32(0.0 if k == 10 else 1500.0 + k))
                 else:
                     r = R(header=header(k, t), anchor_ids=["A", "B", "C"], ranges=np.array([1.0, 2.0, 3.0]) + 0.001 * k,
                           valid=np.array([1, 1, 0], dtype=np.uint8))
@@ -113,7 +114,10 @@ def test_scalar_fields_bag_time_and_scale(tmp_path):
     mp = _mapping(tmp_path, ranges={"type": "test_msgs/msg/UwbScalar", "anchor_field": "anchor",
                                     "range_field": "distance_mm", "valid_field": None, "range_scale": 0.001,
                                     "time": "bag"}, groundtruth=None)
-    ds = convert(bag, mp).dataset
+    res = convert(bag, mp)
+    ds = res.dataset
+    assert any("dropped 1 non-positive" in c for c in res.changes)
+    assert len(ds.uwb) == 11
     assert list(ds.uwb["anchor"].unique()) == ["7"]
     np.testing.assert_allclose(ds.uwb["range"].to_numpy()[:2], [1.5, 1.505], rtol=1e-6)
     np.testing.assert_allclose(ds.uwb["t"].to_numpy()[0] - ds.imu["t"].to_numpy()[0], 0.004, atol=1e-6)

@@ -106,6 +106,10 @@ def test_resume_after_interruption_skips_finished_runs(pool_run, tmp_path):
     with pytest.raises(KeyboardInterrupt):
         mc.run_study(_cfg(), out, workers=1, progress=interrupt_after_first_chunk, plots=False)
     assert len(list((out / mc.CHUNK_DIR).glob("*.csv"))) == 1
+    # debris of a crash mid-write: a temporary file and traces whose rows never landed
+    (out / mc.CHUNK_DIR / ".circ__000002-000003__2.csv.tmp123.csv").write_text("scenario,run\ncirc,2\n")
+    orphan = next((out / mc.CHUNK_DIR).glob("*.npz"))
+    (out / mc.CHUNK_DIR / "circ__000002-000002__1.npz").write_bytes(orphan.read_bytes())
     summary = mc.run_study(_cfg(), out, workers=1, plots=True)
     assert summary["execution"]["runs_resumed_from_disk"] == 2
     assert summary["execution"]["tasks_this_call"] == 3

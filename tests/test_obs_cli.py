@@ -54,6 +54,10 @@ def test_bad_config_is_a_readable_error(tmp_path):
         load_config(tmp_path / "missing.yaml")
     res = runner.invoke(app, ["observability", "delay", str(EXAMPLES / "pointmass_4_beacons.yaml")])
     assert res.exit_code == 2 and "uwb_imu" in res.output
+    with pytest.raises(ConfigError, match="lever_arm"):
+        load_config({"model": "point_mass", "anchors": [[0, 0, 0]], "lever_arm": [0, 0, 0.1]})
+    with pytest.raises(ConfigError, match="nominal_input"):
+        load_config({"anchors": [[0, 0, 0]], "nominal_input": [0, 0, 9.81]})
 
 
 @pytest.mark.parametrize("path", sorted(EXAMPLES.glob("*.yaml")), ids=lambda p: p.name)
@@ -86,6 +90,28 @@ def test_log_command_writes_csv_and_png(tmp_path):
     # refuses to overwrite its outputs without --force
     res = runner.invoke(app, ["observability", "log", str(folder), "--window", "10", "--out", str(out)])
     assert res.exit_code == 2 and "--force" in res.output
+    # --trajectory: an estimator's states.csv (here the truth in that format)
+    import numpy as np
+
+    from uwbimu.models.state import NOMINAL_STATE_NAMES
+
+    gt = ds.groundtruth
+    X = np.zeros((len(gt), 20))
+    X[:, 0:3] = gt[["px", "py", "pz"]].to_numpy()
+    X[:, 3:6] = gt[["vx", "vy", "vz"]].to_numpy()
+    X[:, 6:10] = gt[["qw", "qx", "qy", "qz"]].to_numpy()
+    X[:, 16:19] = ds.meta.truth.lever_arm
+    X[:, 19] = ds.meta.truth.time_offset
+    states = pd.DataFrame(X, columns=list(NOMINAL_STATE_NAMES))
+    states.insert(0, "t", gt["t"].to_numpy())
+    states.to_csv(tmp_path / "states.csv", index=False)
+    res = runner.invoke(
+        app, ["observability", "log", str(folder), "--window", "10", "--out", str(out), "--force", "--trajectory", str(tmp_path / "states.csv")]
+    )
+    assert res.exit_code == 0, res.output
+    assert np.allclose(pd.read_csv(out / "observability.csv")["sd_lx"], table["sd_lx"], rtol=1e-6)
+    res = runner.invoke(app, ["observability", "log", str(folder), "--out", str(out), "--force", "--trajectory", str(tmp_path / "nope")])
+    assert res.exit_code == 2 and "estimator states file" in " ".join(res.output.split())
 
 
 def test_dataset_helpers_for_the_demo():
@@ -100,7 +126,7 @@ def test_dataset_helpers_for_the_demo():
     assert v["observable"] and line.startswith("observable: rank 18/18")
 
 
-def test_window_on_an_estimator_trajectory():
+def test_window_on_an_estimator_trajectory(tmp_path):
     """An EstimationResult (here: the truth written as estimator states) drives the analysis too."""
     sim = pytest.importorskip("uwbimu.sim")
     import numpy as np
@@ -121,3 +147,19 @@ def test_window_on_an_estimator_trajectory():
     a, _ = window_observability(ds, trajectory_from_result(res), opts)
     b, _ = window_observability(ds, trajectory_from_groundtruth(ds), opts)
     assert np.allclose(a["sd_lx"], b["sd_lx"], rtol=1e-9) and np.allclose(a["sd_td"], b["sd_td"], rtol=1e-9)
+    # the same through a states.csv file and the CLI's --trajectory
+    from uwbimu.models.state import NOMINAL_STATE_NAMES
+    from uwbimu.observability.window import trajectory_from_states_csv
+
+    states = pd.DataFrame(X, columns=list(NOMINAL_STATE_NAMES))
+    states.insert(0, "t", gt["t"].to_numpy())
+    states.to_csv(tmp_path / "states.csv", index=False)
+    c, _ = window_observability(ds, trajectory_from_states_csv(tmp_path), opts)
+    assert np.allclose(c["sd_lx"], b["sd_lx"], rtol=1e-6)
+    lines = (tmp_path / "states.csv").read_text().splitlines()
+    cells = lines[4].split(",")
+    cells[2] = "oops"
+    lines[4] = ",".join(cells)
+    (tmp_path / "bad.csv").write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match="row 5"):
+        trajectory_from_states_csv(tmp_path / "bad.csv")

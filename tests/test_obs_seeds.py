@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -73,7 +75,8 @@ def test_lemma1_rank_loss_exactly_when_coplanar():
 
 def test_coplanar_tag_still_full_rank_at_order_3():
     """C2 is sufficient, not necessary: the full Lie order-3 matrix keeps rank 18."""
-    v = structural_verdict(load_config("examples/observability/lemma1_coplanar.yaml"))
+    path = Path(__file__).resolve().parents[1] / "examples" / "observability" / "lemma1_coplanar.yaml"
+    v = structural_verdict(load_config(path))
     assert not v["conditions"]["C2"]
     assert v["rank"] == 18 and v["observable"]
 

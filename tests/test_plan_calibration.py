@@ -205,3 +205,14 @@ def test_cli_calibration(tmp_path):
     bad.write_text("bounds: {speed: -1}\n")
     res = CliRunner().invoke(app, ["plan", "calibration", str(bad), "--out", str(tmp_path / "o2")])
     assert res.exit_code == 2 and "bounds.speed" in res.output
+
+
+def test_range_jacobian_agrees_with_observability_engine():
+    """Cross-check with uwbimu.observability.window (written independently)."""
+    window = pytest.importorskip("uwbimu.observability.window")
+    m, _ = _random_maneuver(4)
+    kin = m.kinematics(np.linspace(1.0, 11.0, 20))
+    lever = np.array([0.12, -0.08, 0.14])
+    anchors = np.random.default_rng(0).uniform(0, 10, (20, 3))
+    _, H_obs = window.range_jacobians(kin["p"], kin["v"], kin["R"], kin["w"], lever, anchors)
+    np.testing.assert_allclose(range_jacobian(kin, anchors, lever), H_obs, atol=1e-12)

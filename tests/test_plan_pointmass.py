@@ -95,3 +95,23 @@ def test_config_validation():
         PointMassPlanConfig(**{**BASE, "box_min": [0, 0, 6]})
     with pytest.raises(ValueError):
         PointMassPlanConfig(**{**BASE, "beacons": [[0, 0]]})
+
+
+def test_cli_point_mass(tmp_path):
+    import json
+
+    import yaml
+    from typer.testing import CliRunner
+
+    from uwbimu.cli.main import app
+
+    c = tmp_path / "pm.yaml"
+    c.write_text(yaml.safe_dump({**BASE, "n_steps": 25, "objective": "trace_inv"}))
+    res = CliRunner().invoke(app, ["plan", "point-mass", str(c), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 0, res.output
+    data = json.loads((tmp_path / "o" / "plan.json").read_text())
+    assert data["plan"]["metrics"]["trace_inv"] < data["min_effort"]["metrics"]["trace_inv"]
+    assert (tmp_path / "o" / "pointmass.png").stat().st_size > 1000
+    c.write_text("beacons: [[0, 0, 0]]\n")
+    res = CliRunner().invoke(app, ["plan", "point-mass", str(c), "--out", str(tmp_path / "o2")])
+    assert res.exit_code == 2 and "x0" in res.output

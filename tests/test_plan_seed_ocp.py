@@ -132,3 +132,20 @@ def test_cli_seed_ocp(tmp_path):
     bad.write_text("n_stepz: 10\n")
     res = CliRunner().invoke(app, ["plan", "seed-ocp", "--out", str(tmp_path / "o2"), "--config", str(bad)])
     assert res.exit_code == 2 and "n_stepz" in res.output
+
+
+def test_example_configs_validate():
+    from pathlib import Path
+
+    import yaml
+
+    from uwbimu.design.trajectory.calibration import CalibrationDesignConfig
+    from uwbimu.design.trajectory.pointmass import PointMassPlanConfig
+
+    ex = Path(__file__).resolve().parents[1] / "examples" / "plan"
+    cfg = SeedOcpConfig.model_validate(yaml.safe_load((ex / "seed_ocp.yaml").read_text()))
+    assert cfg == SeedOcpConfig(kp=cfg.kp, kd=cfg.kd) and cfg.kp == pytest.approx(SeedOcpConfig().kp, rel=1e-5)
+    PointMassPlanConfig.model_validate(yaml.safe_load((ex / "pointmass.yaml").read_text()))
+    assert CalibrationDesignConfig.model_validate(yaml.safe_load((ex / "calibration.yaml").read_text())) == CalibrationDesignConfig(
+        name="room8-calibration"
+    )

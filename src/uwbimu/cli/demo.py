@@ -110,7 +110,8 @@ def run_demo(out: Path, console: Console, force: bool = False, duration: float |
     from uwbimu.io.check import check_dataset
     from uwbimu.io.dataset import write_dataset
     from uwbimu.io.loader import load_dataset
-    from uwbimu.observability import delay_verdict, structural_verdict
+    from uwbimu.observability.delay import delay_verdict
+    from uwbimu.observability.structural import config_for_dataset, format_verdict, structural_verdict
     from uwbimu.observability.window import WindowOptions, trajectory_from_result, window_observability
     from uwbimu.sim import builtin_scenario, simulate
 
@@ -134,15 +135,12 @@ def run_demo(out: Path, console: Console, force: bool = False, duration: float |
     figures["flags"] = [f.anchor for f in check.flags]
 
     # 3. structural observability of this set-up
-    anchors = ds.anchor_array(ds.anchors["anchor"]).tolist()
-    lever = list(ds.meta.truth.lever_arm)
     with console.status("Lie-derivative rank test"):
-        verdict = structural_verdict(
-            {"model": "uwb_imu", "anchors": anchors, "lever_arm": lever, "lie_order": 2, "random_points": 3,
-             "seed": 0}
-        )
-        delay = delay_verdict({"model": "uwb_imu", "anchors": anchors, "lever_arm": lever, "seed": 0})
+        config = config_for_dataset(ds, lie_order=3, random_points=3)
+        verdict = structural_verdict(config)
+        delay = delay_verdict(config)
     console.print(_structural_table(verdict, delay))
+    console.print(format_verdict(verdict))
     figures["observable"] = bool(verdict["observable"])
     figures["td_identifiable"] = bool(delay["identifiable"])
 

@@ -123,3 +123,23 @@ def register(app: typer.Typer) -> None:
             console.print(f"[yellow]warning:[/] {w}")
         console.print(f"{len(ds.imu)} IMU samples, {len(ds.uwb)} ranges in {res.runtime_s:.1f} s; "
                       f"wrote {len(written['files'])} files to {out}")
+
+
+def estimate_and_print(dataset, console: Console, out: Optional[Path] = None, options=None):
+    """Run the ESKF on ``dataset``, print calibration "value ± σ" (vs truth when known) and warnings.
+
+    For other verbs (``uwbimu demo``); writes the outputs to ``out`` when given.  Returns the result.
+    """
+    from uwbimu.estimation import EskfOptions, compute_metrics, write_outputs
+
+    res = run_with_progress(dataset, options or EskfOptions(), console)
+    if out is not None:
+        write_outputs(res, dataset, out)
+    console.print(calibration_table(res, dataset))
+    if dataset.groundtruth is not None:
+        m = compute_metrics(res, dataset)
+        console.print(f"position RMSE after 10 s: {100 * (m['position_rmse_after'] or float('nan')):.1f} cm, "
+                      f"orientation RMSE {m['orientation_rmse_deg']:.2f} deg")
+    for w in res.warnings:
+        console.print(f"[yellow]warning:[/] {w}")
+    return res

@@ -36,6 +36,7 @@ _plan.register(app)
 from uwbimu.cli import observability as _observability; _observability.register(app)  # noqa: E402,E702
 from uwbimu.cli import estimate as _estimate; _estimate.register(app)  # noqa: E402,E702
 from uwbimu.cli import montecarlo as _montecarlo; _montecarlo.register(app)  # noqa: E402,E702
+from uwbimu.cli import place as _place; _place.register(app)  # noqa: E402,E702
 
 
 def main() -> None:  # pragma: no cover - entry point

@@ -69,7 +69,11 @@ def print_structural(console: Console, v: dict) -> None:
     console.print(
         f"[bold]{v['name']}[/bold] ({v['model']}, Lie order {v['lie_order']}, {v['n_points']} point(s)): {ok} - "
         f"rank {v['rank']} / {v['dimension']} tangent dims"
-        + (f" (quaternion as 4-vector: {v['raw_rank']} / {v['raw_dimension']})" if v["raw_rank"] is not None else "")
+        + (
+            f" (quaternion as 4-vector: {v['raw_rank']} / {v['raw_dimension']})"
+            if v["raw_rank"] is not None and v["model"] == "uwb_imu"
+            else ""
+        )
         + "; "
         f"gap {v['gap_decades']:.1f} decades at tol {v['tolerance']:g}"
     )
@@ -132,11 +136,19 @@ def log(
     no_imu_noise: bool = typer.Option(False, "--no-imu-noise", help="ignore IMU noise (noise-free IMU)"),
     lever_sd: float = typer.Option(0.1, "--lever-sd-threshold", help="lever arm counts as excited below this CRLB [m]"),
     td_sd: float = typer.Option(0.03, "--td-sd-threshold", help="time offset counts as excited below this CRLB [s]"),
+    trajectory: Optional[Path] = typer.Option(
+        None, "--trajectory", help="linearise about an estimator's states.csv (or its output folder) instead of the ground truth"
+    ),
     force: bool = typer.Option(False, "--force", help="replace existing outputs in OUT"),
 ) -> None:
     """Per-window information (Gramian), CRLB and excitation flags of a log."""
     from uwbimu.io.atomic import write_csv, write_json
-    from uwbimu.observability.window import WindowOptions, plot_timeline, window_observability
+    from uwbimu.observability.window import (
+        WindowOptions,
+        plot_timeline,
+        trajectory_from_states_csv,
+        window_observability,
+    )
 
     console = Console()
     if window <= 0:
@@ -152,14 +164,23 @@ def log(
         ds = load_dataset(dataset)
     except (DatasetError, FileNotFoundError, ValueError) as e:
         _fail(console, str(e))
-    if ds.groundtruth is None:
-        _fail(console, f"{dataset}: no groundtruth table; the per-window analysis needs a trajectory to linearise about")
+    traj = None
+    if trajectory is not None:
+        try:
+            traj = trajectory_from_states_csv(trajectory)
+        except ValueError as e:
+            _fail(console, str(e))
+    elif ds.groundtruth is None:
+        _fail(
+            console,
+            f"{dataset}: no groundtruth table; pass --trajectory (an estimator's states.csv) to linearise about",
+        )
     opts = WindowOptions(
         window=window, range_sigma=range_sigma, include_imu_noise=not no_imu_noise,
         lever_sd_threshold=lever_sd, td_sd_threshold=td_sd,
     )  # fmt: skip
     with console.status("computing per-window information"):
-        table, meta = window_observability(ds, options=opts)
+        table, meta = window_observability(ds, traj, options=opts)
     write_csv(csv_path, table)
     write_json(out / "observability_meta.json", meta)
     plot_timeline(table, png_path, lever_sd, td_sd)
@@ -174,14 +195,15 @@ def log(
             "ok" if r.lever_arm_excited else "[yellow]weak[/yellow]", "ok" if r.time_offset_excited else "[yellow]weak[/yellow]",
         )  # fmt: skip
     console.print(t)
-    dropped = meta["ranges_unknown_anchor"] + meta["ranges_outside_imu_span"]
+    dropped = meta["ranges_unknown_anchor"] + meta["ranges_outside_imu_span"] + meta["ranges_other_tags"]
     if dropped:
         console.print(
-            f"[yellow]{meta['ranges_unknown_anchor']} range(s) with an unknown anchor and "
-            f"{meta['ranges_outside_imu_span']} outside the IMU span were not used[/yellow]"
+            f"[yellow]not used: {meta['ranges_unknown_anchor']} range(s) with an unknown anchor, "
+            f"{meta['ranges_outside_imu_span']} outside the IMU span, "
+            f"{meta['ranges_other_tags']} from other tags than the first[/yellow]"
         )
     res_med = meta["range_residual_median"]
-    if res_med > max(5 * meta["range_sigma"], 0.3):
+    if res_med is not None and res_med > max(5 * meta["range_sigma"], 0.3):
         console.print(
             f"[yellow]warning: median |range - predicted range| along the trajectory is {res_med:.2f} m: "
             "the trajectory may not be in the anchors' frame (or the lever arm / anchors are off); "

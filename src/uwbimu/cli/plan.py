@@ -98,6 +98,56 @@ def seed_ocp(
         raise typer.Exit(code=1)
 
 
+@plan_app.command("point-mass")
+def point_mass(
+    config: Path = typer.Argument(..., help="PointMassPlanConfig YAML (see examples/plan/pointmass.yaml)"),
+    out: Path = typer.Option(..., "--out", "-o", help="output folder"),
+) -> None:
+    """Observability-aware point-mass path (log-det / E / A-optimal information, IPOPT) vs minimum effort."""
+    import numpy as np
+    import pandas as pd
+    from pydantic import ValidationError
+
+    from uwbimu.design.trajectory.plots import save_pointmass_figure
+    from uwbimu.design.trajectory.pointmass import PointMassPlanConfig, plan_point_mass
+    from uwbimu.io.atomic import write_csv, write_json
+
+    try:
+        cfg = PointMassPlanConfig.model_validate(_load_yaml(config))
+    except (ValidationError, ValueError) as exc:
+        _validation_error(config, exc)
+        raise typer.Exit(code=2)
+    with console.status("solving (IPOPT)..."):
+        base = plan_point_mass(cfg.model_copy(update={"objective": "none"}))
+        res = plan_point_mass(cfg)
+    tab = Table(title=f"point-mass plan, objective {cfg.objective} ({cfg.info_model} information at {cfg.info_at})")
+    for col in ("plan", "status", "solve [s]", "log det", "min eig", "trace inv", "effort", "max violation"):
+        tab.add_column(col, justify="right")
+    for name, r in (("min effort", base), (cfg.objective, res)):
+        m = r.metrics
+        tab.add_row(name, r.status, f"{r.solve_time_s:.2f}", f"{m['logdet']:.3f}", f"{m['min_eig']:.4g}", f"{m['trace_inv']:.4g}",
+                    f"{m['control_effort']:.3f}", f"{max(r.constraint_violation.values(), default=0.0):.1e}")
+    console.print(tab)
+    cols = {"t": res.t}
+    for i, c in enumerate(("px", "py", "pz", "vx", "vy", "vz")):
+        cols[c] = res.x[:, i]
+    for i, c in enumerate(("ux", "uy", "uz")):
+        cols[c] = np.append(res.u[:, i], np.nan)
+    write_csv(out / "trajectory.csv", pd.DataFrame(cols), float_format="%.9g")
+    summary = {
+        name: {"success": r.success, "status": r.status, "solve_time_s": r.solve_time_s, "metrics": r.metrics,
+               "constraint_violation": r.constraint_violation, "information": r.info.tolist()}
+        for name, r in (("min_effort", base), ("plan", res))
+    }  # fmt: skip
+    summary["config"] = cfg.model_dump(mode="json")
+    write_json(out / "plan.json", summary)
+    save_pointmass_figure(base, res, cfg, out / "pointmass.png")
+    console.print(f"wrote {out / 'plan.json'}, {out / 'trajectory.csv'}, {out / 'pointmass.png'}")
+    if not res.success:
+        console.print(f"[red]error:[/red] IPOPT did not converge: {res.status}")
+        raise typer.Exit(code=1)
+
+
 @plan_app.command("calibration")
 def calibration(
     config: Path = typer.Argument(..., help="calibration design YAML (see docs/trajectory_design.md)"),

@@ -34,8 +34,9 @@ with ``D = diag(r_1..r_N)`` and ``U = H``.  Its measure is ``det(O^T O)``.
   squared product of ranges: it *rewards distance*, whereas the information does
   not; the two agree on where the determinant vanishes (tag in the anchors' plane,
   collinear anchors) but not on what is "more observable".  The seed's own
-  normalisation ``O / (r_1 r_2 r_3)`` in its optimal-control section gives
-  ``det = det(U)`` exactly.
+  normalisation in its optimal-control section, ``det(O) -> det(a) / (r_1 r_2 r_3)``
+  (each row divided by its range), gives ``det = det(U)``, whose square is
+  ``sigma^6 det(J)`` — exactly the D-optimal (Fisher) criterion.
 * For **N beacons**, Cauchy–Binet gives
   ``det(O^T O) = sum_{i<j<k} (r_i r_j r_k)^2 det(U_ijk)^2`` while
   ``det(H^T H) = sum_{i<j<k} det(U_ijk)^2``.

@@ -146,8 +146,9 @@ def girder_bridge(range_m: float = 30.0, beamwidth_deg: float = 90.0) -> Structu
     Deck 80 m long (x) and 10 m wide (girders at y = 0 and y = 10, z = 15 m) on two
     piers at x = 25 and x = 55.  The inspection space is the GPS-denied volume under and
     beside the deck, ``x in [0, 80], y in [-10, 20], z in [0, 14]``.  Stations of 4
-    anchors (square of 1 m) slide along each girder's 80 m rail, facing down/sideways,
-    and along the piers.
+    anchors (square of 1 m) slide along each girder's 78 m rail and up two of the
+    piers (z 1..13 m); default one station per rail = 16 anchors.  Piers and girders
+    are obstacles for the ray-cast check of the final layout.
     """
     half = 0.5
     off, bor = _square_station(half)
@@ -161,9 +162,12 @@ def girder_bridge(range_m: float = 30.0, beamwidth_deg: float = 90.0) -> Structu
     rails = [
         Rail("girder-south", np.array([1.0, 0.0, 14.0]), np.array([79.0, 0.0, 14.0]), np.array([0.0, 1.0, 0.0]), off, bor),
         Rail("girder-north", np.array([1.0, 10.0, 14.0]), np.array([79.0, 10.0, 14.0]), np.array([0.0, 1.0, 0.0]), off, bor),
+        # Piers give the height spread that deck-only layouts lack (flat -> poor z).
+        Rail("pier-25-south", np.array([25.0, 0.0, 1.0]), np.array([25.0, 0.0, 13.0]), np.array([1.0, 0.0, 0.0]), off, bor),
+        Rail("pier-55-north", np.array([55.0, 10.0, 1.0]), np.array([55.0, 10.0, 13.0]), np.array([1.0, 0.0, 0.0]), off, bor),
     ]
     link = LinkModel(max_range=range_m, anchor_pattern=CosN(beamwidth_deg), obstacles=list(bars))
-    return Structure("girder-bridge", bars, rails, (0.0, -10.0, 0.0), (80.0, 20.0, 14.0), 1.0, link, 3, [3, 3])
+    return Structure("girder-bridge", bars, rails, (0.0, -10.0, 0.0), (80.0, 20.0, 14.0), 1.0, link, 3, [1, 1, 1, 1])
 
 
 class StructureProblem:

@@ -22,7 +22,7 @@ from scipy.stats import chi2
 from uwbimu.estimation import kernels as K
 from uwbimu.estimation.diagnostics import excitation_warnings, imu_gap_events, outage_warnings
 from uwbimu.estimation.filterpass import (
-    REC_ACC, REC_INNOV, REC_NIS, REC_PRED, REC_STATUS, STATUS_NOT_PROCESSED, PassResult, Problem, run_pass,
+    REC_ACC, REC_INNOV, REC_NIS, REC_PRED, REC_STATUS, STATUS_IN_GAP, STATUS_NOT_PROCESSED, PassResult, Problem, run_pass,
 )
 from uwbimu.estimation.init import InitialisationError, InitialState, initialise
 from uwbimu.estimation.options import EskfOptions
@@ -30,6 +30,7 @@ from uwbimu.estimation.result import EstimationResult
 from uwbimu.io.dataset import Dataset
 
 log = logging.getLogger("uwbimu.estimation")
+log.addHandler(logging.NullHandler())  # library: the application decides where warnings go
 
 _ROBUST = {"none": K.ROBUST_NONE, "huber": K.ROBUST_HUBER, "geman-mcclure": K.ROBUST_GM}
 
@@ -306,7 +307,11 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
         "nis": rec[:, REC_NIS],
         "accepted": rec[:, REC_ACC] > 0,
     })
-    n_unproc = int((~processed).sum())
+    n_gap = int((rec[:, REC_STATUS] == STATUS_IN_GAP).sum())
+    n_unproc = int((~processed).sum()) - n_gap
+    if n_gap:
+        warnings.append(f"UWB: {n_gap} ranges fall inside IMU gaps (motion unknown) and were not used; "
+                        f"kept in residuals with accepted=false")
     if n_unproc:
         warnings.append(f"UWB: {n_unproc} of {m} ranges not processed (before initialisation, outside the IMU "
                         f"log, or older than max_lookback_s); kept in residuals with accepted=false")

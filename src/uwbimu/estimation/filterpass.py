@@ -36,6 +36,7 @@ from uwbimu.estimation import kernels as K
 REC_PRED, REC_INNOV, REC_NIS, REC_ACC, REC_W, REC_STATUS, REC_S = range(7)
 STATUS_NOT_PROCESSED = -1
 STATUS_STALE = 2  # tau older than max_lookback behind the filter
+STATUS_IN_GAP = 3  # tau inside an IMU gap: the motion there is unknown, the range is not used
 
 
 @dataclass
@@ -179,6 +180,10 @@ def run_pass(
         i = j - j0
         if imu_t[k] - tau > prob.max_lookback:
             rec[i, REC_STATUS] = STATUS_STALE
+            j += 1
+            continue
+        if k > 0 and imu_t[k] - imu_t[k - 1] > prob.dt_max and imu_t[k - 1] < tau < imu_t[k]:
+            rec[i, REC_STATUS] = STATUS_IN_GAP
             j += 1
             continue
         a = prob.uwb_a[j]

@@ -20,6 +20,7 @@ from typing import Any, Optional
 import numpy as np
 from scipy.optimize import least_squares
 
+from uwbimu.estimation import kernels as K
 from uwbimu.estimation.filterpass import REC_NIS, REC_S, REC_STATUS, Problem, run_pass
 from uwbimu.estimation.options import EskfOptions
 from uwbimu.models.quaternion import quat_multiply, quat_to_rotmat
@@ -293,7 +294,47 @@ def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: i
                 yaw = float(yaws[int(np.argmin(s2))])
             info["yaw_bank_refined"] = {"yaws": yaws.tolist(), "scores": s2.tolist()}
     info.update({"yaw": yaw, "td": td, "td_sd": td_sd})
+    yaw_sd0 = yaw_sd_final if io.yaw_hypotheses > 1 or io.yaw is not None else math.pi
     k0 = start_index(prob, t0, td)
-    x0, P0 = assemble(prob, pr, yaw, yaw_sd_final if io.yaw_hypotheses > 1 or io.yaw is not None else math.pi,
-                      td, td_sd, k0, t0, v0)
+    x0, P0 = assemble(prob, pr, yaw, yaw_sd0, td, td_sd, k0, t0, v0)
+    if io.refine_s > 0:
+        x0, P0, k0 = _refine(prob, pr, x0, P0, k0, j0, t0, v0, yaw_sd0, td_sd, t_to + io.refine_s, info)
     return InitialState(x=x0, P=P0, k=k0, j=j0, info=info)
+
+
+def _refine(prob: Problem, pr: Prior, x0, P0, k0: int, j0: int, t0: float, v0, yaw_sd: float, td_sd: float,
+            t_end: float, info: dict[str, Any]):
+    """Bootstrap of the linearisation point (the priors' covariances are kept).
+
+    A first pass runs until ``t_end``; its attitude is integrated back with the
+    gyro to the start and its calibration (biases, lever arm, time offset) taken
+    as the new prior *means*, with the original prior covariances.  This only
+    moves the point the EKF linearises about at the start (large initial yaw,
+    lever-arm and time-offset errors together bias an EKF); the information of
+    the data is counted once by the final run.
+    """
+    res = run_pass(prob, x0, P0, k0, j0, t_uwb_end=t_end, record=False, to_end=False)
+    x = res.x
+    if res.diverged or not np.all(np.isfinite(x)) or abs(x[19] - x0[19]) > 3 * max(td_sd, 1e-9) + 1e-9:
+        info["refine"] = "skipped (first pass unreliable)"
+        return x0, P0, k0
+    td = float(x[19])
+    k_new = start_index(prob, t0, td)
+    xt = np.empty_like(x)
+    ut = np.empty(6)
+    st = K.state_at(x, prob.imu_t, prob.imu_u, res.k, prob.imu_t[k_new], prob.dt_max, xt, ut)
+    if st != K.UPD_OK:
+        info["refine"] = "skipped (start not reachable)"
+        return x0, P0, k0
+    q = xt[6:10] / np.linalg.norm(xt[6:10])
+    yaw = math.atan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2))
+    pr2 = Prior(**{**pr.__dict__})
+    pr2.ba = x[10:13].copy()
+    pr2.bg = x[13:16].copy()
+    pr2.lever = x[16:19].copy()
+    pr2.anchor_bias = x[20:].copy()
+    pr2.roll = math.atan2(2 * (q[0] * q[1] + q[2] * q[3]), 1 - 2 * (q[1] ** 2 + q[2] ** 2))
+    pr2.pitch = math.asin(max(-1.0, min(1.0, 2 * (q[0] * q[2] - q[3] * q[1]))))
+    x1, P1 = assemble(prob, pr2, yaw, yaw_sd, td, td_sd, k_new, t0, v0)
+    info["refine"] = {"t_end": float(t_end), "yaw": yaw, "td": td, "lever": x[16:19].tolist()}
+    return x1, P1, k_new

@@ -87,11 +87,18 @@ def compute_metrics(result, dataset: Dataset, skip_s: float = 10.0) -> dict[str,
         tt = np.asarray(result.t)
     p, q, v, valid = truth_at(dataset, tt)
     X = result.states
-    ok = valid & np.all(np.isfinite(X[:, :10]), axis=1)
+    sd = np.asarray(result.sd)
+
+    def estimated(sl) -> bool:  # a block another estimator does not estimate has NaN sd
+        return bool(np.any(np.all(np.isfinite(sd[:, sl]), axis=1)))
+
+    has_att = estimated(slice(6, 9))
+    has_vel = estimated(slice(3, 6)) and v is not None
+    ok = valid & np.all(np.isfinite(X[:, :3]), axis=1)
     if not ok.any():
         raise ValueError("no estimate overlaps the ground truth")
     ep = X[:, 0:3] - p
-    eth = attitude_error(X[:, 6:10], q)
+    eth = attitude_error(X[:, 6:10], q) if has_att else None
     t0 = tt[ok][0]
     after = ok & (tt >= t0 + skip_s)
     out: dict[str, Any] = {
@@ -101,35 +108,37 @@ def compute_metrics(result, dataset: Dataset, skip_s: float = 10.0) -> dict[str,
         "position_rmse_after": float(np.sqrt(np.mean(np.sum(ep[after] ** 2, axis=1)))) if after.any() else None,
         "position_rmse_after_skip_s": float(skip_s),
         "position_rmse_axes": np.sqrt(np.mean(ep[ok] ** 2, axis=0)).tolist(),
-        "orientation_rmse_deg": float(np.degrees(np.sqrt(np.mean(np.sum(eth[ok] ** 2, axis=1))))),
+        "orientation_rmse_deg": float(np.degrees(np.sqrt(np.mean(np.sum(eth[ok] ** 2, axis=1))))) if has_att else None,
     }
-    if v is not None:
+    if has_vel:
         ev = X[:, 3:6] - v
         out["velocity_rmse"] = float(np.sqrt(np.mean(np.sum(ev[ok] ** 2, axis=1))))
-    # NEES on the blocks with truth (error = truth ⊟ estimate)
-    blocks = [(slice(0, 3), -ep), (slice(6, 9), eth)]
-    if v is not None:
+    # NEES on the estimated blocks with truth (error = truth ⊟ estimate)
+    blocks = [(slice(0, 3), -ep)]
+    if has_att:
+        blocks.append((slice(6, 9), eth))
+    if has_vel:
         blocks.append((slice(3, 6), v - X[:, 3:6]))
-    if lever_true is not None and np.all(np.isfinite(result.sd[:, 15:18])):
+    if lever_true is not None and estimated(slice(15, 18)):
         blocks.append((slice(15, 18), np.asarray(lever_true) - X[:, 16:19]))
-    if td_true is not None and np.all(np.isfinite(result.sd[:, 18])):
+    if td_true is not None and estimated(slice(18, 19)):
         blocks.append((slice(18, 19), (td_true - X[:, 19])[:, None]))
     idx = np.concatenate([np.arange(19)[s] for s, _ in blocks])
     err = np.concatenate([e for _, e in blocks], axis=1)  # truth ⊟ estimate
     if result.covariances is not None:
         cov = result.covariances[:, idx][:, :, idx]
     else:
-        cov = np.stack([np.diag(r[idx] ** 2) for r in result.sd])
+        cov = np.stack([np.diag(r[idx] ** 2) for r in sd])
     nees = nees_series(err[ok], cov[ok])
     out["nees_mean"] = float(np.nanmean(nees))
     out["nees_dof"] = int(len(idx))
-    if lever_true is not None:
+    if lever_true is not None and estimated(slice(15, 18)):
         e = X[-1, 16:19] - np.asarray(lever_true)
         sdl = result.sd[-1, 15:18]
         out["lever_arm_error"] = e.tolist()
         out["lever_arm_error_norm"] = float(np.linalg.norm(e))
         out["lever_arm_within_3sigma"] = bool(np.all(np.abs(e) <= 3 * sdl)) if np.all(np.isfinite(sdl)) else None
-    if td_true is not None:
+    if td_true is not None and estimated(slice(18, 19)):
         e = float(X[-1, 19] - td_true)
         s = float(result.sd[-1, 18])
         out["time_offset_error"] = e

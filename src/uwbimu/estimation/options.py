@@ -75,6 +75,11 @@ class InitOptions(_Strict):
     yaw_hypotheses: int = Field(default=12, ge=1)
     bank_window_s: float = Field(default=8.0, gt=0, description="length of data each hypothesis is scored on [s]")
     max_wait_s: float = Field(default=30.0, gt=0, description="how long to look for the start of motion [s]")
+    refine_s: float = Field(
+        default=10.0, ge=0,
+        description="bootstrap: a first pass over this many seconds after the bank window sets the prior means "
+        "(not the covariances) of the final run; 0 disables",
+    )
     search_time_offset: bool = True
     td_grid: list[float] = Field(
         default_factory=lambda: [round(-0.25 + 0.05 * i, 3) for i in range(11)],

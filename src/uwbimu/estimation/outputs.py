@@ -211,6 +211,9 @@ def _plots(result, dataset: Dataset, out: Path) -> list[Path]:
         ax.plot(xs, chi2.pdf(xs, 1), "k-", label="χ²(1)")
         ax.set_yscale("log")
         ax.set_title(f"NIS (mean {np.mean(nis):.2f}, expected 1)")
-    ax.set_xlabel("NIS"); ax.legend()
+        ax.legend()
+    else:
+        ax.set_title("NIS: no processed range")
+    ax.set_xlabel("NIS")
     files.append(atomic.save_figure(out / "nis.png", fig))
     return files

@@ -442,9 +442,25 @@ def write_chunk(out: Path, chunk: dict) -> None:
     _fsync_write(d / f"{stem}.csv", lambda p: df.to_csv(p, index=False, float_format="%.17g"))
 
 
+def chunk_files(out: Path, ext: str, scenario: Optional[str] = None) -> list[Path]:
+    """Finished chunk files (temporary files of interrupted writes start with '.' and are ignored).
+
+    A trace file counts only when its row file exists: rows are written last and
+    mark a chunk as done.
+    """
+    d = out / CHUNK_DIR
+    if not d.is_dir():
+        return []
+    pat = f"{scenario}__*.{ext}" if scenario else f"*.{ext}"
+    files = [f for f in sorted(d.glob(pat)) if not f.name.startswith(".")]
+    if ext != "csv":
+        files = [f for f in files if f.with_suffix(".csv").exists()]
+    return files
+
+
 def read_done(out: Path) -> pd.DataFrame:
     """All rows of the chunk files in ``out`` (empty frame if none)."""
-    files = sorted((out / CHUNK_DIR).glob("*.csv")) if (out / CHUNK_DIR).is_dir() else []
+    files = chunk_files(out, "csv")
     frames = [pd.read_csv(f, keep_default_na=True, dtype={"error": str}) for f in files]
     frames = [f for f in frames if len(f)]
     if not frames:
@@ -492,7 +508,8 @@ def _run_pool(tasks: list[dict], workers: int, on_chunk: Callable[[dict], None])
         # Workers fork from a server that has already imported the heavy modules.
         ctx.set_forkserver_preload(["uwbimu.eval.montecarlo", "uwbimu.sim", "uwbimu.estimation.pointmass"])
     failures: list[str] = []
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as ex:
+    ex = ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
+    try:
         pending = {ex.submit(run_chunk, t): t for t in tasks}
         while pending:
             done, _ = wait(pending, return_when=FIRST_COMPLETED)
@@ -504,6 +521,11 @@ def _run_pool(tasks: list[dict], workers: int, on_chunk: Callable[[dict], None])
                     failures.append(f"{t['scenario_name']} runs {t['runs'][0]}-{t['runs'][-1]}: {type(exc).__name__}: {exc}")
                     continue
                 on_chunk(chunk)
+    except BaseException:
+        # Ctrl-C or a failed write: do not wait for the queued tasks (finished ones are on disk).
+        ex.shutdown(wait=False, cancel_futures=True)
+        raise
+    ex.shutdown(wait=True)
     return failures
 
 

@@ -388,9 +388,11 @@ def _nis_section(inp: ReportInputs) -> str:
     frac = float(np.mean(nis_f > bound))
     fig = Figure(figsize=(7.5, 4.0))
     ax = fig.add_subplot(111)
-    hi = max(10.0, float(np.percentile(nis_f, 99)))
+    # x-range up to the 99th percentile, at most 50: larger values pile into the last bin
+    hi = min(max(10.0, float(np.percentile(nis_f, 99))), 50.0)
     bins = np.linspace(0, hi, 60)
-    ax.hist(np.clip(nis_f, 0, hi), bins=bins, density=True, color="C0", alpha=0.6, label="all processed")
+    dens, _, _ = ax.hist(np.clip(nis_f, 0, hi), bins=bins, density=True, color="C0", alpha=0.6,
+                         label=f"all processed ({100 * np.mean(nis_f > hi):.1f} % > {hi:.0f} in last bin)")
     acc_nis = nis[np.isfinite(nis) & acc]
     if len(acc_nis):
         ax.hist(np.clip(acc_nis, 0, hi), bins=bins, density=True, histtype="step", color="C1", label="accepted")
@@ -398,6 +400,9 @@ def _nis_section(inp: ReportInputs) -> str:
     ax.plot(x, chi2.pdf(x, 1), "k-", lw=1.2, label="χ²(1) density")
     ax.axvline(bound, color="r", ls="--", lw=0.9, label="95 % bound")
     ax.set_yscale("log")
+    pos = dens[dens > 0]
+    if len(pos):
+        ax.set_ylim(0.3 * pos.min(), 2.0 * max(pos.max(), chi2.pdf(bins[1] / 2, 1)))
     ax.set_xlabel("NIS (range innovation² / S)")
     ax.set_ylabel("density")
     ax.legend(fontsize=8)

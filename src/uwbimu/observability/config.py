@@ -154,6 +154,10 @@ def load_config(source: Union[str, os.PathLike, dict, ObservabilityConfig]) -> O
         raise ConfigError(f"{where}: field 'nominal_input' must have {n_in} numbers for model {cfg.model}")
     if cfg.model == "point_mass" and cfg.excitation.gyro:
         raise ConfigError(f"{where}: field 'excitation.gyro' is not defined for model point_mass")
+    if cfg.model == "point_mass" and cfg.lever_arm is not None:
+        raise ConfigError(f"{where}: field 'lever_arm' is only available for model uwb_imu")
+    if cfg.model == "point_mass" and any(sp.q or sp.b_a or sp.b_g for sp in cfg.points):
+        raise ConfigError(f"{where}: field 'points': q, b_a, b_g are only available for model uwb_imu")
     if cfg.model == "uwb_imu" and cfg.altimeter:
         raise ConfigError(f"{where}: field 'altimeter' is only available for model point_mass")
     return cfg

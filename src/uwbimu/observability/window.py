@@ -121,6 +121,41 @@ def trajectory_from_result(result) -> Trajectory:
     )  # fmt: skip
 
 
+def trajectory_from_states_csv(path) -> Trajectory:
+    """Trajectory from an estimator's ``states.csv`` (or the output folder holding it).
+
+    Needs the columns ``t`` (UWB clock) and the 20 nominal-state names of
+    :mod:`uwbimu.models.state` (``px .. qz, bax .. bgz, lx, ly, lz, td``); the
+    lever arm and time offset are taken as their medians over the run.
+    """
+    from pathlib import Path
+
+    from uwbimu.models.state import NOMINAL_STATE_NAMES
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / "states.csv"
+    if not path.is_file():
+        raise ValueError(f"{path}: no such estimator states file")
+    df = pd.read_csv(path)
+    missing = [c for c in ("t", *NOMINAL_STATE_NAMES) if c not in df.columns]
+    if missing:
+        raise ValueError(f"{path}: missing column(s) {', '.join(missing)}")
+    X = df[list(NOMINAL_STATE_NAMES)].apply(pd.to_numeric, errors="coerce").to_numpy(float)
+    t = pd.to_numeric(df["t"], errors="coerce").to_numpy(float)
+    bad = ~np.isfinite(t) | ~np.isfinite(X[:, :16]).all(axis=1)
+    if bad.any():
+        row = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{path}: row {row + 2} (line in file): non-numeric or missing state value")
+    if np.any(np.diff(t) <= 0):
+        row = int(np.flatnonzero(np.diff(t) <= 0)[0]) + 1
+        raise ValueError(f"{path}: row {row + 2} (line in file), column 't': time not increasing")
+    return Trajectory(
+        t, X[:, 0:3], X[:, 3:6], quat_normalize(X[:, 6:10]), X[:, 10:13], X[:, 13:16],
+        np.nanmedian(X[:, 16:19], axis=0), float(np.nanmedian(X[:, 19])),
+    )  # fmt: skip
+
+
 def _interp_traj(tr: Trajectory, t: np.ndarray):
     """Interpolate p, v, q, biases at UWB-clock times ``t`` (clamped to the ends)."""
     tt = np.clip(t, tr.t[0], tr.t[-1])
@@ -363,6 +398,16 @@ def _prepare(ds, tr: Trajectory, opts: WindowOptions):
     dt = np.r_[np.diff(imu_t), 0.0]
 
     uwb = ds.uwb.sort_values("t", kind="stable")
+    n_other_tag = 0
+    if "tag" in uwb.columns and uwb["tag"].nunique() > 1:
+        # one lever arm per analysis: keep the first tag's ranges (counted)
+        tag = str(ds.meta.tags[0].name) if ds.meta.tags else str(uwb["tag"].iloc[0])
+        keep = uwb["tag"].astype(str) == tag
+        if not keep.any():
+            tag = str(uwb["tag"].iloc[0])
+            keep = uwb["tag"].astype(str) == tag
+        n_other_tag = int((~keep).sum())
+        uwb = uwb[keep]
     anchors_pos = ds.anchor_positions()
     ids = uwb["anchor"].astype(str).to_numpy()
     known = np.array([i in anchors_pos for i in ids], bool)
@@ -384,7 +429,7 @@ def _prepare(ds, tr: Trajectory, opts: WindowOptions):
     return {
         "imu_t": imu_t, "R": R, "f": f, "w": w, "dt": dt,
         "uwb_t": uwb_t[inside], "H": H[inside], "ridx": ridx[inside], "anchors": A[inside],
-        "n_unknown_anchor": int((~known).sum()), "n_outside": int((~inside).sum()),
+        "n_unknown_anchor": int((~known).sum()), "n_outside": int((~inside).sum()), "n_other_tag": n_other_tag,
         "residual_median": float(np.median(np.abs(meas - hpred))) if len(meas) else float("nan"),
         "traj_at_imu": (p, v, q, ba, bg),
     }  # fmt: skip
@@ -406,7 +451,8 @@ def window_observability(ds, trajectory: Optional[Trajectory] = None, options: O
         ``weakest_direction``, ``sd_<state>`` (CRLB, SI units) for the 19
         error states, ``n_ranges``, ``gyro_rms`` (rad/s), ``lever_arm_excited``,
         ``time_offset_excited``.
-    info : counts of ranges dropped (unknown anchor, outside the IMU span),
+    info : counts of ranges not used (unknown anchor, outside the IMU span,
+        other tags than the first: one lever arm per analysis),
         the noise values used and ``range_residual_median`` (median |measured -
         predicted| range along the trajectory [m]; large values mean the
         trajectory is not in the anchors' frame or the calibration is off).
@@ -463,8 +509,9 @@ def window_observability(ds, trajectory: Optional[Trajectory] = None, options: O
         "include_imu_noise": opts.include_imu_noise,
         "ranges_unknown_anchor": pre["n_unknown_anchor"],
         "ranges_outside_imu_span": pre["n_outside"],
+        "ranges_other_tags": pre["n_other_tag"],
         "windows": len(rows),
-        "range_residual_median": pre["residual_median"],
+        "range_residual_median": pre["residual_median"] if np.isfinite(pre["residual_median"]) else None,
         "lever_arm": tr.lever_arm.tolist(),
         "time_offset": tr.t_d,
     }

@@ -181,3 +181,37 @@ def calibration_figure(res: dict, cfg) -> Figure:
 def save_calibration_figures(res: dict, cfg, out: str | Path) -> list[Path]:
     out = Path(out)
     return [save_figure(out / "calibration_design.png", calibration_figure(res, cfg))]
+
+
+def save_pointmass_figure(base, res, cfg, path) -> Path:
+    """Minimum-effort vs information-optimal point-mass paths (3-D and top view)."""
+    fig = Figure(figsize=(11, 4.5))
+    bea = np.asarray(cfg.beacons)
+    ax = fig.add_subplot(1, 2, 1, projection="3d")
+    for r, c, lab in ((base, "tab:blue", "min effort"), (res, "tab:red", cfg.objective)):
+        ax.plot(*r.x[:, :3].T, color=c, label=lab)
+    ax.scatter(*bea.T, marker="^", color="g", label="beacons")
+    for ob in cfg.obstacles:
+        ax.scatter(*ob.center, color="k", marker="s" if ob.kind == "box" else "o", s=40)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_zlabel("z [m]")
+    ax.legend(fontsize=7)
+    ax = fig.add_subplot(1, 2, 2)
+    for r, c, lab in ((base, "tab:blue", "min effort"), (res, "tab:red", cfg.objective)):
+        ax.plot(r.x[:, 0], r.x[:, 1], color=c, label=lab)
+    ax.scatter(bea[:, 0], bea[:, 1], marker="^", color="g")
+    th = np.linspace(0, 2 * np.pi, 100)
+    for ob in cfg.obstacles:
+        if ob.kind == "sphere":
+            rr = ob.radius + ob.margin
+            ax.plot(ob.center[0] + rr * np.cos(th), ob.center[1] + rr * np.sin(th), "k-", lw=0.8)
+        else:
+            hx, hy = ob.half_size[0] + ob.margin, ob.half_size[1] + ob.margin
+            ax.plot(ob.center[0] + np.array([-hx, hx, hx, -hx, -hx]), ob.center[1] + np.array([-hy, -hy, hy, hy, -hy]), "k-", lw=0.8)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title("top view (obstacles: horizontal sections)")
+    ax.legend(fontsize=7)
+    return save_figure(path, fig)

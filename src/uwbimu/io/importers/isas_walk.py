@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Optional, Union
+from typing import Union
 
 import numpy as np
 import pandas as pd
@@ -208,7 +208,7 @@ def convert(src: Union[str, os.PathLike], with_groundtruth: bool = True) -> Impo
     missing_bias = sorted(set(anchors["anchor"]) - set(TOA_OFFSET))
     if missing_bias:
         changes.append(f"anchors without a documented toa_offset (no known bias): {missing_bias}")
-    known_bias = {a: -TOA_OFFSET[a] for a in sorted(anchors["anchor"], key=int) if a in TOA_OFFSET}
+    known_bias = {a: -TOA_OFFSET[a] for a in sorted(anchors["anchor"], key=lambda a: (len(a), a)) if a in TOA_OFFSET}
 
     gt = None
     if gt_raw is not None:

@@ -312,6 +312,14 @@ def convert(bag: Union[str, os.PathLike], mapping: Union[RosbagMapping, str, os.
 
     imu = pd.DataFrame(imu_rows, columns=IMU_COLUMNS)
     uwb = pd.DataFrame(rng_rows, columns=["t", "anchor", "range"])
+    # drivers often publish 0 / NaN / inf for a failed ranging: drop and count them
+    bad_r = ~np.isfinite(uwb["range"].to_numpy(float)) | (uwb["range"].to_numpy(float) <= 0)
+    if bad_r.any():
+        changes.append(f"{mapping.ranges.topic}: dropped {int(bad_r.sum())} non-positive or non-finite range(s)")
+        uwb = uwb[~bad_r].reset_index(drop=True)
+        if uwb.empty:
+            raise RosbagImportError(f"ranges topic '{mapping.ranges.topic}' holds no positive finite range",
+                                    column=mapping.ranges.range_field)
     gt = pd.DataFrame(gt_rows, columns=GT_COLUMNS) if gt_rows else None
     t0 = float(np.floor(min(imu["t"].min(), uwb["t"].min())))
     for df in (imu, uwb) + ((gt,) if gt is not None else ()):

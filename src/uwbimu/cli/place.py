@@ -1,0 +1,82 @@
+"""``uwbimu place``: anchor placement designer (room or structure)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+console = Console()
+
+
+def _print_result(res: dict) -> None:
+    t = Table(title="layouts compared" if res["mode"] == "room" else f"{res.get('structure')}: coverage")
+    if res["mode"] == "room":
+        for c in ("layout", "anchors", "coverage %", "PDOP p50", "PDOP p95", "N-1 PDOP p95"):
+            t.add_column(c)
+        for r in res["table"]:
+            n1 = r.get("n1_pdop_p95")
+            t.add_row(r["layout"], str(r["anchors"]), f"{100 * r['coverage']:.1f}", f"{r['pdop_p50']:.3f}",
+                      f"{r['pdop_p95']:.3f}", "-" if n1 is None else f"{n1:.3f}")
+    else:
+        for c in ("layout", "anchors", "variables", "coverage %", "time s"):
+            t.add_column(c)
+        for r in res["table"]:
+            t.add_row(r["layout"], str(r["anchors"]), str(r.get("variables", "-")), f"{100 * r['coverage']:.2f}",
+                      f"{r['seconds']:.1f}" if "seconds" in r else "-")
+    console.print(t)
+    wsf = res["worst_single_failure"]
+    console.print(f"coverage {100 * res['coverage']:.2f} %, PDOP p50 {res['pdop_p50']:.3f}, p95 {res['pdop_p95']:.3f}; "
+                  f"worst single failure: {wsf.get('anchor')} -> coverage {100 * wsf.get('coverage', float('nan')):.2f} %, "
+                  f"PDOP p95 {wsf.get('pdop_p95', float('nan')):.3f}")
+    for w in res["lint"]:
+        colour = "yellow" if w["severity"] == "warning" else "cyan"
+        console.print(f"[{colour}]{w['severity']}[/{colour}] [{w['code']}] {w['message']}")
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("place")
+    def place(
+        config: Optional[Path] = typer.Argument(None, help="placement YAML (see docs/placement.md)"),
+        out: Path = typer.Option(..., "--out", "-o", help="output folder"),
+        example: Optional[str] = typer.Option(None, "--example", help="built-in example: room | crane | bridge"),
+        seed: Optional[int] = typer.Option(None, "--seed", help="override the config's seed"),
+        workers: Optional[int] = typer.Option(None, "--workers", help="processes for differential evolution"),
+        force: bool = typer.Option(False, "--force", help="overwrite an existing OUT/placement.json"),
+        no_plots: bool = typer.Option(False, "--no-plots", help="skip the PNG plots"),
+    ) -> None:
+        """Design UWB anchor positions (room or structure) for coverage, PDOP and N-1 robustness."""
+        from uwbimu.design.config import ConfigError, load_config
+        from uwbimu.design.radio import PatternError
+        from uwbimu.design.run import EXAMPLES, builtin_example, run_placement, write_outputs
+
+        if (config is None) == (example is None):
+            console.print("[red]error:[/red] give either CONFIG.yaml or --example room|crane|bridge (exactly one)")
+            raise typer.Exit(code=2)
+        if (out / "placement.json").exists() and not force:
+            console.print(f"[red]error:[/red] {out / 'placement.json'} exists; use --force to overwrite or pick another --out")
+            raise typer.Exit(code=2)
+        try:
+            if example is not None:
+                if example not in EXAMPLES:
+                    raise ValueError(f"unknown example {example!r}; choose one of {', '.join(sorted(EXAMPLES))}")
+                cfg = builtin_example(example)
+            else:
+                cfg = load_config(config)
+            upd = {}
+            if seed is not None:
+                upd["seed"] = seed
+            if upd:
+                cfg = cfg.model_copy(update=upd)
+            if workers is not None:
+                cfg.optimizer.workers = workers
+            res = run_placement(cfg, progress=True)
+            write_outputs(res, out, plots=not no_plots)
+        except (ConfigError, PatternError, ValueError) as exc:
+            console.print(f"[red]error:[/red] {exc}")
+            raise typer.Exit(code=2)
+        _print_result(res)
+        console.print(f"wrote {out / 'placement.json'}, {out / 'anchors.csv'}" + ("" if no_plots else " and plots"))

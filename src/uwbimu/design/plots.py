@@ -1,0 +1,103 @@
+"""Plots for placement results (matplotlib object API, Agg-safe, written atomically)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from uwbimu.io.atomic import save_figure
+
+__all__ = ["plot_layout_3d", "plot_coverage_map", "plot_pdop_slices", "plot_marginal"]
+
+
+def plot_layout_3d(path, anchors, boresights=None, bars=(), polygon=None, height=None, title="", ids=None) -> Path:
+    """Anchors (with boresight arrows) and the structure's bars or the room outline in 3-D."""
+    fig = Figure(figsize=(7, 6))
+    ax = fig.add_subplot(projection="3d")
+    a = np.asarray(anchors, float)
+    for b in bars:
+        p0, p1 = np.asarray(b.p0), np.asarray(b.p1)
+        ax.plot(*np.column_stack([p0, p1]), color="0.45", lw=1.5)
+    if polygon is not None:
+        P = np.vstack([polygon, polygon[:1]])
+        for z in (0.0, height):
+            ax.plot(P[:, 0], P[:, 1], np.full(len(P), z), color="0.5", lw=1)
+        for v in polygon:
+            ax.plot([v[0], v[0]], [v[1], v[1]], [0, height], color="0.5", lw=1)
+    ax.scatter(a[:, 0], a[:, 1], a[:, 2], color="tab:red", s=25, depthshade=False)
+    if boresights is not None:
+        span = float(np.max(np.ptp(a, axis=0))) if len(a) > 1 else 1.0
+        b = np.asarray(boresights, float) * 0.06 * max(span, 1.0)
+        ax.quiver(a[:, 0], a[:, 1], a[:, 2], b[:, 0], b[:, 1], b[:, 2], color="tab:red", lw=0.8)
+    if ids is not None and len(a) <= 16:
+        for i, t in enumerate(ids):
+            ax.text(a[i, 0], a[i, 1], a[i, 2], t, fontsize=7)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_zlabel("z [m]")
+    ax.set_title(title or "anchors")
+    return save_figure(path, fig)
+
+
+def plot_coverage_map(path, points, counts, k: int, title="") -> Path:
+    """k-coverage seen from above (fraction of heights covered per x–y cell) and from the side."""
+    p = np.asarray(points, float)
+    cov = np.asarray(counts) >= k
+    fig = Figure(figsize=(11, 4.5))
+    for j, (ia, ib, lab) in enumerate(((0, 1, "top view: fraction of z covered"), (1, 2, "side view: fraction of x covered"))):
+        ax = fig.add_subplot(1, 2, j + 1)
+        ua, ia_ = np.unique(np.round(p[:, ia], 6), return_inverse=True)
+        ub, ib_ = np.unique(np.round(p[:, ib], 6), return_inverse=True)
+        num = np.zeros((len(ub), len(ua)))
+        den = np.zeros_like(num)
+        np.add.at(num, (ib_, ia_), cov)
+        np.add.at(den, (ib_, ia_), 1)
+        with np.errstate(invalid="ignore"):
+            frac = num / den
+        im = ax.imshow(frac, origin="lower", aspect="auto", vmin=0, vmax=1, cmap="viridis",
+                       extent=(ua[0], ua[-1], ub[0], ub[-1]))
+        ax.set_xlabel("xyz"[ia] + " [m]")
+        ax.set_ylabel("xyz"[ib] + " [m]")
+        ax.set_title(lab, fontsize=9)
+        fig.colorbar(im, ax=ax)
+    fig.suptitle(title or f"{k}-coverage {100 * cov.mean():.1f} %")
+    return save_figure(path, fig)
+
+
+def plot_pdop_slices(path, points, pdop, n_slices: int = 3, axis: int = 2, cap: float = 10.0, title="") -> Path:
+    """PDOP maps on ``n_slices`` planes of constant ``axis`` coordinate (capped for colour)."""
+    p = np.asarray(points, float)
+    v = np.minimum(np.asarray(pdop, float), cap)
+    levels = np.unique(np.round(p[:, axis], 6))
+    pick = levels[np.linspace(0, len(levels) - 1, min(n_slices, len(levels))).round().astype(int)]
+    others = [i for i in range(3) if i != axis]
+    fig = Figure(figsize=(4.2 * len(pick), 3.8))
+    for j, lev in enumerate(pick):
+        ax = fig.add_subplot(1, len(pick), j + 1)
+        m = np.isclose(p[:, axis], lev)
+        sc = ax.scatter(p[m, others[0]], p[m, others[1]], c=v[m], cmap="magma_r", vmin=1.0, vmax=cap, s=12, marker="s")
+        ax.set_title(f"{'xyz'[axis]} = {lev:.2f} m", fontsize=9)
+        ax.set_xlabel("xyz"[others[0]] + " [m]")
+        ax.set_ylabel("xyz"[others[1]] + " [m]")
+        ax.set_aspect("equal", adjustable="box")
+        fig.colorbar(sc, ax=ax, label="PDOP")
+    fig.suptitle(title or "PDOP slices")
+    return save_figure(path, fig)
+
+
+def plot_marginal(path, n_anchors, coverage, pdop_p95=None, title="") -> Path:
+    """Marginal value of each added anchor: coverage and PDOP p95 versus anchor count."""
+    fig = Figure(figsize=(6, 4))
+    ax = fig.add_subplot()
+    ax.plot(n_anchors, 100 * np.asarray(coverage), "o-", color="tab:blue", label="coverage")
+    ax.set_xlabel("anchors placed (greedy order)")
+    ax.set_ylabel("k-coverage [%]", color="tab:blue")
+    if pdop_p95 is not None:
+        ax2 = ax.twinx()
+        ax2.plot(n_anchors, pdop_p95, "s--", color="tab:orange", label="PDOP p95")
+        ax2.set_ylabel("PDOP p95", color="tab:orange")
+    ax.set_title(title or "marginal value of each added anchor")
+    ax.grid(alpha=0.3)
+    return save_figure(path, fig)
