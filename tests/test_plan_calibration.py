@@ -216,3 +216,16 @@ def test_range_jacobian_agrees_with_observability_engine():
     anchors = np.random.default_rng(0).uniform(0, 10, (20, 3))
     _, H_obs = window.range_jacobians(kin["p"], kin["v"], kin["R"], kin["w"], lever, anchors)
     np.testing.assert_allclose(range_jacobian(kin, anchors, lever), H_obs, atol=1e-12)
+
+
+def test_custom_anchor_list_goes_into_the_scenario():
+    from uwbimu.design.trajectory.calibration import scenario_dict
+    from uwbimu.sim import validate_scenario
+
+    anchors = [{"id": i, "position": p} for i, p in enumerate([[0, 0, 0.3], [10, 0, 2.7], [10, 8, 0.4], [0, 8, 2.8]])]
+    cfg = CalibrationDesignConfig(anchors=anchors)
+    assert cfg.anchor_ids() == ["0", "1", "2", "3"] and cfg.anchor_array().shape == (4, 3)
+    d = scenario_dict(cfg, "x.csv", "n", "d")
+    d["trajectory"] = {"type": "hover"}  # the file does not exist here; check the rest
+    sc = validate_scenario(d)
+    np.testing.assert_allclose(sc.anchor_positions(), cfg.anchor_array())

@@ -239,3 +239,15 @@ def test_bad_input_errors_are_clear():
         run_pointmass(bad)
     with pytest.raises(Exception, match="attitude"):
         PointMassOptions(attitude="magic")
+
+
+def test_result_goes_through_the_common_writers(tmp_path):
+    """Same outputs as the ESKF: the shared writer and metrics accept the point-mass result."""
+    from uwbimu.estimation import compute_metrics, write_outputs
+
+    ds, _ = make_dataset(7, duration=6.0)
+    res = run_pointmass(ds, {"initial_yaw": YAW0})
+    write_outputs(res, ds, tmp_path / "out", plots=False)
+    assert (tmp_path / "out" / "trajectory.csv").exists()
+    m = compute_metrics(res, ds)
+    assert m["estimator"] == "pointmass" and m["position_rmse"] < 0.2

@@ -106,9 +106,15 @@ def _parse(text: str) -> _Collector:
     return c
 
 
-def test_report_structure_every_figure_decodes(tmp_path):
-    out = make_output(tmp_path / "out")
-    path = write_report(out)
+@pytest.fixture(scope="module")
+def full_report(tmp_path_factory):
+    """One report with every input, shared by the structure and the browser test."""
+    out = make_output(tmp_path_factory.mktemp("report") / "out")
+    return write_report(out)
+
+
+def test_report_structure_every_figure_decodes(full_report):
+    path, out = full_report, full_report.parent
     assert path == out / "report.html"
     c = _parse(path.read_text())
     assert ALL_SECTIONS <= c.sections
@@ -194,9 +200,8 @@ _CHECK_SCRIPT = """<script>window.addEventListener('load', function () {
 
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (apt-get install chromium); "
                                               "the HTML structure is still tested without a browser")
-def test_report_renders_in_headless_chromium(tmp_path):
-    out = make_output(tmp_path / "out")
-    page = write_report(out).read_text()
+def test_report_renders_in_headless_chromium(full_report, tmp_path):
+    page = full_report.read_text()
     # The report has no script of its own; a copy gets a probe that lists every image as decoded.
     probe = tmp_path / "probe.html"
     probe.write_text(page.replace("</body>", _CHECK_SCRIPT + "</body>"))

@@ -184,9 +184,12 @@ def _run_room(cfg: PlacementConfig, progress: bool) -> dict:
     oc_ = cfg.optimizer
     result_pareto = []
     with _Progress(progress) as pg:
-        with pg.task("greedy log-det", cfg.n_anchors) as upd:
-            g = lazy_greedy_logdet(cs, cfg.n_anchors, callback=lambda i, v: upd(i, f"gain {v:.1f}"))
-        idx = g["idx"]
+        if oc_.greedy:
+            with pg.task("greedy log-det", cfg.n_anchors) as upd:
+                g = lazy_greedy_logdet(cs, cfg.n_anchors, callback=lambda i, v: upd(i, f"gain {v:.1f}"))
+            idx = g["idx"]
+        else:  # seeded random start (for comparisons of the later stages)
+            idx = np.random.default_rng(cfg.seed).choice(len(cs), cfg.n_anchors, replace=False).tolist()
         timings["greedy_s"] = time.perf_counter() - t0
         if oc_.swaps and oc_.swap_rounds > 0:
             t1 = time.perf_counter()

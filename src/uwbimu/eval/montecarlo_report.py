@@ -147,7 +147,7 @@ def _make_plots(out: Path, df: pd.DataFrame, cfg, runs: int, traces: dict) -> li
     cells = [(s.name, e.name) for s in cfg.scenarios for e in cfg.estimators]
 
     # --- error distributions ------------------------------------------------
-    fig = Figure(figsize=(4 + 1.6 * len(cells), 4.2))
+    fig = Figure(figsize=(4 + 1.6 * len(cells), 4.2), layout="constrained")
     axs = fig.subplots(1, 3, sharey=True)
     for a, ax in zip(AXES, axs):
         data = [ok[(ok["scenario"] == s) & (ok["estimator"] == e)][f"rmse_{a}"].dropna().to_numpy() for s, e in cells]
@@ -162,7 +162,7 @@ def _make_plots(out: Path, df: pd.DataFrame, cfg, runs: int, traces: dict) -> li
     written.append("rmse_distribution.png")
 
     # --- NEES against chi-square bounds --------------------------------------
-    fig = Figure(figsize=(5 * len(cfg.estimators), 3.2 * len(cfg.scenarios)))
+    fig = Figure(figsize=(5 * len(cfg.estimators), 3.2 * len(cfg.scenarios)), layout="constrained")
     axs = np.atleast_2d(fig.subplots(len(cfg.scenarios), len(cfg.estimators), squeeze=False))
     for i, s in enumerate(cfg.scenarios):
         tr = traces[s.name]
@@ -191,7 +191,7 @@ def _make_plots(out: Path, df: pd.DataFrame, cfg, runs: int, traces: dict) -> li
 
     # --- error vs time per axis, one figure per estimator (seed figs 2-3) ---
     for e in cfg.estimators:
-        fig = Figure(figsize=(5 * len(cfg.scenarios), 7))
+        fig = Figure(figsize=(5 * len(cfg.scenarios), 7), layout="constrained")
         axs = fig.subplots(3, len(cfg.scenarios), squeeze=False, sharex=True)
         for j, s in enumerate(cfg.scenarios):
             tr = traces[s.name]

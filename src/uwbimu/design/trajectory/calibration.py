@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any, Callable, Literal, Optional, Union
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from uwbimu.design.trajectory.maneuver import (
     Maneuver,
@@ -48,6 +48,11 @@ class _Strict(BaseModel):
 class AnchorItem(_Strict):
     id: str
     position: list[float] = Field(min_length=3, max_length=3)
+
+    @field_validator("id", mode="before")
+    @classmethod
+    def _id_as_text(cls, v):  # YAML `id: 3` is the anchor "3", as in the simulator
+        return str(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else v
 
 
 class BoundsOptions(_Strict):
