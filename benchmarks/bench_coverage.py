@@ -6,6 +6,8 @@ point-list kernel (``count_links_fast``) and the naive NumPy float64 reference
 (``LinkModel.links``, full (P, N) broadcasting) timed in the same process.
 
 Run: ``python benchmarks/bench_coverage.py`` (target: grid kernel < 25 ms).
+``--crane-sweep`` additionally reproduces the R0 calibration table of
+docs/placement.md (seed set-up with PSO vs ours, per 0 dBi range; a few minutes).
 """
 
 from __future__ import annotations
@@ -63,5 +65,27 @@ def main() -> None:
     print(f"target < 25 ms per evaluation: {'MET' if ok else 'NOT MET'} ({np.median(t_grid):.2f} ms median)")
 
 
+def crane_sweep(ranges=(24.0, 26.0, CRANE_R0_CALIBRATED, 28.0, 30.0)) -> None:
+    from uwbimu.design.optimize import greedy_structure, local_search_structure, pso
+
+    print("R0 [m] | seed set-up, PSO 24x40 (seed 0) | greedy+local, seed variables | ours rotate-tilt | seconds")
+    for r0 in ranges:
+        t = time.perf_counter()
+        st = jib_crane(range_m=r0)
+        ps = StructureProblem(st)
+        r = pso(ps, ps.bounds, 24, 40, seed=0)
+        g = greedy_structure(ps)
+        ls = local_search_structure(ps, g["x"])
+        pf = StructureProblem(st, freedom="rotate-tilt")
+        gf = greedy_structure(pf, rotations=(-0.6, -0.3, 0.0, 0.3, 0.6))
+        lf = local_search_structure(pf, gf["x"])
+        print(f"{r0:6.1f} | {100 * (1 - r['fun']):8.2f} % | {100 * (1 - ls['fun']):8.2f} % | "
+              f"{100 * (1 - lf['fun']):8.2f} % | {time.perf_counter() - t:6.1f}", flush=True)
+
+
 if __name__ == "__main__":
+    import sys
+
     main()
+    if "--crane-sweep" in sys.argv[1:]:
+        crane_sweep()

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from scipy.stats import chi2
 
 from uwbimu.estimation import EskfOptions, InitialState, compute_metrics, run_eskf

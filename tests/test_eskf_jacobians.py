@@ -58,6 +58,23 @@ def test_rk4_kernel_matches_reference_propagate(dt):
         np.testing.assert_array_equal(out[20:], x[20:])
 
 
+def test_rk4_with_mid_input_and_cubic_match_reference():
+    rng = np.random.default_rng(13)
+    t = np.cumsum(rng.uniform(0.004, 0.006, 12))
+    u = rng.normal(size=(12, 6))
+    um = ref.midpoint_inputs(t, u)
+    for i in (0, 5, 10):
+        out = np.empty(6)
+        K.cubic_at(t, u, i, 0.5 * (t[i] + t[i + 1]), out)
+        np.testing.assert_allclose(out, um[i], atol=1e-12)
+        K.cubic_at(t, u, i, t[i], out)  # the cubic passes through the samples
+        np.testing.assert_allclose(out, u[i], atol=1e-12)
+    x = _rand_state(rng)
+    out = np.empty_like(x)
+    K.rk4_step_mid(x, u[3], um[3], u[4], t[4] - t[3], out)
+    np.testing.assert_allclose(out, ref.propagate(x, u[3], u[4], t[4] - t[3], um=um[3]), atol=1e-12)
+
+
 def test_derivative_kernel_matches_continuous_dynamics():
     rng = np.random.default_rng(2)
     x = _rand_state(rng)
@@ -177,19 +194,26 @@ def _imu_stream(rng, n=40, dt=0.005):
     return t, u
 
 
+def _cubic(t, u, i, tt):
+    """Cubic through the 4 samples around interval i (numpy polyfit, independent of the kernel)."""
+    f = min(max(i - 1, 0), len(t) - 4)
+    return np.array([np.polyval(np.polyfit(t[f:f + 4] - t[i], u[f:f + 4, c], 3), tt - t[i]) for c in range(6)])
+
+
 def _ref_state_at(x_k, t, u, k, tau):
-    """State at ``tau <= t[k]`` with reference.propagate only (backward over the samples)."""
+    """State at ``tau <= t[k]`` with reference.propagate only (backward over the samples,
+    cubic mid-interval inputs of reference.midpoint_inputs)."""
     x = x_k.copy()
     j = k
     if tau > t[k]:  # past the newest sample: held input (as the kernel does)
         return ref.propagate(x, u[k], u[k], tau - t[k])
+    um = ref.midpoint_inputs(t, u)
     while j > 0 and t[j - 1] >= tau:
-        x = ref.propagate(x, u[j], u[j - 1], t[j - 1] - t[j])
+        x = ref.propagate(x, u[j], u[j - 1], t[j - 1] - t[j], um=um[j - 1])
         j -= 1
     if tau < t[j]:
-        al = (tau - t[j - 1]) / (t[j] - t[j - 1])
-        ut = u[j - 1] + al * (u[j] - u[j - 1])
-        x = ref.propagate(x, u[j], ut, tau - t[j])
+        ut = _cubic(t, u, j - 1, tau)
+        x = ref.propagate(x, u[j], ut, tau - t[j], um=_cubic(t, u, j - 1, 0.5 * (tau + t[j])))
     return x
 
 
@@ -201,9 +225,10 @@ def test_state_at_matches_reference_backward_integration():
     for tau in (t[k], t[k] - 0.0013, t[k] - 0.0371, t[k - 7]):
         xt = np.empty_like(x)
         ut = np.empty(6)
-        assert K.state_at(x, t, u, k, tau, 0.0, xt, ut) == K.UPD_OK
+        assert K.state_at(x, t, u, ref.midpoint_inputs(t, u), k, tau, 0.0, xt, ut) == K.UPD_OK
         np.testing.assert_allclose(xt, _ref_state_at(x, t, u, k, tau), atol=1e-12)
-    assert K.state_at(x, t, u, k, t[0] - 1.0, 0.0, np.empty_like(x), np.empty(6)) == K.UPD_BEFORE_IMU
+    um = ref.midpoint_inputs(t, u)
+    assert K.state_at(x, t, u, um, k, t[0] - 1.0, 0.0, np.empty_like(x), np.empty(6)) == K.UPD_BEFORE_IMU
 
 
 @pytest.mark.parametrize("lag_samples", [0.0, 0.6, 3.4])
@@ -232,7 +257,7 @@ def test_range_jacobian_all_blocks_against_reference(lag_samples):
     tau = t_uwb + x[19]
     xt = np.empty_like(x)
     ut = np.empty(6)
-    K.state_at(x, t, u, k, tau, 0.0, xt, ut)
+    K.state_at(x, t, u, ref.midpoint_inputs(t, u), k, tau, 0.0, xt, ut)
     h = np.empty(19 + nb)
     pred = K.range_jacobian(xt, ut, anchor, 19 + 1, t[k] - tau, h)
     assert pred == pytest.approx(h_ref(np.zeros(19 + nb)), abs=1e-12)
@@ -257,7 +282,7 @@ def test_range_update_joseph_with_consider_mask():
     tau = t[k] - 0.002
     xt = np.empty_like(x)
     ut = np.empty(6)
-    K.state_at(x, t, u, k, tau, 0.0, xt, ut)
+    K.state_at(x, t, u, ref.midpoint_inputs(t, u), k, tau, 0.0, xt, ut)
     h = np.empty(N)
     pred = K.range_jacobian(xt, ut, anchor, -1, t[k] - tau, h)
     z = pred + 0.05
@@ -267,7 +292,8 @@ def test_range_update_joseph_with_consider_mask():
     P1 = P.copy()
     out = np.empty(7)
     r_var = 0.05**2
-    K.range_update(x1, P1, t, u, k, tau, anchor, -1, z, r_var, -1.0, False, K.ROBUST_NONE, 1.0, mask, 0.0, out)
+    K.range_update(x1, P1, t, u, ref.midpoint_inputs(t, u), k, tau, anchor, -1, z, r_var, -1.0, False,
+                   K.ROBUST_NONE, 1.0, mask, 0.0, out)
     S = h @ P @ h + r_var
     Kg = P @ h / S * mask
     I_KH = np.eye(N) - np.outer(Kg, h)
@@ -289,11 +315,13 @@ def test_gate_rejects_and_force_accepts():
     anchor = np.array([3.0, 2.0, 1.0])
     out = np.empty(7)
     x1, P1 = x.copy(), P.copy()
-    K.range_update(x1, P1, t, u, 30, t[30], anchor, -1, 100.0, 0.01, 10.0, False, K.ROBUST_HUBER, 2.5,
+    K.range_update(x1, P1, t, u, ref.midpoint_inputs(t, u), 30, t[30], anchor, -1, 100.0, 0.01, 10.0, False,
+                   K.ROBUST_HUBER, 2.5,
                    np.ones(19), 0.0, out)
     assert out[3] == 0.0 and out[2] > 10.0
     np.testing.assert_array_equal(x1, x)
-    K.range_update(x1, P1, t, u, 30, t[30], anchor, -1, 100.0, 0.01, 10.0, True, K.ROBUST_HUBER, 2.5,
+    K.range_update(x1, P1, t, u, ref.midpoint_inputs(t, u), 30, t[30], anchor, -1, 100.0, 0.01, 10.0, True,
+                   K.ROBUST_HUBER, 2.5,
                    np.ones(19), 0.0, out)
     assert out[3] == 1.0 and 0 < out[4] < 0.1  # accepted with a small Huber weight
     assert np.all(np.linalg.eigvalsh(P1) > 0)

@@ -77,14 +77,32 @@ def test_pool_run_writes_one_row_per_run_with_distinct_seeds(pool_run):
     assert json.loads((out / "summary.json").read_text())["cells"][0]["scenario"] == "circ"
 
 
-def test_dask_localcluster_gives_bit_identical_results(pool_run, tmp_path):
+def test_dask_localcluster_gives_bit_identical_results_even_when_a_worker_dies(pool_run, tmp_path):
+    import os
+
     from distributed import Client, LocalCluster
 
     out_pool, _ = pool_run
+    killed = []
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                       dashboard_address=None) as cluster, Client(cluster) as client:
-        summary = mc.run_study(_cfg(), tmp_path / "dask", client=client, plots=False)
-    assert summary["execution"]["backend"] == "dask"
+
+        def die_soon():
+            import threading
+
+            threading.Timer(0.2, os._exit, args=(1,)).start()  # the worker process dies hard
+
+        def kill_a_worker_after_first_chunk(done, total):
+            if done > 0 and not killed:
+                worker = sorted(client.scheduler_info()["workers"])[0]
+                client.run(die_soon, workers=[worker])
+                killed.append(worker)
+
+        # chunks of one run (chunking does not change results) so that tasks are in flight when it dies
+        summary = mc.run_study(_cfg(chunk_size=1), tmp_path / "dask", client=client, plots=False,
+                               progress=kill_a_worker_after_first_chunk)
+    assert killed and summary["execution"]["backend"] == "dask"
+    assert summary["execution"]["task_failures"] == []
     diffs = list(mc.iter_rows_equal_ignoring_timing(_table(out_pool), _table(tmp_path / "dask")))
     assert diffs == []
     a, b = _traces(out_pool), _traces(tmp_path / "dask")

@@ -94,8 +94,23 @@ def test_swaps_never_worsen_and_de_is_reproducible(small):
     assert r1["fun"] <= obj(x0) + 1e-12
     a, b = obj.decode(r1["x"])
     assert room.valid_mount(a, 0.2).all()
+    # two worker processes (deferred updating) give the identical result
+    r3 = refine_de(obj, x0, seed=3, maxiter=3, popsize=5, workers=2)
+    assert np.array_equal(r1["x"], r3["x"])
 
 
 def test_pareto_front():
     F = np.array([[1, 5], [2, 2], [3, 3], [5, 1], [2, 2.5]])
     assert sorted(pareto_front(F).tolist()) == [0, 1, 3]
+
+
+def test_information_percentile_term(small):
+    room, ev, cs, _ = small
+    idx = [0, 7, 20, 33, 50, 61]
+    comp = cs.components(idx, n1=False)
+    from uwbimu.design.metrics import logdet_information
+
+    ld = logdet_information(ev.points, cs.positions[idx], ev.sigma, cs.M[idx].T)
+    assert comp["logdet_low"] == pytest.approx(np.percentile(ld, 5, method="lower"), rel=1e-6)
+    ev2 = LayoutEvaluator(ev.points, ev.link, weights={"info": 1.0}, sigma=ev.sigma)
+    assert ev2.objective(comp) == pytest.approx(-comp["logdet_low"])

@@ -149,3 +149,38 @@ def test_example_configs_validate():
     assert CalibrationDesignConfig.model_validate(yaml.safe_load((ex / "calibration.yaml").read_text())) == CalibrationDesignConfig(
         name="room8-calibration"
     )
+
+
+def test_fixed_final_state_variant_trades_observability_for_rest():
+    """Seed: fixing the final state (at rest) is possible but costs observability."""
+    cfg = SeedOcpConfig(**COARSE)
+    free = solve_direct(cfg)
+    ff = solve_direct(cfg, fixed_final=True)
+    assert ff.converged
+    np.testing.assert_allclose(ff.x[-1], list(cfg.goal) + [0, 0, 0], atol=1e-8)
+    assert ff.cost["total"] > free.cost["total"]
+    assert ff.cost["det_mean"] < free.cost["det_mean"]
+
+
+def test_continuous_costate_method_matches_direct_to_discretisation_order():
+    """The seed's literal method (costate ODE by RK4) reaches the grid optimum up to O(h^2)."""
+    from uwbimu.design.trajectory.seed_ocp import continuous_cost, continuous_costate, solve_indirect_continuous
+
+    cfg = SeedOcpConfig(**COARSE)
+    x, u = pd_rollout(cfg)
+    rng = np.random.default_rng(5)
+    u = u + rng.normal(0, 0.5, u.shape)
+    x = rollout(cfg.x0, u, cfg.h)
+    _, Hu = continuous_costate(x, u, cfg)
+    d = rng.normal(size=u.shape)
+    eps = 1e-6
+    fd = (continuous_cost(rollout(cfg.x0, u + eps * d, cfg.h), u + eps * d, cfg)
+          - continuous_cost(rollout(cfg.x0, u - eps * d, cfg.h), u - eps * d, cfg)) / (2 * eps)  # fmt: skip
+    assert fd == pytest.approx(cfg.h * np.sum(Hu * d), rel=1e-5)  # H_u is the gradient of the ODE-integrated cost
+    diffs = []
+    for n in (29, 58):
+        c = SeedOcpConfig(n_steps=n)
+        ic = solve_indirect_continuous(c)
+        assert ic.converged and ic.hu_max < c.hu_tol
+        diffs.append(np.abs(ic.u - solve_direct(c).u).max())
+    assert diffs[1] < 1e-3 and 3.0 < diffs[0] / diffs[1] < 5.0  # second order in h

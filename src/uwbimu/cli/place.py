@@ -15,14 +15,16 @@ console = Console()
 def _print_result(res: dict) -> None:
     t = Table(title="layouts compared" if res["mode"] == "room" else f"{res.get('structure')}: coverage")
     if res["mode"] == "room":
-        for c in ("layout", "anchors", "coverage %", "PDOP p50", "PDOP p95", "N-1 PDOP p95"):
+        t.add_column("layout", no_wrap=True)
+        for c in ("anchors", "coverage %", "PDOP p50", "PDOP p95", "N-1 PDOP p95"):
             t.add_column(c)
         for r in res["table"]:
             n1 = r.get("n1_pdop_p95")
             t.add_row(r["layout"], str(r["anchors"]), f"{100 * r['coverage']:.1f}", f"{r['pdop_p50']:.3f}",
                       f"{r['pdop_p95']:.3f}", "-" if n1 is None else f"{n1:.3f}")
     else:
-        for c in ("layout", "anchors", "variables", "coverage %", "time s"):
+        t.add_column("layout", no_wrap=True)
+        for c in ("anchors", "variables", "coverage %", "time s"):
             t.add_column(c)
         for r in res["table"]:
             t.add_row(r["layout"], str(r["anchors"]), str(r.get("variables", "-")), f"{100 * r['coverage']:.2f}",

@@ -138,9 +138,14 @@ class RoomConfig(_M):
 
 
 class ObjectiveConfig(_M):
-    """Weighted objective (minimised): ``w_c (1 - coverage) 100 + w_p PDOP_q + w_n PDOP_q^(N-1)``."""
+    """Weighted objective (minimised).
 
-    weights: dict[Literal["coverage", "pdop", "n1_pdop", "n1_coverage"], float] = Field(
+    ``w_coverage 100 (1 - coverage) + w_pdop PDOP_q + w_n1_pdop max_i PDOP_q(-i)
+    + w_n1_coverage 100 (1 - min_i coverage(-i)) - w_info logdetJ_(100-q)``, with ``q`` the
+    percentile (PDOP upper tail, information lower tail).
+    """
+
+    weights: dict[Literal["coverage", "pdop", "n1_pdop", "n1_coverage", "info"], float] = Field(
         default_factory=lambda: {"coverage": 10.0, "pdop": 1.0, "n1_pdop": 0.25}
     )
     percentile: float = Field(95.0, gt=0, le=100)

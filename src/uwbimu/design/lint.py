@@ -30,10 +30,10 @@ class LintWarning:
 
 
 def planarity(anchors) -> tuple[float, float]:
-    """Singular values of the centred anchor set: ``(s2/s1, s3/s1)`` (0 = degenerate).
+    """Ratios of the singular values of the centred anchor set, ``(s2/s1, s3/s1)``.
 
-    ``s2/s1 ~ 0``: collinear; ``s3/s1 ~ 0``: coplanar.  Also returns nothing else; the
-    RMS distance to the best plane is ``s3 / sqrt(N)`` [m].
+    ``s2/s1 ~ 0``: collinear; ``s3/s1 ~ 0``: coplanar (the RMS distance of the anchors to
+    their best-fit plane is ``s3 / sqrt(N)`` [m]).
     """
     a = np.asarray(anchors, float)
     c = a - a.mean(axis=0)

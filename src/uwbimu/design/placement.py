@@ -17,7 +17,9 @@ Pipeline (all seeded, reproducible):
 The weighted objective (minimised) is::
 
     J = w_coverage * 100 (1 - coverage) + w_pdop * PDOP_q + w_n1_pdop * max_i PDOP_q(without i)
-        + w_n1_coverage * 100 (1 - min_i coverage(without i))
+        + w_n1_coverage * 100 (1 - min_i coverage(without i)) - w_info * logdetJ_(100-q)
+
+(``logdetJ_(100-q)``: the information percentile, the lower tail of ``log det J``)
 
 with PDOP evaluated on the links that close and capped at ``pdop_cap`` where the
 position is not observable (fewer than 3 links or a degenerate geometry).
@@ -220,6 +222,12 @@ def pdop_from_g6(g6, cap: float) -> np.ndarray:
     return np.minimum(np.where(np.isfinite(p), p, cap), cap)
 
 
+def det_g6(g6) -> np.ndarray:
+    """Determinant of packed symmetric 3x3 matrices ``[xx, yy, zz, xy, xz, yz]``."""
+    xx, yy, zz, xy, xz, yz = (g6[..., i] for i in range(6))
+    return xx * (yy * zz - yz * yz) - xy * (xy * zz - yz * xz) + xz * (xy * yz - yy * xz)
+
+
 def _outer6(u) -> np.ndarray:
     return np.stack([u[..., 0] ** 2, u[..., 1] ** 2, u[..., 2] ** 2, u[..., 0] * u[..., 1],
                      u[..., 0] * u[..., 2], u[..., 1] * u[..., 2]], axis=-1)
@@ -239,6 +247,7 @@ class LayoutEvaluator:
     percentile: float = 95.0
     pdop_cap: float = 20.0
     weights: dict = field(default_factory=lambda: {"coverage": 10.0, "pdop": 1.0, "n1_pdop": 0.25})
+    sigma: float = 0.1  # range noise sd [m], scales the information term
 
     def per_anchor(self, anchors, boresights):
         """Per-anchor packed outer products (N, P, 6) masked by closing links, and links (N, P)."""
@@ -280,6 +289,9 @@ class LayoutEvaluator:
             "pdop_q": float(at(self.percentile)[0]),
             "pdop_p95": float(at(95.0)[0]),
         }
+        # Information percentile: the (100 - q) % lower tail of log det J, J = G / sigma^2.
+        ld = np.log(np.maximum(det_g6(G), 1e-12)) - 6.0 * np.log(self.sigma)
+        out["logdet_low"] = float(np.percentile(ld, 100.0 - self.percentile, method="lower"))
         if n1:
             qs = at(self.percentile)[1:]
             covs = np.mean(Cs[1:] >= self.k, axis=1)
@@ -290,6 +302,7 @@ class LayoutEvaluator:
     def objective(self, comp: dict) -> float:
         w = self.weights
         j = w.get("coverage", 0.0) * 100.0 * (1.0 - comp["coverage"]) + w.get("pdop", 0.0) * comp["pdop_q"]
+        j -= w.get("info", 0.0) * comp["logdet_low"]
         if "n1_pdop_q" in comp:
             j += w.get("n1_pdop", 0.0) * comp["n1_pdop_q"] + w.get("n1_coverage", 0.0) * 100.0 * (1.0 - comp["n1_coverage"])
         return float(j)

@@ -12,8 +12,12 @@ from uwbimu.io.atomic import save_figure
 __all__ = ["plot_layout_3d", "plot_coverage_map", "plot_pdop_slices", "plot_marginal"]
 
 
-def plot_layout_3d(path, anchors, boresights=None, bars=(), polygon=None, height=None, title="", ids=None) -> Path:
-    """Anchors (with boresight arrows) and the structure's bars or the room outline in 3-D."""
+def plot_layout_3d(path, anchors, boresights=None, bars=(), polygon=None, height=None, title="", ids=None,
+                   lo=None, hi=None) -> Path:
+    """Anchors (with boresight arrows) and the structure's bars or the room outline in 3-D.
+
+    ``lo``/``hi`` [m] set the plotted box (true aspect ratio); default: the anchors' extent.
+    """
     fig = Figure(figsize=(7, 6))
     ax = fig.add_subplot(projection="3d")
     a = np.asarray(anchors, float)
@@ -27,13 +31,19 @@ def plot_layout_3d(path, anchors, boresights=None, bars=(), polygon=None, height
         for v in polygon:
             ax.plot([v[0], v[0]], [v[1], v[1]], [0, height], color="0.5", lw=1)
     ax.scatter(a[:, 0], a[:, 1], a[:, 2], color="tab:red", s=25, depthshade=False)
+    lo = np.min(a, axis=0) if lo is None else np.asarray(lo, float)
+    hi = np.max(a, axis=0) if hi is None else np.asarray(hi, float)
+    span = np.maximum(hi - lo, 1e-3)
     if boresights is not None:
-        span = float(np.max(np.ptp(a, axis=0))) if len(a) > 1 else 1.0
-        b = np.asarray(boresights, float) * 0.06 * max(span, 1.0)
+        b = np.asarray(boresights, float) * 0.06 * float(span.max())
         ax.quiver(a[:, 0], a[:, 1], a[:, 2], b[:, 0], b[:, 1], b[:, 2], color="tab:red", lw=0.8)
     if ids is not None and len(a) <= 16:
         for i, t in enumerate(ids):
             ax.text(a[i, 0], a[i, 1], a[i, 2], t, fontsize=7)
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_zlim(lo[2], hi[2])
+    ax.set_box_aspect(tuple(span / span.max()))
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_zlabel("z [m]")
@@ -45,7 +55,7 @@ def plot_coverage_map(path, points, counts, k: int, title="") -> Path:
     """k-coverage seen from above (fraction of heights covered per x–y cell) and from the side."""
     p = np.asarray(points, float)
     cov = np.asarray(counts) >= k
-    fig = Figure(figsize=(11, 4.5))
+    fig = Figure(figsize=(11, 4.5), layout="constrained")
     for j, (ia, ib, lab) in enumerate(((0, 1, "top view: fraction of z covered"), (1, 2, "side view: fraction of x covered"))):
         ax = fig.add_subplot(1, 2, j + 1)
         ua, ia_ = np.unique(np.round(p[:, ia], 6), return_inverse=True)
@@ -73,11 +83,13 @@ def plot_pdop_slices(path, points, pdop, n_slices: int = 3, axis: int = 2, cap: 
     levels = np.unique(np.round(p[:, axis], 6))
     pick = levels[np.linspace(0, len(levels) - 1, min(n_slices, len(levels))).round().astype(int)]
     others = [i for i in range(3) if i != axis]
-    fig = Figure(figsize=(4.2 * len(pick), 3.8))
+    fig = Figure(figsize=(4.4 * len(pick), 3.8), layout="constrained")
+    fin = v[np.isfinite(v)]
+    vmax = float(min(cap, max(np.percentile(fin, 99) if fin.size else cap, 1.5)))
     for j, lev in enumerate(pick):
         ax = fig.add_subplot(1, len(pick), j + 1)
         m = np.isclose(p[:, axis], lev)
-        sc = ax.scatter(p[m, others[0]], p[m, others[1]], c=v[m], cmap="magma_r", vmin=1.0, vmax=cap, s=12, marker="s")
+        sc = ax.scatter(p[m, others[0]], p[m, others[1]], c=v[m], cmap="magma_r", vmin=1.0, vmax=vmax, s=12, marker="s")
         ax.set_title(f"{'xyz'[axis]} = {lev:.2f} m", fontsize=9)
         ax.set_xlabel("xyz"[others[0]] + " [m]")
         ax.set_ylabel("xyz"[others[1]] + " [m]")

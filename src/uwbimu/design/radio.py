@@ -476,15 +476,18 @@ def _lut_hits(d2, cd, lut, half, n_lut):  # pragma: no cover - numba
 
 
 @njit(cache=True, fastmath=True)
-def _count_links_grid_kernel(x0, hx, nx, y0, hy, ny, z0, hz, nz, anchors, bores, lut, m_off, rho, counts):  # pragma: no cover
-    # Regular grid.  Every direction's reach lies inside the "lobe sphere" of radius rho
-    # centred m_off metres along the boresight (computed once from the LUT, see
-    # lobe_sphere); only cells inside it are visited: x and y ranges from the sphere,
-    # z range per (x, y) column analytically.  For a cos^2 patch this visits ~1/8 of the
-    # cells of the peak-reach sphere.  x/y parts of d^2 and of the boresight projection
-    # are hoisted out of the z loop.
+def _count_links_grid_kernel(xs, ys, zs, hx, hy, hz, anchors, bores, lut, dlut, m_off, rho, counts):  # pragma: no cover
+    # Regular grid (float32 axes xs, ys, zs with spacings hx, hy, hz).  Every direction's
+    # reach lies inside the "lobe sphere" of radius rho centred m_off metres along the
+    # boresight (see lobe_sphere); only cells inside it are visited: x and y ranges from
+    # the sphere, the z range per (x, y) column analytically.  For a cos^2 patch this
+    # visits ~1/6 of the cells of the peak-reach sphere.  The x/y parts of d^2 and of the
+    # boresight projection are hoisted out of the z loop, whose body is branch-free.
+    nx, ny, nz = xs.shape[0], ys.shape[0], zs.shape[0]
+    x0, y0, z0 = xs[0], ys[0], zs[0]
     n_lut = lut.shape[0]
     half = np.float32(0.5 * (n_lut - 1))
+    fmax = np.float32(n_lut - 1) - np.float32(1e-3)
     rho2 = np.float32(rho * rho)
     for j in range(anchors.shape[0]):
         ax = np.float32(anchors[j, 0])
@@ -501,16 +504,14 @@ def _count_links_grid_kernel(x0, hx, nx, y0, hy, ny, z0, hz, nz, anchors, bores,
         iy0 = max(0, int(np.ceil((cy - rho - y0) / hy)))
         iy1 = min(ny - 1, int(np.floor((cy + rho - y0) / hy)))
         for ix in range(ix0, ix1 + 1):
-            xx = np.float32(x0 + ix * hx)
-            dx = xx - ax
-            ex = xx - cx
+            dx = xs[ix] - ax
+            ex = xs[ix] - cx
             for iy in range(iy0, iy1 + 1):
-                yy = np.float32(y0 + iy * hy)
-                ey = yy - cy
+                ey = ys[iy] - cy
                 exy2 = ex * ex + ey * ey
                 if exy2 > rho2:
                     continue
-                dy = yy - ay
+                dy = ys[iy] - ay
                 dxy2 = dx * dx + dy * dy
                 cxy = dx * bx + dy * by
                 ezm = np.sqrt(rho2 - exy2)
@@ -518,14 +519,13 @@ def _count_links_grid_kernel(x0, hx, nx, y0, hy, ny, z0, hz, nz, anchors, bores,
                 iz1 = min(nz - 1, int(np.floor((cz + ezm - z0) / hz)))
                 base = (ix * ny + iy) * nz
                 for iz in range(iz0, iz1 + 1):
-                    dz = np.float32(z0 + iz * hz) - az
+                    dz = zs[iz] - az
                     d2 = dxy2 + dz * dz
                     c = (cxy + dz * bz) / np.sqrt(max(d2, np.float32(1e-12)))
-                    f = min(max((c + np.float32(1.0)) * half, np.float32(0.0)), np.float32(n_lut - 1) - np.float32(1e-3))
+                    f = min(max((c + np.float32(1.0)) * half, np.float32(0.0)), fmax)
                     k = int(f)
                     t = f - np.float32(k)
-                    if d2 <= lut[k] + t * (lut[k + 1] - lut[k]):
-                        counts[base + iz] += 1
+                    counts[base + iz] += np.int16(d2 <= lut[k] + t * dlut[k])
     return counts
 
 
@@ -568,19 +568,21 @@ def count_links_grid(axes, anchors, boresights, lut, sphere=None) -> np.ndarray:
     sphere : ``(m, rho)`` from :func:`lobe_sphere` (computed when None; pass it to
         skip the ~1 ms it costs in a loop)
     """
-    params = []
+    xyz, hs = [], []
     for ax in axes:
         ax = np.asarray(ax, dtype=float)
         h = float(ax[1] - ax[0]) if len(ax) > 1 else 1.0
         if len(ax) > 2 and not np.allclose(np.diff(ax), h, rtol=1e-6, atol=1e-9):
             raise ValueError("count_links_grid needs uniformly spaced axes")
-        params += [float(ax[0]), h, len(ax)]
+        xyz.append(np.ascontiguousarray(ax, dtype=np.float32))
+        hs.append(h)
     b = np.asarray(boresights, dtype=np.float64)
     b = b / np.linalg.norm(b, axis=1, keepdims=True)
-    counts = np.zeros(params[2] * params[5] * params[8], dtype=np.int16)
+    counts = np.zeros(len(xyz[0]) * len(xyz[1]) * len(xyz[2]), dtype=np.int16)
     lut = np.asarray(lut, np.float32)
+    dlut = np.append(np.diff(lut), np.float32(0.0)).astype(np.float32)
     m, rho = lobe_sphere(lut) if sphere is None else sphere
-    return _count_links_grid_kernel(*params, np.asarray(anchors, np.float64), b, lut, m, rho, counts)
+    return _count_links_grid_kernel(*xyz, *hs, np.asarray(anchors, np.float64), b, lut, dlut, m, rho, counts)
 
 
 def count_links_fast(points_soa, anchors, boresights, lut) -> np.ndarray:

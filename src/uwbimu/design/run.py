@@ -163,7 +163,7 @@ def _run_room(cfg: PlacementConfig, progress: bool) -> dict:
     if len(points) < 4:
         raise ValueError(f"flight volume holds only {len(points)} tag samples; enlarge it or lower room.grid_step")
     oc = cfg.objective
-    ev = LayoutEvaluator(points, link, cfg.radio.k, oc.percentile, oc.pdop_cap, dict(oc.weights))
+    ev = LayoutEvaluator(points, link, cfg.radio.k, oc.percentile, oc.pdop_cap, dict(oc.weights), cfg.radio.range_sigma)
     timings = {}
     if rc.candidates is not None:
         pos = np.asarray(rc.candidates, float)
@@ -262,7 +262,8 @@ def _run_room(cfg: PlacementConfig, progress: bool) -> dict:
         "timings": timings,
         "candidates": {"count": int(len(pos)), "dropped": int(dropped)},
         "_plot": {"points": points, "counts": links.sum(axis=1), "pdop": pd_all, "k": cfg.radio.k,
-                  "polygon": room.polygon, "height": room.height, "bars": [o for o in obstacles if hasattr(o, "p0")]},
+                  "polygon": room.polygon, "height": room.height, "bars": [o for o in obstacles if hasattr(o, "p0")],
+                  "lo": [*room.polygon.min(axis=0), 0.0], "hi": [*room.polygon.max(axis=0), room.height]},
     }
 
 
@@ -371,7 +372,7 @@ def _run_structure(cfg: PlacementConfig, progress: bool) -> dict:
         "lint": [w.to_dict() for w in lint],
         "timings": timings,
         "_plot": {"points": st.points(), "counts": counts, "pdop": pd_c, "pdop_points": pts_c, "k": pr.k,
-                  "bars": st.bars},
+                  "bars": st.bars, "lo": st.space_lo, "hi": st.space_hi},
     }
 
 
@@ -383,8 +384,8 @@ def run_placement(cfg: PlacementConfig, progress: bool = False) -> dict:
 
 
 def write_outputs(result: dict, out: str | Path, plots: bool = True) -> list[Path]:
-    """Write ``placement.json``, ``anchors.csv`` and plots into ``out`` (atomically)."""
-    from uwbimu.io.atomic import write_csv, write_json
+    """Write ``placement.json``, ``anchors.csv``, ``anchors_scenario.yaml`` and plots into ``out`` (atomically)."""
+    from uwbimu.io.atomic import write_csv, write_json, write_yaml
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -395,13 +396,16 @@ def write_outputs(result: dict, out: str | Path, plots: bool = True) -> list[Pat
     written = [write_json(out / "placement.json", js)]
     df = pd.DataFrame({"anchor": result["ids"], "x": a[:, 0].round(4), "y": a[:, 1].round(4), "z": a[:, 2].round(4)})
     written.append(write_csv(out / "anchors.csv", df))
+    # The simulator's scenario format lists anchors inline: a snippet to paste into a scenario.
+    snippet = {"anchors": [{"id": i, "position": [float(v) for v in p]} for i, p in zip(result["ids"], a.round(4))]}
+    written.append(write_yaml(out / "anchors_scenario.yaml", snippet))
     if plots:
         from uwbimu.design import plots as P
 
         pl = result["_plot"]
         written.append(P.plot_layout_3d(out / "anchors_3d.png", a, result["boresights"], pl.get("bars", ()),
                                         pl.get("polygon"), pl.get("height"), ids=result["ids"],
-                                        title=f"{result['mode']}: {len(a)} anchors"))
+                                        title=f"{result['mode']}: {len(a)} anchors", lo=pl.get("lo"), hi=pl.get("hi")))
         written.append(P.plot_coverage_map(out / "coverage_map.png", pl["points"], pl["counts"], pl["k"]))
         written.append(P.plot_pdop_slices(out / "pdop_slices.png", pl.get("pdop_points", pl["points"]), pl["pdop"],
                                           axis=2 if result["mode"] == "room" else 0))

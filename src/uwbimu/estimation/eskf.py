@@ -28,6 +28,7 @@ from uwbimu.estimation.init import InitialisationError, InitialState, initialise
 from uwbimu.estimation.options import EskfOptions
 from uwbimu.estimation.result import EstimationResult
 from uwbimu.io.dataset import Dataset
+from uwbimu.models.reference import midpoint_inputs
 
 log = logging.getLogger("uwbimu.estimation")
 log.addHandler(logging.NullHandler())  # library: the application decides where warnings go
@@ -110,7 +111,8 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
     lo = anchors.min(axis=0) - opts.supervisor.hull_margin
     hi = anchors.max(axis=0) + opts.supervisor.hull_margin
     prob = Problem(
-        imu_t=imu_t, imu_u=imu_u, uwb_t=uwb_t, uwb_a=uwb_a, uwb_r=uwb_r, anchor_ids=anchor_ids,
+        imu_t=imu_t, imu_u=imu_u, imu_um=np.ascontiguousarray(midpoint_inputs(imu_t, imu_u)),
+        uwb_t=uwb_t, uwb_a=uwb_a, uwb_r=uwb_r, anchor_ids=anchor_ids,
         anchors=np.ascontiguousarray(anchors),
         noise=np.array([noise.accel_noise_density**2, noise.gyro_noise_density**2, noise.accel_bias_rw**2,
                         noise.gyro_bias_rw**2, opts.lever_arm.random_walk**2, opts.time_offset.random_walk**2]),
@@ -215,11 +217,14 @@ def run_eskf(
             warnings.append(f"divergence at t={t_div:.2f} s ({res.diverged}) near the end of the log; stopped there")
             break
         if n_reinit >= opts.supervisor.max_reinit:
+            if not (np.all(np.isfinite(res.x)) and np.all(np.isfinite(res.P))):
+                warnings.append(f"divergence at t={t_div:.2f} s ({res.diverged}); re-initialisation limit "
+                                f"({opts.supervisor.max_reinit}) reached and the state is not finite: stopped there")
+                break
             warnings.append(f"divergence at t={t_div:.2f} s ({res.diverged}); re-initialisation limit "
                             f"({opts.supervisor.max_reinit}) reached, continuing without supervisor")
             prob_run = _unsupervised(prob)
-            st = _safe_state(res, prob)
-            st.j = j
+            st = InitialState(x=res.x.copy(), P=res.P.copy(), k=res.k, j=j)
             continue
         try:
             st = _reinit(prob, opts, priors, j, res)
@@ -243,14 +248,6 @@ def _unsupervised(prob: Problem) -> Problem:
     from dataclasses import replace
 
     return replace(prob, supervise=False)
-
-
-def _safe_state(res: PassResult, prob: Problem) -> InitialState:
-    x = res.x.copy()
-    P = res.P.copy()
-    if not np.all(np.isfinite(x)) or not np.all(np.isfinite(P)):
-        raise RuntimeError("filter state is not finite and cannot be re-initialised")
-    return InitialState(x=x, P=P, k=res.k, j=res.j_end)
 
 
 def _plain(d: dict[str, Any]) -> dict[str, Any]:

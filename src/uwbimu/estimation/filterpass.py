@@ -45,6 +45,7 @@ class Problem:
 
     imu_t: np.ndarray  # (n,) IMU clock [s]
     imu_u: np.ndarray  # (n, 6)
+    imu_um: np.ndarray  # (n-1, 6) cubic mid-interval inputs (reference.midpoint_inputs)
     uwb_t: np.ndarray  # (m,) UWB clock [s]
     uwb_a: np.ndarray  # (m,) anchor index
     uwb_r: np.ndarray  # (m,) range [m] (documented biases already removed)
@@ -165,7 +166,8 @@ def run_pass(
             break
         if record:
             while next_out <= tau:
-                k = K.propagate_until(x, P, imu_t, imu_u, k, next_out, prob.noise, prob.dt_max, prob.cov_every, ws)
+                k = K.propagate_until(x, P, imu_t, imu_u, prob.imu_um, k, next_out, prob.noise, prob.dt_max,
+                                      prob.cov_every, ws)
                 _record()
                 next_out += prob.out_period
                 if prob.supervise:
@@ -176,7 +178,8 @@ def run_pass(
                     progress(k)
             if diverged:
                 break
-        k = K.propagate_until(x, P, imu_t, imu_u, k, tau, prob.noise, prob.dt_max, prob.cov_every, ws)
+        k = K.propagate_until(x, P, imu_t, imu_u, prob.imu_um, k, tau, prob.noise, prob.dt_max, prob.cov_every,
+                              ws)
         i = j - j0
         if imu_t[k] - tau > prob.max_lookback:
             rec[i, REC_STATUS] = STATUS_STALE
@@ -189,7 +192,7 @@ def run_pass(
         a = prob.uwb_a[j]
         force = consec[a] >= prob.reopen_after
         K.range_update(
-            x, P, imu_t, imu_u, k, tau, prob.anchors[a], prob.bias_idx[a], prob.uwb_r[j], prob.r_var,
+            x, P, imu_t, imu_u, prob.imu_um, k, tau, prob.anchors[a], prob.bias_idx[a], prob.uwb_r[j], prob.r_var,
             prob.gate, force, prob.robust_kind, prob.robust_c, prob.gain_mask, prob.dt_max, o,
         )
         rec[i] = o
@@ -212,7 +215,8 @@ def run_pass(
                 break
     if not diverged and record and to_end:
         while next_out <= t_last + 1e-12:
-            k = K.propagate_until(x, P, imu_t, imu_u, k, next_out, prob.noise, prob.dt_max, prob.cov_every, ws)
+            k = K.propagate_until(x, P, imu_t, imu_u, prob.imu_um, k, next_out, prob.noise, prob.dt_max,
+                                      prob.cov_every, ws)
             _record()
             next_out += prob.out_period
             if k >= n_imu - 1:

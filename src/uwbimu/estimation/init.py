@@ -322,7 +322,7 @@ def _refine(prob: Problem, pr: Prior, x0, P0, k0: int, j0: int, t0: float, v0, y
     k_new = start_index(prob, t0, td)
     xt = np.empty_like(x)
     ut = np.empty(6)
-    st = K.state_at(x, prob.imu_t, prob.imu_u, res.k, prob.imu_t[k_new], prob.dt_max, xt, ut)
+    st = K.state_at(x, prob.imu_t, prob.imu_u, prob.imu_um, res.k, prob.imu_t[k_new], prob.dt_max, xt, ut)
     if st != K.UPD_OK:
         info["refine"] = "skipped (start not reachable)"
         return x0, P0, k0

@@ -91,17 +91,17 @@ def _deriv(x, u, out):
 
 
 @njit(cache=True)
-def _rk4(x, u0, u1, dt, out, wk):
-    """RK4 step with a caller-provided work array ``wk`` (6, max(10, len(x))) (no allocation)."""
+def _rk4_core(x, u0, um, u1, dt, out, wk):
+    """RK4 step with inputs at start/middle/end and a work array ``wk`` (6, max(10, len(x))).
+
+    ``wk[0]`` is not touched (callers may keep ``um`` there); no allocation.
+    """
     n = x.shape[0]
-    um = wk[0]
     k1 = wk[1]
     k2 = wk[2]
     k3 = wk[3]
     k4 = wk[4]
     xt = wk[5]
-    for i in range(6):
-        um[i] = 0.5 * (u0[i] + u1[i])
     for i in range(n):
         xt[i] = x[i]
     _deriv(x, u0, k1)
@@ -121,6 +121,51 @@ def _rk4(x, u0, u1, dt, out, wk):
     nq = math.sqrt(out[6] ** 2 + out[7] ** 2 + out[8] ** 2 + out[9] ** 2)
     for i in range(6, 10):
         out[i] /= nq
+
+
+@njit(cache=True)
+def _rk4(x, u0, u1, dt, out, wk):
+    """RK4 step with the linearly interpolated (average) mid-interval input."""
+    for i in range(6):
+        wk[0, i] = 0.5 * (u0[i] + u1[i])
+    _rk4_core(x, u0, wk[0], u1, dt, out, wk)
+
+
+@njit(cache=True)
+def rk4_step_mid(x, u0, um, u1, dt, out):
+    """Reference ``propagate(x, u0, u1, dt, um=um)``: RK4 with an explicit mid-interval input."""
+    wk = np.empty((6, max(10, x.shape[0])))
+    _rk4_core(x, u0, um, u1, dt, out, wk)
+
+
+@njit(cache=True)
+def cubic_at(imu_t, imu_u, i, t, out):
+    """IMU input at time ``t`` inside interval ``i`` (``imu_t[i] .. imu_t[i+1]``).
+
+    Lagrange cubic through the four samples around the interval (centred,
+    one-sided at the ends of the log), as ``reference.midpoint_inputs``; linear
+    with fewer than four samples.
+    """
+    n = imu_t.shape[0]
+    if n < 4:
+        al = (t - imu_t[i]) / (imu_t[i + 1] - imu_t[i])
+        for c in range(6):
+            out[c] = imu_u[i, c] + al * (imu_u[i + 1, c] - imu_u[i, c])
+        return
+    f = i - 1
+    if f < 0:
+        f = 0
+    if f > n - 4:
+        f = n - 4
+    for c in range(6):
+        out[c] = 0.0
+    for j in range(4):
+        w = 1.0
+        for m in range(4):
+            if m != j:
+                w *= (t - imu_t[f + m]) / (imu_t[f + j] - imu_t[f + m])
+        for c in range(6):
+            out[c] += w * imu_u[f + j, c]
 
 
 @njit(cache=True)
@@ -306,10 +351,12 @@ def cov_step(P, x, u, dt, noise):
 
 
 @njit(cache=True)
-def propagate_until(x, P, imu_t, imu_u, k, t_target, noise, dt_max, cov_every, ws):
+def propagate_until(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_every, ws):
     """Advance the filter from IMU sample ``k`` until ``imu_t[k] >= t_target``.
 
-    Nominal state by reference RK4 steps, covariance by :func:`cov_step`
+    Nominal state by reference RK4 steps with the cubic mid-interval inputs
+    ``imu_um`` (``reference.midpoint_inputs``; linear sub-steps across IMU
+    gaps longer than ``dt_max``), covariance by :func:`cov_step`
     every ``cov_every`` samples (one step over the block, linearised at the
     block's start with its mean input); the pending block is always flushed
     before returning so that ``P`` belongs to ``imu_t[k]``.  ``ws`` is unused
@@ -356,10 +403,11 @@ def propagate_until(x, P, imu_t, imu_u, k, t_target, noise, dt_max, cov_every, w
             for i in range(nx):
                 xb[i] = x[i]
         for i in range(6):
-            usum[i] += 0.5 * (imu_u[k, i] + imu_u[k + 1, i])
+            # Simpson mean of the input over the interval (for the linearisation)
+            usum[i] += (imu_u[k, i] + 4.0 * imu_um[k, i] + imu_u[k + 1, i]) / 6.0
         dts += dt
         cnt += 1
-        _rk4(x, imu_u[k], imu_u[k + 1], dt, xn, wk)
+        _rk4_core(x, imu_u[k], imu_um[k], imu_u[k + 1], dt, xn, wk)
         for i in range(nx):
             x[i] = xn[i]
         k += 1
@@ -379,14 +427,16 @@ def propagate_until(x, P, imu_t, imu_u, k, t_target, noise, dt_max, cov_every, w
 
 
 @njit(cache=True)
-def state_at(x, imu_t, imu_u, k, tau, dt_max, xt, u_tau):
+def state_at(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau):
     """Nominal state at IMU time ``tau <= imu_t[k]`` from the current state ``x`` (at ``imu_t[k]``).
 
     Integrates the actual IMU samples backward (reference RK4 steps with
-    negative ``dt``), ending with a partial step to ``tau`` whose input is the
-    linear interpolation of the samples.  Because it starts from the current,
-    already corrected estimate, every earlier update is accounted for.
-    Fills ``xt`` and the interpolated input ``u_tau``; returns an UPD_* code.
+    negative ``dt`` and the cubic mid-interval inputs ``imu_um``), ending with
+    a partial step to ``tau`` whose inputs are the same cubic evaluated at
+    ``tau`` and at the partial step's middle (linear inside an IMU gap).
+    Because it starts from the current, already corrected estimate, every
+    earlier update is accounted for.  Fills ``xt`` and the input ``u_tau``;
+    returns an UPD_* code.
     """
     for i in range(x.shape[0]):
         xt[i] = x[i]
@@ -400,16 +450,27 @@ def state_at(x, imu_t, imu_u, k, tau, dt_max, xt, u_tau):
         return UPD_OK
     if tau < imu_t[0]:
         return UPD_BEFORE_IMU
+    wk = np.empty((6, max(10, x.shape[0])))
     while j > 0 and imu_t[j - 1] >= tau:
-        propagate_interval(xt, imu_u[j], imu_u[j - 1], imu_t[j - 1] - imu_t[j], dt_max, xt)
+        dt = imu_t[j - 1] - imu_t[j]
+        if dt_max > 0 and -dt > dt_max:
+            propagate_interval(xt, imu_u[j], imu_u[j - 1], dt, dt_max, xt)
+        else:
+            _rk4_core(xt, imu_u[j], imu_um[j - 1], imu_u[j - 1], dt, xt, wk)
         j -= 1
     if tau < imu_t[j]:
         t0 = imu_t[j - 1]
         t1 = imu_t[j]
-        al = (tau - t0) / (t1 - t0)
-        for i in range(6):
-            u_tau[i] = imu_u[j - 1, i] + al * (imu_u[j, i] - imu_u[j - 1, i])
-        propagate_interval(xt, imu_u[j], u_tau, tau - t1, dt_max, xt)
+        if dt_max > 0 and t1 - t0 > dt_max:
+            al = (tau - t0) / (t1 - t0)
+            for i in range(6):
+                u_tau[i] = imu_u[j - 1, i] + al * (imu_u[j, i] - imu_u[j - 1, i])
+            propagate_interval(xt, imu_u[j], u_tau, tau - t1, dt_max, xt)
+        else:
+            um = np.empty(6)
+            cubic_at(imu_t, imu_u, j - 1, tau, u_tau)
+            cubic_at(imu_t, imu_u, j - 1, 0.5 * (tau + t1), um)
+            _rk4_core(xt, imu_u[j], um, u_tau, tau - t1, xt, wk)
     else:
         for i in range(6):
             u_tau[i] = imu_u[j, i]
@@ -532,7 +593,7 @@ def inject(x, dx):
 
 
 @njit(cache=True)
-def range_update(x, P, imu_t, imu_u, k, tau, anchor, bias_idx, z, r_var, gate, force,
+def range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor, bias_idx, z, r_var, gate, force,
                  robust_kind, robust_c, gain_mask, dt_max, out):
     """Process one range: predict at IMU time ``tau``, gate, re-weight, Joseph update.
 
@@ -547,7 +608,7 @@ def range_update(x, P, imu_t, imu_u, k, tau, anchor, bias_idx, z, r_var, gate, f
     N = P.shape[0]
     xt = np.empty_like(x)
     u_tau = np.empty(6)
-    st = state_at(x, imu_t, imu_u, k, tau, dt_max, xt, u_tau)
+    st = state_at(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau)
     out[5] = st
     if st != UPD_OK:
         out[0] = np.nan

@@ -42,11 +42,12 @@ ROW_COLUMNS = [
     "scenario", "run", "estimator", "seed_truth", "seed_noise", "seed_init", "status", "error",
     "n_samples", "rmse_x", "rmse_y", "rmse_z", "rmse_3d", "final_err_x", "final_err_y", "final_err_z",
     "max_err_3d", "nees_pos_mean", "nees_kind", "lever_arm_err", "lever_arm_err_x", "lever_arm_err_y",
-    "lever_arm_err_z", "time_offset_err", "ranges_accepted", "n_warnings", "sim_s", "est_s",
+    "lever_arm_err_z", "time_offset_err", "ranges_accepted", "n_warnings", "sim_s", "est_s", "sim_cpu_s",
+    "est_cpu_s",
 ]  # fmt: skip
 
 #: Columns that depend on the machine (excluded from reproducibility checks).
-TIMING_COLUMNS = ("sim_s", "est_s")
+TIMING_COLUMNS = ("sim_s", "est_s", "sim_cpu_s", "est_cpu_s")
 
 
 class MonteCarloError(ValueError):
@@ -326,24 +327,25 @@ def _run_chunk(task: dict) -> dict:
         st, sn, si = run_seeds(task["seed_base"], run)
         base = {"scenario": task["scenario_name"], "run": int(run), "seed_truth": st, "seed_noise": sn,
                 "seed_init": si}
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         try:
             sc = Scenario.model_validate({**task["scenario"], "seeds": {"truth": st, "noise": sn, "init": si}})
             ds = simulate(sc)
             sim_err = None
         except Exception as exc:  # recorded per run, never silently dropped
             ds, sim_err = None, f"simulate: {type(exc).__name__}: {exc}"
-        sim_s = time.perf_counter() - t0
+        sim_s, sim_cpu = time.perf_counter() - t0, time.process_time() - c0
         for ei, est in enumerate(task["estimators"]):
-            row = {**base, "estimator": est["name"], "sim_s": sim_s, "status": "ok", "error": ""}
+            row = {**base, "estimator": est["name"], "sim_s": sim_s, "sim_cpu_s": sim_cpu, "status": "ok", "error": ""}
             if ds is None:
                 row.update(status="failed", error=sim_err, est_s=np.nan)
                 rows.append(row)
                 continue
-            t1 = time.perf_counter()
+            t1, c1 = time.perf_counter(), time.process_time()
             try:
                 result = _estimate(est, ds, si)
                 row["est_s"] = time.perf_counter() - t1
+                row["est_cpu_s"] = time.process_time() - c1
                 fields, trace = run_metrics(result, ds, float(task["skip_initial_s"]))
                 row.update(fields)
                 if T and len(trace["t"]):
@@ -354,7 +356,8 @@ def _run_chunk(task: dict) -> dict:
                         tr_sd[ri, ei, inside, a] = np.interp(grid[inside], tt, trace["sd"][:, a])
                     tr_nees[ri, ei, inside] = np.interp(grid[inside], tt, trace["nees"])
             except Exception as exc:
-                row.update(status="failed", error=f"{type(exc).__name__}: {exc}", est_s=time.perf_counter() - t1)
+                row.update(status="failed", error=f"{type(exc).__name__}: {exc}", est_s=time.perf_counter() - t1,
+                           est_cpu_s=time.process_time() - c1)
             rows.append(row)
     return {
         "scenario": task["scenario_name"],
@@ -500,6 +503,9 @@ def auto_chunk_size(total_runs: int, workers: int) -> int:
 # --------------------------------------------------------------------------
 # Executors
 # --------------------------------------------------------------------------
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
 def _run_pool(tasks: list[dict], workers: int, on_chunk: Callable[[dict], None]) -> list[str]:
     import multiprocessing as mp
 
@@ -508,9 +514,21 @@ def _run_pool(tasks: list[dict], workers: int, on_chunk: Callable[[dict], None])
         # Workers fork from a server that has already imported the heavy modules.
         ctx.set_forkserver_preload(["uwbimu.eval.montecarlo", "uwbimu.sim", "uwbimu.estimation.pointmass"])
     failures: list[str] = []
+    # One BLAS thread per worker process, as Dask workers have (same numerics, no oversubscription);
+    # the forkserver and its workers inherit the environment at their start.
+    saved = {k: os.environ.get(k) for k in _THREAD_VARS}
+    for k in _THREAD_VARS:
+        os.environ.setdefault(k, "1")
     ex = ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
     try:
-        pending = {ex.submit(run_chunk, t): t for t in tasks}
+        try:
+            pending = {ex.submit(run_chunk, t): t for t in tasks}  # workers start here
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
         while pending:
             done, _ = wait(pending, return_when=FIRST_COMPLETED)
             for f in done:

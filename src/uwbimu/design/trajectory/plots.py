@@ -15,8 +15,14 @@ def seed_trajectory_figure(res: SeedOcpResult) -> Figure:
     """Seed fig. 7: PD vs optimal trajectories (3-D view and per axis)."""
     fig = Figure(figsize=(11, 4.5))
     ax3 = fig.add_subplot(1, 2, 1, projection="3d")
-    styles = {"pd": ("tab:blue", "-", "PD"), "indirect": ("tab:red", "-", "optimal (indirect, PMP)"), "direct": ("k", "--", "optimal (direct, IPOPT)")}
-    for m in (res.pd, res.indirect, res.direct):
+    styles = {
+        "pd": ("tab:blue", "-", "PD"),
+        "indirect": ("tab:red", "-", "optimal (indirect, PMP)"),
+        "direct": ("k", "--", "optimal (direct, IPOPT)"),
+        "direct_fixed_final": ("tab:green", ":", "optimal, final state fixed at rest"),
+    }
+    methods = [m for m in (res.pd, res.indirect, res.direct, res.fixed_final) if m is not None]
+    for m in methods:
         c, ls, lab = styles[m.name]
         ax3.plot(m.x[:, 0], m.x[:, 1], m.x[:, 2], color=c, ls=ls, label=lab)
     bea = np.asarray(res.cfg.beacons)
@@ -29,7 +35,7 @@ def seed_trajectory_figure(res: SeedOcpResult) -> Figure:
     ax3.legend(fontsize=7, loc="upper left")
     ax3.set_title("Trajectories (seed fig. 7)")
     ax = fig.add_subplot(1, 2, 2)
-    for m in (res.pd, res.indirect, res.direct):
+    for m in methods:
         c, ls, lab = styles[m.name]
         for i, comp in enumerate("xyz"):
             ax.plot(m.t, m.x[:, i], color=c, ls=ls, alpha=1.0 - 0.25 * i, label=f"{lab} {comp}" if m.name != "direct" else None)
@@ -47,7 +53,10 @@ def seed_det_figure(res: SeedOcpResult) -> Figure:
     fig = Figure(figsize=(6.5, 4))
     ax = fig.add_subplot(1, 1, 1)
     bea = np.asarray(res.cfg.beacons)
-    for m, c, ls, lab in ((res.pd, "tab:blue", "-", "PD"), (res.indirect, "tab:red", "-", "optimal (indirect)"), (res.direct, "k", "--", "optimal (direct)")):
+    rows = [(res.pd, "tab:blue", "-", "PD"), (res.indirect, "tab:red", "-", "optimal (indirect)"), (res.direct, "k", "--", "optimal (direct)")]
+    if res.fixed_final is not None:
+        rows.append((res.fixed_final, "tab:green", ":", "optimal, final state fixed"))
+    for m, c, ls, lab in rows:
         ax.plot(m.t, det_observability(m.x[:, :3], bea), color=c, ls=ls, label=f"{lab}, mean {m.cost['det_mean']:.3f}")
     ax.set_xlabel("t [s]")
     ax.set_ylabel("det(O)  (unit line-of-sight vectors)")

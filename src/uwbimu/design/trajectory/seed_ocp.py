@@ -54,7 +54,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Optional
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
@@ -381,6 +381,125 @@ def solve_indirect(cfg: SeedOcpConfig, u_init: np.ndarray | None = None) -> Meth
 
 
 # --------------------------------------------------------------------------
+# Indirect method with the continuous costate ODE (the seed's text literally)
+# --------------------------------------------------------------------------
+def _midpoint_states(x: np.ndarray, u: np.ndarray, h: float) -> np.ndarray:
+    """Exact ZOH states at the interval midpoints ``t_k + h/2`` (N, 6)."""
+    hm = 0.5 * h
+    p = x[:-1, :3] + hm * x[:-1, 3:] + 0.5 * hm * hm * u
+    v = x[:-1, 3:] + hm * u
+    return np.hstack([p, v])
+
+
+def _ell_grad(x: np.ndarray, cfg: SeedOcpConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Running cost ``l(X)`` and its gradient (rows of ``x``)."""
+    D, dD = det_observability_grad(x[:, :3], np.asarray(cfg.beacons))
+    e = x[:, :3] - np.asarray(cfg.goal)
+    ell = cfg.w_det / D**2 + cfg.w_track * 0.5 * np.sum(e * e, axis=1)
+    g = np.zeros_like(x)
+    g[:, :3] = cfg.w_det * (-2.0 / D[:, None] ** 3) * dD + cfg.w_track * e
+    if cfg.track_velocity:
+        ell = ell + cfg.w_track * 0.5 * np.sum(x[:, 3:] ** 2, axis=1)
+        g[:, 3:] = cfg.w_track * x[:, 3:]
+    return ell, g
+
+
+def continuous_cost(x: np.ndarray, u: np.ndarray, cfg: SeedOcpConfig) -> float:
+    """``J`` with the running cost integrated by Simpson's rule on each interval (O(h^4))."""
+    ell_n, _ = _ell_grad(x, cfg)
+    ell_m, _ = _ell_grad(_midpoint_states(x, u, cfg.h), cfg)
+    h = cfg.h
+    return float(h / 6.0 * np.sum(ell_n[:-1] + 4.0 * ell_m + ell_n[1:]) + cfg.w_u * 0.5 * h * np.sum(u * u))
+
+
+def continuous_costate(x: np.ndarray, u: np.ndarray, cfg: SeedOcpConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Seed's costate ODE integrated backward by RK4, and ``H_u`` per interval.
+
+    ``lambda_p' = -dl/dp``, ``lambda_v' = -lambda_p - dl/dv``, ``lambda(T) = 0``
+    (``lambda' = -H_x^T``).  ``H_u,k`` is the interval average of
+    ``u + B^T lambda = u + lambda_v`` (Simpson, with the midpoint costate from
+    cubic Hermite interpolation), i.e. ``dJ/du_k / h`` of the continuous cost.
+
+    Returns ``lam`` (N+1, 6) at the nodes and ``Hu`` (N, 3).
+    """
+    h = cfg.h
+    n = len(u)
+    _, gn = _ell_grad(x, cfg)
+    _, gm = _ell_grad(_midpoint_states(x, u, h), cfg)
+
+    def f(lam, g):  # d lambda / dt
+        return np.concatenate([-g[:3], -lam[:3] - g[3:]])
+
+    lam = np.zeros((n + 1, 6))
+    for k in range(n - 1, -1, -1):  # backward: step -h from t_{k+1}
+        l1 = lam[k + 1]
+        k1 = f(l1, gn[k + 1])
+        k2 = f(l1 - 0.5 * h * k1, gm[k])
+        k3 = f(l1 - 0.5 * h * k2, gm[k])
+        k4 = f(l1 - h * k3, gn[k])
+        lam[k] = l1 - h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+    dlv = -lam[:, :3] - gn[:, 3:]
+    lv_mid = 0.5 * (lam[:-1, 3:] + lam[1:, 3:]) + h / 8.0 * (dlv[:-1] - dlv[1:])
+    Hu = cfg.w_u * u + (lam[:-1, 3:] + 4.0 * lv_mid + lam[1:, 3:]) / 6.0
+    return lam, Hu
+
+
+def solve_indirect_continuous(cfg: SeedOcpConfig, u_init: np.ndarray | None = None) -> MethodResult:
+    """The seed's indirect method with the *continuous* costate ODE (RK4 backward).
+
+    Same loop as :func:`solve_indirect` (from the PD control, ``u <- u - alpha H_u``,
+    Armijo on :func:`continuous_cost`, stop on ``max |H_u| < hu_tol``), but the costate
+    and ``H_u`` come from the continuous Pontryagin equations (optimise, then
+    discretise).  Its optimum is that of the continuous problem with piecewise-constant
+    ``u``; it differs from the trapezoid grid problem of the direct method by
+    O(h^2) (measured in ``benchmarks/bench_plan.py``).
+    """
+    t0 = time.perf_counter()
+    x0 = np.asarray(cfg.x0, dtype=float)
+    h = cfg.h
+    u = pd_rollout(cfg)[1] if u_init is None else np.array(u_init, dtype=float)
+    x = rollout(x0, u, h)
+    J = continuous_cost(x, u, cfg)
+    _, Hu = continuous_costate(x, u, cfg)
+    hist = {"hu_max": [float(np.abs(Hu).max())], "cost": [J], "alpha": []}
+    alpha, it, converged = cfg.alpha0, 0, False
+    while it < cfg.max_iter:
+        if float(np.abs(Hu).max()) < cfg.hu_tol:
+            converged = True
+            break
+        g2 = h * float(np.sum(Hu * Hu))
+        a = min(2.0 * alpha, 4.0 * cfg.alpha0)
+        while a >= 1e-14:
+            u_try = u - a * Hu
+            x_try = rollout(x0, u_try, h)
+            J_try = continuous_cost(x_try, u_try, cfg)
+            if np.isfinite(J_try) and J_try <= J - 1e-4 * a * g2:
+                break
+            a *= 0.5
+        if a < 1e-14:  # H_u and the Simpson cost disagree at this level: stop here
+            break
+        alpha, u, x, J = a, u_try, x_try, J_try
+        _, Hu = continuous_costate(x, u, cfg)
+        it += 1
+        hist["hu_max"].append(float(np.abs(Hu).max()))
+        hist["cost"].append(J)
+        hist["alpha"].append(a)
+    return MethodResult(
+        name="indirect_continuous",
+        t=cfg.t,
+        x=x,
+        u=u,
+        cost=seed_cost(x, u, cfg),
+        solve_time_s=time.perf_counter() - t0,
+        iterations=it,
+        converged=converged,
+        hu_max=float(np.abs(Hu).max()),
+        history=hist,
+        info={"continuous_cost": J},
+    )
+
+
+# --------------------------------------------------------------------------
 # Direct method (CasADi Opti, multiple shooting, IPOPT)
 # --------------------------------------------------------------------------
 def det_observability_casadi(p, beacons: np.ndarray):
@@ -394,8 +513,12 @@ def det_observability_casadi(p, beacons: np.ndarray):
     return ca.det(ca.vertcat(*rows))
 
 
-def solve_direct(cfg: SeedOcpConfig, u_init: np.ndarray | None = None, verbose: bool = False) -> MethodResult:
+def solve_direct(cfg: SeedOcpConfig, u_init: np.ndarray | None = None, verbose: bool = False, fixed_final: bool = False) -> MethodResult:
     """Direct multiple shooting on the shared grid, solved by IPOPT.
+
+    ``fixed_final=True`` solves the seed's suggested variant with the final
+    state fixed at the goal, at rest (``X_N = [p_d, 0]``), to quantify the
+    trade-off the seed describes (final velocity vs observability).
 
     Decision variables: nodes ``X_0..X_N`` (6 each) and controls ``u_0..u_{N-1}``;
     shooting constraints are the exact ZOH transition (linear), so the NLP's
@@ -418,6 +541,8 @@ def solve_direct(cfg: SeedOcpConfig, u_init: np.ndarray | None = None, verbose: 
     Bh = ca.DM(np.vstack([0.5 * h * h * np.eye(3), h * np.eye(3)]))
     opti.subject_to(X[:, 0] == ca.DM(cfg.x0))
     opti.subject_to(X[:, 1:] == ca.mtimes(Ah, X[:, :-1]) + ca.mtimes(Bh, U))
+    if fixed_final:
+        opti.subject_to(X[:, -1] == ca.DM(list(cfg.goal) + [0.0, 0.0, 0.0]))
     # running cost as a CasADi Function mapped over the nodes (keeps the graph small)
     xs = ca.SX.sym("x", 6)
     D = det_observability_casadi(xs[:3], bea)
@@ -452,8 +577,10 @@ def solve_direct(cfg: SeedOcpConfig, u_init: np.ndarray | None = None, verbose: 
     x = np.asarray(Xs).T
     u = np.asarray(Us).T.reshape(n, 3)
     _, Hu = hamiltonian_gradient(x, u, cfg)
+    if fixed_final:  # lambda(T) = 0 does not hold with a fixed end: H_u of the free problem is meaningless
+        Hu = np.full_like(Hu, np.nan)
     return MethodResult(
-        name="direct",
+        name="direct_fixed_final" if fixed_final else "direct",
         t=cfg.t,
         x=x,
         u=u,
@@ -475,6 +602,8 @@ class SeedOcpResult:
     pd: MethodResult
     indirect: MethodResult
     direct: MethodResult
+    fixed_final: Optional[MethodResult] = None
+    indirect_continuous: Optional[MethodResult] = None
 
     def agreement(self) -> dict[str, float]:
         """Differences between the two optimal solutions."""
@@ -509,15 +638,37 @@ class SeedOcpResult:
             "final_state": {m.name: m.x[-1].tolist() for m in (self.pd, self.indirect, self.direct)},
             "config": c.model_dump(),
         }
+        ic = self.indirect_continuous
+        if ic is not None:
+            out.update(
+                cost_indirect_continuous=ic.cost["total"],
+                continuous_cost_indirect_continuous=ic.info["continuous_cost"],
+                solve_time_indirect_continuous_s=ic.solve_time_s,
+                converged_indirect_continuous=ic.converged,
+                u_max_abs_diff_continuous_vs_direct=float(np.abs(ic.u - self.direct.u).max()),
+            )
+            out["terms"][ic.name] = ic.cost
+        if self.fixed_final is not None:
+            ff = self.fixed_final
+            out.update(
+                cost_direct_fixed_final=ff.cost["total"],
+                det_mean_fixed_final=ff.cost["det_mean"],
+                converged_fixed_final=ff.converged,
+            )
+            out["terms"][ff.name] = ff.cost
+            out["final_state"][ff.name] = ff.x[-1].tolist()
         return out
 
 
-def solve_seed_ocp(cfg: SeedOcpConfig | None = None) -> SeedOcpResult:
-    """PD baseline, indirect and direct solutions of the seed problem."""
+def solve_seed_ocp(cfg: SeedOcpConfig | None = None, fixed_final: bool = True, continuous: bool = True) -> SeedOcpResult:
+    """PD baseline, indirect and direct solutions of the seed problem, plus the
+    fixed-final-state variant (direct) and the continuous-costate indirect method."""
     cfg = cfg or SeedOcpConfig()
     t0 = time.perf_counter()
     x, u = pd_rollout(cfg)
     pd = MethodResult("pd", cfg.t, x, u, seed_cost(x, u, cfg), time.perf_counter() - t0, 0, True, float(np.abs(hamiltonian_gradient(x, u, cfg)[1]).max()))
     ind = solve_indirect(cfg)
     dire = solve_direct(cfg)
-    return SeedOcpResult(cfg, pd, ind, dire)
+    ff = solve_direct(cfg, fixed_final=True) if fixed_final else None
+    ic = solve_indirect_continuous(cfg) if continuous else None
+    return SeedOcpResult(cfg, pd, ind, dire, ff, ic)

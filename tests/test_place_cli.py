@@ -1,0 +1,121 @@
+"""``uwbimu place``: config loading, errors, outputs (placement.json, anchors.csv, plots)."""
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from uwbimu.cli.main import app
+from uwbimu.design.config import ConfigError, PlacementConfig, load_config
+from uwbimu.design.run import EXAMPLES, builtin_example
+
+runner = CliRunner()
+
+QUICK_ROOM = {
+    "mode": "room",
+    "seed": 3,
+    "n_anchors": 5,
+    "radio": {"preset": "dw1000-indoor", "antenna": {"type": "omni"}, "k": 3},
+    "room": {"box": [6.0, 5.0, 3.0], "mount": {"spacing": 1.5}, "grid_step": 1.0,
+             "obstacles": [{"box": {"lo": [2.5, 2.0, 0.0], "hi": [3.0, 2.5, 3.0]}}]},
+    "objective": {"pareto": True},
+    "optimizer": {"swap_rounds": 1, "maxiter": 2, "popsize": 3},
+    "compare": {"ceiling": [[0.2, 0.2, 2.8], [5.8, 0.2, 2.8], [5.8, 4.8, 2.8], [0.2, 4.8, 2.8], [3, 2.5, 2.8]]},
+}
+
+
+def test_examples_yaml_match_builtins():
+    for name in EXAMPLES:
+        assert load_config(f"examples/placement/{name}.yaml") == builtin_example(name)
+
+
+def test_place_room_writes_outputs(tmp_path):
+    cfg = tmp_path / "room.yaml"
+    cfg.write_text(yaml.safe_dump(QUICK_ROOM))
+    out = tmp_path / "out"
+    r = runner.invoke(app, ["place", str(cfg), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    js = json.loads((out / "placement.json").read_text())
+    for key in ("anchors", "coverage", "pdop_p50", "pdop_p95", "worst_single_failure", "objective", "seed"):
+        assert key in js
+    assert js["seed"] == 3 and len(js["anchors"]) == 5 and all(len(a) == 3 for a in js["anchors"])
+    assert 0.0 <= js["coverage"] <= 1.0 and js["pdop_p50"] <= js["pdop_p95"]
+    df = pd.read_csv(out / "anchors.csv", dtype={"anchor": str})
+    assert list(df.columns) == ["anchor", "x", "y", "z"]
+    assert df["anchor"].tolist() == [f"A{i}" for i in range(1, 6)]
+    assert np.allclose(df[["x", "y", "z"]].to_numpy(), np.array(js["anchors"]))
+    from uwbimu.sim import Scenario
+
+    snippet = yaml.safe_load((out / "anchors_scenario.yaml").read_text())
+    sc = Scenario.model_validate({"duration": 1.0, **snippet})
+    assert sc.anchor_ids() == df["anchor"].tolist()
+    for png in ("anchors_3d.png", "coverage_map.png", "pdop_slices.png", "marginal_value.png"):
+        assert (out / png).stat().st_size > 1000
+    assert js["pareto"]  # non-dominated layouts from the final DE population
+    # same seed -> same layout (reproducible); existing output is not overwritten without --force
+    r2 = runner.invoke(app, ["place", str(cfg), "--out", str(out), "--no-plots"])
+    assert r2.exit_code == 2 and "--force" in r2.output
+    r3 = runner.invoke(app, ["place", str(cfg), "--out", str(out), "--no-plots", "--force"])
+    assert r3.exit_code == 0
+    assert json.loads((out / "placement.json").read_text())["anchors"] == js["anchors"]
+
+
+def test_place_structure_quick(tmp_path):
+    from uwbimu.design.run import run_placement, write_outputs
+
+    cfg = PlacementConfig.model_validate({
+        "mode": "structure", "seed": 1, "n_anchors": 16,
+        "structure": {"name": "jib-crane", "stations_per_rail": [2, 2], "grid_step": 5.0, "freedom": "rotate",
+                      "pso_particles": 4, "pso_iters": 2, "local_search": False},
+    })
+    res = run_placement(cfg)
+    write_outputs(res, tmp_path, plots=False)
+    js = json.loads((tmp_path / "placement.json").read_text())
+    assert len(js["anchors"]) == 16 and js["table"][0]["coverage"] == 0.913
+    assert js["worst_single_failure"]["coverage"] <= js["coverage"]
+
+
+def test_cli_errors_are_readable(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("mode: room\nroom: {box: [10, 8]}\n")
+    r = runner.invoke(app, ["place", str(bad), "--out", str(tmp_path / "o")])
+    assert r.exit_code == 2
+    assert "bad.yaml" in r.output and "room.box" in r.output
+    r = runner.invoke(app, ["place", "--example", "room", str(bad), "--out", str(tmp_path / "o")])
+    assert r.exit_code == 2 and "exactly one" in r.output
+    r = runner.invoke(app, ["place", "--example", "ship", "--out", str(tmp_path / "o")])
+    assert r.exit_code == 2 and "unknown example" in r.output
+    syn = tmp_path / "syntax.yaml"
+    syn.write_text("mode: room\n  room: [\n")
+    with pytest.raises(ConfigError, match="line"):
+        load_config(syn)
+
+
+def test_room_with_table_pattern_and_candidate_list(tmp_path):
+    from uwbimu.design.run import run_placement
+
+    lines = ["azimuth_deg,elevation_deg,gain_dbi"]
+    for el in range(-90, 91, 30):
+        for az in range(-180, 180, 30):
+            lines.append(f"{az},{el},{6.0 if abs(az) <= 60 and abs(el) <= 60 else -10.0}")
+    (tmp_path / "patch.csv").write_text("\n".join(lines) + "\n")
+    cand = [[x, y, z] for x in (0.3, 2.5, 4.7) for y in (0.3, 3.7) for z in (0.3, 2.7)]
+    cfg_d = {
+        "mode": "room", "seed": 0, "n_anchors": 5,
+        "radio": {"max_range": 8.0, "antenna": {"type": "table", "csv": "patch.csv"}},
+        "room": {"box": [5.0, 4.0, 3.0], "candidates": cand, "grid_step": 1.0},
+        "optimizer": {"swap_rounds": 1},
+    }
+    f = tmp_path / "t.yaml"
+    f.write_text(yaml.safe_dump(cfg_d))
+    res = run_placement(load_config(f))
+    chosen = {tuple(a) for a in np.asarray(res["anchors"]).round(6).tolist()}
+    assert chosen <= {tuple(c) for c in cand} and len(chosen) == 5  # picked from the list, no refinement
+    assert 0.0 <= res["coverage"] <= 1.0
+    bad = dict(cfg_d, room=dict(cfg_d["room"], candidates=[[9.0, 1.0, 1.0]] + cand))
+    f.write_text(yaml.safe_dump(bad))
+    with pytest.raises(ValueError, match=r"candidates\[0\]"):
+        run_placement(load_config(f))
