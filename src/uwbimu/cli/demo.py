@@ -152,7 +152,7 @@ def run_demo(out: Path, console: Console, force: bool = False, duration: float |
     console.print(_truth_comparison(result, ds))
     console.print(
         f"position RMSE {100 * metrics['position_rmse']:.1f} cm, orientation RMSE "
-        f"{metrics['orientation_rmse_deg']:.2f} deg, mean NEES {metrics["nees_mean"]:.1f} (dof {metrics["nees_dof"]}), "
+        f"{metrics['orientation_rmse_deg']:.2f} deg, mean NEES {metrics['nees_mean']:.1f} (dof {metrics['nees_dof']}), "
         f"ESKF run time {result.runtime_s:.2f} s"
     )
     for w in result.warnings:
