@@ -10,7 +10,9 @@ Prints
 1. the per-run breakdown simulate vs estimate (in-process, a few runs);
 2. the wall time of the job on the local process pool (``--workers`` processes);
 3. the same job on a loopback Dask LocalCluster with as many workers, both
-   including and excluding the cluster start-up, and the ratio to (2);
+   including and excluding the cluster start-up, then the pool again, and the
+   ratio of Dask to the mean of the two pool runs (each measurement in a fresh
+   Python process; the machine may be shared, so the bracketing shows drift);
 4. that both backends produced bit-identical metrics.
 
 Targets: (2) < 60 s with 2 workers; (3)/(2) <= 1.3.
@@ -23,7 +25,10 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import subprocess
+import sys
 import shutil
 import tempfile
 import time
@@ -38,19 +43,18 @@ def main() -> None:
     ap.add_argument("--scenario", default="excited-90s")
     ap.add_argument("--breakdown-runs", type=int, default=3)
     ap.add_argument("--skip-dask", action="store_true")
+    ap.add_argument("--child", choices=["pool", "dask"], help=argparse.SUPPRESS)
+    ap.add_argument("--child-out", help=argparse.SUPPRESS)
     args = ap.parse_args()
 
     import pandas as pd
 
     from uwbimu.eval import montecarlo as mc
 
-    cfg = mc.config_from_dict({
-        "name": "bench",
-        "runs": args.runs,
-        "seed_base": 123,
-        "scenarios": [{"name": args.scenario, "builtin": args.scenario}],
-        "estimators": [{"name": args.estimator, "kind": args.estimator}],
-    })
+    if args.child:
+        _child(args)
+        return
+    cfg = _config(mc, args)
     print(f"job: {args.runs} runs of '{args.scenario}' with the {args.estimator} estimator, "
           f"{args.workers} workers, {os.cpu_count()} cores on this machine "
           f"(load average {os.getloadavg()[0]:.1f} at start)")
@@ -74,34 +78,23 @@ def main() -> None:
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_mc_"))
     try:
-        # 2. local process pool
-        wall_pool, cpu_pool, s_pool = _pool(mc, cfg, tmp / "pool", args.workers)
-        print(f"process pool: {wall_pool:.1f} s wall for {args.runs} runs, chunk size "
-              f"{s_pool['execution']['chunk_size']}  [target < 60 s]; CPU in the runs {cpu_pool:.1f} s "
-              f"(= {cpu_pool / args.workers:.1f} s on {args.workers} otherwise idle cores)")
+        # Each measurement runs in a fresh Python process (no warm forkserver / imports carried over).
+        res = {}
+        for label in ("pool", "dask", "pool2") if not args.skip_dask else ("pool",):
+            backend = "dask" if label == "dask" else "pool"
+            res[label] = _measure_in_subprocess(args, backend, tmp / label)
+            r = res[label]
+            extra = f" ({r['startup_s']:.1f} s cluster start-up, {r['job_s']:.1f} s job only)" if backend == "dask" else ""
+            print(f"{label:6s}: {r['wall_s']:.1f} s wall for {args.runs} runs incl. process start-up{extra}; "
+                  f"CPU inside the runs {r['cpu_s']:.1f} s (= {r['cpu_s'] / args.workers:.1f} s on "
+                  f"{args.workers} otherwise idle cores); chunk size {r['chunk_size']}")
+        print(f"target (100 runs of the 90 s flight, ESKF, 2 cores): < 60 s -> measured {res['pool']['wall_s']:.1f} s for {args.runs} runs (process pool)")
         if args.skip_dask:
             return
-        # 3. Dask LocalCluster (loopback), same job; then the pool again (the machine is shared:
-        #    bracketing the Dask run shows how much the load drifted)
-        from distributed import Client, LocalCluster
-
-        t0 = time.perf_counter()
-        with LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                          dashboard_address=None) as cluster, Client(cluster) as client:
-            t_up = time.perf_counter() - t0
-            t1 = time.perf_counter()
-            mc.run_study(cfg, tmp / "dask", client=client, workers=args.workers, plots=False)
-            wall_dask_job = time.perf_counter() - t1
-        wall_dask = time.perf_counter() - t0
-        cpu_dask = _run_cpu(tmp / "dask")
-        print(f"dask LocalCluster: {wall_dask:.1f} s wall incl. start-up/shutdown ({t_up:.1f} s start-up), "
-              f"{wall_dask_job:.1f} s for the job itself; CPU in the runs {cpu_dask:.1f} s")
-        wall_pool2, cpu_pool2, _ = _pool(mc, cfg, tmp / "pool2", args.workers)
-        print(f"process pool again: {wall_pool2:.1f} s wall; CPU in the runs {cpu_pool2:.1f} s")
-        ref = 0.5 * (wall_pool + wall_pool2)
-        print(f"ratio dask / pool (pool = mean of the two pool runs, {ref:.1f} s): "
-              f"{wall_dask / ref:.2f} incl. cluster start-up/shutdown, {wall_dask_job / ref:.2f} job only  "
-              f"[target <= 1.3]")
+        ref = 0.5 * (res["pool"]["wall_s"] + res["pool2"]["wall_s"])
+        print(f"ratio dask / pool (pool = mean of the runs before and after, {ref:.1f} s): "
+              f"{res['dask']['wall_s'] / ref:.2f} incl. cluster start-up/shutdown, "
+              f"{res['dask']['job_s'] / ref:.2f} job only  [target <= 1.3]")
         diffs = list(mc.iter_rows_equal_ignoring_timing(pd.read_csv(tmp / "pool" / "montecarlo.csv"),
                                                         pd.read_csv(tmp / "dask" / "montecarlo.csv")))
         print("metrics bit-identical between backends:", "yes" if not diffs else f"NO: {diffs[:3]}")
@@ -118,10 +111,51 @@ def _run_cpu(out: Path) -> float:
     return float(per_run["sim"].sum() + per_run["est"].sum())
 
 
-def _pool(mc, cfg, out: Path, workers: int):
+def _measure_in_subprocess(args, backend: str, out: Path) -> dict:
+    cmd = [sys.executable, __file__, "--child", backend, "--child-out", str(out), "--runs", str(args.runs),
+           "--workers", str(args.workers), "--estimator", args.estimator, "--scenario", args.scenario]
     t0 = time.perf_counter()
-    summary = mc.run_study(cfg, out, workers=workers, plots=False)
-    return time.perf_counter() - t0, _run_cpu(out), summary
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(f"{backend} run failed:\n{proc.stderr[-3000:]}")
+    r = json.loads(proc.stdout.strip().splitlines()[-1])
+    r["wall_s"] = wall
+    r["cpu_s"] = _run_cpu(out)
+    return r
+
+
+def _child(args) -> None:
+    """One measurement: the whole study on one backend; prints a JSON line."""
+    from uwbimu.eval import montecarlo as mc
+
+    cfg = _config(mc, args)
+    out = Path(args.child_out)
+    t0 = time.perf_counter()
+    if args.child == "dask":
+        from distributed import Client, LocalCluster
+
+        with LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                          dashboard_address=None) as cluster, Client(cluster) as client:
+            t_up = time.perf_counter() - t0
+            t1 = time.perf_counter()
+            s = mc.run_study(cfg, out, client=client, workers=args.workers, plots=False)
+            job = time.perf_counter() - t1
+    else:
+        t_up = 0.0
+        s = mc.run_study(cfg, out, workers=args.workers, plots=False)
+        job = time.perf_counter() - t0
+    print(json.dumps({"startup_s": t_up, "job_s": job, "chunk_size": s["execution"]["chunk_size"]}))
+
+
+def _config(mc, args):
+    return mc.config_from_dict({
+        "name": "bench",
+        "runs": args.runs,
+        "seed_base": 123,
+        "scenarios": [{"name": args.scenario, "builtin": args.scenario}],
+        "estimators": [{"name": args.estimator, "kind": args.estimator}],
+    })
 
 
 if __name__ == "__main__":

@@ -99,8 +99,9 @@ def test_dask_localcluster_gives_bit_identical_results_even_when_a_worker_dies(p
                 killed.append(worker)
 
         # chunks of one run (chunking does not change results) so that tasks are in flight when it dies
-        summary = mc.run_study(_cfg(chunk_size=1), tmp_path / "dask", client=client, plots=False,
-                               progress=kill_a_worker_after_first_chunk)
+        # through the scheduler address, as `--scheduler ADDRESS` does (its own client)
+        summary = mc.run_study(_cfg(chunk_size=1), tmp_path / "dask", scheduler=cluster.scheduler_address,
+                               plots=False, progress=kill_a_worker_after_first_chunk)
     assert killed and summary["execution"]["backend"] == "dask"
     assert summary["execution"]["task_failures"] == []
     diffs = list(mc.iter_rows_equal_ignoring_timing(_table(out_pool), _table(tmp_path / "dask")))

@@ -1,6 +1,7 @@
 """``uwbimu place``: config loading, errors, outputs (placement.json, anchors.csv, plots)."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -29,7 +30,8 @@ QUICK_ROOM = {
 
 def test_examples_yaml_match_builtins():
     for name in EXAMPLES:
-        assert load_config(f"examples/placement/{name}.yaml") == builtin_example(name)
+        path = Path(__file__).resolve().parents[1] / "examples" / "placement" / f"{name}.yaml"
+        assert load_config(path) == builtin_example(name)
 
 
 def test_place_room_writes_outputs(tmp_path):

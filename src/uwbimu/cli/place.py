@@ -31,7 +31,8 @@ def _print_result(res: dict) -> None:
                       f"{r['seconds']:.1f}" if "seconds" in r else "-")
     console.print(t)
     wsf = res["worst_single_failure"]
-    console.print(f"coverage {100 * res['coverage']:.2f} %, PDOP p50 {res['pdop_p50']:.3f}, p95 {res['pdop_p95']:.3f}; "
+    console.print(f"coverage {100 * res['coverage']:.2f} % (with PDOP <= 5: {100 * res['geometric_coverage']:.2f} %), "
+                  f"PDOP p50 {res['pdop_p50']:.3f}, p95 {res['pdop_p95']:.3f}; "
                   f"worst single failure: {wsf.get('anchor')} -> coverage {100 * wsf.get('coverage', float('nan')):.2f} %, "
                   f"PDOP p95 {wsf.get('pdop_p95', float('nan')):.3f}")
     for w in res["lint"]:

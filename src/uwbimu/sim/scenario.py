@@ -70,7 +70,7 @@ class TagSpec(_Spec):
     name: str
     lever_arm: Vec3 = Field(description="true antenna position in the IMU frame [m]")
     nominal_lever_arm: Optional[Vec3] = Field(
-        default=None, description="value written to dataset.yaml 'tags' (default: the true lever arm) [m]"
+        default=None, description="nominal (e.g. CAD) value written to dataset.yaml tags; default none, so that nothing of the truth reaches an estimator [m]"
     )
 
 

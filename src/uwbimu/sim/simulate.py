@@ -147,7 +147,7 @@ def simulate_full(scenario: Scenario, progress: Optional[Progress] = None) -> Si
         imu_noise=noise,
         imu_rate_hz=rate,
         range_sigma=float(scenario.uwb.sigma) if scenario.uwb.sigma > 0 else None,
-        tags=[TagMeta(name=t.name, lever_arm=[float(x) for x in (t.nominal_lever_arm or t.lever_arm)]) for t in tags],
+        tags=[TagMeta(name=t.name, lever_arm=None if t.nominal_lever_arm is None else [float(x) for x in t.nominal_lever_arm]) for t in tags],
         truth=truth,
         source="uwbimu.sim",
         extra={
