@@ -137,3 +137,26 @@ def test_metrics_and_outputs_for_a_result_without_attitude(tmp_path, short_ds):
     w = write_outputs(res, short_ds, tmp_path)
     assert (tmp_path / "metrics.yaml").is_file() and (tmp_path / "position_error.png").is_file()
     assert w["residual_table"].empty
+
+
+def test_real_data_preset_gauss_markov_biases_stay_honest():
+    """examples/estimator_real.yaml: Gauss-Markov per-anchor biases.  With a constant true bias the
+    bias sd cannot collapse (the model lets it drift), it stays bounded by its stationary sd, and the
+    estimate covers the truth; the position estimate remains usable."""
+    opts = EskfOptions.from_yaml(ROOT / "examples" / "estimator_real.yaml")
+    assert opts.anchor_bias.mode == "estimate" and opts.anchor_bias.correlation_time == 2.0
+    sc = builtin_scenario("calibration-flight")
+    biases = {"A1": 0.08}
+    sc = sc.model_copy(update={"duration": 30.0, "uwb": sc.uwb.model_copy(update={"anchor_bias": biases})})
+    ds = simulate(sc)
+    res = run_eskf(ds, opts)
+    const = run_eskf(ds, opts.model_copy(update={"anchor_bias": opts.anchor_bias.model_copy(
+        update={"correlation_time": None})}))
+    est, sd = res.calibration["anchor_bias"], res.calibration["anchor_bias_sd"]
+    for a in ds.anchors["anchor"]:
+        assert abs(est[a] - biases.get(a, 0.0)) < 3 * sd[a], (a, est[a], sd[a])
+        assert sd[a] <= 0.10 + 1e-9
+        assert sd[a] > 2 * const.calibration["anchor_bias_sd"][a]  # a drifting bias is never pinned down
+    m = compute_metrics(res, ds)
+    assert m["position_rmse_after"] < 0.1
+    assert m["lever_arm_within_3sigma"] and m["time_offset_within_3sigma"]

@@ -336,3 +336,33 @@ def test_inject_matches_boxplus():
     np.testing.assert_allclose(x1[:20], boxplus(x[:20], dx[:19]), atol=1e-14)
     np.testing.assert_allclose(x1[20:], x[20:] + dx[19:], atol=1e-15)
     assert quat_exp(np.zeros(3))[0] == 1.0
+
+
+def test_cov_step_gauss_markov_anchor_biases_match_dense_transition():
+    """Range biases as first-order Gauss-Markov processes: Phi_bb = exp(-dt/tau) I and
+    Q_bb = var (1 - exp(-2 dt/tau)) on top of the constant-bias step; the nominal mean decays alike."""
+    rng = np.random.default_rng(11)
+    nb = 3
+    N = 19 + nb
+    x = _rand_state(rng, nb)
+    u = _rand_u(rng)
+    A = rng.normal(size=(N, N))
+    P = A @ A.T / N
+    dt, var_b, tau = 0.01, 0.1**2, 2.0
+    s = np.array([2e-3, 3e-4, 3e-4, 2e-5, 1e-3, 1e-4])
+    P_const = P.copy()
+    K.cov_step(P_const, x, u, dt, s**2)  # constant biases (6-entry noise vector)
+    P_gm = P.copy()
+    K.cov_step(P_gm, x, u, dt, np.r_[s**2, var_b, 1.0 / tau])
+    f = np.exp(-dt / tau)
+    D = np.diag(np.r_[np.ones(19), np.full(nb, f)])
+    expect = D @ P_const @ D
+    expect[19:, 19:] += np.eye(nb) * var_b * (1 - f**2)
+    np.testing.assert_allclose(P_gm, expect, rtol=1e-12, atol=1e-15)
+    xb = x.copy()
+    K.decay_biases(xb, dt, np.r_[s**2, var_b, 1.0 / tau])
+    np.testing.assert_allclose(xb[20:], x[20:] * f)
+    np.testing.assert_array_equal(xb[:20], x[:20])
+    xc = x.copy()
+    K.decay_biases(xc, dt, s**2)  # constant biases: untouched
+    np.testing.assert_array_equal(xc, x)

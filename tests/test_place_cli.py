@@ -32,6 +32,8 @@ def test_examples_yaml_match_builtins():
     for name in EXAMPLES:
         path = Path(__file__).resolve().parents[1] / "examples" / "placement" / f"{name}.yaml"
         assert load_config(path) == builtin_example(name)
+    for path in (Path(__file__).resolve().parents[1] / "examples" / "placement").glob("*.yaml"):
+        load_config(path)  # every shipped example is valid
 
 
 def test_place_room_writes_outputs(tmp_path):

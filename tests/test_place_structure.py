@@ -82,3 +82,40 @@ def test_bridge_structure():
     assert 0.0 < pr.coverage([10.0, 50.0, 4.0, 8.0]) <= 1.0
     with pytest.raises(ValueError):
         StructureProblem(st, [1, 1])
+
+
+def test_geometry_kernel_matches_reference_information():
+    from uwbimu.design.metrics import information_matrix
+    from uwbimu.design.placement import pdop_from_g6
+    from uwbimu.design.radio import CosN, LinkModel, count_links_grid, geometry_grid
+
+    rng = np.random.default_rng(4)
+    lm = LinkModel(max_range=6.0, anchor_pattern=CosN(100.0))
+    axes = (np.arange(0.5, 10, 1.0), np.arange(0.5, 9, 1.0), np.arange(0.5, 6, 1.0))
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    anchors = rng.uniform([0, 0, 0], [10, 9, 6], (7, 3))
+    bores = rng.normal(size=(7, 3))
+    lut = lm.reach_lut()
+    counts, g6 = geometry_grid(axes, anchors, bores, lut)
+    assert np.array_equal(counts, count_links_grid(axes, anchors, bores, lut))
+    links = lm.links(pts, anchors, bores, ray_cast=False)
+    same = counts == links.sum(axis=1)
+    J = information_matrix(pts, anchors, 1.0, links)
+    packed = np.stack([J[:, 0, 0], J[:, 1, 1], J[:, 2, 2], J[:, 0, 1], J[:, 0, 2], J[:, 1, 2]], axis=1)
+    assert same.mean() > 0.99
+    assert np.allclose(g6[same], packed[same], atol=1e-5)
+    ref = pdop_from_g6(packed[same], 1e3)
+    well = ref < 20.0  # float32 sums: compare where the geometry is not ill-conditioned
+    assert well.sum() > 20
+    assert np.allclose(pdop_from_g6(g6[same].astype(float), 1e3)[well], ref[well], rtol=1e-3)
+
+
+def test_geometric_objective_on_coarse_bridge():
+    st = girder_bridge()
+    x = np.array([10.0, 50.0, 4.0, 8.0])
+    pc = StructureProblem(st, step=2.0)
+    pg = StructureProblem(st, step=2.0, objective="geometric", pdop_max=5.0)
+    assert 0.0 <= pg.geometric_coverage(x) <= pc.coverage(x)
+    assert pg(x) == pytest.approx(1.0 - pg.geometric_coverage(x))
+    with pytest.raises(ValueError):
+        StructureProblem(st, objective="nope")

@@ -77,6 +77,9 @@ def register(app: typer.Typer) -> None:
         config: Optional[Path] = typer.Option(None, "--config", "-c", help="estimator options YAML (see examples/estimator.yaml)"),
         plots: bool = typer.Option(True, "--plots/--no-plots", help="PNG plots when ground truth exists"),
         force: bool = typer.Option(False, "--force", help="write into a folder that holds other files"),
+        estimator: str = typer.Option(
+            "eskf", "--estimator", help="eskf (19-state ESKF) or pointmass (seed 002's 6-state EKF)"
+        ),
     ) -> None:
         """Estimate trajectory, lever arm and time offset with the UWB-IMU error-state EKF."""
         from uwbimu.estimation import EskfOptions, InitialisationError, write_outputs
@@ -84,8 +87,19 @@ def register(app: typer.Typer) -> None:
 
         console = Console()
         err = Console(stderr=True)
+        if estimator not in ("eskf", "pointmass"):
+            err.print(f"[red]error:[/] --estimator must be 'eskf' or 'pointmass', got {estimator!r}")
+            raise typer.Exit(code=2)
         try:
-            opts = EskfOptions.from_yaml(config) if config is not None else EskfOptions()
+            if estimator == "pointmass":
+                import yaml
+
+                from uwbimu.estimation.pointmass import PointMassOptions
+
+                opts = (PointMassOptions.model_validate(yaml.safe_load(config.read_text()) or {})
+                        if config is not None else PointMassOptions())
+            else:
+                opts = EskfOptions.from_yaml(config) if config is not None else EskfOptions()
         except (OSError, ValueError) as exc:
             err.print(f"[red]error:[/] {exc}")
             raise typer.Exit(code=2)
@@ -106,7 +120,13 @@ def register(app: typer.Typer) -> None:
             err.print(f"[red]invalid dataset:[/] {exc}")
             raise typer.Exit(code=1)
         try:
-            res = run_with_progress(ds, opts, console)
+            if estimator == "pointmass":
+                from uwbimu.estimation.pointmass import run_pointmass
+
+                with console.status("6-state point-mass EKF"):
+                    res = run_pointmass(ds, opts)
+            else:
+                res = run_with_progress(ds, opts, console)
         except (InitialisationError, ValueError) as exc:
             err.print(f"[red]estimation failed:[/] {exc}")
             raise typer.Exit(code=1)
@@ -115,9 +135,13 @@ def register(app: typer.Typer) -> None:
         console.print(calibration_table(res, ds))
         m = written["metrics"]
         if m is not None:
-            line = (f"position RMSE {100 * m['position_rmse']:.1f} cm (after 10 s: "
-                    f"{100 * (m['position_rmse_after'] or float('nan')):.1f} cm), orientation RMSE "
-                    f"{m['orientation_rmse_deg']:.2f} deg, NEES {m['nees_mean']:.1f} (dof {m['nees_dof']})")
+            def _num(v, scale=1.0, fmt=".1f"):
+                return "n/a" if v is None or not np.isfinite(v) else format(scale * v, fmt)
+
+            line = (f"position RMSE {_num(m['position_rmse'], 100)} cm (after 10 s: "
+                    f"{_num(m.get('position_rmse_after'), 100)} cm), orientation RMSE "
+                    f"{_num(m.get('orientation_rmse_deg'), 1, '.2f')} deg, NEES {_num(m.get('nees_mean'))} "
+                    f"(dof {m.get('nees_dof')})")
             console.print(f"[bold]vs ground truth:[/] {line}")
         for w in res.warnings:
             console.print(f"[yellow]warning:[/] {w}")

@@ -15,23 +15,24 @@ console = Console()
 def _print_result(res: dict) -> None:
     t = Table(title="layouts compared" if res["mode"] == "room" else f"{res.get('structure')}: coverage")
     if res["mode"] == "room":
-        t.add_column("layout", no_wrap=True)
-        for c in ("anchors", "coverage %", "PDOP p50", "PDOP p95", "N-1 PDOP p95"):
-            t.add_column(c)
+        t.add_column("layout", overflow="fold")
+        for c in ("N", "cov. %", "PDOP p50", "PDOP p95", "N-1 p95"):
+            t.add_column(c, no_wrap=True)
         for r in res["table"]:
             n1 = r.get("n1_pdop_p95")
             t.add_row(r["layout"], str(r["anchors"]), f"{100 * r['coverage']:.1f}", f"{r['pdop_p50']:.3f}",
                       f"{r['pdop_p95']:.3f}", "-" if n1 is None else f"{n1:.3f}")
     else:
-        t.add_column("layout", no_wrap=True)
-        for c in ("anchors", "variables", "coverage %", "time s"):
-            t.add_column(c)
+        t.add_column("layout", overflow="fold")
+        for c in ("N", "vars", "cov. %", "geo. %", "s"):
+            t.add_column(c, no_wrap=True)
         for r in res["table"]:
+            geo = r.get("geometric_coverage")
             t.add_row(r["layout"], str(r["anchors"]), str(r.get("variables", "-")), f"{100 * r['coverage']:.2f}",
-                      f"{r['seconds']:.1f}" if "seconds" in r else "-")
+                      "-" if geo is None else f"{100 * geo:.2f}", f"{r['seconds']:.1f}" if "seconds" in r else "-")
     console.print(t)
     wsf = res["worst_single_failure"]
-    console.print(f"coverage {100 * res['coverage']:.2f} % (with PDOP <= 5: {100 * res['geometric_coverage']:.2f} %), "
+    console.print(f"coverage {100 * res['coverage']:.2f} % (geometric, also PDOP <= 5: {100 * res['geometric_coverage']:.2f} %), "
                   f"PDOP p50 {res['pdop_p50']:.3f}, p95 {res['pdop_p95']:.3f}; "
                   f"worst single failure: {wsf.get('anchor')} -> coverage {100 * wsf.get('coverage', float('nan')):.2f} %, "
                   f"PDOP p95 {wsf.get('pdop_p95', float('nan')):.3f}")

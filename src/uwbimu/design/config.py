@@ -176,6 +176,8 @@ class StructureConfig(_M):
     pso_iters: int = Field(40, ge=1)
     grid_step: Optional[float] = Field(None, gt=0)
     local_search: bool = True
+    objective: Literal["coverage", "geometric"] = "coverage"  # geometric: k links AND PDOP <= pdop_max
+    pdop_max: float = Field(5.0, gt=1)
 
 
 class PlacementConfig(_M):

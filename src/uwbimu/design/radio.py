@@ -65,6 +65,7 @@ __all__ = [
     "k_coverage",
     "count_links_fast",
     "count_links_grid",
+    "geometry_grid",
     "lobe_sphere",
     "to_soa",
     "coverage_fraction_fast",
@@ -527,6 +528,94 @@ def _count_links_grid_kernel(xs, ys, zs, hx, hy, hz, anchors, bores, lut, dlut, 
                     t = f - np.float32(k)
                     counts[base + iz] += np.int16(d2 <= lut[k] + t * dlut[k])
     return counts
+
+
+@njit(cache=True, fastmath=True)
+def _geometry_grid_kernel(xs, ys, zs, hx, hy, hz, anchors, bores, lut, dlut, m_off, rho, counts, g6):  # pragma: no cover
+    # Same traversal as _count_links_grid_kernel; every closing link also adds its unit
+    # line-of-sight outer product u u^T (packed xx, yy, zz, xy, xz, yz) to g6 (float32).
+    nx, ny, nz = xs.shape[0], ys.shape[0], zs.shape[0]
+    x0, y0, z0 = xs[0], ys[0], zs[0]
+    n_lut = lut.shape[0]
+    half = np.float32(0.5 * (n_lut - 1))
+    fmax = np.float32(n_lut - 1) - np.float32(1e-3)
+    rho2 = np.float32(rho * rho)
+    for j in range(anchors.shape[0]):
+        ax = np.float32(anchors[j, 0])
+        ay = np.float32(anchors[j, 1])
+        az = np.float32(anchors[j, 2])
+        bx = np.float32(bores[j, 0])
+        by = np.float32(bores[j, 1])
+        bz = np.float32(bores[j, 2])
+        cx = ax + np.float32(m_off) * bx
+        cy = ay + np.float32(m_off) * by
+        cz = az + np.float32(m_off) * bz
+        ix0 = max(0, int(np.ceil((cx - rho - x0) / hx)))
+        ix1 = min(nx - 1, int(np.floor((cx + rho - x0) / hx)))
+        iy0 = max(0, int(np.ceil((cy - rho - y0) / hy)))
+        iy1 = min(ny - 1, int(np.floor((cy + rho - y0) / hy)))
+        for ix in range(ix0, ix1 + 1):
+            dx = xs[ix] - ax
+            ex = xs[ix] - cx
+            for iy in range(iy0, iy1 + 1):
+                ey = ys[iy] - cy
+                exy2 = ex * ex + ey * ey
+                if exy2 > rho2:
+                    continue
+                dy = ys[iy] - ay
+                dxy2 = dx * dx + dy * dy
+                cxy = dx * bx + dy * by
+                ezm = np.sqrt(rho2 - exy2)
+                iz0 = max(0, int(np.ceil((cz - ezm - z0) / hz)))
+                iz1 = min(nz - 1, int(np.floor((cz + ezm - z0) / hz)))
+                base = (ix * ny + iy) * nz
+                for iz in range(iz0, iz1 + 1):
+                    dz = zs[iz] - az
+                    d2 = dxy2 + dz * dz
+                    inv = np.float32(1.0) / np.sqrt(max(d2, np.float32(1e-12)))
+                    c = (cxy + dz * bz) * inv
+                    f = min(max((c + np.float32(1.0)) * half, np.float32(0.0)), fmax)
+                    k = int(f)
+                    t = f - np.float32(k)
+                    if d2 <= lut[k] + t * dlut[k]:
+                        i = base + iz
+                        counts[i] += 1
+                        ux = dx * inv
+                        uy = dy * inv
+                        uz = dz * inv
+                        g6[i, 0] += ux * ux
+                        g6[i, 1] += uy * uy
+                        g6[i, 2] += uz * uz
+                        g6[i, 3] += ux * uy
+                        g6[i, 4] += ux * uz
+                        g6[i, 5] += uy * uz
+    return counts
+
+
+def geometry_grid(axes, anchors, boresights, lut, sphere=None) -> tuple[np.ndarray, np.ndarray]:
+    """Closing LOS links per grid cell and the summed unit-LOS outer products.
+
+    Returns ``counts`` (P,) int16 and ``g6`` (P, 6) float32 packed ``H^T H`` (``xx, yy,
+    zz, xy, xz, yz``) over the closing links — PDOP per cell follows from
+    :func:`uwbimu.design.placement.pdop_from_g6`.  Same ordering and link test as
+    :func:`count_links_grid`.
+    """
+    xyz, hs = [], []
+    for ax in axes:
+        ax = np.asarray(ax, dtype=float)
+        h = float(ax[1] - ax[0]) if len(ax) > 1 else 1.0
+        xyz.append(np.ascontiguousarray(ax, dtype=np.float32))
+        hs.append(h)
+    b = np.asarray(boresights, dtype=np.float64)
+    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    n = len(xyz[0]) * len(xyz[1]) * len(xyz[2])
+    counts = np.zeros(n, dtype=np.int16)
+    g6 = np.zeros((n, 6), dtype=np.float32)
+    lut = np.asarray(lut, np.float32)
+    dlut = np.append(np.diff(lut), np.float32(0.0)).astype(np.float32)
+    m, rho = lobe_sphere(lut) if sphere is None else sphere
+    _geometry_grid_kernel(*xyz, *hs, np.asarray(anchors, np.float64), b, lut, dlut, m, rho, counts, g6)
+    return counts, g6
 
 
 def lobe_sphere(lut) -> tuple[float, float]:

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from uwbimu.design.radio import Bar, CosN, LinkModel, count_links_grid, lobe_sphere
+from uwbimu.design.radio import Bar, CosN, LinkModel, count_links_grid, geometry_grid, lobe_sphere
 
 __all__ = ["Rail", "Structure", "StructureProblem", "jib_crane", "girder_bridge", "grid_axes"]
 
@@ -181,11 +181,18 @@ class StructureProblem:
         ``"rotate"`` (+ rotation about the bar per station), or ``"rotate-tilt"``
         (+ boresight tilt along the bar per station)
     step : grid resolution [m] (structure's default when None)
+    objective : ``"coverage"`` (the seed's: fraction of points with >= k links) or
+        ``"geometric"`` (fraction with >= k links AND PDOP <= ``pdop_max``)
     """
 
-    def __init__(self, structure: Structure, stations_per_rail=None, freedom: str = "seed", step=None):
+    def __init__(self, structure: Structure, stations_per_rail=None, freedom: str = "seed", step=None,
+                 objective: str = "coverage", pdop_max: float = 5.0):
         if freedom not in ("seed", "rotate", "rotate-tilt"):
             raise ValueError(f"freedom must be seed|rotate|rotate-tilt, got {freedom!r}")
+        if objective not in ("coverage", "geometric"):
+            raise ValueError(f"objective must be coverage|geometric, got {objective!r}")
+        self.objective = objective
+        self.pdop_max = float(pdop_max)
         self.structure = structure
         self.spr = list(stations_per_rail or structure.stations_per_rail)
         if len(self.spr) != len(structure.rails):
@@ -235,6 +242,18 @@ class StructureProblem:
         c = self.counts(x)
         return float(np.count_nonzero(c >= self.k)) / c.shape[0]
 
+    def geometric_coverage(self, x) -> float:
+        """Fraction of points with >= k links and PDOP <= ``pdop_max``."""
+        from uwbimu.design.placement import pdop_from_g6
+
+        a, b = self.decode(x)
+        c, g6 = geometry_grid(self.axes, a, b, self.lut, self.sphere)
+        ok = c >= self.k
+        pd_ = pdop_from_g6(g6[ok].astype(np.float64), cap=np.inf)
+        return float(np.count_nonzero(pd_ <= self.pdop_max)) / c.shape[0]
+
     def __call__(self, x) -> float:
-        """Objective to minimise: ``1 - coverage``."""
+        """Objective to minimise: ``1 - coverage`` (or ``1 - geometric coverage``)."""
+        if self.objective == "geometric":
+            return 1.0 - self.geometric_coverage(x)
         return 1.0 - self.coverage(x)

@@ -17,6 +17,7 @@ from uwbimu.estimation.init import InitialState, InitialisationError  # noqa: F4
 from uwbimu.estimation.eskf import run_eskf  # noqa: F401
 from uwbimu.estimation.metrics import compute_metrics, truth_at  # noqa: F401
 from uwbimu.estimation.outputs import write_outputs, residual_table  # noqa: F401
+from uwbimu.estimation.pointmass import PointMassOptions, run_pointmass  # noqa: F401
 
 __all__ = [
     "EskfOptions",
@@ -28,4 +29,6 @@ __all__ = [
     "truth_at",
     "write_outputs",
     "residual_table",
+    "PointMassOptions",
+    "run_pointmass",
 ]

@@ -115,7 +115,9 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
         uwb_t=uwb_t, uwb_a=uwb_a, uwb_r=uwb_r, anchor_ids=anchor_ids,
         anchors=np.ascontiguousarray(anchors),
         noise=np.array([noise.accel_noise_density**2, noise.gyro_noise_density**2, noise.accel_bias_rw**2,
-                        noise.gyro_bias_rw**2, opts.lever_arm.random_walk**2, opts.time_offset.random_walk**2]),
+                        noise.gyro_bias_rw**2, opts.lever_arm.random_walk**2, opts.time_offset.random_walk**2]
+                       + ([opts.anchor_bias.prior_sd**2, 1.0 / opts.anchor_bias.correlation_time]
+                          if nb and opts.anchor_bias.correlation_time else [])),
         r_var=float(rsig**2), bias_idx=bias_idx, gain_mask=mask, dt_nom=dt_nom,
         dt_max=opts.imu_gap_factor * dt_nom, gate=gate, robust_kind=_ROBUST[opts.gating.robust],
         robust_c=opts.gating.robust_c, reopen_after=opts.gating.reopen_after, cov_every=opts.cov_every,

@@ -51,7 +51,7 @@ class Problem:
     uwb_r: np.ndarray  # (m,) range [m] (documented biases already removed)
     anchor_ids: list[str]
     anchors: np.ndarray  # (M, 3)
-    noise: np.ndarray  # (6,) squared densities for kernels.cov_step
+    noise: np.ndarray  # (6,) squared densities for kernels.cov_step (+ (2,) Gauss-Markov bias variance, 1/tau)
     r_var: float  # range variance [m^2]
     bias_idx: np.ndarray  # (M,) error index of each anchor's bias or -1
     gain_mask: np.ndarray  # (N,)

@@ -336,6 +336,16 @@ def _cov_step(P, x, u, dt, noise, B, W, col):
         P[12 + i, 12 + i] += noise[3] * adt
         P[15 + i, 15 + i] += noise[4] * adt
     P[18, 18] += noise[5] * adt
+    if noise.shape[0] >= 8 and noise[7] > 0.0 and N > 19:
+        # per-anchor range biases as first-order Gauss-Markov processes
+        # (b' = -b / tau + w, stationary variance noise[6], 1 / tau = noise[7]):
+        # Phi_bb = exp(-|dt| / tau) I, Q_bb = var (1 - Phi_bb^2)
+        f = math.exp(-adt * noise[7])
+        for r in range(19, N):
+            for c in range(N):
+                P[r, c] *= f
+                P[c, r] *= f
+            P[r, r] += noise[6] * (1.0 - f * f)
 
 
 @njit(cache=True)
@@ -344,10 +354,22 @@ def cov_step(P, x, u, dt, noise):
 
     ``noise`` = ``[s_a^2, s_g^2, s_ba^2, s_bg^2, s_piu^2, s_td^2]``: continuous
     densities squared (accel, gyro white noise; bias, lever-arm and time-offset
-    random walks).  ``Q`` is the Van Loan expansion to the leading order of
+    random walks), optionally followed by ``[var_b, 1 / tau_b]``: the per-anchor
+    range biases (error components 19..N-1) are then first-order Gauss-Markov
+    processes of stationary variance ``var_b`` and correlation time ``tau_b``
+    (``1 / tau_b = 0``: constant biases).  ``Q`` is the Van Loan expansion to the leading order of
     each block (``pp = s_a^2 dt^3/3``, ``pv = s_a^2 dt^2/2``, ``vv = s_a^2 dt``, ...).
     """
     _cov_step(P, x, u, dt, noise, np.empty((7, 3, 3)), np.empty((6, 3, 3)), np.empty(P.shape[0]))
+
+
+@njit(cache=True)
+def decay_biases(x, dt, noise):
+    """Mean of Gauss-Markov range biases over ``dt``: ``b <- exp(-|dt| / tau) b`` (no-op when constant)."""
+    if noise.shape[0] >= 8 and noise[7] > 0.0 and x.shape[0] > 20:
+        f = math.exp(-abs(dt) * noise[7])
+        for i in range(20, x.shape[0]):
+            x[i] *= f
 
 
 @njit(cache=True)
@@ -397,6 +419,7 @@ def propagate_until(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_
                     ub[i] = 0.5 * (ua[i] + ue[i])
                 _cov_step(P, x, ub, h, noise, B, W, col)
                 _rk4(x, ua, ue, h, x, wk)
+                decay_biases(x, h, noise)
             k += 1
             continue
         if cnt == 0:
@@ -410,6 +433,7 @@ def propagate_until(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_
         _rk4_core(x, imu_u[k], imu_um[k], imu_u[k + 1], dt, xn, wk)
         for i in range(nx):
             x[i] = xn[i]
+        decay_biases(x, dt, noise)
         k += 1
         if cnt >= cov_every:
             for i in range(6):

@@ -55,7 +55,15 @@ class TimeOffsetOptions(_Strict):
 
 class AnchorBiasOptions(_Strict):
     mode: Mode = "fixed"
-    prior_sd: float = Field(default=0.1, gt=0, description="prior sd of each anchor's constant range bias [m]")
+    prior_sd: float = Field(
+        default=0.1, gt=0,
+        description="prior sd of each anchor's range bias [m] (the stationary sd when correlation_time is set)",
+    )
+    correlation_time: Optional[float] = Field(
+        default=None, gt=0,
+        description="[s] None: constant biases; else each bias is a first-order Gauss-Markov process with this "
+        "correlation time and stationary sd prior_sd (slowly varying, direction-dependent range errors)",
+    )
 
 
 class GatingOptions(_Strict):
