@@ -20,7 +20,11 @@ obs_app = typer.Typer(
 
 
 def _fail(console: Console, msg: str) -> None:
-    console.print(f"[red]error:[/red] {msg}")
+    # soft_wrap: an error message (file names, field paths) is never cut or folded
+    # at the terminal width, so it can be copied and searched as a whole.
+    from rich.markup import escape
+
+    console.print(f"[red]error:[/red] {escape(msg)}", soft_wrap=True)
     raise typer.Exit(code=2)
 
 
