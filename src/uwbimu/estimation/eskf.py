@@ -337,6 +337,10 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
         calibration["anchor_bias"] = {a: float(x_end[20 + i]) for i, a in enumerate(prob.anchor_ids)}
         calibration["anchor_bias_sd"] = {a: float(sd_end[19 + i]) for i, a in enumerate(prob.anchor_ids)}
         calibration["anchor_bias_mode"] = opts.anchor_bias.mode
+        if opts.anchor_bias.correlation_time:
+            # Gauss-Markov biases vary in time: the values above are the last ones (whole series in
+            # result.extra["anchor_bias_states"])
+            calibration["anchor_bias_correlation_time"] = float(opts.anchor_bias.correlation_time)
 
     # diagnostics: excitation, outages
     w_exc, e_exc = excitation_warnings(prob, t_imu, X, sd, info["priors"], opts)
