@@ -58,6 +58,11 @@ def test_half_second_imu_gap_is_propagated_across_with_a_warning():
     in_gap = (r["t"] + res.calibration["time_offset"] > 15.0) & (r["t"] + res.calibration["time_offset"] < 15.49)
     assert in_gap.sum() >= 20 and not r.loc[in_gap, "accepted"].any()
     assert any("inside IMU gaps" in w for w in res.warnings)
+    # the unknown input across the gap grows the covariance (not just the white-noise densities)
+    i_before = np.searchsorted(res.t_imu, 14.99) - 1
+    i_after = np.searchsorted(res.t_imu, 15.5)
+    assert res.sd[i_after, 0:3].max() > 2 * res.sd[i_before, 0:3].max(), (res.sd[i_before, :3], res.sd[i_after, :3])
+    assert res.sd[i_after, 3:6].max() > 3 * res.sd[i_before, 3:6].max(), (res.sd[i_before, 3:6], res.sd[i_after, 3:6])
 
 
 def test_uwb_outage_grows_covariance_and_warns():
@@ -118,6 +123,12 @@ def test_translation_only_motion_keeps_lever_arm_uncertain_and_warns():
     assert np.all(np.abs(lever_err) <= 3 * sd)
     assert any(w.startswith("lever arm") for w in res.warnings), res.warnings
     assert any(e["kind"] == "low_excitation" and e["parameter"] == "lever arm" for e in res.events)
+    # rotation-free ranges do not update the lever arm: its sd keeps the prior (0.3 m) instead of shrinking
+    # on information an EKF linearised at a wandering attitude would invent, and the position sd covers the
+    # position error that the unknown lever arm causes (no false confidence)
+    assert sd.min() > 0.25, sd
+    assert any("lever arm: not updated" in w for w in res.warnings), res.warnings
+    assert compute_metrics(res, ds)["nees_position_mean"] < 3.0 * 2.0
 
 
 def test_supervisor_reinitialises_without_crashing():

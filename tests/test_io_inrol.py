@@ -79,6 +79,24 @@ def test_cli_check_on_imported_excerpt_prints_residual_table(imported):
     table = res.output.split("Range residuals per anchor")[1]
     for a in range(1, 9):
         assert f"│      {a} │" in table
+    # The medians printed are the ones computed (3 decimals, signed).
+    rt = check_dataset(load_dataset(imported)).residual_table
+    for a, med in rt["median"].items():
+        assert f"│      {a} │" in table and f"{med:+.3f}" in table
+
+
+def test_cli_check_tables_fit_an_80_column_terminal(imported):
+    # A plain terminal is 80 columns wide: no number may be cut to "-0.0…" or cropped.
+    res = CliRunner().invoke(app, ["check", str(imported)], env={"COLUMNS": "80"})
+    assert res.exit_code == 0, res.output
+    assert "…" not in res.output
+    # Table lines must fit (flag messages are soft-wrapped by the terminal itself).
+    table_lines = [ln for ln in res.output.splitlines() if ln[:1] in "┏┃┡│└"]
+    assert len(table_lines) > 20 and max(len(ln) for ln in table_lines) <= 80
+    rt = check_dataset(load_dataset(imported)).residual_table
+    table = res.output.split("Range residuals per anchor")[1]
+    for med, mad in zip(rt["median"], rt["mad"]):
+        assert f"{med:+.3f}" in table and f"{mad:.3f}" in table
 
 
 def test_refuses_non_empty_destination_without_force(imported, tmp_path):
@@ -148,3 +166,17 @@ def test_full_sequence_import_and_residuals(tmp_path):
     assert tab["median"].between(-0.07, 0.10).all()
     assert tab["robust_sigma"].between(0.04, 0.17).all()
     assert r.flags == []
+
+
+def test_import_reports_progress_in_order(tmp_path):
+    seen = []
+    inrol.import_dataset(EXCERPT, tmp_path / "p", progress=lambda stage, frac: seen.append((stage, frac)))
+    fracs = [f for _, f in seen]
+    assert fracs == sorted(fracs) and fracs[0] == 0.0 and seen[-1] == ("done", 1.0)
+    assert [s for s, _ in seen][:3] == ["reading imu.txt", "reading uwb.txt", "reading imu_pose.txt"]
+    assert any(s.startswith("writing and validating") for s, _ in seen)
+    stages = []
+    check_dataset(load_dataset(tmp_path / "p"), progress=lambda s, f: stages.append((s, f)))
+    assert [s for s, _ in stages] == ["stream statistics", "range residuals", "anchor refit and id cross-check",
+                                      "done"]
+    assert [f for _, f in stages] == sorted(f for _, f in stages)

@@ -94,8 +94,18 @@ def test_missing_column(tmp_path):
     df = pd.read_csv(d / "imu.csv").drop(columns=["wz"])
     df.to_csv(d / "imu.csv", index=False)
     err = refused(d)
-    assert_names(err, "imu.csv", 1, "wz")
+    assert_names(err, "imu.csv", 1, "wz", "line 1 (header)")
     assert "found 't', 'ax', 'ay', 'az', 'wx', 'wy'" in str(err)
+
+
+def test_duplicate_column_in_csv_header(tmp_path):
+    # pandas would rename the second 'x' to 'x.1' and ignore it: refuse instead.
+    d = write_valid(tmp_path / "d")
+    lines = (d / "anchors.csv").read_text().splitlines()
+    (d / "anchors.csv").write_text("\n".join([lines[0] + ",x"] + [ln + ",0" for ln in lines[1:]]) + "\n")
+    err = refused(d)
+    assert_names(err, "anchors.csv", 1, "x", "line 1 (header)")
+    assert "more than once" in str(err)
 
 
 def test_non_numeric_value(tmp_path):
@@ -177,17 +187,30 @@ def test_anchor_missing_from_anchors_csv(tmp_path):
 
 
 def test_empty_files(tmp_path):
+    # An empty file has no offending cell: the message names line 1 (where the
+    # header should be) or line 2 (where data should start) and the expected columns.
     d = write_valid(tmp_path / "d")
     (d / "anchors.csv").write_text("")
     err = refused(d)
-    assert err.file == "anchors.csv" and "empty" in str(err)
+    assert_names(err, "anchors.csv", 1, "anchor", "anchors.csv, line 1")
+    assert "empty" in str(err) and "'anchor', 'x', 'y', 'z'" in str(err)
     d = write_valid(tmp_path / "e")
     (d / "uwb.csv").write_text("t,anchor,range\n")
     err = refused(d)
-    assert err.file == "uwb.csv" and "no data rows" in str(err)
+    assert_names(err, "uwb.csv", 2, "t", "uwb.csv, line 2")
+    assert "no data rows" in str(err) and "'t', 'anchor', 'range'" in str(err)
     d = write_valid(tmp_path / "f")
     (d / "groundtruth.csv").write_text("t,px,py,pz,qw,qx,qy,qz\n")
-    assert refused(d).file == "groundtruth.csv"
+    assert_names(refused(d), "groundtruth.csv", 2, "t", "line 2")
+    d = write_valid(tmp_path / "g")
+    (d / "imu.csv").write_text("\n\n")  # blank lines only: no header either
+    err = refused(d)
+    assert err.file == "imu.csv" and err.row == 1 and "empty" in str(err) and "'wz'" in str(err)
+    d = write_valid(tmp_path / "h")
+    pd.DataFrame({c: pd.Series([], dtype=float) for c in ("t", "ax", "ay", "az", "wx", "wy", "wz")}).to_parquet(
+        d / "imu.parquet", index=False)
+    (d / "imu.csv").unlink()
+    assert_names(refused(d), "imu.parquet", 1, "t", "imu.parquet, data row 1")
 
 
 def test_duplicate_and_empty_anchor_ids(tmp_path):

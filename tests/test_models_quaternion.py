@@ -122,3 +122,72 @@ def test_slerp_endpoints_and_midpoint():
 def test_zero_quaternion_refused():
     with pytest.raises(ValueError, match="zero quaternion"):
         Q.quat_normalize(np.zeros(4))
+
+
+@given(quats)
+def test_rotmat_to_quat_matches_scipy(q):
+    R = to_scipy(Q.quat_normalize(q)).as_matrix()
+    got = Q.rotmat_to_quat(R)
+    expected = from_scipy(Rotation.from_matrix(R))
+    # Same rotation up to the sign ambiguity at qw = 0.
+    assert abs(np.dot(got, expected)) == pytest.approx(1.0, abs=1e-9)
+    np.testing.assert_allclose(Q.quat_to_rotmat(got), R, atol=1e-12)
+
+
+@given(quats)
+def test_so3_log_matches_scipy(q):
+    R = to_scipy(Q.quat_normalize(q)).as_matrix()
+    phi = Q.so3_log(R)
+    if np.linalg.norm(phi) < np.pi - 1e-6:
+        np.testing.assert_allclose(phi, Rotation.from_matrix(R).as_rotvec(), atol=1e-9)
+    else:  # angle pi: phi and -phi are the same rotation
+        np.testing.assert_allclose(Q.so3_exp(phi), R, atol=1e-9)
+
+
+@given(rotvecs)
+def test_skew_generates_scipy_rotation(phi):
+    # Exp is the matrix exponential of the skew matrix: ties skew() to scipy's rotvec map.
+    from scipy.linalg import expm
+
+    np.testing.assert_allclose(expm(Q.skew(phi)), Rotation.from_rotvec(phi).as_matrix(), atol=1e-10)
+    np.testing.assert_allclose(Q.skew(phi), -Q.skew(phi).T, atol=0)
+
+
+@given(rotvecs, rotvecs)
+def test_exp_compose_matches_scipy(a, b):
+    composed = Q.quat_multiply(Q.quat_exp(a), Q.quat_exp(b))
+    expected = Rotation.from_rotvec(a) * Rotation.from_rotvec(b)
+    np.testing.assert_allclose(Q.quat_to_rotmat(composed), expected.as_matrix(), atol=1e-12)
+
+
+@settings(max_examples=200)
+@given(st.floats(min_value=0.0, max_value=1e-6), st.integers(min_value=0, max_value=2), st.booleans())
+def test_log_is_warning_free_and_correct_near_pi(w, axis, flip):
+    # Tiny scalar parts (angle ~ pi) used to overflow in the unused small-angle branch.
+    import warnings
+
+    q = np.zeros(4)
+    q[0] = -w if flip else w
+    q[1 + axis] = 1.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        phi = Q.quat_log(q)
+        batch = Q.quat_log(np.stack([q, [1.0, 1e-12, 0.0, 0.0], [1e-310, 0.0, 1.0, 0.0]]))
+    assert np.all(np.isfinite(phi))
+    np.testing.assert_allclose(np.linalg.norm(phi), 2 * np.arctan2(1.0, w), atol=1e-12)
+    np.testing.assert_allclose(Q.so3_exp(phi), to_scipy(q).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(batch[0], phi, atol=0)
+    np.testing.assert_allclose(batch[1], [2e-12, 0.0, 0.0], atol=1e-24)
+    np.testing.assert_allclose(np.abs(batch[2]), [0.0, np.pi, 0.0], atol=1e-12)
+
+
+def test_rotmat_to_quat_every_branch_batched():
+    # Identity (w branch) and half-turns about x, y, z (x, y, z branches), plus scipy randoms, in one batch.
+    rots = Rotation.concatenate([Rotation.identity(), Rotation.from_rotvec(np.pi * np.eye(3)),
+                                 Rotation.from_rotvec(0.999 * np.pi * np.eye(3)), Rotation.random(50, random_state=3)])
+    R = rots.as_matrix().reshape(2, 29, 3, 3)
+    q = Q.rotmat_to_quat(R)
+    assert q.shape == (2, 29, 4)
+    expected = from_scipy(rots).reshape(2, 29, 4)
+    np.testing.assert_allclose(np.abs(np.sum(q * expected, axis=-1)), 1.0, atol=1e-12)
+    np.testing.assert_allclose(Q.quat_to_rotmat(q), R, atol=1e-12)

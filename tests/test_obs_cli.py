@@ -28,6 +28,16 @@ def test_structural_json_keys():
     assert d["conditions"]["theorem2"] is True and len(d["singular_values"]) == 18
 
 
+def test_structural_json_directions_are_name_vector_pairs():
+    res = runner.invoke(app, ["observability", "structural", str(EXAMPLES / "single_anchor.yaml"), "--json"])
+    assert res.exit_code == 0, res.output
+    d = json.loads(res.output)
+    assert d["rank"] == 17 and d["observable"] is False and d["conditions"]["C1"] is False
+    (u,) = d["unobservable_directions"]
+    assert set(u) == {"name", "vector"} and u["name"].startswith("global yaw about the vertical line")
+    assert len(u["vector"]) == d["dimension"] == 18
+
+
 def test_structural_rich_output_names_directions():
     res = runner.invoke(app, ["observability", "structural", str(EXAMPLES / "single_anchor.yaml")])
     assert res.exit_code == 0, res.output
@@ -41,6 +51,23 @@ def test_delay_json():
     assert d["identifiable"] is True and d["conditions"] == {"T1": True, "T2": False, "T3": True}
     res = runner.invoke(app, ["observability", "delay", str(EXAMPLES / "delay_no_excitation.yaml"), "--json"])
     assert json.loads(res.output)["identifiable"] is False
+
+
+def test_delay_warns_when_only_a_higher_order_effect_identifies_td(tmp_path):
+    cfg = tmp_path / "zero_lever_gyro.yaml"
+    cfg.write_text(
+        "anchors: [[0, 0, 0], [5, 0, 0.5], [0, 5, 1.0]]\nlever_arm: [0, 0, 0]\n"
+        "excitation: {accel: [], gyro: [x, y, z]}\ntime_offset: 0.02\nrandom_points: 3\n"
+    )
+    res = runner.invoke(app, ["observability", "delay", str(cfg)])
+    assert res.exit_code == 0, res.output
+    text = " ".join(res.output.split())
+    assert "T1 and (T2 or T3) │ no" in text and "conditions do not hold" in text
+    # the sensitivity is a third-order effect of t_d: far below a range noise of centimetres
+    d = json.loads(runner.invoke(app, ["observability", "delay", str(cfg), "--json"]).output)
+    assert d["identifiable"] and not d["theorem1"] and max(d["numeric"]["sensitivity"].values()) < 1e-4
+    res = runner.invoke(app, ["observability", "delay", str(EXAMPLES / "delay_gyro_only.yaml")])
+    assert "conditions do not hold" not in " ".join(res.output.split())
 
 
 def test_bad_config_is_a_readable_error(tmp_path):
@@ -83,8 +110,12 @@ def test_log_command_writes_csv_and_png(tmp_path):
     res = runner.invoke(app, ["observability", "log", str(folder), "--window", "10", "--out", str(out)])
     assert res.exit_code == 0, res.output
     table = pd.read_csv(out / "observability.csv")
-    assert list(table.columns[:5]) == ["t_start", "t_end", "min_eigenvalue", "condition_number", "weakest_direction"]
-    assert [c for c in table.columns if c.startswith("sd_")] == [f"sd_{n}" for n in ERROR_STATE_NAMES]
+    head = ["t_start", "t_end", "min_eigenvalue", "condition_number", "weakest_direction"]
+    sd_cols = [f"sd_{n}" for n in ERROR_STATE_NAMES]
+    # exactly the columns first, in order; extra columns (n_ranges, flags) only after
+    assert list(table.columns[: 5 + len(sd_cols)]) == head + sd_cols
+    assert [c for c in table.columns if c.startswith("sd_")] == sd_cols
+    assert {"lever_arm_excited", "time_offset_excited"} <= set(table.columns)
     assert len(table) == 3
     assert (out / "observability.png").stat().st_size > 1000
     # refuses to overwrite its outputs without --force

@@ -191,3 +191,128 @@ def test_lever_arm_tradeoff_named_without_rotation():
     assert any(d["name"].startswith("position / lever-arm trade-off") for d in v["unobservable_directions"])
     for d in v["unobservable_directions"]:
         assert len(d["vector"]) == 18 and abs(np.linalg.norm(d["vector"]) - 1) < 1e-9
+
+
+# --------------------------------------------------------------------------
+# named directions are the physical generators (independent construction)
+# --------------------------------------------------------------------------
+def _weakest(cfg):
+    from uwbimu.observability.config import load_config
+    from uwbimu.observability.structural import compiled_for, evaluation_points
+
+    cfg = load_config(cfg)
+    v = structural_verdict(cfg)
+    eng, _ = compiled_for(cfg)
+    x, p = evaluation_points(cfg)[v["weakest_point"]]
+    O = eng.matrix(x, p, words="all")
+    n = np.linalg.norm(O, axis=1)
+    return v, x, O[n > 1e-10 * n.max()] / n[n > 1e-10 * n.max(), None]
+
+
+def _rigid_generator(x, w, anchor_on_axis, with_attitude=True):
+    """World rotation with angular velocity w about the axis through anchor_on_axis."""
+    t = -np.cross(w, anchor_on_axis)
+    g = [np.cross(w, x[0:3]) + t, np.cross(w, x[3:6])]
+    if with_attitude:
+        g += [ref.rotation_matrix(x[6:10]).T @ w, np.zeros(9)]
+    g = np.concatenate(g)
+    return g / np.linalg.norm(g)
+
+
+def test_single_anchor_yaw_is_the_physical_generator():
+    """Yaw about the vertical through the anchor: in the kernel, reported exactly, and a finite
+    yaw of the initial state leaves every range of an IMU-driven trajectory unchanged."""
+    a = np.array([1.0, 2.0, 3.0])
+    v, x, On = _weakest({"anchors": [a.tolist()], "lever_arm": [0.1, 0.05, 0.2], "random_points": 3})
+    g = _rigid_generator(x, np.array([0.0, 0.0, 1.0]), a)
+    assert np.linalg.norm(On @ g) < 1e-9
+    assert abs(np.dot(v["unobservable_directions"][0]["vector"], g)) > 1 - 1e-9
+    # finite check with the reference model (the simulator's physics)
+    from uwbimu.models.quaternion import quat_multiply
+
+    rng = np.random.default_rng(4)
+    t = np.arange(0, 2.0, 0.005)
+    u = np.c_[rng.normal(0, 1, 3) + np.sin(t[:, None] * [1.0, 2.0, 3.0]) + [0, 0, 9.81], 0.5 * np.cos(t[:, None] * [1.5, 0.7, 2.0])]
+    x0 = np.r_[x, 0.0]
+    psi = 0.7
+    Rz = np.array([[np.cos(psi), -np.sin(psi), 0], [np.sin(psi), np.cos(psi), 0], [0, 0, 1]])
+    x1 = x0.copy()
+    x1[0:3] = a + Rz @ (x0[0:3] - a)
+    x1[3:6] = Rz @ x0[3:6]
+    x1[6:10] = quat_multiply(np.array([np.cos(psi / 2), 0, 0, np.sin(psi / 2)]), x0[6:10])
+    X0, X1 = ref.integrate_imu(x0, t, u), ref.integrate_imu(x1, t, u)
+    r0 = np.array([ref.range_measurement(s, a) for s in X0])
+    r1 = np.array([ref.range_measurement(s, a) for s in X1])
+    assert np.abs(r0 - r1).max() < 1e-9 * r0.max()
+    # a roll instead of a yaw does change the ranges (gravity breaks it)
+    x2 = x1.copy()
+    x2[6:10] = quat_multiply(np.array([np.cos(psi / 2), np.sin(psi / 2), 0, 0]), x0[6:10])
+    r2 = np.array([ref.range_measurement(s, a) for s in ref.integrate_imu(x2, t, u)])
+    assert np.abs(r2 - r0).max() > 1e-2
+
+
+def test_vertical_anchor_pair_yaw_and_point_mass_line_rotation_are_generators():
+    v, x, On = _weakest({"anchors": [[0, 0, 0], [0, 0, 3]], "lever_arm": [0.1, 0.05, 0.2], "random_points": 3})
+    g = _rigid_generator(x, np.array([0.0, 0.0, 1.0]), np.zeros(3))
+    assert np.linalg.norm(On @ g) < 1e-9 and abs(np.dot(v["unobservable_directions"][0]["vector"], g)) > 1 - 1e-9
+    # point mass, drift only: rotation about the (non-vertical) line through the two beacons
+    A = np.array([[0.0, 0.0, 0.0], [4.0, 0.0, 0.5]])
+    n = (A[1] - A[0]) / np.linalg.norm(A[1] - A[0])
+    v, x, On = _weakest({"model": "point_mass", "anchors": A.tolist(), "lie_order": 3, "nominal_input": [0, 0, 0], "random_points": 5})
+    g = _rigid_generator(x, n, A[0], with_attitude=False)
+    assert v["rank"] == 5 and np.linalg.norm(On @ g) < 1e-9
+    assert abs(np.dot(v["unobservable_directions"][0]["vector"], g)) > 1 - 1e-9
+    # the 19-state model with the same two beacons: gravity breaks that rotation
+    assert structural_verdict({"anchors": A.tolist(), "lever_arm": [0.1, 0.05, 0.2], "random_points": 3})["rank"] == 18
+
+
+def test_coplanar_point_mass_directions_are_plane_normals():
+    """Tag in the beacons' plane (z = 0): order 0 loses dp along the normal (mirror image);
+    order 1 with v leaving the plane loses exactly dv along the normal (see the derivation in
+    docs/observability.md): [[a, 0], [b, a]] @ [0; n] = [0; a n] = 0."""
+    B3 = [[0.0, 0.0, 0.0], [4.0, 0.0, 0.0], [0.0, 4.0, 0.0]]
+    base = {"model": "point_mass", "anchors": B3, "nominal_input": [0, 0, 0], "points": [{"p": [1, 1, 0], "v": [0.5, 0.2, 0.7]}]}
+    v0, _, On0 = _weakest({**base, "lie_order": 0})
+    assert np.linalg.norm(On0 @ np.r_[0, 0, 1.0, 0, 0, 0]) < 1e-12 and "mirror-image" in v0["unobservable_directions"][0]["name"]
+    v1, _, On1 = _weakest({**base, "lie_order": 1})
+    (d,) = v1["unobservable_directions"]
+    assert d["name"] == "velocity along world z" and np.allclose(d["vector"], [0, 0, 0, 0, 0, 1])
+    assert np.linalg.norm(On1 @ np.r_[0, 0, 0, 0, 0, 1.0]) < 1e-12
+
+
+def test_constant_rotation_lever_arm_generator_named_and_physical():
+    """Gyro not excited (constant rate w): the whole lever arm trades off against the IMU's
+    position, velocity and accelerometer bias, dp = -R e, dv = -R [w]x e, db_a = [w]x^2 e,
+    dl = e.  Checked (1) by the rank test's naming, (2) with a finite e on the reference model."""
+    A3 = [[0.0, 0.0, 0.0], [5.0, 0.0, 0.5], [0.0, 5.0, 1.0]]
+    cfg = {"anchors": A3, "lever_arm": [0.1, 0.05, 0.2], "excitation": {"accel": ["x", "y", "z"], "gyro": []}, "random_points": 3}
+    v = structural_verdict(cfg)
+    names = [d["name"] for d in v["unobservable_directions"]]
+    assert v["rank"] == 15 and len(names) == 3
+    assert names[0].startswith("position / lever-arm trade-off")
+    assert all("under constant rotation" in n for n in names[1:])
+    # (2) finite transformation, reference propagation with the constant gyro reading
+    from uwbimu.models.quaternion import skew
+
+    x = np.r_[sample_uwb_imu_state(np.random.default_rng(8), lever_arm=np.array([0.1, 0.05, 0.2])), 0.0]
+    w_m = np.array([0.4, -0.3, 0.8])
+    t = np.arange(0, 3.0, 0.005)
+    u = np.c_[np.array([0.5, -0.2, 9.81]) + np.sin(t[:, None] * [1.3, 2.1, 0.7]), np.tile(w_m, (len(t), 1))]
+    W = skew(w_m - x[S.BG])
+    R = ref.rotation_matrix(x[S.Q])
+    e = np.array([0.05, -0.08, 0.03])
+    y = x.copy()
+    y[S.P] -= R @ e
+    y[S.V] -= R @ (W @ e)
+    y[S.BA] += W @ W @ e
+    y[S.PIU] += e
+    anchors = np.array(A3)
+    rx = np.array([[ref.range_measurement(s, a) for a in anchors] for s in ref.integrate_imu(x, t, u)])
+    ry = np.array([[ref.range_measurement(s, a) for a in anchors] for s in ref.integrate_imu(y, t, u)])
+    assert np.abs(rx - ry).max() < 1e-9
+    # with the gyro excited the same change is visible
+    u2 = u.copy()
+    u2[:, 3:6] += 0.5 * np.sin(t[:, None] * [0.9, 1.7, 2.3])
+    rx2 = np.array([[ref.range_measurement(s, a) for a in anchors] for s in ref.integrate_imu(x, t, u2)])
+    ry2 = np.array([[ref.range_measurement(s, a) for a in anchors] for s in ref.integrate_imu(y, t, u2)])
+    assert np.abs(rx2 - ry2).max() > 1e-3

@@ -220,3 +220,26 @@ def test_seed002_two_beacons_altimeter():
     pts = [{"p": [1, 0, 1.5], "v": [0.3, 0.6, 0.2]}]
     assert _pm(1, B2, pts, altimeter=True)["rank"] == 5
     assert _pm(2, B2, pts, altimeter=True)["rank"] == 6
+
+
+def test_seed002_two_beacons_altimeter_velocity_in_vertical_plane_is_not_enough():
+    """Section VIII says "velocity not along the line joining the 2 beacons" suffices on the
+    vertical plane through them.  With the velocity in that plane (but not along the line) the
+    reflection through the plane stays invisible at every order (drift only): rank 4, the
+    missing directions dp and dv along the plane's horizontal normal (world y here)."""
+    B2 = [[0.0, 0.0, 0.0], [4.0, 0.0, 0.5]]
+    pts = [{"p": [1, 0, 1.5], "v": [0.3, 0.0, 0.5]}]
+    for order in (1, 2, 3):
+        v = _pm(order, B2, pts, altimeter=True)
+        assert v["conditions"]["velocity_not_along_beacon_line"] and v["conditions"]["seed002_predicts_full_rank"]
+        assert v["rank"] == 4
+        vecs = np.array([d["vector"] for d in v["unobservable_directions"]])
+        # the null space is spanned by dp = e_y and dv = e_y
+        assert np.allclose(np.abs(vecs @ np.eye(6)[[1, 4]].T).max(axis=1), 1.0, atol=1e-9)
+        names = [d["name"] for d in v["unobservable_directions"]]
+        assert names == [
+            "displacement normal to the vertical plane through anchors 0 and 1 at a tag in that plane (mirror-image ambiguity)",
+            "velocity along world y",
+        ]
+    # an accelerating vehicle (excited input) recovers full rank
+    assert _pm(3, B2, pts, altimeter=True, excitation={"accel": ["x", "y", "z"]})["rank"] == 6

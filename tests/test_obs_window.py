@@ -121,7 +121,7 @@ def test_information_matches_brute_force_fisher():
 def sim_logs():
     sim = pytest.importorskip("uwbimu.sim")
     out = {}
-    for name in ("calibration-flight", "translation"):
+    for name in ("calibration-flight", "translation", "hover"):
         sc = sim.builtin_scenario(name).model_copy(update={"duration": 40.0})
         out[name] = sim.simulate(sc)
     return out
@@ -149,3 +149,21 @@ def test_translation_does_not_excite_lever_arm(sim_logs):
     assert not table["lever_arm_excited"].any()
     assert all("lever-arm" in w for w in table["weakest_direction"])
     assert np.isinf(table["condition_number"]).all()
+    assert np.isinf(table[["sd_lx", "sd_ly", "sd_lz"]].to_numpy()).all()
+    # the accelerations still excite the time offset (Theorem 1 via T2)
+    assert table["time_offset_excited"].all() and np.isfinite(table["sd_td"]).all()
+
+
+def test_hover_excites_neither_lever_arm_nor_time_offset(sim_logs):
+    """Near-hover (weak accelerations and rates): both flags off, bounds far above the thresholds."""
+    ds = sim_logs["hover"]
+    opts = WindowOptions(window=20.0)
+    table, _ = window_observability(ds, options=opts)
+    assert len(table) == 2
+    assert not table["lever_arm_excited"].any() and not table["time_offset_excited"].any()
+    lever_sd = table[["sd_lx", "sd_ly", "sd_lz"]].to_numpy().max(axis=1)
+    assert (lever_sd > 2 * opts.lever_sd_threshold).all()
+    assert (table["sd_td"] > opts.td_sd_threshold).all()
+    # the weakest direction is made of the poorly excited calibration states
+    for w in table["weakest_direction"]:
+        assert any(k in w for k in ("td", "lx", "ly", "lz"))

@@ -59,6 +59,23 @@ def test_place_room_writes_outputs(tmp_path):
     for png in ("anchors_3d.png", "coverage_map.png", "pdop_slices.png", "marginal_value.png"):
         assert (out / png).stat().st_size > 1000
     assert js["pareto"]  # non-dominated layouts from the final DE population
+    assert all(0.0 <= row["hull_outside"] <= 1.0 for row in js["table"] + js["pareto"])
+    assert js["hull_outside"] == js["table"][0]["hull_outside"]
+    assert "out of hull" in r.output and "[single-failure]" in r.output  # lint codes are printed, not eaten as markup
+    # anchors.csv is a dataset table: fly the simulator in the designed room, then load the
+    # folder with the validating reader using OUR anchors.csv
+    import shutil
+
+    from uwbimu.io.dataset import write_dataset
+    from uwbimu.io.loader import load_dataset
+    from uwbimu.sim import simulate
+
+    write_dataset(simulate(sc), tmp_path / "flight")
+    shutil.copyfile(out / "anchors.csv", tmp_path / "flight" / "anchors.csv")
+    ds = load_dataset(tmp_path / "flight")
+    assert ds.anchors["anchor"].tolist() == df["anchor"].tolist()
+    assert np.allclose(ds.anchors[["x", "y", "z"]].to_numpy(), np.array(js["anchors"]))
+    assert set(ds.uwb["anchor"]) <= set(df["anchor"])
     # same seed -> same layout (reproducible); existing output is not overwritten without --force
     r2 = runner.invoke(app, ["place", str(cfg), "--out", str(out), "--no-plots"])
     assert r2.exit_code == 2 and "--force" in r2.output
@@ -79,6 +96,11 @@ def test_place_structure_quick(tmp_path):
     write_outputs(res, tmp_path, plots=False)
     js = json.loads((tmp_path / "placement.json").read_text())
     assert len(js["anchors"]) == 16 and js["table"][0]["coverage"] == 0.913
+    assert "same radio model" in js["table"][1]["layout"] and "FITTED" not in js["radio"]["note"]
+    assert "same radio model" in js["radio"]["note"]
+    from uwbimu.design.run import _radio_note
+
+    assert "FITTED" in _radio_note(builtin_example("crane").structure)  # the calibration is said plainly
     assert js["worst_single_failure"]["coverage"] <= js["coverage"]
 
 
@@ -92,6 +114,9 @@ def test_cli_errors_are_readable(tmp_path):
     assert r.exit_code == 2 and "exactly one" in r.output
     r = runner.invoke(app, ["place", "--example", "ship", "--out", str(tmp_path / "o")])
     assert r.exit_code == 2 and "unknown example" in r.output
+    bad.write_text("mode: room\nroom: {box: [10, 8, 3]}\ncompare: {ceiling: [[1, 2]]}\n")
+    r = runner.invoke(app, ["place", str(bad), "--out", str(tmp_path / "o")])
+    assert r.exit_code == 2 and "compare.ceiling[0]" in r.output
     syn = tmp_path / "syntax.yaml"
     syn.write_text("mode: room\n  room: [\n")
     with pytest.raises(ConfigError, match="line"):

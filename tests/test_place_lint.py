@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from uwbimu.design.lint import hull_outside_fraction, lint_layout, planarity
+from uwbimu.design.lint import hull_outside_fraction, hull_outside_mask, lint_layout, planarity
 from uwbimu.design.placement import Room
 
 
@@ -25,6 +25,11 @@ def test_flat_layout_ratio():
     assert w and abs(w[0].value - 6.0) < 1e-9
     ok = np.array([[0, 0, 0.2], [5, 0, 2.8], [5, 4, 0.2], [0, 4, 2.8]])  # 5 / 2.6 < 3
     assert "flat" not in _codes(lint_layout(ok))
+    # the message says when the space itself cannot pass the rule (10 x 8 x 3 m room: 3.3)
+    msg = [w for w in lint_layout(flat, space_extent=[10, 8, 3]) if w.code == "flat"][0].message
+    assert "the space itself" in msg and "3.3" in msg
+    msg = [w for w in lint_layout(flat, space_extent=[6, 5, 3]) if w.code == "flat"][0].message
+    assert "the space itself" not in msg
 
 
 def test_hull_and_near_wall_and_single_failure():
@@ -44,3 +49,17 @@ def test_hull_and_near_wall_and_single_failure():
     corners = np.array([[x, y, z] for x in (0.2, 9.8) for y in (0.2, 7.8) for z in (0.2, 2.8)])
     assert hull_outside_fraction(corners, pts) == 0.0
     assert "too-few" in _codes(lint_layout(corners[:3]))
+
+
+def test_hull_mask_matches_delaunay_and_flat_hull_is_all_outside():
+    from scipy.spatial import Delaunay
+
+    rng = np.random.default_rng(5)
+    for n in (4, 6, 9):
+        a = rng.uniform(0, 5, (n, 3))
+        p = rng.uniform(-1, 6, (2000, 3))
+        ref = Delaunay(a).find_simplex(p) < 0
+        assert np.array_equal(hull_outside_mask(a, p), ref)
+    flat = np.array([[0, 0, 1.0], [4, 0, 1.0], [4, 3, 1.0], [0, 3, 1.0], [2, 1, 1.0]])
+    assert hull_outside_mask(flat, rng.uniform(0, 3, (10, 3))).all()
+    assert hull_outside_fraction(flat[:3], np.zeros((2, 3))) == 1.0

@@ -114,3 +114,28 @@ def test_information_percentile_term(small):
     assert comp["logdet_low"] == pytest.approx(np.percentile(ld, 5, method="lower"), rel=1e-6)
     ev2 = LayoutEvaluator(ev.points, ev.link, weights={"info": 1.0}, sigma=ev.sigma)
     assert ev2.objective(comp) == pytest.approx(-comp["logdet_low"])
+
+
+def test_hull_penalty_pulls_the_flight_volume_inside_the_hull(small):
+    """The 'hull' weight adds w * 100 * (fraction outside the hull) and changes the chosen layout."""
+    room, ev, cs0, (pos, bor, *_) = small
+    from uwbimu.design.lint import hull_outside_fraction
+
+    res = {}
+    for w in (0.0, 1.0):
+        wts = {"coverage": 10, "pdop": 1, "n1_pdop": 0.25, **({"hull": w} if w else {})}
+        ev_w = LayoutEvaluator(ev.points, ev.link, k=3, percentile=95, pdop_cap=20, weights=wts)
+        cs = CandidateSet(ev_w, pos, bor)
+        s = swap_search(cs, lazy_greedy_logdet(cs, 6)["idx"], rounds=1)
+        comp = cs.components(s["idx"])
+        assert comp["hull_outside"] == pytest.approx(hull_outside_fraction(pos[s["idx"]], ev.points))
+        base = LayoutEvaluator(ev.points, ev.link, k=3, percentile=95, pdop_cap=20,
+                               weights={"coverage": 10, "pdop": 1, "n1_pdop": 0.25}).objective(comp)
+        assert ev_w.objective(comp) == pytest.approx(base + w * 100.0 * comp["hull_outside"])
+        res[w] = comp
+    assert res[1.0]["hull_outside"] < res[0.0]["hull_outside"] - 0.2  # measured 0.15 vs 0.675
+    assert res[1.0]["pdop_q"] >= res[0.0]["pdop_q"] - 1e-9  # the rule of thumb costs PDOP here
+    # the hull weight needs anchor positions: a clear error, not a silent zero
+    ev_h = LayoutEvaluator(ev.points, ev.link, weights={"hull": 1.0})
+    with pytest.raises(ValueError, match="hull"):
+        ev_h.objective(cs0.ev.components(cs0.O[:4], cs0.M[:4], n1=False))

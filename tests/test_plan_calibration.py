@@ -148,10 +148,41 @@ def test_fit_to_bounds_holds_on_a_fine_grid():
 def test_figure8_respects_bounds_and_ends_at_rest():
     cfg = CalibrationDesignConfig(duration=30.0)
     m = naive_figure8(cfg)
-    u = bound_usage(m.kinematics(np.arange(0.0, 30.0, 0.005)), cfg.motion_bounds())
+    t = np.arange(0.0, 30.0 + 1e-9, 0.005)
+    kin = m.kinematics(t)
+    u = bound_usage(kin, cfg.motion_bounds())
     assert max(u.values()) <= 1.005
-    k = m.kinematics(np.array([30.0]))
+    k = m.kinematics(np.array([0.0, 30.0]))
     np.testing.assert_allclose(k["v"], 0.0, atol=1e-12)
+    np.testing.assert_allclose(k["w"], 0.0, atol=1e-12)
+    # "same bounds": the baseline is not a slow one -- its speed or acceleration reaches
+    # the bound, and in the cruise, not in the start/stop ramps
+    assert max(u["speed"], u["accel"]) > 0.98, u
+    cruise = (t > cfg.ramp) & (t < cfg.duration - cfg.ramp)
+    sp = np.linalg.norm(kin["v"], axis=1)
+    assert sp[cruise].max() > 0.98 * cfg.bounds.speed
+    # it runs along the lemniscate itself (time warp), also in the ramps
+    x = (kin["p"][:, 0] - m.center[0]) / m.amp[0, 0]
+    y = (kin["p"][:, 1] - m.center[1]) / m.amp[1, 0]
+    np.testing.assert_allclose((y / 2) ** 2, x**2 * (1 - x**2), atol=1e-12)
+
+
+def test_warped_channel_derivatives():
+    cfg = CalibrationDesignConfig(duration=30.0)
+    m = naive_figure8(cfg)
+    t = np.concatenate([np.linspace(0.05, 1.95, 20), np.linspace(2.1, 27.9, 20), np.linspace(28.05, 29.95, 20)])
+    eps = 1e-5
+    f, f1, f2 = m.channels(t)
+    fp, f1p, _ = m.channels(t + eps)
+    fm, f1m, _ = m.channels(t - eps)
+    np.testing.assert_allclose(f1, (fp - fm) / (2 * eps), atol=1e-6)
+    np.testing.assert_allclose(f2, (f1p - f1m) / (2 * eps), atol=1e-5)
+    # the clock is continuous across the ramp ends and runs T - ramp in all
+    from uwbimu.design.trajectory.maneuver import warped_clock
+
+    s, s1, _ = warped_clock(np.array([0.0, 2.0 - 1e-9, 2.0 + 1e-9, 28.0 - 1e-9, 28.0 + 1e-9, 30.0]), 30.0, 2.0)
+    np.testing.assert_allclose(s, [0.0, 1.0, 1.0, 27.0, 27.0, 28.0], atol=1e-8)
+    np.testing.assert_allclose(s1, [0.0, 1.0, 1.0, 1.0, 1.0, 0.0], atol=1e-8)
 
 
 def test_design_beats_figure8_and_writes_flyable_files(tmp_path):

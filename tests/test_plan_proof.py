@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from uwbimu.design.trajectory.proof import run_one, summarise
+from uwbimu.design.trajectory.proof import _eskf_options, blind, run_one, summarise
 
 
 def test_summary_rmse_and_ratios():
@@ -36,3 +36,20 @@ def test_one_eskf_run_on_a_designed_flight(tmp_path):
     assert np.isfinite(r["lever_err_norm"]) and np.isfinite(r["td_err"])
     # the ESKF started from a zero lever arm (0.2 m away) and converged towards the truth
     assert r["lever_err_norm"] < 0.1 and abs(r["td_err"]) < 0.02
+
+
+def test_the_estimator_sees_no_truth():
+    """The proof's ESKF gets neither ground truth nor a truth-valued lever-arm prior."""
+    from uwbimu.sim import builtin_scenario, simulate
+
+    sc = builtin_scenario("calibration-flight")
+    ds = simulate(sc.model_copy(update={"duration": 3.0}))
+    assert ds.groundtruth is not None and ds.meta.truth is not None  # the simulator does write truth
+    b = blind(ds)
+    assert b.groundtruth is None and b.meta.truth is None
+    assert all(t.lever_arm is None for t in b.meta.tags)
+    assert len(b.imu) == len(ds.imu) and len(b.uwb) == len(ds.uwb)
+    opt = _eskf_options()
+    assert opt.lever_arm.prior == [0.0, 0.0, 0.0] and opt.lever_arm.mode == "estimate"
+    assert opt.time_offset.prior is None  # from the ESKF's own grid search on the data
+    assert not np.allclose(opt.lever_arm.prior, sc.lever_arm)

@@ -184,3 +184,19 @@ def test_continuous_costate_method_matches_direct_to_discretisation_order():
         assert ic.converged and ic.hu_max < c.hu_tol
         diffs.append(np.abs(ic.u - solve_direct(c).u).max())
     assert diffs[1] < 1e-3 and 3.0 < diffs[0] / diffs[1] < 5.0  # second order in h
+
+
+def test_cli_refuses_a_folder_with_other_files(tmp_path):
+    from typer.testing import CliRunner
+
+    from uwbimu.cli.main import app
+
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    for args in (["plan", "seed-ocp", "--out", str(out)], ["plan", "calibration", "--out", str(out), str(tmp_path / "c.yaml")]):
+        if args[1] == "calibration":
+            (tmp_path / "c.yaml").write_text("duration: 12.0\nramp: 1.5\n")
+        res = CliRunner().invoke(app, args)
+        assert res.exit_code == 2 and "notes.txt" in res.output, res.output
+    assert (out / "notes.txt").read_text() == "mine" and sorted(p.name for p in out.iterdir()) == ["notes.txt"]

@@ -46,20 +46,31 @@ def register(app: typer.Typer) -> None:
                            check_units=not no_unit_check)
         import warnings
 
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # repairs are printed from the report below
-                ds = load_dataset(dataset, opts)
-        except DatasetError as exc:
-            console.print(f"[red]refused:[/red] {exc}", soft_wrap=True)
-            raise typer.Exit(code=1)
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
         try:
             chk = CheckOptions(move_threshold=move_threshold)
-        except ValueError as exc:
-            console.print(f"[red]error:[/red] {exc}")
+        except ValueError:
+            console.print(f"[red]error:[/red] --move-threshold must be > 0 m, got {move_threshold!r}")
             raise typer.Exit(code=2)
-        with console.status("computing range residuals..."):
-            result = check_dataset(ds, chk)
+        with Progress(TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(),
+                      console=console, transient=True) as bar:
+            task = bar.add_task(f"loading {dataset}", total=1.0)
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")  # repairs are printed from the report below
+                    ds = load_dataset(dataset, opts)
+            except DatasetError as exc:
+                bar.stop()
+                console.print(f"[red]refused:[/red] {exc}", soft_wrap=True)
+                raise typer.Exit(code=1)
+
+            def progress(stage: str, frac: float) -> None:
+                # Loading is the first 30 % of the bar, the diagnostics the rest.
+                bar.update(task, completed=0.3 + 0.7 * frac, description=f"checking: {stage}")
+
+            progress("validated", 0.0)
+            result = check_dataset(ds, chk, progress=progress)
         print_check(console, ds, result)
         if csv is not None and result.residual_table is not None:
             from uwbimu.io.atomic import write_csv
@@ -92,18 +103,24 @@ def print_check(console, ds, result) -> None:
         for n in rep.notes:
             console.print(f"note: {n}")
 
-    t = Table(title="Streams")
-    for c in ("stream", "samples", "start [s]", "end [s]", "duration [s]", "rate [Hz]", "median dt [s]",
-              "max gap [s]", "gaps"):
-        t.add_column(c, justify="right")
+    # Numbers are never cut short ("-0.0…"): min_width keeps a column as wide
+    # as its numbers, headers wrap instead, ids fold, and collapsed padding
+    # lets the widest table fit an 80-column console.
+    t = Table(title="Streams", collapse_padding=True)
+    t.add_column("stream", justify="right", overflow="fold")
+    for c, w in (("samples", 5), ("start [s]", 6), ("end [s]", 6), ("duration [s]", 6),
+                 ("rate [Hz]", 5), ("median dt [s]", 6), ("max gap [s]", 5), ("gaps", 4)):
+        t.add_column(c, justify="right", min_width=w)
     for name, r in result.streams.iterrows():
         t.add_row(name, str(int(r["samples"])), _f(r["t_start"]), _f(r["t_end"]), _f(r["duration"], ".2f"),
                   _f(r["rate_hz"], ".1f"), _f(r["median_dt"], ".4f"), _f(r["max_gap"]), str(int(r["n_gaps"])))
     console.print(t)
 
-    a = Table(title="Anchors (world frame, m) and ranges")
-    for c in ("anchor", "x", "y", "z", "ranges", "rate [Hz]", "min [m]", "median [m]", "max [m]", "max gap [s]"):
-        a.add_column(c, justify="right")
+    a = Table(title="Anchors (world frame, m) and ranges", collapse_padding=True)
+    a.add_column("id", justify="right", overflow="fold")
+    for c, w in (("x", 6), ("y", 6), ("z", 6), ("ranges", 5), ("rate [Hz]", 5), ("min [m]", 5),
+                 ("median [m]", 6), ("max [m]", 6), ("max gap [s]", 5)):
+        a.add_column(c, justify="right", min_width=w)
     for aid, r in result.anchors.iterrows():
         a.add_row(str(aid), _f(r["x"]), _f(r["y"]), _f(r["z"]), str(int(r["ranges"])), _f(r["rate_hz"], ".1f"),
                   _f(r["range_min"]), _f(r["range_median"]), _f(r["range_max"]), _f(r["max_gap"]))
@@ -112,16 +129,23 @@ def print_check(console, ds, result) -> None:
     if result.residual_table is not None:
         lev = "per tag" if result.lever_arm is None else "(" + ", ".join(f"{v:.3f}" for v in result.lever_arm) + ")"
         rt = Table(title=f"Range residuals per anchor: measured - predicted from ground truth [m] "
-                         f"(lever arm {lev} m from {result.lever_arm_source}; {result.n_compared} ranges)")
-        for c in ("anchor", "n", "median", "MAD", "robust sd", "RMS", "p95 |r|", "refit shift", "refit score",
-                  "best other"):
-            rt.add_column(c, justify="right")
+                         f"(lever arm {lev} m from {result.lever_arm_source}; {result.n_compared} ranges)",
+                   collapse_padding=True)
+        rt.add_column("anchor", justify="right", overflow="fold", min_width=6)
+        # robust sd = 1.4826 MAD is left to the --csv table, to fit 80 columns.
+        for c, w in (("n", 4), ("median", 6), ("MAD", 5), ("RMS", 5),
+                     ("p95 |r|", 5), ("refit shift", 5), ("refit score", 5)):
+            rt.add_column(c, justify="right", min_width=w)
+        # The other surveyed anchor that explains these ranges best, and its score.
+        rt.add_column("best other", justify="right", overflow="fold")
+        rt.add_column("other score", justify="right", min_width=5)
         flagged = {f.anchor for f in result.flags}
         for aid, r in result.residual_table.iterrows():
             style = "red" if aid in flagged else None
-            other = f"{r['best_other']} ({_f(r['other_score'])})" if r["best_other"] else "-"
-            rt.add_row(str(aid), str(int(r["n"])), _f(r["median"], "+.3f"), _f(r["mad"]), _f(r["robust_sigma"]),
-                       _f(r["rms"]), _f(r["p95_abs"]), _f(r["fit_shift"]), _f(r["fit_score"]), other, style=style)
+            other, other_score = (str(r["best_other"]), _f(r["other_score"])) if r["best_other"] else ("-", "-")
+            rt.add_row(str(aid), str(int(r["n"])), _f(r["median"], "+.3f"), _f(r["mad"]),
+                       _f(r["rms"]), _f(r["p95_abs"]), _f(r["fit_shift"]), _f(r["fit_score"]), other, other_score,
+                       style=style)
         console.print(rt)
     for n in result.notes:
         console.print(f"note: {n}")

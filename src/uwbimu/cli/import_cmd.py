@@ -30,19 +30,30 @@ import_app = typer.Typer(
 FORCE_HELP = "Replace DST if it exists and is not empty."
 
 
-def run_import(do_import: Callable[[], object]) -> None:
+def run_import(do_import: Callable[..., object], with_progress: bool = False) -> None:
     """Run an importer call, print what it changed and where it wrote; exit 1 on a refusal.
 
-    ``do_import`` returns an :class:`uwbimu.io.importers.ImportResult`.
+    ``do_import`` returns an :class:`uwbimu.io.importers.ImportResult`.  With
+    ``with_progress`` it is called as ``do_import(progress)`` where
+    ``progress(stage, fraction)`` drives a progress bar; otherwise as
+    ``do_import()`` under a spinner.
     """
     from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from uwbimu.io.loader import DatasetError
 
     console = Console()
     try:
-        with console.status("converting..."):
-            result = do_import()
+        if with_progress:
+            with Progress(TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(),
+                          console=console, transient=True) as bar:
+                task = bar.add_task("converting", total=1.0)
+                result = do_import(lambda stage, frac: bar.update(task, completed=frac,
+                                                                  description=f"converting: {stage}"))
+        else:
+            with console.status("converting..."):
+                result = do_import()
     except (DatasetError, FileExistsError, ValueError) as exc:
         console.print(f"[red]error:[/red] {exc}", soft_wrap=True)
         raise typer.Exit(code=1)
@@ -68,7 +79,8 @@ def _register_inrol(app: typer.Typer) -> None:
         """Convert an INRoL UWB-IMU sequence (GPL-3.0 data; LICENSE and attribution are copied)."""
         from uwbimu.io.importers import inrol as imp
 
-        run_import(lambda: imp.import_dataset(src, dst, force=force, name=name))
+        run_import(lambda progress: imp.import_dataset(src, dst, force=force, name=name, progress=progress),
+                   with_progress=True)
 
 
 def _register_isas_walk(app: typer.Typer) -> None:

@@ -129,6 +129,15 @@ def delay(
     for k, s in v["numeric"]["sensitivity"].items():
         t.add_row(k, f"{s:.3e}")
     console.print(t)
+    if v["identifiable"] and not v["theorem1"]:
+        # identifiable only through an effect the seed's first-order argument drops:
+        # say how large it is so that nobody mistakes "identifiable" for "well determined"
+        smax = max(v["numeric"]["sensitivity"].values(), default=0.0)
+        console.print(
+            f"note: Theorem 1's sufficient conditions do not hold; t_d is identifiable only through the "
+            f"input-output sensitivity above (at most {smax:.2e} m per unit input at the weakest point). "
+            "Compare it with the range noise; `uwbimu observability log` gives the Cramer-Rao bound on a real log."
+        )
 
 
 @obs_app.command("log")

@@ -7,6 +7,7 @@ from typing import Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 console = Console()
@@ -15,22 +16,28 @@ console = Console()
 def _print_result(res: dict) -> None:
     t = Table(title="layouts compared" if res["mode"] == "room" else f"{res.get('structure')}: coverage")
     if res["mode"] == "room":
-        t.add_column("layout", overflow="fold")
-        for c in ("N", "cov. %", "PDOP p50", "PDOP p95", "N-1 p95"):
+        t.add_column("layout", overflow="fold", min_width=21)
+        for c in ("N", "cov. %", "PDOP p50", "PDOP p95", "N-1 p95", "out of hull %"):
             t.add_column(c, no_wrap=True)
         for r in res["table"]:
             n1 = r.get("n1_pdop_p95")
-            t.add_row(r["layout"], str(r["anchors"]), f"{100 * r['coverage']:.1f}", f"{r['pdop_p50']:.3f}",
-                      f"{r['pdop_p95']:.3f}", "-" if n1 is None else f"{n1:.3f}")
+            hull = r.get("hull_outside")
+            t.add_row(escape(r["layout"]), str(r["anchors"]), f"{100 * r['coverage']:.1f}", f"{r['pdop_p50']:.3f}",
+                      f"{r['pdop_p95']:.3f}", "-" if n1 is None else f"{n1:.3f}",
+                      "-" if hull is None else f"{100 * hull:.1f}")
     else:
         t.add_column("layout", overflow="fold")
         for c in ("N", "vars", "cov. %", "geo. %", "s"):
             t.add_column(c, no_wrap=True)
         for r in res["table"]:
             geo = r.get("geometric_coverage")
-            t.add_row(r["layout"], str(r["anchors"]), str(r.get("variables", "-")), f"{100 * r['coverage']:.2f}",
+            t.add_row(escape(r["layout"]), str(r["anchors"]), str(r.get("variables", "-")), f"{100 * r['coverage']:.2f}",
                       "-" if geo is None else f"{100 * geo:.2f}", f"{r['seconds']:.1f}" if "seconds" in r else "-")
     console.print(t)
+    if res["mode"] == "room":
+        console.print(f"objective: {escape(res.get('objective_name', ''))}")
+    elif "note" in res.get("radio", {}):
+        console.print(escape(res["radio"]["note"]))
     wsf = res["worst_single_failure"]
     console.print(f"coverage {100 * res['coverage']:.2f} % (geometric, also PDOP <= 5: {100 * res['geometric_coverage']:.2f} %), "
                   f"PDOP p50 {res['pdop_p50']:.3f}, p95 {res['pdop_p95']:.3f}; "
@@ -38,7 +45,7 @@ def _print_result(res: dict) -> None:
                   f"PDOP p95 {wsf.get('pdop_p95', float('nan')):.3f}")
     for w in res["lint"]:
         colour = "yellow" if w["severity"] == "warning" else "cyan"
-        console.print(f"[{colour}]{w['severity']}[/{colour}] [{w['code']}] {w['message']}")
+        console.print(f"[{colour}]{w['severity']}[/{colour}] {escape('[' + w['code'] + ']')} {escape(w['message'])}")
 
 
 def register(app: typer.Typer) -> None:

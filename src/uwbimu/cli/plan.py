@@ -33,6 +33,27 @@ def _load_yaml(path: Path) -> dict:
     return data
 
 
+SEED_FILES = {"plan.json", "trajectories.csv", "fig7_trajectories.png", "fig8_det_observability.png", "indirect_convergence.png", "controls.png"}
+POINTMASS_FILES = {"plan.json", "trajectory.csv", "pointmass.png"}
+CALIBRATION_FILES = {
+    *(f"{k}_{s}" for k in ("designed", "figure8", "figure8_excited") for s in ("trajectory.csv", "scenario.yaml")),
+    "design.json", "calibration_design.png", "proof",
+}  # fmt: skip
+FORCE_HELP = "write into a folder that holds other files (files of the same names are replaced)"
+
+
+def _check_out(out: Path, ours: set, force: bool) -> None:
+    """Refuse an output path that is a file, or a folder holding files this command does not write."""
+    if out.exists() and not out.is_dir():
+        console.print(f"[red]error:[/red] {out}: exists and is not a folder")
+        raise typer.Exit(code=2)
+    if out.is_dir() and not force:
+        other = sorted(p.name for p in out.iterdir() if p.name not in ours)
+        if other:
+            console.print(f"[red]refusing:[/red] {out} holds other files ({', '.join(other[:5])}); use --force or another folder")
+            raise typer.Exit(code=2)
+
+
 def _validation_error(path, exc) -> None:
     from pydantic import ValidationError
 
@@ -48,6 +69,7 @@ def _validation_error(path, exc) -> None:
 def seed_ocp(
     out: Path = typer.Option(..., "--out", "-o", help="output folder (plots + plan.json)"),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding SeedOcpConfig fields"),
+    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Seed 002 sec. XI-XII: 1/det(O)^2 optimal control by PMP and by IPOPT, vs PD."""
     from pydantic import ValidationError
@@ -61,6 +83,7 @@ def seed_ocp(
     except (ValidationError, ValueError) as exc:
         _validation_error(config, exc)
         raise typer.Exit(code=2)
+    _check_out(out, SEED_FILES, force)
     with console.status("solving PD, indirect (PMP) and direct (IPOPT)..."):
         res = solve_seed_ocp(cfg)
     summary = res.summary()
@@ -112,6 +135,7 @@ def seed_ocp(
 def point_mass(
     config: Path = typer.Argument(..., help="PointMassPlanConfig YAML (see examples/plan/pointmass.yaml)"),
     out: Path = typer.Option(..., "--out", "-o", help="output folder"),
+    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Observability-aware point-mass path (log-det / E / A-optimal information, IPOPT) vs minimum effort."""
     import numpy as np
@@ -127,6 +151,7 @@ def point_mass(
     except (ValidationError, ValueError) as exc:
         _validation_error(config, exc)
         raise typer.Exit(code=2)
+    _check_out(out, POINTMASS_FILES, force)
     with console.status("solving (IPOPT)..."):
         base = plan_point_mass(cfg.model_copy(update={"objective": "none"}))
         res = plan_point_mass(cfg)
@@ -162,6 +187,7 @@ def point_mass(
 def calibration(
     config: Path = typer.Argument(..., help="calibration design YAML (see docs/trajectory_design.md)"),
     out: Path = typer.Option(..., "--out", "-o", help="output folder"),
+    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Design a calibration manoeuvre (lever arm + time offset, E-optimal) for the 19-state model."""
     from pydantic import ValidationError
@@ -174,6 +200,7 @@ def calibration(
     except (ValidationError, ValueError) as exc:
         _validation_error(config, exc)
         raise typer.Exit(code=2)
+    _check_out(out, CALIBRATION_FILES, force)
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn(), console=console) as prog:

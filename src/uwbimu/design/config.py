@@ -141,11 +141,12 @@ class ObjectiveConfig(_M):
     """Weighted objective (minimised).
 
     ``w_coverage 100 (1 - coverage) + w_pdop PDOP_q + w_n1_pdop max_i PDOP_q(-i)
-    + w_n1_coverage 100 (1 - min_i coverage(-i)) - w_info logdetJ_(100-q)``, with ``q`` the
-    percentile (PDOP upper tail, information lower tail).
+    + w_n1_coverage 100 (1 - min_i coverage(-i)) - w_info logdetJ_(100-q)
+    + w_hull 100 (fraction of the flight volume outside the anchors' convex hull)``, with
+    ``q`` the percentile (PDOP upper tail, information lower tail).
     """
 
-    weights: dict[Literal["coverage", "pdop", "n1_pdop", "n1_coverage", "info"], float] = Field(
+    weights: dict[Literal["coverage", "pdop", "n1_pdop", "n1_coverage", "info", "hull"], float] = Field(
         default_factory=lambda: {"coverage": 10.0, "pdop": 1.0, "n1_pdop": 0.25}
     )
     percentile: float = Field(95.0, gt=0, le=100)
@@ -193,6 +194,10 @@ class PlacementConfig(_M):
 
     @model_validator(mode="after")
     def _mode(self):
+        for name, lay in self.compare.items():
+            for i, p in enumerate(lay):
+                if len(p) != 3:
+                    raise ValueError(f"compare.{name}[{i}] must be [x, y, z], got {p}")
         if self.mode == "room" and self.room is None:
             raise ValueError("mode 'room' needs a 'room' section")
         if self.mode == "structure" and self.structure is None:

@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-__all__ = ["LintWarning", "lint_layout", "hull_outside_fraction", "planarity"]
+__all__ = ["LintWarning", "lint_layout", "hull_outside_fraction", "hull_outside_mask", "planarity"]
 
 
 @dataclass
@@ -44,18 +44,34 @@ def planarity(anchors) -> tuple[float, float]:
     return float(s[1] / s[0]), float(s[2] / s[0])
 
 
-def hull_outside_fraction(anchors, points) -> float:
-    """Fraction of ``points`` outside the convex hull of ``anchors`` (1.0 if the hull is flat)."""
-    from scipy.spatial import Delaunay, QhullError
+def hull_outside_mask(anchors, points, tol: float = 1e-9) -> np.ndarray:
+    """Boolean mask of ``points`` (P, 3) outside the convex hull of ``anchors`` (all True if the hull is flat)."""
+    from scipy.spatial import ConvexHull, QhullError
 
     a = np.asarray(anchors, float)
+    p = np.atleast_2d(np.asarray(points, float))
     if len(a) < 4:
-        return 1.0
+        return np.ones(len(p), dtype=bool)
     try:
-        tri = Delaunay(a)
+        eq = ConvexHull(a).equations  # outward facet normals n and offsets b: inside iff n.x + b <= 0
     except QhullError:
-        return 1.0
-    return float(np.mean(tri.find_simplex(np.asarray(points, float)) < 0))
+        return np.ones(len(p), dtype=bool)
+    return np.any(p @ eq[:, :3].T + eq[:, 3] > tol, axis=1)
+
+
+def hull_outside_fraction(anchors, points) -> float:
+    """Fraction of ``points`` outside the convex hull of ``anchors`` (1.0 if the hull is flat)."""
+    return float(np.mean(hull_outside_mask(anchors, points)))
+
+
+def _space_note(space_extent, flat_ratio: float) -> str:
+    if space_extent is None:
+        return ""
+    e = np.asarray(space_extent, float)
+    r = float(max(e[0], e[1]) / e[2]) if e[2] > 0 else float("inf")
+    if r > flat_ratio:
+        return f" (the space itself is {e[0]:g} x {e[1]:g} x {e[2]:g} m, ratio {r:.1f}: no layout in it can pass this rule)"
+    return ""
 
 
 def lint_layout(
@@ -69,6 +85,7 @@ def lint_layout(
     single_failure: dict | None = None,
     single_failure_pdop_limit: float = 5.0,
     ids=None,
+    space_extent=None,
 ) -> list[LintWarning]:
     """Check a layout against the rules of thumb.
 
@@ -82,6 +99,8 @@ def lint_layout(
         analysis; reported as info, or as a warning when coverage drops or PDOP exceeds
         ``single_failure_pdop_limit``
     ids : anchor names for messages (default A1..AN)
+    space_extent : (3,) size of the room/space [m]; when given, the flat-layout message
+        says whether the space itself already exceeds the ratio
     """
     a = np.asarray(anchors, float)
     ids = list(ids) if ids is not None else [f"A{i + 1}" for i in range(len(a))]
@@ -101,7 +120,8 @@ def lint_layout(
     if ratio > flat_ratio:
         out.append(LintWarning("flat", "warning",
                                f"flat layout: max(length, width)/height = {ratio:.1f} > {flat_ratio:g} "
-                               f"(extent {ext[0]:.1f} x {ext[1]:.1f} x {h:.2f} m); z will be poor", ratio))
+                               f"(extent {ext[0]:.1f} x {ext[1]:.1f} x {h:.2f} m); z will be poor"
+                               + _space_note(space_extent, flat_ratio), ratio))
     if flight_points is not None and len(flight_points):
         f = hull_outside_fraction(a, flight_points)
         if f > 0:

@@ -18,8 +18,11 @@ The weighted objective (minimised) is::
 
     J = w_coverage * 100 (1 - coverage) + w_pdop * PDOP_q + w_n1_pdop * max_i PDOP_q(without i)
         + w_n1_coverage * 100 (1 - min_i coverage(without i)) - w_info * logdetJ_(100-q)
+        + w_hull * 100 * (fraction of the tag samples outside the anchors' convex hull)
 
-(``logdetJ_(100-q)``: the information percentile, the lower tail of ``log det J``)
+(``logdetJ_(100-q)``: the information percentile, the lower tail of ``log det J``; the
+hull term turns the practitioner rule "tags inside the anchors' hull", which
+:mod:`uwbimu.design.lint` checks, into a penalty)
 
 with PDOP evaluated on the links that close and capped at ``pdop_cap`` where the
 position is not observable (fewer than 3 links or a degenerate geometry).
@@ -32,6 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from uwbimu.design.lint import hull_outside_mask
 from uwbimu.design.radio import Bar, Box, LinkModel
 
 __all__ = [
@@ -257,10 +261,12 @@ class LayoutEvaluator:
         links = self.link.links(self.points, a, boresights).T
         return _outer6(u) * links[..., None], links
 
-    def components(self, O, M, n1: bool | None = None) -> dict:
+    def components(self, O, M, n1: bool | None = None, anchors=None) -> dict:
         """Coverage, PDOP percentiles and (optionally) the N-1 worst case from per-anchor terms.
 
         The full set and all N leave-one-out sets are evaluated in one vectorised pass.
+        With ``anchors`` (N, 3) also ``hull_outside``: the fraction of the tag samples
+        outside the anchors' convex hull.
         """
         if n1 is None:
             n1 = bool(self.weights.get("n1_pdop", 0) or self.weights.get("n1_coverage", 0))
@@ -292,6 +298,8 @@ class LayoutEvaluator:
         # Information percentile: the (100 - q) % lower tail of log det J, J = G / sigma^2.
         ld = np.log(np.maximum(det_g6(G), 1e-12)) - 6.0 * np.log(self.sigma)
         out["logdet_low"] = float(np.percentile(ld, 100.0 - self.percentile, method="lower"))
+        if anchors is not None:
+            out["hull_outside"] = float(np.mean(hull_outside_mask(anchors, self.points)))
         if n1:
             qs = at(self.percentile)[1:]
             covs = np.mean(Cs[1:] >= self.k, axis=1)
@@ -303,6 +311,10 @@ class LayoutEvaluator:
         w = self.weights
         j = w.get("coverage", 0.0) * 100.0 * (1.0 - comp["coverage"]) + w.get("pdop", 0.0) * comp["pdop_q"]
         j -= w.get("info", 0.0) * comp["logdet_low"]
+        if w.get("hull", 0.0):
+            if "hull_outside" not in comp:
+                raise ValueError("the 'hull' weight needs the anchor positions (components(..., anchors=...))")
+            j += w["hull"] * 100.0 * comp["hull_outside"]
         if "n1_pdop_q" in comp:
             j += w.get("n1_pdop", 0.0) * comp["n1_pdop_q"] + w.get("n1_coverage", 0.0) * 100.0 * (1.0 - comp["n1_coverage"])
         return float(j)
@@ -312,7 +324,7 @@ class LayoutEvaluator:
         if boresights is None:
             boresights = np.tile([0.0, 0.0, -1.0], (len(a), 1))
         O, M = self.per_anchor(a, boresights)
-        comp = self.components(O, M, n1=n1)
+        comp = self.components(O, M, n1=n1, anchors=a)
         comp["objective"] = self.objective(comp)
         return comp
 
@@ -333,7 +345,7 @@ class CandidateSet:
 
     def components(self, idx, n1=None) -> dict:
         idx = list(idx)
-        return self.ev.components(self.O[idx], self.M[idx], n1=n1)
+        return self.ev.components(self.O[idx], self.M[idx], n1=n1, anchors=self.positions[idx])
 
     def objective(self, idx) -> float:
         return self.ev.objective(self.components(idx))

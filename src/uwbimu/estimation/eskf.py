@@ -22,7 +22,8 @@ from scipy.stats import chi2
 from uwbimu.estimation import kernels as K
 from uwbimu.estimation.diagnostics import excitation_warnings, imu_gap_events, outage_warnings
 from uwbimu.estimation.filterpass import (
-    REC_ACC, REC_INNOV, REC_NIS, REC_PRED, REC_STATUS, STATUS_IN_GAP, STATUS_NOT_PROCESSED, PassResult, Problem, run_pass,
+    REC_ACC, REC_INNOV, REC_NIS, REC_PRED, REC_STATUS, STATUS_IN_GAP, STATUS_NOT_PROCESSED, PassResult, Problem, gap_inputs,
+    run_pass,
 )
 from uwbimu.estimation.init import InitialisationError, InitialState, initialise
 from uwbimu.estimation.options import EskfOptions
@@ -125,6 +126,13 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
         hull_lo=lo, hull_hi=hi, max_pos_var=opts.supervisor.max_position_sd**2,
         all_reject_run=opts.supervisor.all_reject_run, supervise=opts.supervisor.enabled,
     )
+    prob.gap_idx, prob.gap_sd = gap_inputs(imu_t, imu_u, prob.dt_max)
+    if opts.lever_arm.mode == "estimate" and opts.lever_arm.min_rotation_rate > 0:
+        w = imu_u[:, 3:6]
+        prob.gyro_cs = np.vstack([np.zeros((1, 3)), np.cumsum(w, axis=0)])
+        prob.gyro_cs2 = np.vstack([np.zeros((1, 3)), np.cumsum(w * w, axis=0)])
+        prob.lever_win = max(1, int(round(opts.excitation.window_s / dt_nom)))
+        prob.lever_min_rate = float(opts.lever_arm.min_rotation_rate)
     # calibration priors
     lever = opts.lever_arm.prior
     if lever is None:
@@ -307,6 +315,15 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
         "accepted": rec[:, REC_ACC] > 0,
     })
     n_gap = int((rec[:, REC_STATUS] == STATUS_IN_GAP).sum())
+    n_frozen = sum(p.n_lever_frozen for p in passes)
+    n_acc = int((rec[:, REC_ACC] > 0).sum())
+    if n_frozen:
+        warnings.append(
+            f"lever arm: not updated by {n_frozen} of {n_acc} accepted ranges ({100 * n_frozen / max(n_acc, 1):.0f}%) "
+            f"because the body hardly rotated (RMS gyro rate below lever_arm.min_rotation_rate = "
+            f"{opts.lever_arm.min_rotation_rate:g} rad/s over {opts.excitation.window_s:g} s); its sd keeps the prior there")
+        events.append({"t": float(prob.uwb_t[0]), "kind": "lever_arm_not_updated", "ranges": int(n_frozen),
+                       "accepted_ranges": n_acc, "min_rotation_rate": float(opts.lever_arm.min_rotation_rate)})
     n_unproc = int((~processed).sum()) - n_gap
     if n_gap:
         warnings.append(f"UWB: {n_gap} ranges fall inside IMU gaps (motion unknown) and were not used; "

@@ -25,6 +25,7 @@ antenna position, ``-u^T (v + R [w]x p_IU)``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Callable, Optional
 
@@ -70,6 +71,27 @@ class Problem:
     max_pos_var: float = np.inf
     all_reject_run: int = 10**9
     supervise: bool = False
+    # lever-arm rotation gate (lever_arm.min_rotation_rate): prefix sums of the gyro and its square,
+    # (n + 1, 3), the trailing window [IMU samples] and the threshold [rad/s]; 0 disables
+    gyro_cs: Optional[np.ndarray] = None
+    gyro_cs2: Optional[np.ndarray] = None
+    lever_win: int = 0
+    lever_min_rate: float = 0.0
+
+    def rotation_rms(self, k: int, b_g: np.ndarray) -> float:
+        """RMS bias-corrected body rate [rad/s] over the ``lever_win`` IMU samples up to ``k``."""
+        i1 = min(int(k), self.imu_t.shape[0] - 1) + 1
+        i0 = max(0, i1 - self.lever_win)
+        n = i1 - i0
+        s = (self.gyro_cs[i1] - self.gyro_cs[i0]) / n
+        s2 = (self.gyro_cs2[i1] - self.gyro_cs2[i0]) / n
+        ms = float(np.sum(s2 - 2.0 * b_g * s + b_g * b_g))
+        return math.sqrt(max(ms, 0.0))
+
+    # IMU gaps: first sample index of each gap (imu_t[g + 1] - imu_t[g] > dt_max) and the sd of the
+    # unknown input there (accelerometer [m/s^2], gyro [rad/s]); see gap_inflation
+    gap_idx: Optional[np.ndarray] = None
+    gap_sd: Optional[np.ndarray] = None  # (G, 2)
 
     @property
     def n_err(self) -> int:
@@ -92,6 +114,65 @@ class PassResult:
     k: int
     diverged: Optional[str] = None
     events: list[dict[str, Any]] = field(default_factory=list)
+    n_lever_frozen: int = 0  # accepted ranges that did not update the lever arm (rotation gate)
+
+
+def gap_inputs(imu_t: np.ndarray, imu_u: np.ndarray, dt_max: float, around_s: float = 1.0):
+    """IMU gaps and the sd of the unknown input inside each.
+
+    Across a gap the filter integrates a linear interpolation of the IMU; the
+    real input differs from it by an unknown amount, which the white-noise
+    densities (made for one sample period) do not cover.  Its sd is taken from
+    the data: the per-axis standard deviation of the accelerometer and gyro
+    readings within ``around_s`` on both sides of the gap (largest axis).
+    Returns ``(gap_idx (G,), gap_sd (G, 2))``.
+    """
+    d = np.diff(imu_t)
+    idx = np.flatnonzero(d > dt_max)
+    sd = np.zeros((len(idx), 2))
+    for i, g in enumerate(idx):
+        lo = np.searchsorted(imu_t, imu_t[g] - around_s)
+        hi = np.searchsorted(imu_t, imu_t[g + 1] + around_s, side="right")
+        u = imu_u[lo:hi]
+        if len(u) > 2:
+            sd[i, 0] = float(np.max(np.std(u[:, 0:3], axis=0)))
+            sd[i, 1] = float(np.max(np.std(u[:, 3:6], axis=0)))
+    return idx, sd
+
+
+def gap_inflation(P: np.ndarray, T: float, sd_a: float, sd_w: float) -> None:
+    """Add to ``P`` (in place) the effect of an unknown input error held over a gap of ``T`` seconds.
+
+    An acceleration error ``da`` (sd ``sd_a`` per world axis) gives ``dv = da T`` and
+    ``dp = da T^2 / 2``; a body-rate error ``dw`` (sd ``sd_w``) gives ``dtheta = dw T``.
+    """
+    qa = sd_a * sd_a
+    for i in range(3):
+        P[i, i] += qa * T**4 / 4.0
+        P[i, 3 + i] += qa * T**3 / 2.0
+        P[3 + i, i] += qa * T**3 / 2.0
+        P[3 + i, 3 + i] += qa * T * T
+        P[6 + i, 6 + i] += sd_w * sd_w * T * T
+
+
+def _propagate(prob: Problem, x: np.ndarray, P: np.ndarray, k: int, t_target: float, ws: np.ndarray) -> int:
+    """:func:`kernels.propagate_until` that also inflates ``P`` for the unknown input across IMU gaps."""
+    gi = prob.gap_idx
+    if gi is not None and len(gi):
+        n = prob.imu_t.shape[0]
+        while True:
+            # next gap not yet crossed, whose start the target reaches
+            i = int(np.searchsorted(gi, k))
+            if i >= len(gi) or gi[i] + 1 >= n or prob.imu_t[gi[i]] >= t_target:
+                break
+            g = int(gi[i])
+            k = K.propagate_until(x, P, prob.imu_t, prob.imu_u, prob.imu_um, k, prob.imu_t[g + 1], prob.noise,
+                                  prob.dt_max, prob.cov_every, ws)
+            if k < g + 1:
+                return k
+            gap_inflation(P, prob.imu_t[g + 1] - prob.imu_t[g], prob.gap_sd[i, 0], prob.gap_sd[i, 1])
+    return K.propagate_until(x, P, prob.imu_t, prob.imu_u, prob.imu_um, k, t_target, prob.noise, prob.dt_max,
+                             prob.cov_every, ws)
 
 
 def _diverged(prob: Problem, x: np.ndarray, P: np.ndarray, all_rej: int) -> Optional[str]:
@@ -146,6 +227,10 @@ def run_pass(
     events: list[dict[str, Any]] = []
     o = np.empty(7)
     diverged = None
+    gate_lever = prob.lever_min_rate > 0 and prob.gyro_cs is not None and prob.gain_mask[15] > 0
+    mask_frozen = prob.gain_mask.copy()
+    mask_frozen[15:18] = 0.0
+    n_frozen = 0
 
     def _record():
         out_t.append(imu_t[k])
@@ -166,8 +251,7 @@ def run_pass(
             break
         if record:
             while next_out <= tau:
-                k = K.propagate_until(x, P, imu_t, imu_u, prob.imu_um, k, next_out, prob.noise, prob.dt_max,
-                                      prob.cov_every, ws)
+                k = _propagate(prob, x, P, k, next_out, ws)
                 _record()
                 next_out += prob.out_period
                 if prob.supervise:
@@ -178,8 +262,7 @@ def run_pass(
                     progress(k)
             if diverged:
                 break
-        k = K.propagate_until(x, P, imu_t, imu_u, prob.imu_um, k, tau, prob.noise, prob.dt_max, prob.cov_every,
-                              ws)
+        k = _propagate(prob, x, P, k, tau, ws)
         i = j - j0
         if imu_t[k] - tau > prob.max_lookback:
             rec[i, REC_STATUS] = STATUS_STALE
@@ -191,12 +274,19 @@ def run_pass(
             continue
         a = prob.uwb_a[j]
         force = consec[a] >= prob.reopen_after
+        # no rotation, no lever-arm information: Schmidt (consider) update for the lever arm only
+        # (the rate must stand out from the gyro-bias uncertainty: before the bias has converged an
+        # uncorrected bias would otherwise pass for rotation)
+        frozen = gate_lever and (prob.rotation_rms(k, x[13:16]) - math.sqrt(max(P[12, 12] + P[13, 13] + P[14, 14], 0.0))
+                                 < prob.lever_min_rate)
         K.range_update(
             x, P, imu_t, imu_u, prob.imu_um, k, tau, prob.anchors[a], prob.bias_idx[a], prob.uwb_r[j], prob.r_var,
-            prob.gate, force, prob.robust_kind, prob.robust_c, prob.gain_mask, prob.dt_max, o,
+            prob.gate, force, prob.robust_kind, prob.robust_c, mask_frozen if frozen else prob.gain_mask,
+            prob.dt_max, o,
         )
         rec[i] = o
         if o[REC_ACC] > 0:
+            n_frozen += int(frozen)
             if force:
                 # a reopened gate does not prove the filter healthy: keep counting towards divergence
                 events.append({"t": float(tj), "kind": "gate_reopened", "anchor": prob.anchor_ids[a],
@@ -215,8 +305,7 @@ def run_pass(
                 break
     if not diverged and record and to_end:
         while next_out <= t_last + 1e-12:
-            k = K.propagate_until(x, P, imu_t, imu_u, prob.imu_um, k, next_out, prob.noise, prob.dt_max,
-                                      prob.cov_every, ws)
+            k = _propagate(prob, x, P, k, next_out, ws)
             _record()
             next_out += prob.out_period
             if k >= n_imu - 1:
@@ -237,4 +326,5 @@ def run_pass(
         k=k,
         diverged=diverged,
         events=events,
+        n_lever_frozen=n_frozen,
     )

@@ -46,7 +46,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from uwbimu.estimation.result import EstimationResult
 from uwbimu.models import state as S
-from uwbimu.models.quaternion import quat_exp, quat_multiply, quat_normalize, quat_to_rotmat
+from uwbimu.models.imu import ICM20948
+from uwbimu.models.quaternion import quat_exp, quat_multiply, quat_normalize, quat_to_rotmat, skew
 from uwbimu.models.reference import G_WORLD, GRAVITY
 
 __all__ = [
@@ -57,6 +58,7 @@ __all__ = [
     "predict_step",
     "integrate_attitude",
     "multilaterate",
+    "acceleration_error_psd",
 ]
 
 
@@ -80,7 +82,28 @@ class PointMassOptions(BaseModel):
         None, ge=0, description="m/s^2/sqrt(Hz); default: dataset imu_noise, else 0.01"
     )
     accel_error_sd: float = Field(
-        0.1, ge=0, description="m/s^2; unmodelled acceleration error (bias, attitude) as extra white noise over 1 s"
+        0.05, ge=0, description="m/s^2; extra unmodelled acceleration error (vibration, model error), correlated over "
+        "accel_error_time"
+    )
+    accel_error_time: float = Field(
+        0.25, gt=0, description="s; correlation time tau of the slowly varying acceleration errors: an error of sd "
+        "sigma enters as white noise of PSD 2 tau sigma^2"
+    )
+    attitude_error_model: bool = Field(
+        True, description="add the acceleration error caused by the growing attitude error (levelling, yaw, gyro "
+        "bias and noise: from the IMU noise model) and by the unestimated accelerometer bias to the process noise"
+    )
+    initial_yaw_sd: Optional[float] = Field(
+        None, ge=0, description="rad; sd of the initial yaw; None: 2 deg when initial_yaw is given, else the bank "
+        "resolution"
+    )
+    lever_arm_sd: Optional[float] = Field(
+        None, ge=0, description="m per axis; uncertainty of the fixed lever arm, added to the output covariance; "
+        "None: 0 when the lever arm is known (dataset tag or lever_arm option), else 0.1"
+    )
+    time_offset_sd: float = Field(
+        0.03, ge=0, description="s; uncertainty of the fixed time offset, added to the output covariance (0 when "
+        "t_d is known)"
     )
     range_sigma: Optional[float] = Field(None, gt=0, description="m; default: dataset range_sigma, else 0.1")
     gate_sigma: float = Field(5.0, gt=0, description="reject ranges with |innovation| > gate_sigma * sqrt(S)")
@@ -144,8 +167,8 @@ def _integrate_attitude(q0, t, w, b_g):
 def _predict(x, P, a0, a1, h, q2):
     """Exact propagation of ``p' = v, v' = a`` over ``h`` with ``a`` linear from a0 to a1.
 
-    Process noise: white acceleration of spectral density ``q2`` [m^2/s^3].
-    Scalar loops (no BLAS) keep the compile time short.
+    Process noise: white acceleration of spectral density ``q2[i]`` [m^2/s^3]
+    on world axis ``i``.  Scalar loops (no BLAS) keep the compile time short.
     """
     for i in range(3):
         x[i] += h * x[3 + i] + h * h * (a0[i] / 3.0 + a1[i] / 6.0)
@@ -158,10 +181,10 @@ def _predict(x, P, a0, a1, h, q2):
         for i in range(6):
             P[i, j] += h * P[i, 3 + j]
     for i in range(3):
-        P[i, i] += q2 * h * h * h / 3.0
-        P[i, 3 + i] += q2 * h * h / 2.0
-        P[3 + i, i] += q2 * h * h / 2.0
-        P[3 + i, 3 + i] += q2 * h
+        P[i, i] += q2[i] * h * h * h / 3.0
+        P[i, 3 + i] += q2[i] * h * h / 2.0
+        P[3 + i, i] += q2[i] * h * h / 2.0
+        P[3 + i, 3 + i] += q2[i] * h
 
 
 @njit(cache=True)
@@ -182,6 +205,8 @@ def _range_h(x, anchor, offset):
 @njit(cache=True)
 def _filter(s, aw, x0, P0, q2, tau, anchors, offsets, ranges, sigma, gate):
     """Run the EKF over IMU stamps ``s`` with ranges at IMU-clock times ``tau`` (sorted).
+
+    ``q2`` (N, 3): process-noise PSD per IMU interval (left sample) and world axis.
 
     Returns states (N, 6), covariances (N, 6, 6) and, per range, predicted
     range, innovation, NIS and accepted flag.
@@ -209,7 +234,7 @@ def _filter(s, aw, x0, P0, q2, tau, anchors, offsets, ranges, sigma, gate):
         while j < m and tau[j] < s[k + 1]:
             frac = (tau[j] - s[k]) / dt
             aj = aw[k] + frac * (aw[k + 1] - aw[k])
-            _predict(x, P, ac, aj, tau[j] - tc, q2)
+            _predict(x, P, ac, aj, tau[j] - tc, q2[k])
             tc = tau[j]
             ac = aj
             r, H = _range_h(x, anchors[j], offsets[j])
@@ -231,7 +256,7 @@ def _filter(s, aw, x0, P0, q2, tau, anchors, offsets, ranges, sigma, gate):
                         P[i, k2] -= PHt[i] * PHt[k2] / Sv
                 acc[j] = True
             j += 1
-        _predict(x, P, ac, aw[k + 1], s[k + 1] - tc, q2)
+        _predict(x, P, ac, aw[k + 1], s[k + 1] - tc, q2[k])
         X[k + 1] = x
         Pd[k + 1] = P
     return X, Pd, pred, innov, nis, acc
@@ -249,11 +274,15 @@ def range_and_jacobian(x6: np.ndarray, anchor: np.ndarray, offset=(0.0, 0.0, 0.0
     return float(r), H
 
 
-def predict_step(x6, P, a0, a1, h: float, q2: float) -> tuple[np.ndarray, np.ndarray]:
-    """One prediction over ``h`` seconds with world accelerations ``a0 -> a1`` (copies in, out)."""
+def predict_step(x6, P, a0, a1, h: float, q2) -> tuple[np.ndarray, np.ndarray]:
+    """One prediction over ``h`` seconds with world accelerations ``a0 -> a1`` (copies in, out).
+
+    ``q2``: white acceleration PSD [m^2/s^3], a scalar or one per world axis (3,).
+    """
     x = np.array(x6, float)
     Pc = np.array(P, float)
-    _predict(x, Pc, np.asarray(a0, float), np.asarray(a1, float), float(h), float(q2))
+    q = np.ascontiguousarray(np.broadcast_to(np.asarray(q2, float), (3,)))
+    _predict(x, Pc, np.asarray(a0, float), np.asarray(a1, float), float(h), q)
     return x, Pc
 
 
@@ -303,6 +332,55 @@ def multilaterate(
     J = d / np.maximum(np.linalg.norm(d, axis=1), 1e-9)[:, None]
     cov = np.linalg.pinv(J.T @ J)
     return p, cov, bool(ambiguous)
+
+
+def acceleration_error_psd(
+    f_world: np.ndarray,
+    t: np.ndarray,
+    *,
+    accel_noise_density: float,
+    accel_bias_sd: float = 0.0,
+    extra_sd: float = 0.0,
+    tau: float = 0.5,
+    tilt0_sd: float = 0.0,
+    yaw0_sd: float = 0.0,
+    gyro_bias_sd: float = 0.0,
+    gyro_noise_density: float = 0.0,
+    gyro_bias_rw: float = 0.0,
+    lever_accel_sd: Optional[np.ndarray] = None,
+) -> np.ndarray:
+    """Process-noise PSD (N, 3) [m^2/s^3] of the world acceleration input, per world axis.
+
+    The input ``a = R(q) f - g`` is wrong by (i) the accelerometer's white
+    noise (PSD ``accel_noise_density^2``) and (ii) slowly varying errors: the
+    unestimated accelerometer bias (sd ``accel_bias_sd``), an extra allowance
+    ``extra_sd`` and, to first order, ``dtheta x (R f)`` for a world-frame
+    attitude error ``dtheta`` whose variance grows from the initial levelling
+    (``tilt0_sd`` about x, y) and yaw (``yaw0_sd`` about z) errors with the gyro
+    bias residual, angle random walk and bias random walk:
+    ``s(t) = s0^2 + b^2 t^2 + n_g^2 t + rw^2 t^3 / 3``.  A slowly varying error
+    of sd ``sigma`` and correlation time ``tau`` has the low-frequency PSD
+    ``2 tau sigma^2`` (first-order Gauss-Markov); that is the white-noise
+    equivalent used here.  ``lever_accel_sd`` (N,) adds an isotropic term
+    (acceleration of an unknown antenna offset).
+
+    Parameters
+    ----------
+    f_world : (N, 3) specific force in the world frame [m/s^2].
+    t : (N,) time since the start [s].
+    """
+    f = np.asarray(f_world, float)
+    t = np.maximum(np.asarray(t, float), 0.0)
+    grow = gyro_bias_sd**2 * t**2 + gyro_noise_density**2 * t + gyro_bias_rw**2 * t**3 / 3.0
+    s1 = tilt0_sd**2 + grow  # about world x and y
+    s3 = yaw0_sd**2 + grow  # about world z
+    f1, f2, f3 = f[:, 0] ** 2, f[:, 1] ** 2, f[:, 2] ** 2
+    # diag([f]x diag(s1, s1, s3) [f]x^T)
+    var = np.column_stack([f3 * s1 + f2 * s3, f3 * s1 + f1 * s3, (f2 + f1) * s1])
+    var += accel_bias_sd**2 + extra_sd**2
+    if lever_accel_sd is not None:
+        var += np.asarray(lever_accel_sd, float)[:, None] ** 2
+    return np.ascontiguousarray(accel_noise_density**2 + 2.0 * tau * var)
 
 
 def _euler_to_quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
@@ -370,6 +448,7 @@ def run_pointmass(
     if win.sum() < 2:
         win[:2] = True
     b_g = np.zeros(3)
+    static = False
     if opts.attitude == "gyro":
         f = u[win, 0:3].mean(axis=0)
         roll = math.atan2(f[1], f[2])
@@ -418,22 +497,58 @@ def run_pointmass(
     kk = np.clip(np.searchsorted(s, tau), 0, len(s) - 1)
     off_world0 = np.einsum("nij,nj->ni", R0[kk], arm_per) if len(ids) else np.zeros((0, 3))
 
+    # ---- process noise: IMU noise model (dataset.yaml, else a consumer-grade preset) ----
+    noise = dataset.meta.imu_noise
+    if noise is None:
+        noise = ICM20948
+        warnings.append("no imu_noise in dataset.yaml: process noise from the ICM20948 preset")
+    dens = opts.accel_noise_density if opts.accel_noise_density is not None else noise.accel_noise_density
+    lever_known = opts.lever_arm is not None or any(tg.lever_arm is not None for tg in dataset.meta.tags)
+    sd_lever = opts.lever_arm_sd if opts.lever_arm_sd is not None else (0.0 if lever_known else 0.1)
+    if not lever_known:
+        warnings.append(f"lever arm unknown: taken as 0 (not estimated), sd {sd_lever:g} m per axis in the output")
+    w_body = u[:, 3:6] - b_g
+    if sd_lever > 0:
+        # acceleration of an antenna offset L: w' x L + w x (w x L), |.| <= (|w'| + |w|^2) |L|
+        k_s = max(1, int(round(0.05 / max(float(np.median(np.diff(s))), 1e-6))))
+        w_s = np.column_stack([np.convolve(w_body[:, i], np.ones(k_s) / k_s, mode="same") for i in range(3)])
+        w_dot = np.gradient(w_s, s, axis=0)
+        lever_acc = sd_lever * (np.linalg.norm(w_dot, axis=1) + np.sum(w_s**2, axis=1))
+    else:
+        lever_acc = None
+    noise_kw: dict[str, Any] = {"accel_noise_density": float(dens), "extra_sd": opts.accel_error_sd,
+                                "tau": opts.accel_error_time, "lever_accel_sd": lever_acc}
+    if opts.attitude == "gyro" and opts.attitude_error_model:
+        if opts.estimate_gyro_bias and static:
+            t_win = max(float(s[win][-1] - s[win][0]), 1e-3)
+            gyro_bias_sd = math.sqrt(noise.gyro_noise_density**2 / t_win + noise.gyro_bias_rw**2 * t_win)
+            tilt0 = noise.accel_bias_sigma0 / GRAVITY  # levelling absorbs the accelerometer bias
+        else:
+            gyro_bias_sd = noise.gyro_bias_sigma0
+            tilt0 = math.radians(5.0)  # levelling on a moving vehicle
+        if opts.initial_yaw_sd is not None:
+            yaw0 = opts.initial_yaw_sd
+        elif opts.initial_yaw is not None:
+            yaw0 = math.radians(2.0)
+        else:  # the fine bank step is 1/4 of the coarse one: uniform error over +-step/8
+            yaw0 = (2 * math.pi / opts.yaw_hypotheses / 4) / math.sqrt(12.0)
+        noise_kw.update(accel_bias_sd=noise.accel_bias_sigma0, tilt0_sd=tilt0, yaw0_sd=yaw0,
+                        gyro_bias_sd=gyro_bias_sd, gyro_noise_density=noise.gyro_noise_density,
+                        gyro_bias_rw=noise.gyro_bias_rw)
+    t_rel = s - s[0]
+
     def inputs(yaw: float):
-        """World accelerations and antenna offsets for an initial yaw (rotation about world z)."""
+        """World accelerations, antenna offsets and process-noise PSD for an initial yaw (about world z)."""
         c, sn = math.cos(yaw), math.sin(yaw)
         Rz = np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]])
-        aw = np.ascontiguousarray(f_world0 @ Rz.T - G_WORLD)
-        return aw, np.ascontiguousarray(off_world0 @ Rz.T), Rz
+        f_w = f_world0 @ Rz.T
+        q2y = acceleration_error_psd(f_w, t_rel, **noise_kw)
+        return np.ascontiguousarray(f_w - G_WORLD), np.ascontiguousarray(off_world0 @ Rz.T), Rz, q2y
     n_before = int(np.sum(tau < s[0]))
     n_after = int(np.sum(tau >= s[-1]))
     if n_before or n_after:
         warnings.append(f"{n_before + n_after} ranges outside the IMU time span were not used")
 
-    meta_noise = dataset.meta.imu_noise
-    dens = opts.accel_noise_density
-    if dens is None:
-        dens = meta_noise.accel_noise_density if meta_noise is not None else 0.01
-    q2 = dens**2 + opts.accel_error_sd**2  # (m/s^2)^2/Hz; the extra term is "sd over 1 s"
     sigma = opts.range_sigma or dataset.meta.range_sigma or 0.1
 
     # ---- initial state ---------------------------------------------------
@@ -489,8 +604,8 @@ def run_pointmass(
         gate2 = float(opts.gate_sigma) ** 2
 
         def score(y):
-            aw_y, off_y, Rz = inputs(y)
-            out = _filter(s[:n_w], aw_y[:n_w], start(Rz), P0, q2, tau_c[:m_w], A_c[:m_w], off_y[:m_w],
+            aw_y, off_y, Rz, q2y = inputs(y)
+            out = _filter(s[:n_w], aw_y[:n_w], start(Rz), P0, q2y[:n_w], tau_c[:m_w], A_c[:m_w], off_y[:m_w],
                           rng_meas[:m_w], float(sigma), float(opts.gate_sigma))
             nis_y = out[4]
             return float(np.sum(np.minimum(np.nan_to_num(nis_y, nan=0.0), gate2)))
@@ -504,7 +619,7 @@ def run_pointmass(
         fine_scores = [score(y) for y in fine]
         yaw = float(math.remainder(float(fine[int(np.argmin(fine_scores))]), 2 * math.pi))
         events.append({"t": float(s[0] - t_d), "kind": "yaw_bank", "yaw": yaw, "hypotheses": K + 5})
-    aw, offsets, Rz = inputs(yaw)
+    aw, offsets, Rz, q2 = inputs(yaw)
     quats = quat_normalize(quat_multiply(quat_exp(np.array([0.0, 0.0, yaw])), quats0)) if yaw != 0.0 else quats0
 
     X, Pd, pred, innov, nis, accepted = _filter(
@@ -525,12 +640,24 @@ def run_pointmass(
     lever = next(iter(arms.values())) if arms else np.zeros(3)
     states[:, S.PIU] = lever
     states[:, S.TD] = t_d
+    # Consider terms: the fixed lever arm and time offset are not estimated; their
+    # uncertainty maps into the output (IMU) position and velocity to first order:
+    # p_IMU = p_ant - R L  (d/dL: -R),  v_IMU = v_ant - R (w x L)  (d/dL: -R [w]x),
+    # and a state at t + dt_d differs by (v, a) dt_d.
+    P_out = Pd.copy()
+    if sd_lever > 0:
+        R_all = quat_to_rotmat(quats)
+        J = np.concatenate([-R_all, -np.einsum("nij,njk->nik", R_all, skew(w_body))], axis=1)  # (n, 6, 3)
+        P_out += sd_lever**2 * np.einsum("nik,njk->nij", J, J)
+    if opts.time_offset_sd > 0:
+        Jt = np.concatenate([X[:, 3:6], aw], axis=1)
+        P_out += opts.time_offset_sd**2 * np.einsum("ni,nj->nij", Jt, Jt)
     sd = np.full((n, S.ERROR_DIM), np.nan)
-    sd[:, 0:6] = np.sqrt(np.maximum(np.diagonal(Pd, axis1=1, axis2=2), 0.0))
+    sd[:, 0:6] = np.sqrt(np.maximum(np.diagonal(P_out, axis1=1, axis2=2), 0.0))
     covariances = None
     if opts.full_covariance:
         covariances = np.full((n, S.ERROR_DIM, S.ERROR_DIM), np.nan)
-        covariances[:, 0:6, 0:6] = Pd
+        covariances[:, 0:6, 0:6] = P_out
     residuals = pd.DataFrame(
         {
             "t": uwb["t"].to_numpy(float),
@@ -567,7 +694,14 @@ def run_pointmass(
         config=opts.model_dump(),
         runtime_s=time.perf_counter() - t_start,
         t_imu=s.copy(),
-        extra={"initial_yaw": yaw},
+        extra={
+            "initial_yaw": yaw,
+            "lever_arm_sd": sd_lever,
+            "time_offset_sd": opts.time_offset_sd,
+            "accel_psd_start": q2[0].tolist(),
+            "accel_psd_end": q2[-1].tolist(),
+            "filter_position_sd_end": np.sqrt(np.maximum(np.diagonal(Pd[-1])[0:3], 0.0)).tolist(),
+        },
     )
 
 

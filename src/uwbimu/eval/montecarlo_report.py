@@ -8,9 +8,12 @@ writes ``montecarlo.csv``, ``summary.json`` and the figures:
 * ``nees.png`` — position NEES averaged over runs against time, with the
   two-sided 95% chi-square band for that many runs (3 dof each), per
   scenario x estimator;
+* ``position_vs_truth.png`` — estimated and true position per axis against
+  time for the first run, one column per scenario, every estimator (the seed's
+  figure 2);
 * ``error_vs_time_<estimator>.png`` — position error per axis against time,
-  one column per scenario (median, 5-95% band and the 2-sigma envelope), in the
-  layout of the seed's figures 2 and 3.
+  one column per scenario (median, 5-95% band, first run and the 2-sigma
+  envelope; the seed's figure 3).
 """
 
 from __future__ import annotations
@@ -100,7 +103,8 @@ def load_traces(out: Path, scenario: str, runs: int) -> dict | None:
     _, first = np.unique(runs_all[order], return_index=True)  # one trace per run
     order = order[first]
     idx = order[runs_all[order] < runs]
-    cat = {k: np.concatenate([p[k] for p in parts], axis=0)[idx] for k in ("err", "sd", "nees")}
+    keys = ["err", "sd", "nees"] + (["truth"] if all("truth" in p for p in parts) else [])
+    cat = {k: np.concatenate([p[k] for p in parts], axis=0)[idx] for k in keys}
     cat["t"] = parts[0]["t"]
     cat["estimators"] = [str(x) for x in parts[0]["estimators"]]
     cat["runs"] = runs_all[idx]
@@ -189,7 +193,33 @@ def _make_plots(out: Path, df: pd.DataFrame, cfg, runs: int, traces: dict) -> li
     save_figure(out / "nees.png", fig)
     written.append("nees.png")
 
-    # --- error vs time per axis, one figure per estimator (seed figs 2-3) ---
+    # --- estimate vs truth per axis, first run (seed fig. 2) ------------------
+    if any(traces[s.name] is not None and "truth" in traces[s.name] for s in cfg.scenarios):
+        fig = Figure(figsize=(5 * len(cfg.scenarios), 7), layout="constrained")
+        axs = fig.subplots(3, len(cfg.scenarios), squeeze=False, sharex=True)
+        for j, s in enumerate(cfg.scenarios):
+            tr = traces[s.name]
+            if tr is None or "truth" not in tr or not len(tr["runs"]):
+                continue
+            for a in range(3):
+                ax = axs[a, j]
+                ax.plot(tr["t"], tr["truth"][0, :, a], "k", lw=1.6, label="truth")
+                for e in cfg.estimators:
+                    if e.name in tr["estimators"]:
+                        k = tr["estimators"].index(e.name)
+                        ax.plot(tr["t"], tr["truth"][0, :, a] + tr["err"][0, k, :, a], lw=0.9, label=e.name)
+                ax.set_ylabel(f"{AXES[a]} [m]")
+                ax.grid(alpha=0.3)
+                if a == 0:
+                    ax.set_title(f"{s.name} (run {int(tr['runs'][0])})", fontsize=10)
+                if a == 0 and j == 0:
+                    ax.legend(fontsize=7)
+            axs[2, j].set_xlabel("t [s]")
+        fig.suptitle("estimated vs true position")
+        save_figure(out / "position_vs_truth.png", fig)
+        written.append("position_vs_truth.png")
+
+    # --- error vs time per axis, one figure per estimator (seed fig. 3) -----
     for e in cfg.estimators:
         fig = Figure(figsize=(5 * len(cfg.scenarios), 7), layout="constrained")
         axs = fig.subplots(3, len(cfg.scenarios), squeeze=False, sharex=True)

@@ -30,7 +30,7 @@ with ``sigma_r = 1.4826 MAD``: a robust RMS that counts bias and spread.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 import pandas as pd
@@ -411,9 +411,17 @@ def diagnose_anchors(res: pd.DataFrame, ds: Dataset, options: Optional[CheckOpti
     return table, flags
 
 
-def check_dataset(ds: Dataset, options: Optional[CheckOptions] = None) -> CheckResult:
-    """Stream/anchor statistics and, with ground truth, range residuals and anchor flags."""
+def check_dataset(ds: Dataset, options: Optional[CheckOptions] = None,
+                  progress: Optional[Callable[[str, float], None]] = None) -> CheckResult:
+    """Stream/anchor statistics and, with ground truth, range residuals and anchor flags.
+
+    ``progress(stage, fraction)``, when given, is called as each stage starts
+    (fraction in [0, 1]) and with ``("done", 1.0)`` at the end; the CLI draws
+    its progress bar from it.
+    """
     options = options or CheckOptions()
+    report = progress or (lambda stage, frac: None)
+    report("stream statistics", 0.0)
     result = CheckResult(streams=stream_summary(ds, options.gap_factor),
                          anchors=anchor_summary(ds, options.gap_factor))
     unused = [a for a, n in result.anchors["ranges"].items() if n == 0]
@@ -427,12 +435,14 @@ def check_dataset(ds: Dataset, options: Optional[CheckOptions] = None) -> CheckR
                                 f"(no nominal lever arm)")
     if ds.groundtruth is None:
         result.notes.append("no ground truth: range residuals not computed")
+        report("done", 1.0)
         return result
     if "tag" in ds.uwb.columns and ds.uwb["tag"].nunique() > 1:
         result.lever_arm, result.lever_arm_source = None, "per tag (dataset.yaml)"
     else:
         tag = str(ds.uwb["tag"].iloc[0]) if "tag" in ds.uwb.columns else None
         result.lever_arm, result.lever_arm_source = lever_arm_for(ds.meta, tag)
+    report("range residuals", 0.2)
     res = range_residuals(ds, result.lever_arm, options.gt_time_shift, options.gt_max_gap)
     result.residuals = res
     result.n_compared = len(res)
@@ -441,5 +451,7 @@ def check_dataset(ds: Dataset, options: Optional[CheckOptions] = None) -> CheckR
         result.notes.append(f"{result.n_outside_truth} ranges lie outside the ground truth (or in gaps > "
                             f"{options.gt_max_gap} s) and were not compared")
     if len(res):
+        report("anchor refit and id cross-check", 0.5)
         result.residual_table, result.flags = diagnose_anchors(res, ds, options)
+    report("done", 1.0)
     return result

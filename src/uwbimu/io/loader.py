@@ -22,6 +22,7 @@ repair is counted in the :class:`LoadReport` attached to the returned dataset
 
 from __future__ import annotations
 
+import csv
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -196,16 +197,22 @@ def _find_table(folder: Path, table: str, required: bool) -> Optional[_Source]:
     return _Source(table, found[0])
 
 
-def _read_raw(src: _Source) -> pd.DataFrame:
-    """Read a table file, keeping row positions aligned with file lines."""
+def _read_raw(src: _Source, columns: list[str]) -> pd.DataFrame:
+    """Read a table file, keeping row positions aligned with file lines.
+
+    ``columns`` are the required columns, named in the refusal of an empty file.
+    """
+    expected = ", ".join(repr(c) for c in columns)
+    empty_msg = (f"{src.name}, line 1: file is empty (no header, no data); expected a header line with "
+                 f"columns {expected} followed by data rows")
     if src.is_csv:
         if src.path.stat().st_size == 0:
-            raise DatasetError(f"{src.name}: file is empty (no header, no data)", file=src.name)
+            raise DatasetError(empty_msg, file=src.name, row=1, column=columns[0])
         try:
             df = pd.read_csv(src.path, dtype={c: str for c in _TEXT_COLUMNS},
                              skip_blank_lines=False, skipinitialspace=True)
         except pd.errors.EmptyDataError:
-            raise DatasetError(f"{src.name}: file is empty (no header, no data)", file=src.name) from None
+            raise DatasetError(empty_msg, file=src.name, row=1, column=columns[0]) from None
         except pd.errors.ParserError as exc:
             raise DatasetError(f"{src.name}: malformed CSV: {exc}", file=src.name) from None
         except UnicodeDecodeError as exc:
@@ -217,6 +224,17 @@ def _read_raw(src: _Source) -> pd.DataFrame:
             raise DatasetError(f"{src.name}: cannot read parquet file: {exc}", file=src.name) from None
         df = df.reset_index(drop=True)
     df.columns = [str(c).strip() for c in df.columns]
+    if src.is_csv:
+        # pandas renames a repeated header name 'x' to 'x.1'; read the header
+        # itself so a repeated column is refused instead of silently ignored.
+        with open(src.path, newline="", encoding="utf-8", errors="replace") as fh:
+            header = [h.strip() for h in next(csv.reader(fh), [])]
+        seen: set[str] = set()
+        for h in header:
+            if h in seen:
+                raise DatasetError(f"{src.name}, line 1 (header), column '{h}': the column appears more than "
+                                   f"once in the header ({', '.join(header)})", file=src.name, row=1, column=h)
+            seen.add(h)
     if src.is_csv and len(df):
         # Blank lines at the end of a file are not data: strip them.  Blank
         # lines inside the data are refused below (they would shift nothing,
@@ -231,7 +249,10 @@ def _read_raw(src: _Source) -> pd.DataFrame:
         if len(inner):
             raise src.error("blank line inside the data; remove it", int(inner[0]))
     if len(df) == 0:
-        raise DatasetError(f"{src.name}: file has a header but no data rows", file=src.name)
+        where = "line 2" if src.is_csv else "data row 1"
+        raise DatasetError(f"{src.name}, {where}: file has a header but no data rows "
+                           f"(expected rows with columns {expected})",
+                           file=src.name, row=2 if src.is_csv else 1, column=columns[0])
     return df
 
 
@@ -239,8 +260,9 @@ def _require_columns(src: _Source, df: pd.DataFrame, required: list[str], report
                      optional: tuple[str, ...] = ()) -> None:
     missing = [c for c in required if c not in df.columns]
     if missing:
+        where = ", line 1 (header)" if src.is_csv else ""
         raise DatasetError(
-            f"{src.name}: missing column(s) {', '.join(repr(c) for c in missing)}; "
+            f"{src.name}{where}: missing column(s) {', '.join(repr(c) for c in missing)}; "
             f"found {', '.join(repr(c) for c in df.columns)}; required: {', '.join(required)}",
             file=src.name, row=1 if src.is_csv else None, column=missing[0])
     extra = [c for c in df.columns if c not in required and c not in optional]
@@ -248,8 +270,9 @@ def _require_columns(src: _Source, df: pd.DataFrame, required: list[str], report
         report.notes.append(f"{src.name}: extra column(s) ignored: {', '.join(extra)}")
     dup = df.columns[df.columns.duplicated()].tolist()
     if dup:
-        raise DatasetError(f"{src.name}: column(s) {dup} appear more than once in the header",
-                           file=src.name, column=dup[0])
+        raise DatasetError(f"{src.name}{', line 1 (header)' if src.is_csv else ''}: column(s) "
+                           f"{', '.join(repr(c) for c in dup)} appear more than once in the header",
+                           file=src.name, row=1 if src.is_csv else None, column=dup[0])
 
 
 def _to_numeric(src: _Source, df: pd.DataFrame, columns: list[str]) -> pd.DataFrame:
@@ -364,7 +387,7 @@ def _key_text(df: pd.DataFrame, i, key: list[str]) -> str:
 # Per-table validation
 # ---------------------------------------------------------------------------
 def _load_imu(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
-    df = _read_raw(src)
+    df = _read_raw(src, IMU_COLUMNS)
     report.rows_read["imu"] = len(df)
     _require_columns(src, df, IMU_COLUMNS, report)
     df = _to_numeric(src, df, IMU_COLUMNS)
@@ -444,7 +467,7 @@ def _check_gyro_against_truth(src: _Source, imu: pd.DataFrame, gt: pd.DataFrame)
 
 
 def _load_uwb(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
-    df = _read_raw(src)
+    df = _read_raw(src, UWB_COLUMNS)
     report.rows_read["uwb"] = len(df)
     _require_columns(src, df, UWB_COLUMNS, report, optional=("tag",))
     df = _to_numeric(src, df, ["t", "range"])
@@ -471,7 +494,7 @@ def _load_uwb(src: _Source, options: LoadOptions, report: LoadReport) -> pd.Data
 
 
 def _load_anchors(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
-    df = _read_raw(src)
+    df = _read_raw(src, ANCHOR_COLUMNS)
     report.rows_read["anchors"] = len(df)
     _require_columns(src, df, ANCHOR_COLUMNS, report)
     df = _to_text(src, df, "anchor")
@@ -481,7 +504,7 @@ def _load_anchors(src: _Source, options: LoadOptions, report: LoadReport) -> pd.
 
 
 def _load_groundtruth(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
-    df = _read_raw(src)
+    df = _read_raw(src, GT_COLUMNS)
     report.rows_read["groundtruth"] = len(df)
     _require_columns(src, df, GT_COLUMNS, report, optional=tuple(GT_VEL_COLUMNS))
     vel = [c for c in GT_VEL_COLUMNS if c in df.columns]

@@ -111,30 +111,31 @@ def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
 def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
     """Unit quaternion (``qw >= 0``) of a rotation matrix.
 
-    Uses the numerically robust branch selection of Shepperd's method.
+    Uses the numerically robust branch selection of Shepperd's method,
+    vectorised over any batch shape.
     """
     R = np.asarray(R, dtype=float)
     batch = R.shape[:-2]
-    Rf = R.reshape(-1, 3, 3)
-    q = np.empty((Rf.shape[0], 4))
-    tr = np.trace(Rf, axis1=1, axis2=2)
-    diag = np.stack([Rf[:, 0, 0], Rf[:, 1, 1], Rf[:, 2, 2]], axis=1)
-    choice = np.argmax(np.concatenate([tr[:, None], diag], axis=1), axis=1)
-    for i in range(Rf.shape[0]):
-        m = Rf[i]
-        c = choice[i]
-        if c == 0:
-            s = 2.0 * np.sqrt(1.0 + tr[i])
-            q[i] = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-        elif c == 1:
-            s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-            q[i] = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
-        elif c == 2:
-            s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-            q[i] = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
-        else:
-            s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-            q[i] = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
+    m = R.reshape(-1, 3, 3)
+    m00, m01, m02 = m[:, 0, 0], m[:, 0, 1], m[:, 0, 2]
+    m10, m11, m12 = m[:, 1, 0], m[:, 1, 1], m[:, 1, 2]
+    m20, m21, m22 = m[:, 2, 0], m[:, 2, 1], m[:, 2, 2]
+    # 4 w^2, 4 x^2, 4 y^2, 4 z^2: the largest (>= 1 for a rotation) is taken
+    # from the diagonal, the other components from off-diagonal sums.
+    args = np.stack([1.0 + m00 + m11 + m22, 1.0 + m00 - m11 - m22,
+                     1.0 - m00 + m11 - m22, 1.0 - m00 - m11 + m22], axis=1)
+    choice = np.argmax(args, axis=1)
+    s = 2.0 * np.sqrt(np.take_along_axis(args, choice[:, None], axis=1)[:, 0])
+    a, b, c = (m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s
+    d, e, f = (m01 + m10) / s, (m02 + m20) / s, (m12 + m21) / s
+    h = 0.25 * s
+    cand = np.stack([
+        np.stack([h, a, b, c], axis=1),
+        np.stack([a, h, d, e], axis=1),
+        np.stack([b, d, h, f], axis=1),
+        np.stack([c, e, f, h], axis=1),
+    ], axis=1)  # (N, branch, 4)
+    q = np.take_along_axis(cand, choice[:, None, None], axis=1)[:, 0]
     return quat_normalize(q).reshape(batch + (4,))
 
 
@@ -158,8 +159,13 @@ def quat_log(q: np.ndarray) -> np.ndarray:
     vn = np.linalg.norm(v, axis=-1, keepdims=True)
     angle = 2.0 * np.arctan2(vn, w)
     small = vn < _SMALL_ANGLE
-    safe = np.where(small, 1.0, vn)
-    k = np.where(small, 2.0 / np.where(w == 0, 1.0, w), angle / safe)
+    # np.where evaluates both branches for every element, so each divisor is
+    # made safe for the elements that take the *other* branch.  In the small
+    # branch the quaternion is unit with w >= 0 (canonical sign), so w ~ 1 and
+    # 2 atan2(|v|, w) / |v| = 2 / w up to O(|v|^2) < 1e-16 relative.
+    safe_vn = np.where(small, 1.0, vn)
+    safe_w = np.where(small, w, 1.0)
+    k = np.where(small, 2.0 / safe_w, angle / safe_vn)
     return k * v
 
 

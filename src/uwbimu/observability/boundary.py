@@ -64,6 +64,7 @@ PM_CASES = [
     ("2 beacons + altimeter, off vertical plane", 1, "rank 6", {"anchors": [[0, 0, 0], [4, 0, 0.5]], "altimeter": True, "points": [{"p": [1, 2, 1.5], "v": [0.3, 0.1, 0.2]}]}),
     ("2 beacons + altimeter, on vertical plane, v not along line", 1, "rank 6", {"anchors": [[0, 0, 0], [4, 0, 0.5]], "altimeter": True, "points": [{"p": [1, 0, 1.5], "v": [0.3, 0.6, 0.2]}]}),
     ("2 beacons + altimeter, on vertical plane, v not along line", 2, "(rank 6)", {"anchors": [[0, 0, 0], [4, 0, 0.5]], "altimeter": True, "points": [{"p": [1, 0, 1.5], "v": [0.3, 0.6, 0.2]}]}),
+    ("2 beacons + altimeter, on vertical plane, v in that plane, not along line", 3, "rank 6 (v not along line)", {"anchors": [[0, 0, 0], [4, 0, 0.5]], "altimeter": True, "points": [{"p": [1, 0, 1.5], "v": [0.3, 0.0, 0.5]}]}),
     ("2 beacons, no altimeter (random points)", 3, "-", {"anchors": [[0, 0, 0], [4, 0, 0.5]], "random_points": 20}),
     ("2 beacons, no altimeter, accel excited", 3, "-", {"anchors": [[0, 0, 0], [4, 0, 0.5]], "random_points": 20, "excitation": {"accel": ALL}}),
 ]  # fmt: skip

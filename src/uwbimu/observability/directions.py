@@ -100,11 +100,25 @@ def _rigid_candidates(names, x_tangent_info, anchors) -> list[Candidate]:
     scale = max(1.0, float(np.ptp(anchors, axis=0).max()) if len(anchors) else 1.0)
     tag = x_tangent_info.get("tag", p)
 
+    # two anchors not on a vertical line: the vertical plane through them (a
+    # height measurement cannot tell the mirror images through that plane apart)
+    vplane_normal = None
+    if len(anchors) == 2:
+        d = anchors[1] - anchors[0]
+        if np.linalg.norm(d[:2]) > 1e-9 * scale:
+            vplane_normal = np.array([-d[1], d[0], 0.0]) / np.linalg.norm(d[:2])
+
     def name_translation(c, vec):
         t = c / np.linalg.norm(c)
         if plane_normal is not None and abs(t @ plane_normal) > 0.999:
             if abs((tag - anchors[0]) @ plane_normal) < 1e-6 * scale:
                 return "displacement normal to the anchors' plane at a tag in that plane (mirror-image ambiguity)"
+        if vplane_normal is not None and abs(t @ vplane_normal) > 0.999:
+            if abs((tag - anchors[0]) @ vplane_normal) < 1e-6 * scale:
+                return (
+                    "displacement normal to the vertical plane through anchors 0 and 1 at a tag in that plane "
+                    "(mirror-image ambiguity)"
+                )
         return f"translation along {_axis_name(t, 'world')}"
 
     # The rigid-motion columns can be dependent at a point (point mass: a
@@ -195,7 +209,9 @@ def _block_candidates(names) -> tuple[list[Candidate], list[Candidate]]:
     return cands, pairs
 
 
-def candidates_for(model_kind: str, names: Sequence[str], x: np.ndarray, anchors) -> list[Candidate]:
+def candidates_for(
+    model_kind: str, names: Sequence[str], x: np.ndarray, anchors, gyro_reading: Optional[np.ndarray] = None
+) -> list[Candidate]:
     """Candidate generator subspaces at a state of a built-in model, in naming order.
 
     Order: translations, single state blocks, rigid motions, lever-arm /
@@ -207,6 +223,12 @@ def candidates_for(model_kind: str, names: Sequence[str], x: np.ndarray, anchors
         ``"point_mass"`` (x = ``p, v``).
     names : tangent coordinate names.
     anchors : (N, 3) anchor/beacon positions (world, m).
+    gyro_reading : (3,) constant gyro reading ``w_m`` [rad/s, body] when the
+        gyro is not excited (UWB-IMU model).  Adds the constant-rotation
+        lever-arm generator: with ``w = w_m - b_g`` constant, moving the lever
+        arm by ``e`` and the IMU by ``dp = -R e, dv = -R [w]x e`` with
+        ``db_a = [w]x^2 e`` keeps the antenna's path and the IMU readings
+        consistent, for every ``e``.
     """
     x = np.asarray(x, dtype=float)
     info = {"p": x[0:3], "v": x[3:6]}
@@ -225,6 +247,24 @@ def candidates_for(model_kind: str, names: Sequence[str], x: np.ndarray, anchors
             return f"position / lever-arm trade-off along body {_axis_name(c)} (antenna fixed, IMU moves)"
 
         extra.append(Candidate(L, name_lever))
+        if gyro_reading is not None:
+            w = np.asarray(gyro_reading, float) - x[13:16]
+            W = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+            C = np.zeros((len(names), 3))
+            for j in range(3):
+                e = np.eye(3)[j]
+                C[blocks["p"], j] = -R @ e
+                C[blocks["v"], j] = -R @ (W @ e)
+                C[blocks["ba"], j] = W @ (W @ e)
+                C[blocks["l"][j], j] = 1.0
+
+            def name_rot_lever(c, vec):
+                return (
+                    f"lever arm / IMU position, velocity, accelerometer bias trade-off along body {_axis_name(c)} "
+                    "under constant rotation (antenna path fixed)"
+                )
+
+            extra.append(Candidate(C, name_rot_lever))
     translation, rigid = _rigid_candidates(names, info, anchors)
     singles, pairs = _block_candidates(names)
     return [translation] + singles + [rigid] + extra + pairs

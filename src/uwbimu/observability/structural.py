@@ -193,7 +193,9 @@ def structural_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[st
     iw = min(range(len(results)), key=lambda i: (results[i][2].rank, results[i][2].gap_decades))
     xw, pw, rw = results[iw]
     cond_fn = uwb_imu_conditions if cfg.model == "uwb_imu" else point_mass_conditions
-    dirs = name_directions(rw.null_space, candidates_for(cfg.model, names, xw, A), names)
+    # the constant gyro reading of a non-excited gyro enters a known generator
+    gyro = pw[3 * len(A) + 3 : 3 * len(A) + 6] if cfg.model == "uwb_imu" and not cfg.gyro_axes() else None
+    dirs = name_directions(rw.null_space, candidates_for(cfg.model, names, xw, A, gyro_reading=gyro), names)
     points = [
         {
             "rank": r.rank,

@@ -109,7 +109,7 @@ class OptimizerOptions(_Strict):
 
 
 class Figure8Options(_Strict):
-    period: Optional[float] = Field(None, gt=0, description="[s]; None: the fastest the bounds allow")
+    period: Optional[float] = Field(None, gt=0, description="[s]; None: the fastest the speed/accel bounds allow")
     fill: float = Field(0.95, gt=0, le=1, description="fraction of the box half-extents used in x, y")
     attitude_amplitude: list[float] = Field(default_factory=lambda: [0.15, 0.15, 0.4], min_length=3, max_length=3)
     attitude_frequency: list[float] = Field(default_factory=lambda: [0.3, 0.23, 0.07], min_length=3, max_length=3)
@@ -248,9 +248,15 @@ def evaluate_sim_trajectory(traj, cfg: CalibrationDesignConfig) -> dict[str, Any
 # Baseline and design
 # --------------------------------------------------------------------------
 def naive_figure8(cfg: CalibrationDesignConfig) -> Maneuver:
-    """Horizontal figure-8 filling the box (``fill``) at the fastest period the speed and
-    acceleration bounds allow (or ``figure8.period``), the simulator's gentle attitude motion;
-    same duration, ramp and bounds as the design."""
+    """The naive baseline: a horizontal figure-8 under the same duration, ramp and bounds.
+
+    A lemniscate filling ``fill`` of the box half-extents around the start point,
+    flown along the curve on the time-warped clock (rest to cruise to rest) at the
+    fastest period for which the peak speed *or* acceleration reaches 99 % of its
+    bound (or at ``figure8.period``), with the simulator's gentle attitude
+    oscillation -- what one flies without an observability criterion.  Tilt and
+    rate stay below their bounds (shrunk only if the attitude defaults exceed them).
+    """
     f8 = cfg.figure8
     c = np.asarray(cfg.start_point() + [0.0, 0.0, 0.0])
     half = f8.fill * np.minimum(np.asarray(cfg.box_max) - c[:3], c[:3] - np.asarray(cfg.box_min))
@@ -259,22 +265,23 @@ def naive_figure8(cfg: CalibrationDesignConfig) -> Maneuver:
     def make(period):
         return figure8_maneuver(c, half[:2], period, cfg.duration, cfg.ramp, f8.attitude_amplitude, f8.attitude_frequency)
 
-    tg = np.arange(0.0, cfg.duration, 0.02)
+    tg = np.arange(0.0, cfg.duration + 0.01, 0.02)
+
+    def usage(period):
+        u = bound_usage(make(period).kinematics(tg), b)
+        return max(u["speed"], u["accel"])
+
     if f8.period is not None:
         m = make(f8.period)
     else:
-        # An integer number of loops ends the path at the centre, so the final ramp
-        # does not have to pull it back; take the most loops the bounds allow.
-        m = None
-        for n_loops in range(int(cfg.duration), 0, -1):
-            cand = make(cfg.duration / n_loops)
-            u = bound_usage(cand.kinematics(tg), b)
-            if max(u["speed"], u["accel"]) <= 1.0:
-                m = cand
-                break
-        if m is None:  # even one loop is too fast: shrink it
-            m = fit_to_bounds(make(cfg.duration), b, grow=False)
-    # the attitude must respect the bounds as well (it does with the defaults)
+        # speed and acceleration fall monotonically with the period: bisect (log scale)
+        # for the period at which the first of them reaches 99 % of its bound
+        lo, hi = 1e-3 * cfg.duration, 1e3 * cfg.duration
+        for _ in range(60):
+            mid = np.sqrt(lo * hi)
+            lo, hi = (mid, hi) if usage(mid) > 0.99 else (lo, mid)
+        m = make(hi)
+    # the attitude (and a user-given period) must respect the bounds as well
     return fit_to_bounds(m, b, grow=False) if max(bound_usage(m.kinematics(tg), b).values()) > 1.0 else m
 
 

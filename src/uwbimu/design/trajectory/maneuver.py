@@ -12,8 +12,13 @@ at ``center`` -- what the simulator's trajectory-file splines assume.
 
 The designed manoeuvre uses harmonics ``F = k / period`` (k = 1..K) whose
 amplitudes/phases come from ``a_k cos + b_k sin`` coefficients
-(:func:`fourier_maneuver`); the figure-8 baseline uses the same form
-(:func:`figure8_maneuver`).  :func:`fit_to_bounds` scales the position and
+(:func:`fourier_maneuver`).  The figure-8 baseline (:func:`figure8_maneuver`)
+is *time-warped* instead (``warp=True``): ``f_c = center_c + sum_i A_ci
+sin(2 pi F_ci s(t) + phi_ci)`` with the clock ``s' = w(t)``, so the vehicle
+runs along the lemniscate itself, accelerating smoothly to its cruise speed
+-- an amplitude envelope on a slow lemniscate would instead drag it off the
+curve and put its speed/acceleration peaks into the ramps, leaving the
+cruise far below the bounds.  :func:`fit_to_bounds` scales the position and
 attitude parts so that the flight box, speed, acceleration, tilt and angular
 rate bounds hold on a fine time grid.
 """
@@ -51,6 +56,31 @@ def envelope(t: np.ndarray, T: float, ramp: float) -> tuple[np.ndarray, np.ndarr
     return w, w1, w2
 
 
+def warped_clock(t: np.ndarray, T: float, ramp: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Clock ``s(t) = int_0^t w`` of the envelope, and ``s' = w``, ``s'' = w'``.
+
+    ``s`` runs at rate 0 at both ends and 1 in the cruise; ``s(T) = T - ramp``
+    (each septic ramp contributes ``ramp / 2``).  Needs ``T >= 2 ramp``.
+    """
+    t = np.asarray(t, dtype=float)
+    w, w1, _ = envelope(t, T, ramp)
+    if ramp <= 0:
+        return t.copy(), w, w1
+    if T < 2 * ramp:
+        raise ValueError(f"time warp needs duration >= 2 * ramp ({T} < {2 * ramp})")
+
+    def integral(u):  # int_0^u S, S the septic smoothstep
+        u = np.clip(u, 0.0, 1.0)
+        return u**5 * (7 - 14 * u + 10 * u**2 - 2.5 * u**3)
+
+    s = np.where(
+        t < ramp,
+        ramp * integral(t / ramp),
+        np.where(t > T - ramp, (T - ramp) - ramp * integral((T - t) / ramp), t - 0.5 * ramp),
+    )
+    return s, w, w1
+
+
 @dataclass(frozen=True)
 class Maneuver:
     """Six sinusoid-sum channels under a rest-to-rest envelope.
@@ -68,12 +98,21 @@ class Maneuver:
     phase: np.ndarray
     duration: float
     ramp: float
+    warp: bool = False  # True: time-warped clock s(t) instead of the amplitude envelope
 
     def channels(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Values and first two time derivatives of the six channels, each (N, 6)."""
         t = np.asarray(t, dtype=float)
-        w, w1, w2 = envelope(t, self.duration, self.ramp)
         om = TWO_PI * self.freq  # (6, M)
+        if self.warp:
+            s, s1, s2 = warped_clock(t, self.duration, self.ramp)
+            arg = om[None] * s[:, None, None] + self.phase[None]
+            sn, cs = np.sin(arg), np.cos(arg)
+            gc = np.sum(self.amp * om * cs, axis=2)
+            gs = np.sum(self.amp * om * om * sn, axis=2)
+            f = self.center + np.sum(self.amp * sn, axis=2)
+            return f, s1[:, None] * gc, s2[:, None] * gc - (s1 * s1)[:, None] * gs
+        w, w1, w2 = envelope(t, self.duration, self.ramp)
         arg = om[None] * t[:, None, None] + self.phase[None]  # (N, 6, M)
         s, c = np.sin(arg), np.cos(arg)
         g = np.sum(self.amp * s, axis=2)
@@ -121,15 +160,17 @@ def fourier_maneuver(theta: np.ndarray, center, duration: float, ramp: float, pe
 
 
 def figure8_maneuver(center, half_size, period: float, duration: float, ramp: float, attitude_amp, attitude_freq) -> Maneuver:
-    """Horizontal lemniscate of Gerono ``x = sx sin(w t)``, ``y = sy sin(2 w t)``, fixed height,
-    with a gentle attitude oscillation (the simulator's ``figure8`` defaults)."""
+    """Horizontal lemniscate of Gerono ``x = sx sin(w s)``, ``y = sy sin(2 w s)``, fixed height,
+    with a gentle attitude oscillation (the simulator's ``figure8`` defaults), flown on the
+    time-warped clock ``s(t)`` (:func:`warped_clock`): it starts at rest at the centre,
+    speeds up along the curve during the ramp, cruises and stops at rest."""
     amp = np.zeros((6, 1))
     freq = np.zeros((6, 1))
     amp[0, 0], freq[0, 0] = half_size[0], 1.0 / period
     amp[1, 0], freq[1, 0] = half_size[1], 2.0 / period
     for i in range(3):
         amp[3 + i, 0], freq[3 + i, 0] = attitude_amp[i], attitude_freq[i]
-    return Maneuver(np.asarray(center, dtype=float), amp, freq, np.zeros((6, 1)), float(duration), float(ramp))
+    return Maneuver(np.asarray(center, dtype=float), amp, freq, np.zeros((6, 1)), float(duration), float(ramp), warp=True)
 
 
 @dataclass(frozen=True)

@@ -121,7 +121,8 @@ def save_seed_figures(res: SeedOcpResult, out: str | Path) -> list[Path]:
 # --------------------------------------------------------------------------
 def calibration_figure(res: dict, cfg) -> Figure:
     """Designed manoeuvre vs figure-8: path (3-D), attitude, speed/rate, predicted sigmas."""
-    fig = Figure(figsize=(13, 8))
+    fig = Figure(figsize=(14, 8.5))
+    fig.subplots_adjust(left=0.05, right=0.98, wspace=0.38, hspace=0.3)
     t = np.arange(0.0, cfg.duration, 0.02)
     kd = res["designed"].kinematics(t)
     kf = res["figure8"].kinematics(t)
@@ -140,7 +141,7 @@ def calibration_figure(res: dict, cfg) -> Figure:
     for i, n in enumerate(("roll", "pitch", "yaw")):
         ax.plot(t, np.rad2deg(kf["euler"][:, i]), ls="--", label=f"figure-8 {n}")
     ax.set_xlabel("t [s]")
-    ax.set_ylabel("[deg]")
+    ax.set_ylabel("attitude [deg]")
     ax.legend(fontsize=6, ncol=2)
     ax.grid(alpha=0.3)
     ax = fig.add_subplot(2, 3, 3)
@@ -164,13 +165,15 @@ def calibration_figure(res: dict, cfg) -> Figure:
     ax.set_ylabel("y [m]")
     ax.set_title("top view (box dotted)")
     ax = fig.add_subplot(2, 3, 5)
-    md, mf = res["metrics_designed"], res["metrics_figure8"]
     labels = ["lever x", "lever y", "lever z", "t_d"]
-    vd = [1e3 * v for v in md["sigma_lever_arm_m"]] + [1e3 * md["sigma_time_offset_s"]]
-    vf = [1e3 * v for v in mf["sigma_lever_arm_m"]] + [1e3 * mf["sigma_time_offset_s"]]
     xx = np.arange(4)
-    ax.bar(xx - 0.2, vf, 0.4, color="tab:blue", label="figure-8")
-    ax.bar(xx + 0.2, vd, 0.4, color="tab:red", label="designed")
+    bars = [("figure8", "tab:blue", "figure-8"), ("figure8_excited", "tab:gray", "figure-8, attitude at bounds"), ("designed", "tab:red", "designed")]
+    bars = [b for b in bars if f"metrics_{b[0]}" in res]
+    wd = 0.8 / len(bars)
+    for j, (key, c, lab) in enumerate(bars):
+        m = res[f"metrics_{key}"]
+        v = [1e3 * x for x in m["sigma_lever_arm_m"]] + [1e3 * m["sigma_time_offset_s"]]
+        ax.bar(xx + (j - (len(bars) - 1) / 2) * wd, v, wd, color=c, label=lab)
     ax.set_xticks(xx, labels)
     ax.set_ylabel("predicted 1-sigma [mm | ms]")
     ax.set_yscale("log")

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Union
+from typing import Callable, Optional, Union
 
 import numpy as np
 import pandas as pd
@@ -100,7 +100,11 @@ def _attribution(src: Path, changes: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def convert(src: Union[str, os.PathLike], name: str | None = None) -> ImportResult:
+ProgressFn = Callable[[str, float], None]
+
+
+def convert(src: Union[str, os.PathLike], name: str | None = None,
+            progress: Optional[ProgressFn] = None) -> ImportResult:
     """Read an INRoL ``parsed_dataset`` folder (plus ``LICENSE``) into a :class:`Dataset`.
 
     Parameters
@@ -108,6 +112,7 @@ def convert(src: Union[str, os.PathLike], name: str | None = None) -> ImportResu
     src : folder holding ``imu.txt, uwb.txt, anchor.txt, imu_pose.txt, LICENSE``
         (``parameter.yaml`` optional: its ``sensor_noise`` is kept in ``extra``).
     name : dataset name (default: the folder name, prefixed with ``inrol_`` if it lacks it).
+    progress : optional ``progress(stage, fraction)`` callback (fraction of the conversion, 0-1).
 
     Raises
     ------
@@ -116,12 +121,15 @@ def convert(src: Union[str, os.PathLike], name: str | None = None) -> ImportResu
     src = Path(src)
     require_files(src, SOURCE_FILES)
     changes: list[str] = []
+    report = progress or (lambda stage, frac: None)
 
+    report("reading imu.txt", 0.0)
     raw = read_text_table(src / "imu.txt", ["index", "timestamp", "wx", "wy", "wz", "ax", "ay", "az"])
     raw = sort_by_time(raw, "timestamp", "imu.txt", changes)
     imu = pd.DataFrame({"t": raw["timestamp"], "ax": raw["ax"], "ay": raw["ay"], "az": raw["az"],
                         "wx": raw["wx"], "wy": raw["wy"], "wz": raw["wz"]})
 
+    report("reading uwb.txt", 0.3)
     raw = read_text_table(src / "uwb.txt", ["index", "timestamp", "anchor_id", "r"])
     raw = sort_by_time(raw, "timestamp", "uwb.txt", changes)
     uwb = pd.DataFrame({"t": raw["timestamp"], "anchor": _ids(raw["anchor_id"]), "range": raw["r"]})
@@ -131,6 +139,7 @@ def convert(src: Union[str, os.PathLike], name: str | None = None) -> ImportResu
     orient = {a: [float(v) for v in row] for a, row in
               zip(anchors["anchor"], raw[["qx", "qy", "qz", "qw"]].to_numpy())}
 
+    report("reading imu_pose.txt", 0.6)
     raw = read_text_table(src / "imu_pose.txt", ["timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw"])
     raw = sort_by_time(raw, "timestamp", "imu_pose.txt", changes)
     gt = pd.DataFrame({"t": raw["timestamp"], "px": raw["tx"], "py": raw["ty"], "pz": raw["tz"],
@@ -181,8 +190,15 @@ def _ids(col: pd.Series) -> list[str]:
 
 
 def import_dataset(src: Union[str, os.PathLike], dst: Union[str, os.PathLike], force: bool = False,
-                   name: str | None = None) -> ImportResult:
-    """Convert ``src`` and write it to ``dst`` (atomic; refuses a non-empty ``dst`` unless ``force``)."""
-    result = convert(src, name=name)
+                   name: str | None = None, progress: Optional[ProgressFn] = None) -> ImportResult:
+    """Convert ``src`` and write it to ``dst`` (atomic; refuses a non-empty ``dst`` unless ``force``).
+
+    ``progress(stage, fraction)``, when given, is told of each stage (reading
+    takes the first 60 %, writing and re-validating the rest).
+    """
+    report = progress or (lambda stage, frac: None)
+    result = convert(src, name=name, progress=lambda stage, frac: report(stage, 0.6 * frac))
+    report(f"writing and validating {dst}", 0.6)
     write_import(result, dst, force=force, src=src)
+    report("done", 1.0)
     return result
