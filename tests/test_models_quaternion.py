@@ -184,7 +184,7 @@ def test_log_is_warning_free_and_correct_near_pi(w, axis, flip):
 def test_rotmat_to_quat_every_branch_batched():
     # Identity (w branch) and half-turns about x, y, z (x, y, z branches), plus scipy randoms, in one batch.
     rots = Rotation.concatenate([Rotation.identity(), Rotation.from_rotvec(np.pi * np.eye(3)),
-                                 Rotation.from_rotvec(0.999 * np.pi * np.eye(3)), Rotation.random(50, random_state=3)])
+                                 Rotation.from_rotvec(0.999 * np.pi * np.eye(3)), Rotation.random(51, random_state=3)])
     R = rots.as_matrix().reshape(2, 29, 3, 3)
     q = Q.rotmat_to_quat(R)
     assert q.shape == (2, 29, 4)
