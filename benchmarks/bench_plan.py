@@ -128,6 +128,9 @@ def bench_proof(config: str, seeds: int, workers: int, out: str) -> None:
     print(f"\n== 4. proof: designed in {time.perf_counter() - t0:.1f} s ({rep['n_evals']} evaluations) ==")
     for k in ("figure8", "figure8_excited"):
         print(f"  predicted sigma ratio {k}/designed: {rep[f'predicted_ratio_{k}_over_designed']}")
+    print("  peak / bound on the flown splines (same duration, box, speed, accel, tilt, rate):")
+    for k in ("designed", "figure8", "figure8_excited"):
+        print(f"    {k:16s} " + ", ".join(f"{q} {v:.3f}" for q, v in rep[f"{k}_flown"]["bound_usage"].items()))
     s = run_proof(out / "design", seeds, workers, out / "proof")
     print(json.dumps(s, indent=2))
 

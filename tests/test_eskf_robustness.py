@@ -123,11 +123,14 @@ def test_translation_only_motion_keeps_lever_arm_uncertain_and_warns():
     assert np.all(np.abs(lever_err) <= 3 * sd)
     assert any(w.startswith("lever arm") for w in res.warnings), res.warnings
     assert any(e["kind"] == "low_excitation" and e["parameter"] == "lever arm" for e in res.events)
-    # rotation-free ranges do not update the lever arm: its sd keeps the prior (0.3 m) instead of shrinking
-    # on information an EKF linearised at a wandering attitude would invent, and the position sd covers the
-    # position error that the unknown lever arm causes (no false confidence)
+    # with the rotation gate, rotation-free ranges do not update the lever arm: its sd keeps the prior
+    # (0.3 m) instead of shrinking on information an EKF linearised at a wandering attitude would invent,
+    # and the position sd covers the position error that the unknown lever arm causes (no false confidence)
+    res = run_eskf(ds, EskfOptions.model_validate({"lever_arm": {"min_rotation_rate": 0.02}}))
+    sd = np.array(res.calibration["lever_arm_sd"])
     assert sd.min() > 0.25, sd
     assert any("lever arm: not updated" in w for w in res.warnings), res.warnings
+    assert any(w.startswith("lever arm") and "excitation" in w for w in res.warnings), res.warnings
     assert compute_metrics(res, ds)["nees_position_mean"] < 3.0 * 2.0
 
 

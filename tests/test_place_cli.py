@@ -114,6 +114,12 @@ def test_cli_errors_are_readable(tmp_path):
     assert r.exit_code == 2 and "exactly one" in r.output
     r = runner.invoke(app, ["place", "--example", "ship", "--out", str(tmp_path / "o")])
     assert r.exit_code == 2 and "unknown example" in r.output
+    ds_dir = tmp_path / "dataset"  # a user's folder with its own anchors.csv is never overwritten
+    ds_dir.mkdir()
+    (ds_dir / "anchors.csv").write_text("anchor,x,y,z\nmine,1,2,3\n")
+    r = runner.invoke(app, ["place", "--example", "room", "--out", str(ds_dir)])
+    assert r.exit_code == 2 and "anchors.csv" in r.output and "--force" in r.output
+    assert (ds_dir / "anchors.csv").read_text() == "anchor,x,y,z\nmine,1,2,3\n"
     bad.write_text("mode: room\nroom: {box: [10, 8, 3]}\ncompare: {ceiling: [[1, 2]]}\n")
     r = runner.invoke(app, ["place", str(bad), "--out", str(tmp_path / "o")])
     assert r.exit_code == 2 and "compare.ceiling[0]" in r.output

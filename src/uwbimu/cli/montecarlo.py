@@ -21,10 +21,12 @@ def summary_table(summary: dict) -> Table:
     table = Table(title=f"{summary['name']}: {summary['runs_per_scenario']} runs per scenario")
     for col in ("scenario", "estimator", "ok/runs", "RMSE x [m]", "RMSE y [m]", "RMSE z [m]", "NEES pos",
                 "lever err [mm]", "t_d err [ms]", "est. [s/run]"):
-        table.add_column(col, justify="left" if col in ("scenario", "estimator") else "right")
+        table.add_column(col, justify="left" if col in ("scenario", "estimator") else "right",
+                         no_wrap=col in ("scenario", "estimator"))
     for c in summary["cells"]:
         table.add_row(
-            c["scenario"], c["estimator"], f"{c['runs'] - c['failed']}/{c['runs']}",
+            c["scenario"], c["estimator"],
+            f"{c['runs'] - c['failed']}/{c['runs']}" + (f" ({c['runs_truncated']} cut)" if c.get("runs_truncated") else ""),
             *(f"{c[f'rmse_{a}_all_runs']:.3f}" if c.get(f"rmse_{a}_all_runs") is not None else "-" for a in "xyz"),
             _fmt(c, "nees_pos_mean", "mean", digits=2), _fmt(c, "lever_arm_err", "median", 1e3, 1),
             _fmt(c, "time_offset_err", "median", 1e3, 1), _fmt(c, "est_s", "mean", digits=2),

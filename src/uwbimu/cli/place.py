@@ -67,8 +67,12 @@ def register(app: typer.Typer) -> None:
         if (config is None) == (example is None):
             console.print("[red]error:[/red] give either CONFIG.yaml or --example room|crane|bridge (exactly one)")
             raise typer.Exit(code=2)
-        if (out / "placement.json").exists() and not force:
-            console.print(f"[red]error:[/red] {out / 'placement.json'} exists; use --force to overwrite or pick another --out")
+        names = ("placement.json", "anchors.csv", "anchors_scenario.yaml", "anchors_3d.png", "coverage_map.png",
+                 "pdop_slices.png", "marginal_value.png")
+        existing = [n for n in names if (out / n).exists()]
+        if existing and not force:  # e.g. --out pointing at a dataset folder with its own anchors.csv
+            console.print(f"[red]error:[/red] {escape(str(out))} already holds {', '.join(existing)}; "
+                          "use --force to overwrite or pick another --out")
             raise typer.Exit(code=2)
         try:
             if example is not None:
@@ -87,7 +91,9 @@ def register(app: typer.Typer) -> None:
             res = run_placement(cfg, progress=True)
             write_outputs(res, out, plots=not no_plots)
         except (ConfigError, PatternError, ValueError) as exc:
-            console.print(f"[red]error:[/red] {exc}")
+            # config/pattern errors already name their file; name the config for the others
+            where = "" if isinstance(exc, (ConfigError, PatternError)) or config is None else f"{config}: "
+            console.print(f"[red]error:[/red] {escape(where + str(exc))}")
             raise typer.Exit(code=2)
         _print_result(res)
         console.print(f"wrote {out / 'placement.json'}, {out / 'anchors.csv'}" + ("" if no_plots else " and plots"))

@@ -70,7 +70,8 @@ def _space_note(space_extent, flat_ratio: float) -> str:
     e = np.asarray(space_extent, float)
     r = float(max(e[0], e[1]) / e[2]) if e[2] > 0 else float("inf")
     if r > flat_ratio:
-        return f" (the space itself is {e[0]:g} x {e[1]:g} x {e[2]:g} m, ratio {r:.1f}: no layout in it can pass this rule)"
+        return (f" (the space itself is {e[0]:g} x {e[1]:g} x {e[2]:g} m, ratio {r:.1f} > {flat_ratio:g}: "
+                "anchors spread over the whole space cannot pass this rule)")
     return ""
 
 

@@ -42,8 +42,8 @@ ROW_COLUMNS = [
     "scenario", "run", "estimator", "seed_truth", "seed_noise", "seed_init", "status", "error",
     "n_samples", "rmse_x", "rmse_y", "rmse_z", "rmse_3d", "final_err_x", "final_err_y", "final_err_z",
     "max_err_3d", "nees_pos_mean", "nees_kind", "lever_arm_err", "lever_arm_err_x", "lever_arm_err_y",
-    "lever_arm_err_z", "time_offset_err", "ranges_accepted", "n_warnings", "sim_s", "est_s", "sim_cpu_s",
-    "est_cpu_s",
+    "lever_arm_err_z", "time_offset_err", "ranges_accepted", "n_warnings", "coverage", "divergences", "sim_s",
+    "est_s", "sim_cpu_s", "est_cpu_s",
 ]  # fmt: skip
 
 #: Columns that depend on the machine (excluded from reproducibility checks).
@@ -284,6 +284,12 @@ def run_metrics(result, ds, skip_initial_s: float = 0.0) -> tuple[dict, dict]:
     if res is not None and len(res) and "accepted" in res:
         row["ranges_accepted"] = float(np.mean(res["accepted"].to_numpy(bool)))
     row["n_warnings"] = len(result.warnings or [])
+    # An estimator that stops (e.g. the ESKF after a divergence it cannot recover from) has
+    # metrics over a shorter span only: say how much of the flight the estimate covers.
+    fin = np.all(np.isfinite(p), axis=1)
+    span = float(gt_t[-1] - gt_t[0])
+    row["coverage"] = float((t[fin][-1] - t[fin][0]) / span) if fin.sum() > 1 and span > 0 else 0.0
+    row["divergences"] = sum(1 for ev in (result.events or []) if ev.get("kind") == "divergence")
     return row, {"t": t, "err": err, "sd": sd, "nees": nees}
 
 

@@ -63,8 +63,11 @@ def summarize(df: pd.DataFrame, cfg, runs: int, traces: dict | None = None) -> d
                 "failure_messages": sorted(set(d.loc[d["status"] != "ok", "error"].astype(str)))[:5],
             }
             for c in ("rmse_x", "rmse_y", "rmse_z", "rmse_3d", "max_err_3d", "nees_pos_mean", "lever_arm_err",
-                      "time_offset_err", "ranges_accepted", "sim_s", "est_s"):
+                      "time_offset_err", "ranges_accepted", "coverage", "divergences", "sim_s", "est_s"):
                 cell[c] = _nanstats(ok[c].to_numpy(float)) if c in ok else {"n": 0}
+            # runs whose estimate stops before the end of the flight: their RMSE covers less time
+            cov = ok["coverage"].to_numpy(float) if "coverage" in ok else np.zeros(0)
+            cell["runs_truncated"] = int(np.sum(cov < 0.98))
             # RMS over runs of the per-run RMSE: the "per-axis RMSE over all seeds".
             for a in AXES:
                 v = ok[f"rmse_{a}"].to_numpy(float)
