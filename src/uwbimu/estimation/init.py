@@ -14,7 +14,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Optional
 
 import numpy as np
@@ -189,7 +189,12 @@ def start_index(prob: Problem, t0_uwb: float, td: float) -> int:
 
 
 def score_hypothesis(prob: Problem, x0, P0, k0: int, j0: int, t_from: float, t_to: float) -> float:
-    """Robust negative log-likelihood of the innovations of a short run (lower is better)."""
+    """Robust negative log-likelihood of the innovations of a short run (lower is better).
+
+    The lever-arm rotation gate is off here: the hypotheses start before the gyro bias is known (the gate
+    would freeze the lever arm for most of the short window and distort the scores of wrong yaws)."""
+    if prob.lever_min_rate > 0:
+        prob = replace(prob, lever_min_rate=0.0)
     res = run_pass(prob, x0, P0, k0, j0, t_uwb_end=t_to, record=False, to_end=False)
     rec = res.rec
     if rec.shape[0] == 0:

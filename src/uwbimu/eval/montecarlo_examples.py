@@ -67,9 +67,7 @@ EXAMPLES: dict[str, dict] = {
             {
                 "name": "eskf",
                 "kind": "eskf",
-                # fixed heading, no rotation: the lever arm carries no information here; without the
-                # rotation gate an EKF linearised at a wandering attitude invents some and may diverge
-                "options": {"init": {"yaw": 0.0}, "lever_arm": {"min_rotation_rate": 0.02}},
+                "options": {"init": {"yaw": 0.0}},
                 "initial_position_sd": 0.1,
             },
         ],
