@@ -123,11 +123,10 @@ def test_translation_only_motion_keeps_lever_arm_uncertain_and_warns():
     assert np.all(np.abs(lever_err) <= 3 * sd)
     assert any(w.startswith("lever arm") for w in res.warnings), res.warnings
     assert any(e["kind"] == "low_excitation" and e["parameter"] == "lever arm" for e in res.events)
-    # with the rotation gate, rotation-free ranges do not update the lever arm: its sd keeps the prior
-    # (0.3 m) instead of shrinking on information an EKF linearised at a wandering attitude would invent,
-    # and the position sd covers the position error that the unknown lever arm causes (no false confidence)
-    res = run_eskf(ds, EskfOptions.model_validate({"lever_arm": {"min_rotation_rate": 0.02}}))
-    sd = np.array(res.calibration["lever_arm_sd"])
+    # the rotation gate (lever_arm.min_rotation_rate, on by default): rotation-free ranges do not update the
+    # lever arm, so its sd keeps the prior (0.3 m) instead of shrinking on information an EKF linearised at a
+    # wandering attitude would invent, and the position sd covers the position error that the unknown
+    # lever arm causes (no false confidence)
     assert sd.min() > 0.25, sd
     assert any("lever arm: not updated" in w for w in res.warnings), res.warnings
     assert any(w.startswith("lever arm") and "excitation" in w for w in res.warnings), res.warnings
@@ -165,3 +164,21 @@ def test_supervisor_limit_reached_continues_and_says_so():
     assert sum(e["kind"] == "reinitialised" for e in res.events) == 2
     assert any("limit" in w for w in res.warnings)
     assert res.t[-1] > 14.0 and np.all(np.isfinite(res.states))
+
+
+def test_rotation_gate_window_rms_matches_brute_force():
+    """The lever-arm rotation gate's trailing-window RMS of the bias-corrected gyro (prefix sums) equals
+    the direct computation."""
+    from uwbimu.estimation.eskf import build_problem
+
+    ds = _sim("calibration-flight", 8.0)
+    prob, _ = build_problem(ds, EskfOptions())
+    w = prob.imu_u[:, 3:6]
+    b = np.array([0.01, -0.02, 0.005])
+    assert prob.lever_win == round(EskfOptions().excitation.window_s / prob.dt_nom)
+    for k in (0, 5, 700, len(w) - 1):
+        i0 = max(0, k + 1 - prob.lever_win)
+        ref = np.sqrt(np.mean(np.sum((w[i0:k + 1] - b) ** 2, axis=1)))
+        assert prob.rotation_rms(k, b) == pytest.approx(ref, rel=1e-9, abs=1e-12)
+    off, _ = build_problem(ds, EskfOptions(lever_arm={"min_rotation_rate": 0.0}))
+    assert off.rot_ms is None

@@ -184,6 +184,15 @@ def test_cli_check_prints_tables_and_flags(tmp_path):
     assert (tmp_path / "res.csv").read_text().startswith("anchor,n,median,mad")
     res = runner.invoke(app, ["check", str(tmp_path / "d"), "--strict"], env={"COLUMNS": "200"})
     assert res.exit_code == 3
+    # An existing --csv file is kept unless --force; a dataset's own file never is replaced.
+    (tmp_path / "res.csv").write_text("mine")
+    res = runner.invoke(app, ["check", str(tmp_path / "d"), "--csv", str(tmp_path / "res.csv")])
+    assert res.exit_code == 2 and "--force" in res.output and (tmp_path / "res.csv").read_text() == "mine"
+    res = runner.invoke(app, ["check", str(tmp_path / "d"), "--csv", str(tmp_path / "res.csv"), "--force"])
+    assert res.exit_code == 0 and (tmp_path / "res.csv").read_text().startswith("anchor,n,median")
+    before = (tmp_path / "d" / "uwb.csv").read_bytes()
+    res = runner.invoke(app, ["check", str(tmp_path / "d"), "--csv", str(tmp_path / "d" / "uwb.csv"), "--force"])
+    assert res.exit_code == 2 and (tmp_path / "d" / "uwb.csv").read_bytes() == before
 
 
 def test_cli_check_refusal_exit_code_without_traceback(tmp_path):

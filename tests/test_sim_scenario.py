@@ -54,6 +54,30 @@ def test_example_yaml_loads_and_equals_the_builtin_flight():
     assert sc.model_dump(exclude={"name", "description"}) == ref.model_dump(exclude={"name", "description"})
 
 
+@pytest.mark.parametrize("path", sorted(EXAMPLE.parent.glob("*.yaml")), ids=lambda p: p.stem)
+def test_every_example_scenario_simulates_into_a_valid_dataset(path, tmp_path):
+    from uwbimu.io.dataset import write_dataset
+    from uwbimu.io.loader import load_dataset
+
+    sc = load_scenario(path)
+    ds = simulate(sc.updated(duration=20.0))  # shortened: the example's content, not its length, is tested
+    back = load_dataset(write_dataset(ds, tmp_path / "d"))
+    assert len(back.uwb) == len(ds.uwb) > 0 and back.meta.truth.time_offset == sc.time_offset
+
+
+def test_harsh_example_exercises_every_ranging_imperfection():
+    sc = load_scenario(EXAMPLE.parent / "harsh_two_tags.yaml")
+    ds = simulate(sc)
+    counts = ds.meta.extra["uwb_counts"]
+    for k in ("nlos", "dropped_outage", "dropped_max_range", "dropped_dropout"):
+        assert counts[k] > 0, k
+    assert set(ds.uwb["tag"]) == {"front", "back"} and ds.meta.imu_rate_hz == 400.0
+    assert ds.meta.truth.anchor_bias["A3"] == 0.15
+    # the outage of A5 from 40 to 45 s leaves no A5 range in that window
+    a5 = ds.uwb[(ds.uwb["anchor"] == "A5")]["t"]
+    assert not ((a5 > 40.01) & (a5 < 44.99)).any()
+
+
 def test_updated_merges_and_validates():
     sc = builtin_scenario("calibration-flight")
     s2 = sc.updated(time_offset=-0.02, uwb={"sigma": 0.1}, trajectory={"type": "circle", "radius": 1.5})

@@ -24,9 +24,10 @@ def register(app: typer.Typer) -> None:
         no_unit_check: bool = typer.Option(False, "--no-unit-check",
                                            help="Skip the deg/s and g plausibility checks."),
         move_threshold: float = typer.Option(0.3, "--move-threshold",
-                                             help="Flag anchors whose refitted position moves more than this [m]."),
+                                             help="Flag anchors whose refitted position moves more than this, in m."),
         strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when an anchor is flagged."),
         csv: Optional[Path] = typer.Option(None, "--csv", help="Also write the per-anchor residual table here."),
+        force: bool = typer.Option(False, "--force", help="Replace an existing --csv file."),
     ) -> None:
         """Validate a dataset (refusing bad input) and print rates, gaps, anchors and range residuals."""
         from rich.console import Console
@@ -48,6 +49,13 @@ def register(app: typer.Typer) -> None:
 
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
+        if csv is not None and csv.exists():
+            # Never overwrite a user's file by accident, and never a dataset's own input.
+            inside = csv.resolve().parent == (dataset if dataset.is_dir() else dataset.parent).resolve()
+            if inside or not force:
+                why = "it is inside the dataset folder" if inside else "use --force to replace it"
+                console.print(f"[red]error:[/red] --csv {csv} exists; {why}")
+                raise typer.Exit(code=2)
         try:
             chk = CheckOptions(move_threshold=move_threshold)
         except ValueError:
@@ -92,6 +100,7 @@ def _f(x, fmt: str = ".3f") -> str:
 
 def print_check(console, ds, result) -> None:
     """Rich tables for a :class:`uwbimu.io.check.CheckResult`."""
+    from rich.markup import escape
     from rich.table import Table
 
     rep = ds.report
@@ -108,9 +117,9 @@ def print_check(console, ds, result) -> None:
     # lets the widest table fit an 80-column console.
     t = Table(title="Streams", collapse_padding=True)
     t.add_column("stream", justify="right", overflow="fold")
-    for c, w in (("samples", 5), ("start [s]", 6), ("end [s]", 6), ("duration [s]", 6),
+    for c, w in (("samples", 5), ("start [s]", 6), ("end [s]", 6), ("duration [s]", 8),
                  ("rate [Hz]", 5), ("median dt [s]", 6), ("max gap [s]", 5), ("gaps", 4)):
-        t.add_column(c, justify="right", min_width=w)
+        t.add_column(escape(c), justify="right", min_width=w)
     for name, r in result.streams.iterrows():
         t.add_row(name, str(int(r["samples"])), _f(r["t_start"]), _f(r["t_end"]), _f(r["duration"], ".2f"),
                   _f(r["rate_hz"], ".1f"), _f(r["median_dt"], ".4f"), _f(r["max_gap"]), str(int(r["n_gaps"])))
@@ -120,22 +129,27 @@ def print_check(console, ds, result) -> None:
     a.add_column("id", justify="right", overflow="fold")
     for c, w in (("x", 6), ("y", 6), ("z", 6), ("ranges", 5), ("rate [Hz]", 5), ("min [m]", 5),
                  ("median [m]", 6), ("max [m]", 6), ("max gap [s]", 5)):
-        a.add_column(c, justify="right", min_width=w)
+        a.add_column(escape(c), justify="right", min_width=w)
     for aid, r in result.anchors.iterrows():
         a.add_row(str(aid), _f(r["x"]), _f(r["y"]), _f(r["z"]), str(int(r["ranges"])), _f(r["rate_hz"], ".1f"),
                   _f(r["range_min"]), _f(r["range_median"]), _f(r["range_max"]), _f(r["max_gap"]))
     console.print(a)
 
     if result.residual_table is not None:
-        lev = "per tag" if result.lever_arm is None else "(" + ", ".join(f"{v:.3f}" for v in result.lever_arm) + ")"
-        rt = Table(title=f"Range residuals per anchor: measured - predicted from ground truth [m] "
-                         f"(lever arm {lev} m from {result.lever_arm_source}; {result.n_compared} ranges)",
+        if result.lever_arm is None:
+            lev = f"lever arms {result.lever_arm_source}"
+        else:
+            lev = ("lever arm (" + ", ".join(f"{v:.3f}" for v in result.lever_arm)
+                   + f") m from {result.lever_arm_source}")
+        # escape(): "[m]" would otherwise be read as rich markup and vanish.
+        rt = Table(title=escape(f"Range residuals per anchor: measured - predicted from ground truth [m] "
+                                f"({lev}; {result.n_compared} ranges)"),
                    collapse_padding=True)
         rt.add_column("anchor", justify="right", overflow="fold", min_width=6)
         # robust sd = 1.4826 MAD is left to the --csv table, to fit 80 columns.
         for c, w in (("n", 4), ("median", 6), ("MAD", 5), ("RMS", 5),
                      ("p95 |r|", 5), ("refit shift", 5), ("refit score", 5)):
-            rt.add_column(c, justify="right", min_width=w)
+            rt.add_column(escape(c), justify="right", min_width=w)
         # The other surveyed anchor that explains these ranges best, and its score.
         rt.add_column("best other", justify="right", overflow="fold")
         rt.add_column("other score", justify="right", min_width=5)

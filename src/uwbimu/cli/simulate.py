@@ -17,7 +17,7 @@ def _scenario_table(console: Console) -> None:
     table = Table(title="Built-in scenarios (uwbimu simulate NAME --out DIR)")
     table.add_column("name", style="bold")
     table.add_column("trajectory")
-    table.add_column("duration [s]", justify="right")
+    table.add_column(r"duration \[s]", justify="right")
     table.add_column("description")
     for name, desc in list_scenarios().items():
         sc = builtin_scenario(name)
@@ -31,7 +31,7 @@ def _summary(console: Console, ds, out: Path, seconds: float) -> None:
     table.add_column("value", justify="right")
     extra = ds.meta.extra
     counts = extra.get("uwb_counts", {})
-    table.add_row("duration [s]", f"{extra.get('duration', ds.duration):g}")
+    table.add_row(r"duration \[s]", f"{extra.get('duration', ds.duration):g}")
     table.add_row("IMU samples", f"{len(ds.imu)} @ {ds.meta.imu_rate_hz:g} Hz")
     table.add_row("ranges emitted / scheduled", f"{counts.get('emitted', len(ds.uwb))} / {counts.get('scheduled', '?')}")
     lost = {k: v for k, v in counts.items() if k.startswith("dropped_") and v}
@@ -41,9 +41,9 @@ def _summary(console: Console, ds, out: Path, seconds: float) -> None:
         table.add_row(f"IMU {k.replace('_', ' ')}", str(v))
     truth = ds.meta.truth
     table.add_row("anchors", str(len(ds.anchors)))
-    table.add_row("true lever arm [m]", str([round(x, 4) for x in truth.lever_arm]))
-    table.add_row("true time offset [s]", f"{truth.time_offset:g}")
-    table.add_row("wall time [s]", f"{seconds:.2f}")
+    table.add_row(r"true lever arm \[m]", str([round(x, 4) for x in truth.lever_arm]))
+    table.add_row(r"true time offset \[s]", f"{truth.time_offset:g}")
+    table.add_row(r"wall time \[s]", f"{seconds:.2f}")
     console.print(table)
 
 

@@ -23,7 +23,7 @@ from uwbimu.estimation import kernels as K
 from uwbimu.estimation.diagnostics import excitation_warnings, imu_gap_events, outage_warnings
 from uwbimu.estimation.filterpass import (
     REC_ACC, REC_INNOV, REC_NIS, REC_PRED, REC_STATUS, STATUS_IN_GAP, STATUS_NOT_PROCESSED, PassResult, Problem, gap_inputs,
-    run_pass,
+    rotation_window_stats, run_pass,
 )
 from uwbimu.estimation.init import InitialisationError, InitialState, initialise
 from uwbimu.estimation.options import EskfOptions
@@ -128,10 +128,8 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
     )
     prob.gap_idx, prob.gap_sd = gap_inputs(imu_t, imu_u, prob.dt_max)
     if opts.lever_arm.mode == "estimate" and opts.lever_arm.min_rotation_rate > 0:
-        w = imu_u[:, 3:6]
-        prob.gyro_cs = np.vstack([np.zeros((1, 3)), np.cumsum(w, axis=0)])
-        prob.gyro_cs2 = np.vstack([np.zeros((1, 3)), np.cumsum(w * w, axis=0)])
         prob.lever_win = max(1, int(round(opts.excitation.window_s / dt_nom)))
+        prob.rot_mean, prob.rot_ms = rotation_window_stats(imu_u, prob.lever_win)
         prob.lever_min_rate = float(opts.lever_arm.min_rotation_rate)
     # calibration priors
     lever = opts.lever_arm.prior

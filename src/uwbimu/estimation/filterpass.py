@@ -71,22 +71,21 @@ class Problem:
     max_pos_var: float = np.inf
     all_reject_run: int = 10**9
     supervise: bool = False
-    # lever-arm rotation gate (lever_arm.min_rotation_rate): prefix sums of the gyro and its square,
-    # (n + 1, 3), the trailing window [IMU samples] and the threshold [rad/s]; 0 disables
-    gyro_cs: Optional[np.ndarray] = None
-    gyro_cs2: Optional[np.ndarray] = None
+    # lever-arm rotation gate (lever_arm.min_rotation_rate): per IMU sample k, the mean gyro (n, 3) and the
+    # mean squared gyro norm (n,) over the trailing window of lever_win samples ending at k (see
+    # rotation_window_stats), and the threshold [rad/s]; 0 disables
+    rot_mean: Optional[np.ndarray] = None
+    rot_ms: Optional[np.ndarray] = None
     lever_win: int = 0
     lever_min_rate: float = 0.0
 
     def rotation_rms(self, k: int, b_g: np.ndarray) -> float:
         """RMS bias-corrected body rate [rad/s] over the ``lever_win`` IMU samples up to ``k``."""
-        i1 = min(int(k), self.imu_t.shape[0] - 1) + 1
-        i0 = max(0, i1 - self.lever_win)
-        n = i1 - i0
-        s = (self.gyro_cs[i1] - self.gyro_cs[i0]) / n
-        s2 = (self.gyro_cs2[i1] - self.gyro_cs2[i0]) / n
-        ms = float(np.sum(s2 - 2.0 * b_g * s + b_g * b_g))
-        return math.sqrt(max(ms, 0.0))
+        k = min(int(k), self.rot_ms.shape[0] - 1)
+        m0, m1, m2 = self.rot_mean[k].tolist()
+        b0, b1, b2 = b_g.tolist()
+        ms = float(self.rot_ms[k]) - 2.0 * (m0 * b0 + m1 * b1 + m2 * b2) + (b0 * b0 + b1 * b1 + b2 * b2)
+        return math.sqrt(ms) if ms > 0.0 else 0.0
 
     # IMU gaps: first sample index of each gap (imu_t[g + 1] - imu_t[g] > dt_max) and the sd of the
     # unknown input there (accelerometer [m/s^2], gyro [rad/s]); see gap_inflation
@@ -115,6 +114,19 @@ class PassResult:
     diverged: Optional[str] = None
     events: list[dict[str, Any]] = field(default_factory=list)
     n_lever_frozen: int = 0  # accepted ranges that did not update the lever arm (rotation gate)
+
+
+def rotation_window_stats(imu_u: np.ndarray, win: int) -> tuple[np.ndarray, np.ndarray]:
+    """Trailing-window mean gyro (n, 3) and mean squared gyro norm (n,) over ``win`` samples ending at each
+    sample (fewer at the start): ``E|w - b|^2 = ms - 2 b.mean + |b|^2`` for any bias ``b``."""
+    w = imu_u[:, 3:6]
+    n = w.shape[0]
+    cs = np.vstack([np.zeros((1, 3)), np.cumsum(w, axis=0)])
+    cs2 = np.concatenate([[0.0], np.cumsum(np.sum(w * w, axis=1))])
+    i1 = np.arange(1, n + 1)
+    i0 = np.maximum(0, i1 - max(int(win), 1))
+    cnt = (i1 - i0).astype(float)
+    return (cs[i1] - cs[i0]) / cnt[:, None], (cs2[i1] - cs2[i0]) / cnt
 
 
 def gap_inputs(imu_t: np.ndarray, imu_u: np.ndarray, dt_max: float, around_s: float = 1.0):
@@ -227,7 +239,7 @@ def run_pass(
     events: list[dict[str, Any]] = []
     o = np.empty(7)
     diverged = None
-    gate_lever = prob.lever_min_rate > 0 and prob.gyro_cs is not None and prob.gain_mask[15] > 0
+    gate_lever = prob.lever_min_rate > 0 and prob.rot_ms is not None and prob.gain_mask[15] > 0
     mask_frozen = prob.gain_mask.copy()
     mask_frozen[15:18] = 0.0
     n_frozen = 0

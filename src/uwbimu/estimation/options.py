@@ -45,12 +45,11 @@ class LeverArmOptions(_Strict):
     prior_sd: float = Field(default=0.3, gt=0, description="prior sd per axis [m]")
     random_walk: float = Field(default=0.0, ge=0, description="process noise density [m/sqrt(s)]")
     min_rotation_rate: float = Field(
-        default=0.0, ge=0,
+        default=0.02, ge=0,
         description="[rad/s] when the RMS bias-corrected gyro rate over the last excitation.window_s is below "
         "this, a range does not update the lever arm (Schmidt/consider for that range): rotation-free motion "
         "carries no lever-arm information, and an EKF linearised at a wandering attitude estimate would "
-        "otherwise invent some (false confidence); 0 (default) disables; 0.02 is a typical value (off by "
-        "default: with the white-noise defaults on the real INRoL log it led to a divergence and re-initialisation)",
+        "otherwise invent some (false confidence); 0 disables",
     )
 
 

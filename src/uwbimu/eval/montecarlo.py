@@ -596,7 +596,8 @@ def run_study(
     cfg : the study.
     out : output folder (created; or resumed if it holds the same study).
     runs : seeds per scenario (default ``cfg.runs``).
-    workers : local processes (default: all cores) or LocalCluster workers.
+    workers : local processes (default: all cores) or LocalCluster workers; with
+        ``client`` / ``scheduler`` only used for chunking (default: the cluster's workers).
     client : an existing ``distributed.Client`` to run on (tests, notebooks).
     scheduler : address of a Dask scheduler (``tcp://host:8786``).
     dask_local : start a loopback Dask ``LocalCluster`` with ``workers`` workers.
@@ -604,10 +605,25 @@ def run_study(
     """
     from uwbimu.eval.montecarlo_report import finalize
 
+    if scheduler and client is None:
+        # Connect first: the cluster's size (not this machine's) sets the default chunking.
+        from distributed import Client
+
+        try:
+            own = Client(scheduler, timeout="30s")
+        except (OSError, TimeoutError) as exc:
+            raise MonteCarloError(f"cannot connect to the Dask scheduler {scheduler}: {exc}") from None
+        try:
+            return run_study(cfg, out, runs=runs, workers=workers, client=own, scheduler=scheduler,
+                             progress=progress, plots=plots)
+        finally:
+            own.close()
     out = Path(out)
     runs = int(runs if runs is not None else cfg.runs)
     if runs < 1:
         raise MonteCarloError("--runs must be at least 1")
+    if not workers and client is not None:
+        workers = len(client.scheduler_info()["workers"])  # the cluster's workers
     workers = int(workers or os.cpu_count() or 1)
     study = resolved_study(cfg)
     prepare_out(out, study)
