@@ -100,9 +100,12 @@ def test_dask_localcluster_gives_bit_identical_results_even_when_a_worker_dies(p
 
         # chunks of one run (chunking does not change results) so that tasks are in flight when it dies
         # through the scheduler address, as `--scheduler ADDRESS` does (its own client)
-        summary = mc.run_study(_cfg(chunk_size=1), tmp_path / "dask", scheduler=cluster.scheduler_address,
-                               plots=False, progress=kill_a_worker_after_first_chunk)
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(mc.os, "cpu_count", lambda: 7)  # this machine's size must not matter with a scheduler
+            summary = mc.run_study(_cfg(chunk_size=1), tmp_path / "dask", scheduler=cluster.scheduler_address,
+                                   plots=False, progress=kill_a_worker_after_first_chunk)
     assert killed and summary["execution"]["backend"] == "dask"
+    assert summary["execution"]["workers"] == 2  # the cluster's size, not this machine's core count
     assert summary["execution"]["task_failures"] == []
     diffs = list(mc.iter_rows_equal_ignoring_timing(_table(out_pool), _table(tmp_path / "dask")))
     assert diffs == []
@@ -166,6 +169,9 @@ def test_config_mismatch_is_refused(tmp_path):
     (other / "precious.txt").write_text("keep")
     with pytest.raises(mc.MonteCarloError, match="not empty"):
         mc.run_study(_cfg(runs=1), other, workers=1, plots=False)
+    with pytest.raises(mc.MonteCarloError, match="is a file"):
+        mc.run_study(_cfg(runs=1), other / "precious.txt", workers=1, plots=False)
+    assert (other / "precious.txt").read_text() == "keep"
 
 
 def test_cli_runs_a_study_and_failed_runs_are_kept(tmp_path):

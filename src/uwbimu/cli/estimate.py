@@ -29,27 +29,27 @@ def calibration_table(result, dataset=None, title: str = "Calibration (value ± 
     for i, c in enumerate("xyz"):
         v, s = cal["lever_arm"][i], cal["lever_arm_sd"][i]
         tv = truth.lever_arm[i] if truth is not None and truth.lever_arm is not None else None
-        table.add_row(f"lever arm {c} [cm]", f"{100 * v:.2f} ± {100 * s:.2f}",
+        table.add_row(f"lever arm {c} (cm)", f"{100 * v:.2f} ± {100 * s:.2f}",
                       f"{100 * tv:.2f}" if tv is not None else "-",
                       f"{(v - tv) / s:+.1f}" if tv is not None and s > 0 else "-")
     v, s = cal["time_offset"], cal["time_offset_sd"]
     tv = truth.time_offset if truth is not None else None
-    table.add_row("time offset [ms]", f"{1000 * v:.2f} ± {1000 * s:.2f}", f"{1000 * tv:.2f}" if tv is not None else "-",
+    table.add_row("time offset (ms)", f"{1000 * v:.2f} ± {1000 * s:.2f}", f"{1000 * tv:.2f}" if tv is not None else "-",
                   f"{(v - tv) / s:+.1f}" if tv is not None and s > 0 else "-")
     for name, key, scale, unit in (("accel bias", "accel_bias", 1.0, "m/s²"), ("gyro bias", "gyro_bias", 180 / np.pi, "deg/s")):
         vals = ", ".join(f"{scale * a:.4f}±{scale * b:.4f}" for a, b in zip(cal[key], cal[key + "_sd"]))
-        table.add_row(f"{name} [{unit}]", vals, "-", "-")
+        table.add_row(f"{name} ({unit})", vals, "-", "-")
     for a, b in (cal.get("anchor_bias") or {}).items():
         s = cal["anchor_bias_sd"][a]
         tv = (truth.anchor_bias or {}).get(a) if truth is not None else None
-        table.add_row(f"range bias {a} [cm]", f"{100 * b:.2f} ± {100 * s:.2f}", f"{100 * tv:.2f}" if tv is not None else "-",
+        table.add_row(f"range bias {a} (cm)", f"{100 * b:.2f} ± {100 * s:.2f}", f"{100 * tv:.2f}" if tv is not None else "-",
                       f"{(b - tv) / s:+.1f}" if tv is not None and s > 0 else "-")
     return table
 
 
 def residual_rich_table(table_df) -> Table:
     t = Table(title="Range residuals per anchor")
-    for c in ("anchor", "ranges", "accepted", "rejected %", "median [cm]", "MAD [cm]"):
+    for c in ("anchor", "ranges", "accepted", "rejected %", "median (cm)", "MAD (cm)"):
         t.add_column(c, justify="right" if c != "anchor" else "left")
     for r in table_df.itertuples(index=False):
         t.add_row(r.anchor, str(r.ranges), str(r.accepted), f"{r.rejected_pct:.1f}",

@@ -7,6 +7,7 @@ from typing import Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 
@@ -21,7 +22,7 @@ def summary_table(summary: dict) -> Table:
     table = Table(title=f"{summary['name']}: {summary['runs_per_scenario']} runs per scenario")
     for col in ("scenario", "estimator", "ok/runs", "RMSE x [m]", "RMSE y [m]", "RMSE z [m]", "NEES pos",
                 "lever err [mm]", "t_d err [ms]", "est. [s/run]"):
-        table.add_column(col, justify="left" if col in ("scenario", "estimator") else "right",
+        table.add_column(escape(col), justify="left" if col in ("scenario", "estimator") else "right",
                          no_wrap=col in ("scenario", "estimator"))
     for c in summary["cells"]:
         table.add_row(
@@ -53,6 +54,8 @@ def register(app: typer.Typer) -> None:
         from uwbimu.eval.montecarlo_examples import EXAMPLES, example_config
 
         console = Console()
+        if not console.is_terminal:  # a log file: do not squeeze the table's numbers into 80 columns
+            console = Console(width=140)
         err = Console(stderr=True)
         if (config is None) == (example is None):
             err.print("[red]error:[/] give a CONFIG file or --example NAME "

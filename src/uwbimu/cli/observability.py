@@ -143,12 +143,12 @@ def delay(
 @obs_app.command("log")
 def log(
     dataset: Path = typer.Argument(..., help="dataset folder"),
-    window: float = typer.Option(20.0, "--window", help="window length [s]"),
+    window: float = typer.Option(20.0, "--window", help="window length (s)"),
     out: Path = typer.Option(..., "--out", "-o", help="output folder (observability.csv, observability.png)"),
-    range_sigma: Optional[float] = typer.Option(None, "--range-sigma", help="range sd [m] (default: dataset meta, else 0.1)"),
+    range_sigma: Optional[float] = typer.Option(None, "--range-sigma", help="range sd (m) (default: dataset meta, else 0.1)"),
     no_imu_noise: bool = typer.Option(False, "--no-imu-noise", help="ignore IMU noise (noise-free IMU)"),
-    lever_sd: float = typer.Option(0.1, "--lever-sd-threshold", help="lever arm counts as excited below this CRLB [m]"),
-    td_sd: float = typer.Option(0.03, "--td-sd-threshold", help="time offset counts as excited below this CRLB [s]"),
+    lever_sd: float = typer.Option(0.1, "--lever-sd-threshold", help="lever arm counts as excited below this CRLB (m)"),
+    td_sd: float = typer.Option(0.03, "--td-sd-threshold", help="time offset counts as excited below this CRLB (s)"),
     trajectory: Optional[Path] = typer.Option(
         None, "--trajectory", help="linearise about an estimator's states.csv (or its output folder) instead of the ground truth"
     ),
@@ -198,7 +198,7 @@ def log(
     write_json(out / "observability_meta.json", meta)
     plot_timeline(table, png_path, lever_sd, td_sd)
     t = Table(title=f"{dataset} - {len(table)} window(s) of {window:g} s")
-    for c in ("t_start", "t_end", "min eig", "cond", "weakest", "sd lever max [m]", "sd t_d [s]", "lever", "t_d"):
+    for c in ("t_start", "t_end", "min eig", "cond", "weakest", "sd lever max (m)", "sd t_d (s)", "lever", "t_d"):
         t.add_column(c)
     for r in table.itertuples(index=False):
         sdl = max(r.sd_lx, r.sd_ly, r.sd_lz)

@@ -22,8 +22,15 @@ estimator builds its own attitude (ground truth is never used):
   over the first ``yaw_window`` seconds and the yaw with the smallest sum of
   range NIS is kept (needs horizontal acceleration in that window).  The world
   acceleration is ``R(q) a_m - g``; the accelerometer bias is not estimated.
-  Attitude errors and accelerometer bias enter as extra white acceleration
-  process noise (``accel_error_sd``).
+
+Honest covariance (docs/montecarlo.md, "Noise model"): the acceleration error
+caused by the growing attitude error (levelling, yaw, gyro-bias residual, angle
+and bias random walk, from the dataset's IMU noise model) and by the
+unestimated accelerometer bias enters the process noise per world axis
+(:func:`acceleration_error_psd`, a slowly varying error of sd sigma as white
+noise of PSD ``2 tau sigma^2``); the fixed lever arm and time offset are
+*consider* parameters whose uncertainty (``lever_arm_sd``, ``time_offset_sd``)
+is added to the output covariance to first order.
 * ``attitude="identity"``: the IMU axes are taken to be world-aligned, i.e. the
   IMU columns already hold world-frame specific force — the seed's own
   simulation assumption; only valid for datasets whose IMU frame does not
@@ -418,7 +425,8 @@ def run_pointmass(
     Returns
     -------
     :class:`EstimationResult` with output at every IMU sample (stamps on the
-    UWB clock).  Position and velocity carry standard deviations; attitude is
+    UWB clock).  Position and velocity carry standard deviations (filter
+    covariance plus the lever-arm / time-offset consider terms); attitude is
     the integrated attitude (sd NaN), biases are zero except the gyro bias of
     the static window (sd NaN), lever arm and time offset are the fixed values
     (sd NaN).

@@ -416,6 +416,8 @@ def _diff_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
 
 def prepare_out(out: Path, study: dict) -> None:
     """Create ``out`` for ``study`` or check that it was started with the same study."""
+    if out.exists() and not out.is_dir():
+        raise MonteCarloError(f"{out} is a file, not a folder; refusing to write there")
     lock = out / CONFIG_FILE
     if lock.exists():
         try:
