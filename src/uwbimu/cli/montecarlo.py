@@ -23,7 +23,7 @@ def summary_table(summary: dict) -> Table:
     for col in ("scenario", "estimator", "ok/runs", "RMSE x [m]", "RMSE y [m]", "RMSE z [m]", "NEES pos",
                 "lever err [mm]", "t_d err [ms]", "est. [s/run]"):
         table.add_column(escape(col), justify="left" if col in ("scenario", "estimator") else "right",
-                         no_wrap=col in ("scenario", "estimator"))
+                         no_wrap=col in ("scenario", "estimator", "ok/runs"))
     for c in summary["cells"]:
         table.add_row(
             c["scenario"], c["estimator"],

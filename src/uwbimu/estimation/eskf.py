@@ -29,12 +29,37 @@ from uwbimu.estimation.init import InitialisationError, InitialState, initialise
 from uwbimu.estimation.options import EskfOptions
 from uwbimu.estimation.result import EstimationResult
 from uwbimu.io.dataset import Dataset
+from uwbimu.models.quaternion import quat_multiply
 from uwbimu.models.reference import midpoint_inputs
 
 log = logging.getLogger("uwbimu.estimation")
 log.addHandler(logging.NullHandler())  # library: the application decides where warnings go
 
 _ROBUST = {"none": K.ROBUST_NONE, "huber": K.ROBUST_HUBER, "geman-mcclure": K.ROBUST_GM}
+
+#: rotation of 180 deg about x (diagonal of the matrix; it is its own inverse) and its quaternion [w, x, y, z]
+FLIP_X = np.array([1.0, -1.0, -1.0])
+Q_FLIP_X = np.array([0.0, 1.0, 0.0, 0.0])
+
+
+def flip_outputs(states: np.ndarray, covs: Optional[np.ndarray]) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """Turn filter-frame outputs into a z-down anchors' frame (``anchor_frame_up: -z``).
+
+    ``states`` (K, 20+): position and velocity are world vectors (rotated), the attitude becomes
+    ``q_FLIP ⊗ q`` (body -> anchors' frame); biases, lever arm and t_d live in the body or in time
+    and do not change.  ``covs`` (K, N, N): the p and v rows/columns are rotated; the attitude error is a
+    body perturbation and does not change.  Returns new arrays.
+    """
+    X = states.copy()
+    X[:, 0:3] *= FLIP_X
+    X[:, 3:6] *= FLIP_X
+    X[:, 6:10] = quat_multiply(np.broadcast_to(Q_FLIP_X, X[:, 6:10].shape), X[:, 6:10])
+    if covs is None:
+        return X, None
+    d = np.ones(covs.shape[1])
+    d[0:3] = FLIP_X
+    d[3:6] = FLIP_X
+    return X, covs * d[None, :, None] * d[None, None, :]
 
 
 def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, Any]]:
@@ -88,6 +113,10 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
         if a in index:
             uwb_r[uwb_a == index[a]] -= float(b)
     anchors = ds.anchor_array(anchor_ids).astype(float)
+    if opts.anchor_frame_up == "-z":
+        # the filter's world must have z up (gravity [0, 0, -g]): run in the anchors' frame turned 180 deg
+        # about x (y -> -y, z -> -z, a proper rotation); _assemble turns the outputs back
+        anchors = anchors * FLIP_X
     if len(uwb_t) < 8:
         raise ValueError(f"dataset {ds.meta.name!r}: only {len(uwb_t)} usable ranges")
 
@@ -365,6 +394,11 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
     warnings += w_out
     events += e_out
 
+    if opts.anchor_frame_up == "-z":
+        X, covs = flip_outputs(X, covs)
+        events.append({"t": float(prob.uwb_t[0]), "kind": "anchor_frame_flipped",
+                       "note": "anchor_frame_up: -z; the filter ran in the anchors' frame turned 180 deg about x "
+                       "(positions in the 'initialised' events are in that frame); outputs are in the anchors' frame"})
     cfg = opts.model_dump(mode="json")
     cfg["resolved"] = {"imu_noise": noise.model_dump(), "range_sigma": float(info["range_sigma"]),
                        "tag": info["tag"], "gate_nis": float(prob.gate), "imu_rate_hz": 1.0 / prob.dt_nom}

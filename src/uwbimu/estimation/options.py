@@ -135,6 +135,12 @@ class EskfOptions(_Strict):
     init: InitOptions = Field(default_factory=InitOptions)
     supervisor: SupervisorOptions = Field(default_factory=SupervisorOptions)
     excitation: ExcitationOptions = Field(default_factory=ExcitationOptions)
+    anchor_frame_up: Literal["+z", "-z"] = Field(
+        default="+z",
+        description="direction of gravity-up in the anchors' coordinates: '+z' (the usual z-up frame) or '-z' (a "
+        "z-down frame, e.g. an RTLS frame defined upside down; the filter then runs in the anchors' frame turned "
+        "180 deg about x, and every output is turned back into the anchors' frame)",
+    )
     tag: Optional[str] = Field(default=None, description="tag to use when the log has several; None: the first")
     cov_every: int = Field(default=1, ge=1, description="IMU samples per covariance step (preintegrated block)")
     output_rate_hz: float = Field(default=20.0, gt=0)

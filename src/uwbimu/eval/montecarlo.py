@@ -568,11 +568,23 @@ def _run_dask(tasks: list[dict], client, on_chunk: Callable[[dict], None]) -> li
     futs = [client.submit(run_chunk, t, pure=False, key=f"mc-{_chunk_stem(t['scenario_name'], t['runs'])}-{i}")
             for i, t in enumerate(tasks)]
     by_key = {f.key: t for f, t in zip(futs, tasks)}
-    for f in as_completed(futs):
+    gather_retries: dict[str, int] = {}
+    ac = as_completed(futs)
+    for f in ac:
         t = by_key[f.key]
         try:
             chunk = f.result()
-        except Exception as exc:  # a task that failed on every retry
+        except Exception as exc:
+            # A worker that dies while its result is being fetched leaves the key re-queued
+            # ("couldn't gather keys ... processing") and the fetch raises on the client although
+            # the task did not fail: wait for it again. A task that itself failed on every
+            # retry has status "error" and is reported.
+            n = gather_retries.get(f.key, 0)
+            if f.status != "error" and n < 3:
+                gather_retries[f.key] = n + 1
+                time.sleep(0.5)
+                ac.add(f)
+                continue
             failures.append(f"{t['scenario_name']} runs {t['runs'][0]}-{t['runs'][-1]}: {type(exc).__name__}: {exc}")
             continue
         on_chunk(chunk)
