@@ -1,6 +1,7 @@
 """Real-data results: INRoL and ISAS-Walk, imported, estimated, evaluated, reported.
 
     python benchmarks/real_data.py [--work DIR] [--windows K] [--no-baseline]
+                                   [--inrol-config YAML] [--isas-config YAML]
 
 For each sequence in ``shared/datasets`` this script
 
@@ -8,8 +9,10 @@ For each sequence in ``shared/datasets`` this script
 2. runs two model-free checks of the import: epoch-wise multilateration
    against ground truth, and the IMU-vs-ground-truth clock shift from the
    cross-correlation of gyro and ground-truth rotation rates,
-3. runs the ESKF (``run_eskf``; same as ``uwbimu estimate DATASET --out OUT``)
-   and writes its outputs to ``DIR/<name>/out``,
+3. runs the ESKF with the sequence's preset (``run_eskf``; same as ``uwbimu
+   estimate DATASET --out OUT --config YAML``; INRoL:
+   ``examples/estimator_real.yaml``, ISAS-Walk: ``examples/estimator_isas.yaml``,
+   both configurable) and writes its outputs to ``DIR/<name>/out``,
 4. evaluates the trajectory against ground truth (``uwbimu evaluate OUT
    --groundtruth DATASET/groundtruth.csv --align none|se3``),
 5. optionally calibrates K windows (``uwbimu repeatability DATASET --out OUT
@@ -45,6 +48,11 @@ SEQUENCES = [
     ("isas_walk", "isas-walk", DATA / "isas_walk", "se3",
      "ground truth is the Vive tracker in the Vive frame (no documented transform)"),
 ]
+#: Default estimator preset per sequence (override with --inrol-config / --isas-config).
+CONFIGS = {"inrol": REPO / "examples" / "estimator_real.yaml", "isas_walk": REPO / "examples" / "estimator_isas.yaml"}
+#: Sequences whose ground-truth body frame differs from the IMU frame by an undocumented rotation:
+#: their attitude error after alignment measures that rotation, not the estimator.
+ATTITUDE_NA = {"isas_walk": "n/a (frames differ)"}
 
 
 def _import(verb: str, src: Path, dst: Path):
@@ -65,7 +73,7 @@ def _fmt_vec(v, sd=None, scale=100.0):
     return "[" + ", ".join(f"{scale * x:+.1f}±{scale * s:.1f}" for x, s in zip(v, sd)) + "]"
 
 
-def run_sequence(name, verb, src, align, work: Path, windows: int, baseline: bool) -> dict:
+def run_sequence(name, verb, src, align, work: Path, windows: int, baseline: bool, config=None) -> dict:
     from uwbimu.eval.baseline import multilaterate
     from uwbimu.eval.evaluate import evaluate_output
     from uwbimu.eval.metrics import evaluate_trajectory
@@ -97,8 +105,12 @@ def run_sequence(name, verb, src, align, work: Path, windows: int, baseline: boo
     except ImportError as exc:  # the estimator is not in this checkout yet
         row["error"] = f"estimator unavailable: {exc}"
         return row
+    from uwbimu.estimation import EskfOptions
+
+    opts = EskfOptions.from_yaml(config) if config is not None else EskfOptions()
+    row["config"] = str(config) if config is not None else None
     t0 = time.perf_counter()
-    res = run_eskf(ds)
+    res = run_eskf(ds, opts)
     row["eskf_s"] = time.perf_counter() - t0
     write_outputs(res, ds, out)
     cal = res.calibration
@@ -112,6 +124,8 @@ def run_sequence(name, verb, src, align, work: Path, windows: int, baseline: boo
     s = evaluate_output(out, dsdir / "groundtruth.csv", align=align)
     row["ate_rmse"] = s["ate_position"]["rmse"]
     row["ate_median"] = s["ate_position"]["median"]
+    rot = (s.get("ate_rotation_deg") or {}).get("rmse")
+    row["ate_rot_deg"] = s.get("ate_rotation") or ATTITUDE_NA.get(name, f"{rot:.2f}" if rot is not None else "-")
     row["rpe_1m"] = s["rpe"]["1"]["translation"]["rmse"] if s["rpe"]["1"]["n_pairs"] else float("nan")
     row["gt_glitches"] = s["association"]["n_groundtruth_glitches_excluded"]
     if align != "se3":  # the same trajectory after a rigid alignment, for comparison (not written)
@@ -124,7 +138,7 @@ def run_sequence(name, verb, src, align, work: Path, windows: int, baseline: boo
         from uwbimu.io.atomic import write_json
 
         t0 = time.perf_counter()
-        rep = repeatability(ds, windows, lambda w: run_eskf(w))
+        rep = repeatability(ds, windows, lambda w: run_eskf(w, opts))
         rep["dataset"] = str(dsdir)
         write_json(out / "repeatability.json", rep)
         row["repeatability"] = {k: {kk: v[kk] for kk in ("mean", "std", "rms_sd", "ratio", "p_value", "verdict")}
@@ -140,11 +154,15 @@ def run_sequence(name, verb, src, align, work: Path, windows: int, baseline: boo
     except (OSError, subprocess.TimeoutExpired) as exc:
         row["observability"] = f"failed: {exc}"
     row["report"] = str(write_report(out, dataset=ds))
+    cfg = ""
+    if config is not None:
+        c = Path(config).resolve()
+        cfg = f" --config {c.relative_to(REPO) if c.is_relative_to(REPO) else c}"  # run from the repository root
     row["commands"] = [
         f"uwbimu import {verb} {src} {dsdir}",
-        f"uwbimu estimate {dsdir} --out {out}",
+        f"uwbimu estimate {dsdir} --out {out}{cfg}",
         f"uwbimu evaluate {out} --groundtruth {dsdir}/groundtruth.csv --align {align}",
-    ] + ([f"uwbimu repeatability {dsdir} --out {out} --windows {windows}"] if windows >= 2 else []) + [
+    ] + ([f"uwbimu repeatability {dsdir} --out {out} --windows {windows}{cfg}"] if windows >= 2 else []) + [
         " ".join(obs_cmd),
         f"uwbimu report {out} --dataset {dsdir}",
     ]
@@ -157,11 +175,15 @@ def main(argv=None) -> int:
     ap.add_argument("--windows", type=int, default=4, help="repeatability windows (0: skip)")
     ap.add_argument("--no-baseline", action="store_true", help="skip the multilateration baseline")
     ap.add_argument("--only", choices=[s[0] for s in SEQUENCES], default=None)
+    ap.add_argument("--inrol-config", type=Path, default=CONFIGS["inrol"],
+                    help="estimator options YAML for INRoL (default examples/estimator_real.yaml)")
+    ap.add_argument("--isas-config", type=Path, default=CONFIGS["isas_walk"],
+                    help="estimator options YAML for ISAS-Walk (default examples/estimator_isas.yaml)")
     a = ap.parse_args(argv)
     from rich.console import Console
     from rich.table import Table
 
-    con = Console(width=200)  # wide table; redirected output must not wrap
+    con = Console(width=260)  # wide table; redirected output must not wrap
     rows = []
     for name, verb, src, align, why in SEQUENCES:
         if a.only and name != a.only:
@@ -170,18 +192,20 @@ def main(argv=None) -> int:
             con.print(f"[yellow]skip {name}: {src} not found[/yellow]")
             continue
         con.print(f"[bold]{name}[/bold] ({why})")
-        rows.append(run_sequence(name, verb, src, align, a.work, a.windows, not a.no_baseline))
+        cfg = a.inrol_config if name == "inrol" else a.isas_config
+        rows.append(run_sequence(name, verb, src, align, a.work, a.windows, not a.no_baseline, config=cfg))
     t = Table(title="Real data: ESKF with online lever-arm and time-offset calibration")
-    for c in ("sequence", "align", "ATE RMSE [m]", "ATE (se3) [m]", "multilat. ATE [m]", "RPE 1 m [m]",
+    for c in ("sequence", "align", "ATE RMSE [m]", "ATE (se3) [m]", "ATE att. [deg]", "multilat. ATE [m]", "RPE 1 m [m]",
               "lever arm est. ±1σ [cm]", "documented [cm]", "z-score", "t_d ±1σ [ms]", "gyro-vs-GT shift [ms] (corr)",
               "ESKF time [s]"):
         t.add_column(c, justify="right")
     for r in rows:
         if "error" in r:
-            t.add_row(r["name"], r["align"], "-", "-", f"{r.get('multilateration_ate_rmse', float('nan')):.3f}",
+            t.add_row(r["name"], r["align"], "-", "-", "-", f"{r.get('multilateration_ate_rmse', float('nan')):.3f}",
                       "-", r["error"], "-", "-", "-", "-", "-")
             continue
         t.add_row(r["name"], r["align"], f"{r['ate_rmse']:.3f}", f"{r.get('ate_rmse_se3', r['ate_rmse']):.3f}",
+                  r.get("ate_rot_deg", "-"),
                   f"{r.get('multilateration_ate_rmse', float('nan')):.3f}", f"{r['rpe_1m']:.3f}",
                   _fmt_vec(r["lever_arm"], r["lever_arm_sd"]), _fmt_vec(r["documented_lever_arm"]),
                   "[" + ", ".join(f"{z:+.1f}" for z in r.get("lever_arm_z", [np.nan] * 3)) + "]",

@@ -162,3 +162,39 @@ def test_evaluate_cli_writes_json_and_plots(tmp_path):
     (tmp_path / "bad.csv").write_text("t,px,py\n0,1,2\n")
     r = CliRunner().invoke(app, ["evaluate", str(out), "--groundtruth", str(tmp_path / "bad.csv")])
     assert r.exit_code == 1 and "pz" in r.output
+
+
+def test_attitude_not_compared_when_body_frames_differ(tmp_path):
+    """Ground truth of another body (tracker rotated 177 deg from the IMU): attitude error reads n/a."""
+    import yaml
+
+    from uwbimu.cli.main import app
+    from uwbimu.eval.metrics import ATTITUDE_NA
+
+    t = np.arange(0, 30, 0.01)
+    p, q = _truth(t)
+    q_off = quat_exp(np.array([[np.radians(177.0), 0.0, 0.0]]))  # constant body-frame offset
+    qb = quat_multiply(q, np.repeat(q_off, len(q), axis=0))
+    gt = pd.DataFrame(np.c_[t, p, qb], columns=COLS)
+    traj = pd.DataFrame(np.c_[t[::2], p[::2], q[::2]], columns=COLS)
+    bad = evaluate_trajectory(traj, gt, align="se3", distances=(1.0,))
+    assert bad.summary["ate_rotation_deg"]["rmse"] > 170  # meaningless number when compared
+    ev = evaluate_trajectory(traj, gt, align="se3", distances=(1.0,), compare_attitude=False)
+    assert ev.summary["ate_rotation"] == ATTITUDE_NA and "ate_rotation_deg" not in ev.summary
+    assert ev.rot_err_deg is None
+    assert ev.summary["rpe"]["1"]["translation"]["max"] < 1e-6  # world-frame displacements, not body-frame
+    # CLI: the dataset.yaml next to the ground truth switches it off (as the ISAS-Walk importer writes it)
+    ds = tmp_path / "ds"
+    ds.mkdir()
+    gt.to_csv(ds / "groundtruth.csv", index=False)
+    (ds / "dataset.yaml").write_text(yaml.safe_dump({"extra": {"groundtruth_attitude_comparable": False}}))
+    out = tmp_path / "out"
+    out.mkdir()
+    traj.to_csv(out / "trajectory.csv", index=False)
+    r = CliRunner().invoke(app, ["evaluate", str(out), "--groundtruth", str(ds / "groundtruth.csv"), "--no-plots"])
+    assert r.exit_code == 0, r.output
+    assert "n/a (frames differ)" in r.output
+    assert json.loads((out / "evaluation.json").read_text())["ate_rotation"] == ATTITUDE_NA
+    r = CliRunner().invoke(app, ["evaluate", str(out), "--groundtruth", str(ds / "groundtruth.csv"), "--no-plots",
+                                 "--attitude"])
+    assert r.exit_code == 0 and json.loads((out / "evaluation.json").read_text())["ate_rotation_deg"]["rmse"] > 170

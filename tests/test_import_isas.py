@@ -48,8 +48,13 @@ def test_import_excerpt_roundtrip(tmp_path):
     assert ds.meta.extra["groundtruth_align"] == "se3"
     assert "VIVE" in ds.meta.description
     # white noise measured over the stationary start (the board is noisier than the ICM-20948 datasheet)
-    assert "measured at rest" in ds.meta.extra["imu_noise_note"]
-    assert 5e-4 < ds.meta.imu_noise.gyro_noise_density < 5e-3
+    assert "measured at rest" in ds.meta.extra["imu_noise_note"] and "Welch" in ds.meta.extra["imu_noise_note"]
+    assert 5e-4 < ds.meta.imu_noise.gyro_noise_density < 1e-2
+    # the anchors' frame is z-down: recorded for the estimator, with the preset that handles it
+    assert ds.meta.extra["anchor_frame_up"] == "-z"
+    assert ds.meta.extra["recommended_config"] == "examples/estimator_isas.yaml"
+    assert (Path(__file__).parents[1] / ds.meta.extra["recommended_config"]).is_file()
+    assert "Z-DOWN" in ds.meta.description and "anchor_frame_up: -z" in ds.meta.description
     assert ds.meta.imu_noise.accel_bias_sigma0 > 0.17  # covers |a| - g = 0.175 m/s^2 at rest
     # licence travels with the data
     assert (dst / "LICENSE").read_bytes() == (EXCERPT / "LICENSE").read_bytes()
@@ -86,6 +91,29 @@ def test_cli_isas_walk(tmp_path):
 
     r = CliRunner().invoke(app, ["import", "isas-walk", str(EXCERPT), str(tmp_path / "ds"), "--no-groundtruth"])
     assert r.exit_code == 0, r.output
+    assert "estimator_isas.yaml" in r.output and "z-down" in r.output
     assert not (tmp_path / "ds" / "groundtruth.csv").exists()
     r = CliRunner().invoke(app, ["import", "isas-walk", str(EXCERPT), str(tmp_path / "ds")])
     assert r.exit_code == 1 and "not empty" in r.output
+
+
+def test_noise_density_from_low_frequency_spectrum():
+    """A low-pass filtered white noise: the in-band density is recovered; sd*sqrt(dt) understates it."""
+    from scipy.signal import butter, lfilter
+
+    from uwbimu.io.importers.isas_walk import _imu_noise_at_rest
+
+    fs, q_g, q_a = 82.0, 4e-3, 1e-2  # two-sided densities [unit/sqrt(Hz)]
+    n = int(3.0 * fs) + 1
+    rng = np.random.default_rng(3)
+    b, a = butter(4, 8.0 / (fs / 2))  # the board's low-pass (in-band gain 1 up to ~5 Hz)
+    w = lfilter(b, a, rng.normal(0, q_g * np.sqrt(fs), (n + 200, 3)), axis=0)[200:]
+    acc = lfilter(b, a, rng.normal(0, q_a * np.sqrt(fs), (n + 200, 3)), axis=0)[200:] + [0.0, 0.0, 9.81]
+    imu = pd.DataFrame({"t": np.arange(n) / fs, "ax": acc[:, 0], "ay": acc[:, 1], "az": acc[:, 2],
+                        "wx": w[:, 0], "wy": w[:, 1], "wz": w[:, 2]})
+    noise, note = _imu_noise_at_rest(imu)
+    assert noise.gyro_noise_density == pytest.approx(q_g, rel=0.25)
+    assert noise.accel_noise_density == pytest.approx(q_a, rel=0.25)
+    naive = w.std(axis=0).mean() / np.sqrt(fs)
+    assert naive < 0.6 * q_g  # what sd*sqrt(dt) would have reported
+    assert "Welch" in note

@@ -221,3 +221,32 @@ def test_anchor_table_keeps_survey_positions():
     r = check_dataset(ds, CheckOptions())
     np.testing.assert_allclose(r.anchors.loc[list("ABCDEF"), ["x", "y", "z"]].to_numpy(),
                                ANCHORS[["x", "y", "z"]].to_numpy())
+
+
+def test_groundtruth_in_another_frame_is_not_compared(tmp_path):
+    """ISAS-Walk-like data: ground truth in another frame must not produce anchor flags."""
+    from uwbimu.io.check import check_dataset
+    from uwbimu.sim import builtin_scenario, simulate
+
+    ds = simulate(builtin_scenario("circle").updated(duration=10.0))
+    gt = ds.groundtruth.copy()
+    gt[["px", "py"]] += 5.0  # another frame
+    ds.groundtruth = gt
+    ds.meta.extra["groundtruth_align"] = "se3"
+    result = check_dataset(ds)
+    assert result.flags == []
+    assert any("another frame" in n for n in result.notes)
+
+
+def test_outputs_get_normal_file_permissions(tmp_path):
+    import os
+    import stat
+
+    from uwbimu.io.atomic import write_text
+
+    umask = os.umask(0o022)
+    try:
+        p = write_text(tmp_path / "out.txt", "x")
+    finally:
+        os.umask(umask)
+    assert stat.S_IMODE(p.stat().st_mode) == 0o644

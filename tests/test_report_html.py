@@ -159,6 +159,29 @@ def test_report_with_dataset_evaluates_and_shows_reference(tmp_path):
     assert {"fig-trajectory", "fig-errors", "fig-convergence"} <= c.figures
     assert "0.010" in text  # ATE of the 1 cm shift
     assert "+0.20" in text  # z-score of lever x: (0.101 - 0.1) / 0.005
+    assert "n/a (ground truth in another frame)" not in text and "0.05" in text  # metrics.yaml as written
+
+
+def test_report_ground_truth_in_other_frame(tmp_path):
+    """ISAS-Walk-like dataset: tracker pose in another world and body frame; no meaningless numbers shown."""
+    from uwbimu.models.quaternion import quat_exp, quat_multiply
+
+    out = make_output(tmp_path / "out", with_eval=False, with_extras=False)
+    traj = pd.read_csv(out / "trajectory.csv")
+    gt = traj[["t", "px", "py", "pz", "qw", "qx", "qy", "qz"]].copy()
+    gt[["px", "py"]] = gt[["py", "px"]].to_numpy() * [1, -1] + [5.0, 2.0]  # rotated 90 deg and shifted world
+    q_off = np.repeat(quat_exp(np.array([[np.pi * 177 / 180, 0.0, 0.0]])), len(gt), axis=0)
+    gt[["qw", "qx", "qy", "qz"]] = quat_multiply(gt[["qw", "qx", "qy", "qz"]].to_numpy(), q_off)
+    an = pd.DataFrame({"anchor": ["1", "2", "3", "4"], "x": [0, 3, 0, 3.0], "y": [0, 0, 3, 3.0], "z": [0, 1, 2, 0.5]})
+    ds = Dataset(imu=pd.DataFrame(), uwb=pd.DataFrame(), anchors=an, groundtruth=gt,
+                 meta=DatasetMeta(name="other-frame", extra={"groundtruth_align": "se3",
+                                                              "groundtruth_attitude_comparable": False}))
+    text = render_report(out, dataset=ds)
+    c = _parse(text)
+    assert {"fig-trajectory", "fig-errors"} <= c.figures
+    assert "<b>se3</b> alignment" in text and "attitude n/a (frames differ)" in text
+    assert "attitude RMSE" not in text
+    assert "n/a (ground truth in another frame)" in text  # metrics.yaml's unaligned position_rmse / nees
 
 
 def test_anchor_table_flags():

@@ -105,7 +105,10 @@ def run_demo(out: Path, console: Console, force: bool = False, duration: float |
     from uwbimu.cli.check import print_check
     from uwbimu.cli.estimate import run_with_progress
     from uwbimu.estimation import EskfOptions, compute_metrics, write_outputs
+    from uwbimu.estimation import run_eskf
+    from uwbimu.eval.repeatability import repeatability
     from uwbimu.eval.report import write_report
+    from uwbimu.io.atomic import write_json
     from uwbimu.io.atomic import write_csv
     from uwbimu.io.check import check_dataset
     from uwbimu.io.dataset import write_dataset
@@ -166,7 +169,14 @@ def run_demo(out: Path, console: Console, force: bool = False, duration: float |
         write_csv(est_dir / "observability.csv", obs)
     figures["observability_windows"] = len(obs)
 
-    # 6. the report
+    # 6. repeatability: calibrate 4 windows of the flight and test their spread against the
+    #    sigma the filter predicts (the "is my calibration good?" question on one log)
+    with console.status("repeatability over 4 windows"):
+        rep = repeatability(ds, 4, lambda w: run_eskf(w, EskfOptions()))
+        write_json(est_dir / "repeatability.json", rep)
+    figures["repeatability"] = {k: v.get("verdict") for k, v in rep.get("parameters", {}).items()}
+
+    # 7. the report
     report = write_report(est_dir, dataset=ds)
     figures["report"] = str(report)
     console.print(f"[bold green]report:[/bold green] {report}")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional
 
 import typer
 
@@ -27,6 +28,10 @@ def register(app: typer.Typer) -> None:
         max_gap: float = typer.Option(0.5, "--max-gap", help="Longest ground-truth gap bridged by interpolation [s]."),
         skip_initial: float = typer.Option(0.0, "--skip-initial", help="Ignore the first seconds of the estimate (convergence)."),
         no_plots: bool = typer.Option(False, "--no-plots", help="Do not write PNG plots."),
+        attitude: Optional[bool] = typer.Option(
+            None, "--attitude/--no-attitude",
+            help="Compare attitudes (default: yes, unless the dataset.yaml next to the ground truth marks its body "
+                 "frame as not the IMU frame, as ISAS-Walk's)."),
     ) -> None:
         """Score OUT/trajectory.csv against ground truth (ATE after alignment, RPE); writes OUT/evaluation.json."""
         from rich.console import Console
@@ -42,7 +47,7 @@ def register(app: typer.Typer) -> None:
         dist = _parse_distances(distances)
         try:
             s = evaluate_output(out, groundtruth, align=align, distances=dist, max_gap=max_gap,
-                                skip_initial=skip_initial, plots=not no_plots)
+                                skip_initial=skip_initial, plots=not no_plots, compare_attitude=attitude)
         except (EvalInputError, ValueError) as exc:
             console.print(f"[red]error:[/red] {exc}", soft_wrap=True)
             raise typer.Exit(code=1)
@@ -68,7 +73,9 @@ def print_summary(console, s: dict) -> None:
         t.add_column(c, justify="right")
     ap = s["ate_position"]
     t.add_row("position [m]", *(f"{ap[k]:.3f}" for k in ("rmse", "mean", "median", "max")), str(ap["n"]))
-    if "ate_rotation_deg" in s:
+    if "ate_rotation" in s:
+        t.add_row("attitude [deg]", s["ate_rotation"], "", "", "", "")
+    elif "ate_rotation_deg" in s:
         ar = s["ate_rotation_deg"]
         t.add_row("attitude [deg]", *(f"{ar[k]:.2f}" for k in ("rmse", "mean", "median", "max")), str(ar["n"]))
     console.print(t)

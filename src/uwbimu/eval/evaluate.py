@@ -73,6 +73,16 @@ def plot_evaluation(ev: Evaluation):
     return f1, f2
 
 
+def groundtruth_attitude_comparable(groundtruth: str | os.PathLike) -> bool:
+    """False when the dataset.yaml next to ``groundtruth`` marks its attitude as another body frame."""
+    from uwbimu.eval.files import load_yaml
+
+    g = Path(groundtruth)
+    meta = load_yaml((g if g.is_dir() else g.parent) / "dataset.yaml") or {}
+    extra = meta.get("extra") or {}
+    return bool(extra.get("groundtruth_attitude_comparable", True))
+
+
 def evaluate_output(
     out_dir: str | os.PathLike,
     groundtruth: str | os.PathLike,
@@ -82,15 +92,24 @@ def evaluate_output(
     skip_initial: float = 0.0,
     plots: bool = True,
     trajectory: Optional[str | os.PathLike] = None,
+    compare_attitude: Optional[bool] = None,
 ) -> dict:
     """Score ``OUT/trajectory.csv`` against ``groundtruth`` and write the results.
+
+    ``compare_attitude=None`` (default) compares attitudes unless the
+    ``dataset.yaml`` next to the ground truth says its body frame is not the IMU
+    frame (``extra.groundtruth_attitude_comparable: false``, set by the
+    ISAS-Walk importer); then the attitude error reads "n/a (frames differ)".
 
     Returns the summary dict that is written to ``OUT/evaluation.json``.
     """
     out = Path(out_dir)
     traj = load_trajectory(trajectory if trajectory is not None else out)
     gt = load_groundtruth(groundtruth)
-    ev = evaluate_trajectory(traj, gt, align=align, distances=distances, max_gap=max_gap, skip_initial=skip_initial)
+    if compare_attitude is None:
+        compare_attitude = groundtruth_attitude_comparable(groundtruth)
+    ev = evaluate_trajectory(traj, gt, align=align, distances=distances, max_gap=max_gap, skip_initial=skip_initial,
+                             compare_attitude=compare_attitude)
     summary = dict(ev.summary)
     summary["groundtruth_file"] = str(Path(groundtruth))
     summary["trajectory_file"] = str(Path(trajectory) if trajectory is not None else out / "trajectory.csv")

@@ -372,6 +372,10 @@ class Evaluation:
     alignment: Alignment
 
 
+#: What the attitude error reads when the ground-truth body frame differs from the IMU frame.
+ATTITUDE_NA = "n/a (frames differ)"
+
+
 def evaluate_trajectory(
     traj: pd.DataFrame,
     gt: pd.DataFrame,
@@ -380,6 +384,7 @@ def evaluate_trajectory(
     max_gap: float = 0.5,
     skip_initial: float = 0.0,
     screen_glitches: bool = True,
+    compare_attitude: bool = True,
 ) -> Evaluation:
     """Score an estimated trajectory against ground truth.
 
@@ -394,6 +399,10 @@ def evaluate_trajectory(
     skip_initial : ignore estimate samples in the first ``skip_initial`` seconds
         (convergence), counted in the summary.
     screen_glitches : exclude ground-truth jumps (see :func:`detect_glitches`).
+    compare_attitude : False when the ground-truth body frame is not the IMU
+        frame (undocumented rotation, e.g. ISAS-Walk's Vive tracker): attitudes
+        are ignored, the attitude ATE is reported as ``"n/a (frames differ)"``
+        (``summary["ate_rotation"]``) and RPE uses world-frame displacements.
 
     Returns
     -------
@@ -401,7 +410,8 @@ def evaluate_trajectory(
     """
     t_est = traj["t"].to_numpy(float)
     p_est = traj[POS_COLS].to_numpy(float)
-    has_q = all(c in traj.columns for c in QUAT_COLS) and all(c in gt.columns for c in QUAT_COLS)
+    has_q = (compare_attitude and all(c in traj.columns for c in QUAT_COLS)
+             and all(c in gt.columns for c in QUAT_COLS))
     q_est = quat_normalize(traj[QUAT_COLS].to_numpy(float)) if has_q else None
     q_gt_raw = gt[QUAT_COLS].to_numpy(float) if has_q else None
     asc = associate(
@@ -444,6 +454,8 @@ def evaluate_trajectory(
         "ate_position_per_axis_rmse": np.sqrt(np.mean(err**2, axis=0)).tolist(),
     }
     rot = None
+    if not compare_attitude:
+        summary["ate_rotation"] = ATTITUDE_NA
     if has_q:
         use_q = use & asc.valid_q
         q_al = al.apply_quaternions(q_est[use_q])

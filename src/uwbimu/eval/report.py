@@ -168,9 +168,11 @@ class ReportInputs:
         from uwbimu.eval.evaluate import evaluation_table
         from uwbimu.eval.metrics import evaluate_trajectory
 
-        align = str((self.dataset.meta.extra or {}).get("groundtruth_align", "none"))
+        extra = self.dataset.meta.extra or {}
+        align = str(extra.get("groundtruth_align", "none"))
         try:
-            ev = evaluate_trajectory(self.trajectory, self.dataset.groundtruth, align=align)
+            ev = evaluate_trajectory(self.trajectory, self.dataset.groundtruth, align=align,
+                                     compare_attitude=bool(extra.get("groundtruth_attitude_comparable", True)))
         except (ValueError, KeyError) as exc:
             self.warnings.append(f"report: could not evaluate against the dataset's ground truth: {exc}")
             return
@@ -251,9 +253,21 @@ def _calibration_section(inp: ReportInputs) -> str:
                 return _e(v)
             return _fmt(v, 4)
 
-        mrows = [[_e(k), mval(v)] for k, v in inp.metrics.items() if not isinstance(v, dict) and k != "warnings"]
+        extra = (inp.dataset.meta.extra or {}) if inp.dataset is not None else {}
+        other_frame = str(extra.get("groundtruth_align", "none")) != "none"
+        na = "n/a (ground truth in another frame)"
+
+        def vs_truth(k: str) -> bool:  # the estimator's unaligned comparisons with ground truth
+            return k.startswith(("position_rmse", "orientation_rmse", "velocity_rmse", "nees")) and k not in ("position_rmse_after_skip_s", "nees_dof")
+
+        mrows = [[_e(k), na if (other_frame and vs_truth(k)) else mval(v)] for k, v in inp.metrics.items()
+                 if not isinstance(v, dict) and k != "warnings"]
         if mrows:
-            parts.append("<h3>metrics.yaml</h3>" + _table(["metric", "value"], mrows))
+            note = (f"<p>The dataset's ground truth is in another frame (<code>extra.groundtruth_align: "
+                    f"{_e(extra.get('groundtruth_align'))}</code>): the estimator's unaligned comparisons with it are "
+                    f"not meaningful and shown as n/a; see <a href=\"#trajectory\">Trajectory and errors</a> for the "
+                    f"aligned errors.</p>") if other_frame else ""
+            parts.append("<h3>metrics.yaml</h3>" + note + _table(["metric", "value"], mrows))
     return "".join(parts)
 
 
@@ -427,6 +441,7 @@ def _trajectory_section(inp: ReportInputs) -> str:
             f"<p>Against ground truth after <b>{_e(ev['align']['mode'])}</b> alignment: position ATE RMSE "
             f"<b>{a['rmse']:.3f} m</b> (mean {a['mean']:.3f}, median {a['median']:.3f}, max {a['max']:.3f} m, n={a['n']})"
             + (f"; attitude RMSE {ar['rmse']:.2f}°" if ar else "")
+            + (f"; attitude {_e(ev['ate_rotation'])}" if ev.get("ate_rotation") else "")
             + f". Ground-truth glitches excluded: {asc['n_groundtruth_glitches_excluded']} (position), "
             f"{asc.get('n_groundtruth_attitude_glitches_excluded', 0)} (attitude).</p>")
         rrows = [[_e(d), str(v["n_pairs"]), _fmt(v["translation"]["rmse"], 3), _fmt(v.get("translation_percent"), 1),

@@ -437,6 +437,14 @@ def check_dataset(ds: Dataset, options: Optional[CheckOptions] = None,
         result.notes.append("no ground truth: range residuals not computed")
         report("done", 1.0)
         return result
+    gt_frame = str((ds.meta.extra or {}).get("groundtruth_align", "none"))
+    if gt_frame != "none":
+        # Ground truth in another frame (e.g. a Vive tracker): predicting ranges from it would
+        # flag every anchor as moved or swapped.  Say so instead of comparing.
+        result.notes.append(f"ground truth is in another frame (dataset.yaml extra.groundtruth_align: {gt_frame}): "
+                            "range residuals against it not computed")
+        report("done", 1.0)
+        return result
     if "tag" in ds.uwb.columns and ds.uwb["tag"].nunique() > 1:
         result.lever_arm, result.lever_arm_source = None, "per tag (dataset.yaml)"
     else:

@@ -45,7 +45,7 @@ from uwbimu.io.importers import ImportResult, require_files, write_import
 from uwbimu.io.loader import DatasetError
 from uwbimu.models.imu import ICM20948
 
-__all__ = ["convert", "import_dataset", "TOA_OFFSET", "LEVER_ARM", "SOURCE_FILES"]
+__all__ = ["convert", "import_dataset", "TOA_OFFSET", "LEVER_ARM", "SOURCE_FILES", "RECOMMENDED_CONFIG"]
 
 #: SFUISE ``toa_offset`` (config_test_isas-walk1.yaml), by anchor id (ascending-id order), m.
 TOA_OFFSET = {"7475": -0.0700, "9524": 0.1539, "10548": -0.0751, "15155": 0.1409, "20276": -0.0247}
@@ -64,8 +64,13 @@ _DESCRIPTION = (
     "HTC Vive ground truth. Ranges: only fresh (ra_valid==1), raw values; documented per-anchor offsets in "
     "known_anchor_bias (measured = true + bias). GROUND TRUTH IS THE VIVE TRACKER POSE IN THE VIVE FRAME, "
     "not the IMU pose in the anchors' frame: evaluate with --align se3 (tracker-to-IMU offset undocumented). "
-    "Lever arm [0.10, -0.025, 0.0] m is SFUISE's fixed setting, not a measured truth."
+    "Lever arm [0.10, -0.025, 0.0] m is SFUISE's fixed setting, not a measured truth. "
+    "THE ANCHORS' FRAME IS Z-DOWN (at-rest specific force mapped into it is about (0.46, 0.76, -9.94) m/s^2; "
+    "the source documents no transform): estimate with anchor_frame_up: -z, e.g. "
+    "--config examples/estimator_isas.yaml."
 )
+#: Where the estimator preset for this sequence lives (repository-relative).
+RECOMMENDED_CONFIG = "examples/estimator_isas.yaml"
 
 
 def _read_csv(path: Path, required: list[str]) -> pd.DataFrame:
@@ -107,14 +112,37 @@ def _read_csv(path: Path, required: list[str]) -> pd.DataFrame:
 REST_S = 3.0
 
 
+#: Band [Hz] of the at-rest spectrum used for the white-noise density (below the board's low-pass).
+NOISE_BAND_HZ = (0.5, 5.0)
+
+
+def _density_welch(x: np.ndarray, fs: float) -> float:
+    """Noise density [unit/sqrt(Hz)] from the low-frequency Welch spectrum, mean over axes.
+
+    ``sqrt(mean one-sided PSD over NOISE_BAND_HZ / 2)``: the one-sided PSD of
+    white noise of two-sided density ``q`` is ``2 q^2``.  Unlike ``sd *
+    sqrt(dt)`` this does not assume the noise is white up to Nyquist, which
+    understates the in-band density of a low-pass filtered sensor (~3x here).
+    """
+    from scipy.signal import welch
+
+    nper = int(min(len(x), max(16, round(4.0 * fs))))  # ~4 s segments: 0.25 Hz resolution
+    f, pxx = welch(x - x.mean(axis=0), fs=fs, nperseg=nper, axis=0, detrend="linear")
+    band = (f >= NOISE_BAND_HZ[0]) & (f <= NOISE_BAND_HZ[1])
+    if band.sum() < 2:
+        band = f > 0
+    return float(np.mean(np.sqrt(pxx[band].mean(axis=0) / 2.0)))
+
+
 def _imu_noise_at_rest(imu: pd.DataFrame) -> tuple:
     """White-noise densities measured over the stationary start; bias terms from the ICM-20948 preset.
 
     The sequence starts with the rig at rest (gyro sd ~0.01 rad/s per sample).
-    Per-sample sd times sqrt(dt) gives the density (mean over axes).  The
-    initial accelerometer-bias sd is widened to cover the measured
-    | |a| - g | at rest (the board reads ~9.98 m/s^2).  Falls back to the
-    preset when the start is not at rest.
+    The density is taken from the Welch spectrum over 0.5-5 Hz (see
+    :func:`_density_welch`; the board low-pass filters, so ``sd * sqrt(dt)``
+    would understate it ~3x).  The initial accelerometer-bias sd is widened
+    to cover the measured | |a| - g | at rest (the board reads ~9.98 m/s^2).
+    Falls back to the preset when the start is not at rest.
     """
     t = imu["t"].to_numpy(float)
     m = t <= t[0] + REST_S
@@ -127,13 +155,16 @@ def _imu_noise_at_rest(imu: pd.DataFrame) -> tuple:
         return ICM20948, "ICM-20948 preset (the first seconds are not at rest)"
     dt = float(np.median(np.diff(t[m])))
     g_err = abs(float(np.linalg.norm(a, axis=1).mean()) - 9.81)
+    fs = 1.0 / dt
     noise = ICM20948.model_copy(update={
-        "gyro_noise_density": float(sd_w.mean() * np.sqrt(dt)),
-        "accel_noise_density": float(sd_a.mean() * np.sqrt(dt)),
+        "gyro_noise_density": _density_welch(w, fs),
+        "accel_noise_density": _density_welch(a, fs),
         "accel_bias_sigma0": float(max(ICM20948.accel_bias_sigma0, 1.5 * g_err)),
     })
-    note = (f"white-noise densities measured at rest over the first {REST_S:g} s (gyro "
-            f"{noise.gyro_noise_density:.2e} rad/s/sqrt(Hz), accel {noise.accel_noise_density:.2e} m/s^2/sqrt(Hz)); "
+    note = (f"white-noise densities measured at rest over the first {REST_S:g} s from the Welch spectrum over "
+            f"{NOISE_BAND_HZ[0]:g}-{NOISE_BAND_HZ[1]:g} Hz (gyro {noise.gyro_noise_density:.2e} rad/s/sqrt(Hz), accel "
+            f"{noise.accel_noise_density:.2e} m/s^2/sqrt(Hz); sd*sqrt(dt) would give {sd_w.mean() * np.sqrt(dt):.2e} "
+            f"and {sd_a.mean() * np.sqrt(dt):.2e}: the board low-pass filters); "
             f"bias random walks of the ICM-20948 preset; initial accel-bias sd {noise.accel_bias_sigma0:.2f} m/s^2 "
             f"covers | |a| - g | = {g_err:.3f} m/s^2 at rest")
     return noise, note
@@ -231,6 +262,8 @@ def convert(src: Union[str, os.PathLike], with_groundtruth: bool = True) -> Impo
     rate = float(1.0 / np.median(dt)) if len(dt) else None
     imu_noise, noise_note = _imu_noise_at_rest(imu)
     changes.append(f"imu noise: {noise_note}")
+    changes.append(f"the anchors' frame is z-down (recorded as extra.anchor_frame_up: -z): estimate with "
+                   f"--config {RECOMMENDED_CONFIG}")
     meta = DatasetMeta(
         name=f"isas-walk:{src.name}",
         description=_DESCRIPTION,
@@ -255,11 +288,17 @@ def convert(src: Union[str, os.PathLike], with_groundtruth: bool = True) -> Impo
             "groundtruth_frame": "vive/reference (no documented transform to the UWB/anchor frame)",
             "groundtruth_body": "vive/tracker_1 (tracker-to-IMU transform undocumented)",
             "groundtruth_align": "se3",
+            "groundtruth_attitude_comparable": False,
             "imu_noise_note": noise_note + "; range_sigma 0.10 m is our choice, not documented",
             "sfuise_imu_weights": {"accel": 7.85, "gyro": 27.6, "accel_bias": 515, "gyro_bias": 2951,
                                    "note": "inverse variances of SFUISE's spline residuals (not sensor densities)"},
             "ranges_dropped_stale": n_stale,
             "uwb_time_offset_note": "not documented (all stamps from the recording host)",
+            "anchor_frame_up": "-z",
+            "anchor_frame_note": "the anchors' frame has z pointing down: the at-rest specific force mapped into it "
+            "is about (0.46, 0.76, -9.94) m/s^2; the source documents no transform; the ESKF option "
+            "anchor_frame_up: -z handles it",
+            "recommended_config": RECOMMENDED_CONFIG,
         },
     )
     ds = Dataset(imu=imu, uwb=uwb, anchors=anchors, groundtruth=gt, meta=meta)
