@@ -53,6 +53,7 @@ def test_cli_estimate_writes_every_output(tmp_path, short_ds):
     for k in ("lever_arm", "lever_arm_sd", "time_offset", "time_offset_sd", "accel_bias", "accel_bias_sd",
               "gyro_bias", "gyro_bias_sd", "uwbimu_version", "config"):
         assert k in cal
+    assert cal["time_offset_verdict"] in ("identified", "weakly identified", "not identified")
     assert cal["config"]["output_rate_hz"] == 10 and cal["config"]["init"]["bank_window_s"] == 6
     met = yaml.safe_load((out / "metrics.yaml").read_text())
     for k in ("position_rmse", "orientation_rmse_deg", "nees_mean", "lever_arm_error", "time_offset_error"):

@@ -26,6 +26,7 @@ from uwbimu.estimation.filterpass import (
     rotation_window_stats, run_pass,
 )
 from uwbimu.estimation.init import InitialisationError, InitialState, initialise
+from uwbimu.estimation.timeoffset import time_offset_verdict
 from uwbimu.estimation.options import EskfOptions
 from uwbimu.estimation.result import EstimationResult
 from uwbimu.io.dataset import Dataset
@@ -273,12 +274,32 @@ def run_eskf(
                         f"t={prob.uwb_t[j]:.2f} s")
         events.append({"t": float(prob.uwb_t[j]), "kind": "reinitialised", **_plain(st.info)})
     result = _assemble(dataset, prob, info, passes, opts)
+    _add_time_offset_verdict(result, prob, priors, opts, initial)
     result.warnings = warnings + result.warnings
     result.events = events + result.events
     result.runtime_s = time.perf_counter() - t_wall
     for w in result.warnings:
         log.warning(w)
     return result
+
+
+def _add_time_offset_verdict(result: EstimationResult, prob: Problem, priors: dict[str, Any],
+                             opts: EskfOptions, initial: InitialState) -> None:
+    """``time_offset_verdict`` (+ reason) in the calibration and as an event (see :mod:`.timeoffset`)."""
+    cal = result.calibration
+    sd_prior = priors["td_sd"]
+    if priors["search_td"] and len(opts.init.td_grid) > 1:
+        g = np.asarray(opts.init.td_grid, dtype=float)
+        sd_prior = max(sd_prior, float(g.max() - g.min()) / math.sqrt(12.0))  # uniform over the searched grid
+    init_status = (initial.info.get("td_init") or {}).get("status")
+    verdict, reason = time_offset_verdict(cal["time_offset_sd"], sd_prior, fixed=opts.time_offset.mode == "fixed",
+                                          init_status=init_status)
+    cal["time_offset_verdict"] = verdict
+    cal["time_offset_verdict_reason"] = reason
+    result.events.append({"t": float(prob.uwb_t[0]), "kind": "time_offset_verdict", "verdict": verdict,
+                          "reason": reason, "initial_search": init_status})
+    if verdict == "not identified":
+        result.warnings.append(f"time offset not identified: {reason}")
 
 
 def _unsupervised(prob: Problem) -> Problem:
@@ -362,8 +383,9 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
     if processed.any() and n_rej / processed.sum() > 0.1:
         warnings.append(f"UWB: {100 * n_rej / processed.sum():.1f}% of the processed ranges rejected by the gate")
 
-    x_end = X[-1]
-    sd_end = np.sqrt(np.clip(D[-1], 0, None))
+    # final filter state (all data used), not the last output row
+    x_end = passes[-1].x
+    sd_end = np.sqrt(np.clip(np.diag(passes[-1].P), 0, None))
     noise = info["imu_noise"]
     calibration: dict[str, Any] = {
         "lever_arm": [float(v) for v in x_end[16:19]],

@@ -7,8 +7,9 @@
    ``bank_window_s``; the hypothesis with the lowest robust negative
    log-likelihood of its innovations wins.
 4. Time offset from a coarse grid (default -0.25..0.25 s by 0.05 s), scored the
-   same way with the chosen yaw; the winner starts the main run with a prior sd
-   covering the grid step.
+   same way with the chosen yaw, widened when the best point is on an edge and
+   refined by a parabola (:mod:`uwbimu.estimation.timeoffset`); a flat score is
+   reported as "not identified" and t_d stays at its prior.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from uwbimu.estimation import kernels as K
+from uwbimu.estimation.timeoffset import search_time_offset
 from uwbimu.estimation.filterpass import REC_NIS, REC_S, REC_STATUS, Problem, run_pass
 from uwbimu.estimation.options import EskfOptions
 from uwbimu.models.quaternion import quat_multiply, quat_to_rotmat
@@ -188,7 +190,8 @@ def start_index(prob: Problem, t0_uwb: float, td: float) -> int:
     return min(max(k, 0), len(prob.imu_t) - 2)
 
 
-def score_hypothesis(prob: Problem, x0, P0, k0: int, j0: int, t_from: float, t_to: float) -> float:
+def score_hypothesis(prob: Problem, x0, P0, k0: int, j0: int, t_from: float, t_to: float,
+                     return_count: bool = False):
     """Robust negative log-likelihood of the innovations of a short run (lower is better).
 
     The lever-arm rotation gate is off here: the hypotheses start before the gyro bias is known (the gate
@@ -198,13 +201,14 @@ def score_hypothesis(prob: Problem, x0, P0, k0: int, j0: int, t_from: float, t_t
     res = run_pass(prob, x0, P0, k0, j0, t_uwb_end=t_to, record=False, to_end=False)
     rec = res.rec
     if rec.shape[0] == 0:
-        return np.inf
+        return (np.inf, 0) if return_count else np.inf
     tt = prob.uwb_t[j0:j0 + rec.shape[0]]
     ok = (rec[:, REC_STATUS] == 0) & (tt >= t_from) & np.isfinite(rec[:, REC_NIS])
     if ok.sum() < 5 or not np.all(np.isfinite(res.x)):
-        return np.inf
+        return (np.inf, 0) if return_count else np.inf
     nis = np.minimum(rec[ok, REC_NIS], 50.0)
-    return float(np.mean(nis + np.log(rec[ok, REC_S])))
+    score = float(np.mean(nis + np.log(rec[ok, REC_S])))
+    return (score, int(ok.sum())) if return_count else score
 
 
 def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: int = 0,
@@ -285,12 +289,27 @@ def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: i
     else:
         yaw = 0.0
     if search_td and len(io.td_grid) > 1:
-        grid = list(io.td_grid)
-        s = run_bank([yaw], grid, yaw_sd_final, io.td_sd_after_grid)[0]
-        if np.any(np.isfinite(s)):
-            td = float(grid[int(np.argmin(s))])
-            td_sd = io.td_sd_after_grid
-        info["td_grid"] = {"grid": grid, "scores": s.tolist()}
+        def score_tds(tds):
+            out = np.full(len(tds), np.inf)
+            cnt = np.zeros(len(tds), dtype=int)
+            for b, td_h in enumerate(tds):
+                k0 = start_index(prob, t0, td_h)
+                x0, P0 = assemble(prob, pr, yaw, yaw_sd_final, td_h, io.td_sd_after_grid, k0, t0, v0)
+                try:
+                    out[b], cnt[b] = score_hypothesis(prob, x0, P0, k0, j0, t_from, t_to, return_count=True)
+                except (FloatingPointError, np.linalg.LinAlgError):
+                    pass
+            return out, cnt
+
+        found = search_time_offset(score_tds, list(io.td_grid), max_abs_s=io.td_max_abs_s)
+        info["td_grid"] = found
+        if found["status"] == "found":
+            td = float(found["td"])
+            # the bank window's data are counted again by the main run: keep the prior loose
+            td_sd = max(io.td_sd_after_grid, float(found["td_sd"]))
+        else:
+            td, td_sd = td_prior, pr_fixed["td_sd"]
+        info["td_init"] = {"status": found["status"], "reason": found["reason"]}
         if io.yaw is None and io.yaw_hypotheses > 1 and abs(td - td_prior) > 1e-12:
             # refine the yaw choice with the chosen time offset
             yaws = np.arange(io.yaw_hypotheses) * 2 * np.pi / io.yaw_hypotheses

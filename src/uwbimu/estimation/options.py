@@ -100,7 +100,10 @@ class InitOptions(_Strict):
         default_factory=lambda: [round(-0.25 + 0.05 * i, 3) for i in range(11)],
         description="time-offset hypotheses [s] of the coarse grid search",
     )
-    td_sd_after_grid: float = Field(default=0.03, gt=0, description="t_d prior sd around the best grid point [s]")
+    td_sd_after_grid: float = Field(default=0.03, gt=0,
+                                    description="lower bound of the t_d prior sd after the grid search [s]")
+    td_max_abs_s: float = Field(default=1.0, gt=0,
+                                description="a best grid point on an edge widens the grid up to |t_d| = this [s]")
 
 
 class SupervisorOptions(_Strict):

@@ -1,0 +1,59 @@
+"""Time-offset grid search: widening at an edge, flat scores, parabolic refinement; verdict."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from uwbimu.estimation.timeoffset import search_time_offset, time_offset_verdict
+
+
+def _quadratic(td_true, sd, n=200):
+    """Mean NLL per innovation whose total (x n/2) is (td - td_true)^2 / (2 sd^2) + const."""
+    def score(tds):
+        tds = np.asarray(tds, dtype=float)
+        total = (tds - td_true) ** 2 / (2 * sd**2)
+        return 1.0 + 2.0 * total / n, np.full(len(tds), n)
+    return score
+
+
+GRID = [round(-0.25 + 0.05 * i, 3) for i in range(11)]
+
+
+def test_interior_minimum_is_refined_with_curvature_sd():
+    out = search_time_offset(_quadratic(0.037, 0.01), GRID)
+    assert out["status"] == "found"
+    assert out["td"] == pytest.approx(0.037, abs=1e-9)
+    assert out["td_sd"] == pytest.approx(0.01, rel=1e-6)
+
+
+def test_edge_minimum_widens_the_grid_instead_of_returning_the_edge():
+    out = search_time_offset(_quadratic(0.502, 0.02), GRID, max_abs_s=1.0)
+    assert out["status"] == "found"
+    assert max(out["grid"]) > 0.55
+    assert out["td"] == pytest.approx(0.502, abs=1e-9)
+
+
+def test_edge_beyond_the_widest_grid_is_not_identified():
+    out = search_time_offset(_quadratic(2.0, 0.02), GRID, max_abs_s=0.5)
+    assert out["status"] == "not identified" and out["td"] is None
+    assert max(out["grid"]) == pytest.approx(0.5)
+
+
+def test_flat_scores_are_not_identified():
+    out = search_time_offset(_quadratic(0.0, 1.0), GRID)  # sd 1 s: < 0.05 nats across the grid
+    assert out["status"] == "not identified"
+    assert "flat" in out["reason"]
+
+
+def test_failed_scores_are_not_identified():
+    out = search_time_offset(lambda tds: (np.full(len(tds), np.inf), np.zeros(len(tds), int)), GRID)
+    assert out["status"] == "not identified"
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
+def test_verdict_is_scale_free(scale):
+    assert time_offset_verdict(0.005 * scale, 0.1 * scale)[0] == "identified"
+    assert time_offset_verdict(0.05 * scale, 0.1 * scale)[0] == "weakly identified"
+    assert time_offset_verdict(0.09 * scale, 0.1 * scale)[0] == "not identified"
+    assert time_offset_verdict(0.0, 0.1, fixed=True)[0] == "fixed"
