@@ -77,6 +77,8 @@ def register(app: typer.Typer) -> None:
         dataset: Path = typer.Argument(..., help="dataset folder (imu.csv, uwb.csv, anchors.csv [, groundtruth.csv])"),
         out: Path = typer.Option(..., "--out", "-o", help="output folder"),
         config: Optional[Path] = typer.Option(None, "--config", "-c", help="estimator options YAML (see examples/estimator.yaml)"),
+        preset: Optional[str] = typer.Option(
+            None, "--preset", help="shipped estimator preset: default, real, isas-walk (--config keys override it)"),
         plots: bool = typer.Option(True, "--plots/--no-plots", help="PNG plots when ground truth exists"),
         force: bool = typer.Option(False, "--force", help="write into a folder that holds other files"),
         estimator: str = typer.Option(
@@ -84,13 +86,16 @@ def register(app: typer.Typer) -> None:
         ),
     ) -> None:
         """Estimate trajectory, lever arm and time offset with the UWB-IMU error-state EKF."""
-        from uwbimu.estimation import EskfOptions, InitialisationError, write_outputs
+        from uwbimu.estimation import InitialisationError, write_outputs
         from uwbimu.io.loader import DatasetError, load_dataset
 
         console = Console()
         err = Console(stderr=True)
         if estimator not in ("eskf", "pointmass"):
             err.print(f"[red]error:[/] --estimator must be 'eskf' or 'pointmass', got {estimator!r}")
+            raise typer.Exit(code=2)
+        if preset is not None and estimator != "eskf":
+            err.print("[red]error:[/] --preset applies to --estimator eskf only")
             raise typer.Exit(code=2)
         try:
             if estimator == "pointmass":
@@ -101,7 +106,9 @@ def register(app: typer.Typer) -> None:
                 opts = (PointMassOptions.model_validate(yaml.safe_load(config.read_text()) or {})
                         if config is not None else PointMassOptions())
             else:
-                opts = EskfOptions.from_yaml(config) if config is not None else EskfOptions()
+                from uwbimu.estimation.presets import load_options
+
+                opts = load_options(preset, config)
         except (OSError, ValueError) as exc:
             err.print(f"[red]error:[/] {exc}")
             raise typer.Exit(code=2)

@@ -63,6 +63,23 @@ def flip_outputs(states: np.ndarray, covs: Optional[np.ndarray]) -> tuple[np.nda
     return X, covs * d[None, :, None] * d[None, None, :]
 
 
+def resolve_anchor_frame_up(ds: Dataset, opts: EskfOptions, warnings: list[str], events: list[dict]) -> str:
+    """The anchors' up direction: the options' when given, else the dataset's (``meta.anchor_frame_up``,
+    legacy ``meta.extra["anchor_frame_up"]``), else ``"+z"``.  An option that contradicts the dataset
+    is used and reported (warning + ``anchor_frame_override`` event)."""
+    from_ds = getattr(ds.meta, "anchor_frame_up", None) or (ds.meta.extra or {}).get("anchor_frame_up")
+    if from_ds not in (None, "+z", "-z"):
+        raise ValueError(f"dataset {ds.meta.name!r}: anchor_frame_up must be '+z' or '-z', got {from_ds!r}")
+    if opts.anchor_frame_up is None:
+        return from_ds or "+z"
+    if from_ds is not None and from_ds != opts.anchor_frame_up:
+        warnings.append(f"anchor_frame_up: the options' {opts.anchor_frame_up!r} overrides the dataset's {from_ds!r}")
+        t0 = float(ds.uwb["t"].iloc[0]) if len(ds.uwb) else 0.0
+        events.append({"t": t0, "kind": "anchor_frame_override", "options": opts.anchor_frame_up,
+                       "dataset": from_ds})
+    return opts.anchor_frame_up
+
+
 def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, Any]]:
     """Turn a dataset and options into a :class:`Problem` and the calibration priors.
 
@@ -114,7 +131,8 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
         if a in index:
             uwb_r[uwb_a == index[a]] -= float(b)
     anchors = ds.anchor_array(anchor_ids).astype(float)
-    if opts.anchor_frame_up == "-z":
+    frame_up = resolve_anchor_frame_up(ds, opts, warnings, events)
+    if frame_up == "-z":
         # the filter's world must have z up (gravity [0, 0, -g]): run in the anchors' frame turned 180 deg
         # about x (y -> -y, z -> -z, a proper rotation); _assemble turns the outputs back
         anchors = anchors * FLIP_X
@@ -182,6 +200,7 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
         "search_td": td_mode != "fixed" and opts.time_offset.prior is None and opts.init.search_time_offset,
     }
     info = {"warnings": warnings, "events": events, "imu_noise": noise, "range_sigma": rsig, "tag": tag,
+            "anchor_frame_up": frame_up,
             "priors": priors, "uwb_anchor_ids": uwb_anchor_ids}
     return prob, info
 
@@ -416,14 +435,14 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
     warnings += w_out
     events += e_out
 
-    if opts.anchor_frame_up == "-z":
+    if info["anchor_frame_up"] == "-z":
         X, covs = flip_outputs(X, covs)
         events.append({"t": float(prob.uwb_t[0]), "kind": "anchor_frame_flipped",
                        "note": "anchor_frame_up: -z; the filter ran in the anchors' frame turned 180 deg about x "
                        "(positions in the 'initialised' events are in that frame); outputs are in the anchors' frame"})
     cfg = opts.model_dump(mode="json")
     cfg["resolved"] = {"imu_noise": noise.model_dump(), "range_sigma": float(info["range_sigma"]),
-                       "tag": info["tag"], "gate_nis": float(prob.gate), "imu_rate_hz": 1.0 / prob.dt_nom}
+                       "tag": info["tag"], "anchor_frame_up": info["anchor_frame_up"], "gate_nis": float(prob.gate), "imu_rate_hz": 1.0 / prob.dt_nom}
     res = EstimationResult(
         t=t_out, states=X[:, :20].copy(), sd=sd, residuals=residuals, calibration=calibration,
         covariances=covs[:, :19, :19].copy() if covs is not None else None, warnings=warnings, events=events,

@@ -138,9 +138,10 @@ class EskfOptions(_Strict):
     init: InitOptions = Field(default_factory=InitOptions)
     supervisor: SupervisorOptions = Field(default_factory=SupervisorOptions)
     excitation: ExcitationOptions = Field(default_factory=ExcitationOptions)
-    anchor_frame_up: Literal["+z", "-z"] = Field(
-        default="+z",
-        description="direction of gravity-up in the anchors' coordinates: '+z' (the usual z-up frame) or '-z' (a "
+    anchor_frame_up: Optional[Literal["+z", "-z"]] = Field(
+        default=None,
+        description="None: the dataset's (dataset.yaml anchor_frame_up, else '+z'); given: overrides the dataset. "
+        "Direction of gravity-up in the anchors' coordinates: '+z' (the usual z-up frame) or '-z' (a "
         "z-down frame, e.g. an RTLS frame defined upside down; the filter then runs in the anchors' frame turned "
         "180 deg about x, and every output is turned back into the anchors' frame)",
     )
