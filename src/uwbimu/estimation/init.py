@@ -79,8 +79,21 @@ def multilaterate(prob: Problem, j0: int, window: float) -> tuple[np.ndarray, np
         sol = least_squares(resid, z0, loss="soft_l1", f_scale=0.3, max_nfev=200)
         if best is None or sol.cost < best.cost - 1e-9:
             best = sol
-    rms = float(np.sqrt(np.mean(resid(best.x) ** 2)))
-    return best.x[:3], best.x[3:], rms, int(sel.sum())
+    # gross outliers (e.g. a +100 m range spike) must not set the position prior: residuals beyond 5 sd of
+    # the inliers' robust scale (never below the range noise) are dropped and the fit repeated without them
+    res = resid(best.x)
+    sigma_r = math.sqrt(prob.r_var)
+    scale = max(1.4826 * float(np.median(np.abs(res - np.median(res)))), sigma_r)
+    inl = np.abs(res) <= 5.0 * scale
+    n_out = int((~inl).sum())
+    if n_out and inl.sum() >= 8 and len(np.unique(prob.uwb_a[sel][inl])) >= 4:
+        a, r, dt = a[inl], r[inl], dt[inl]
+        best = least_squares(resid, best.x, loss="soft_l1", f_scale=0.3, max_nfev=200)
+        res = resid(best.x)
+    elif n_out:
+        res = res[inl] if inl.any() else res
+    rms = float(np.sqrt(np.mean(res**2)))
+    return best.x[:3], best.x[3:], rms, int(len(r))
 
 
 def level_attitude(prob: Problem, k0: int, window: float) -> tuple[float, float]:
