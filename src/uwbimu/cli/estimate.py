@@ -12,7 +12,7 @@ from rich.table import Table
 
 #: Files ``uwbimu estimate`` writes; an output folder holding anything else is refused without --force.
 OUTPUT_FILES = {
-    "trajectory.csv", "states.csv", "calibration.yaml", "residuals.csv", "events.yaml", "residual_table.csv",
+    "trajectory.csv", "states.csv", "calibration.yaml", "residuals.csv", "events.yaml", "residual_table.csv", "run.json",
     "metrics.yaml", "trajectory.png", "position_error.png", "calibration.png", "nis.png",
 }
 

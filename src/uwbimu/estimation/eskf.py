@@ -239,6 +239,8 @@ def run_eskf(
     """
     opts = options or EskfOptions()
     t_wall = time.perf_counter()
+    cpu0 = time.process_time()
+    cpu_filter = 0.0
     prob, info = build_problem(dataset, opts)
     warnings: list[str] = list(info["warnings"])
     events: list[dict[str, Any]] = list(info["events"])
@@ -262,7 +264,9 @@ def run_eskf(
     n_reinit = 0
     prob_run = prob
     while True:
+        c0 = time.process_time()
         res = run_pass(prob_run, st.x, st.P, st.k, st.j, progress=cb)
+        cpu_filter += time.process_time() - c0
         passes.append(res)
         events += res.events
         if not res.diverged:
@@ -297,6 +301,8 @@ def run_eskf(
     result.warnings = warnings + result.warnings
     result.events = events + result.events
     result.runtime_s = time.perf_counter() - t_wall
+    result.extra["filter_cpu_seconds"] = cpu_filter
+    result.extra["total_cpu_seconds"] = time.process_time() - cpu0
     for w in result.warnings:
         log.warning(w)
     return result
@@ -418,6 +424,9 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
         "gyro_bias": [float(v) for v in x_end[13:16]],
         "gyro_bias_sd": [float(v) for v in sd_end[12:15]],
     }
+    # per-tag block (the top-level lever_arm keys stay for the first/used tag)
+    calibration["tags"] = {str(info["tag"] or "tag0"): {"lever_arm": calibration["lever_arm"],
+                                                         "lever_arm_sd": calibration["lever_arm_sd"]}}
     if nb:
         calibration["anchor_bias"] = {a: float(x_end[20 + i]) for i, a in enumerate(prob.anchor_ids)}
         calibration["anchor_bias_sd"] = {a: float(sd_end[19 + i]) for i, a in enumerate(prob.anchor_ids)}
