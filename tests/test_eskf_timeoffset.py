@@ -57,3 +57,7 @@ def test_verdict_is_scale_free(scale):
     assert time_offset_verdict(0.05 * scale, 0.1 * scale)[0] == "weakly identified"
     assert time_offset_verdict(0.09 * scale, 0.1 * scale)[0] == "not identified"
     assert time_offset_verdict(0.0, 0.1, fixed=True)[0] == "fixed"
+
+
+def test_verdict_after_a_failed_initial_search_is_not_identified():
+    assert time_offset_verdict(0.001, 0.1, init_status="not identified")[0] == "not identified"

@@ -25,7 +25,7 @@ from uwbimu.estimation.filterpass import (
     REC_ACC, REC_INNOV, REC_NIS, REC_PRED, REC_STATUS, STATUS_IN_GAP, STATUS_NOT_PROCESSED, PassResult, Problem, gap_inputs,
     rotation_window_stats, run_pass,
 )
-from uwbimu.estimation.init import InitialisationError, InitialState, initialise
+from uwbimu.estimation.init import InitialisationError, InitialState, hold_time_offset, initialise
 from uwbimu.estimation.timeoffset import time_offset_verdict
 from uwbimu.estimation.options import EskfOptions
 from uwbimu.estimation.result import EstimationResult
@@ -259,6 +259,15 @@ def run_eskf(
     if initial is None:
         initial = initialise(prob, opts, priors, j0=0)
     events.append({"t": float(prob.uwb_t[initial.j]), "kind": "initialised", **_plain(initial.info)})
+    td_init = initial.info.get("td_init") or {}
+    if td_init.get("status") == "not identified" and opts.time_offset.mode == "estimate":
+        # hold t_d at its prior (consider mode) for the whole run, as the initialiser did
+        prob = hold_time_offset(prob)
+        warnings.append(f"time offset not identified by the initial search ({td_init.get('reason')}): held at its "
+                        f"prior {priors['td']:g} s (sd {priors['td_sd']:g} s, consider mode); set time_offset.prior "
+                        f"or record more excited motion")
+        events.append({"t": float(prob.uwb_t[initial.j]), "kind": "time_offset_held", "reason": td_init.get("reason"),
+                       "prior": float(priors["td"]), "prior_sd": float(priors["td_sd"])})
     passes: list[PassResult] = []
     st = initial
     n_reinit = 0

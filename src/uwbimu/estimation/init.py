@@ -335,8 +335,19 @@ def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: i
     k0 = start_index(prob, t0, td)
     x0, P0 = assemble(prob, pr, yaw, yaw_sd0, td, td_sd, k0, t0, v0)
     if io.refine_s > 0:
-        x0, P0, k0 = _refine(prob, pr, x0, P0, k0, j0, t0, v0, yaw_sd0, td_sd, t_to + io.refine_s, info)
+        prob_r = hold_time_offset(prob) if info.get("td_init", {}).get("status") == "not identified" else prob
+        x0, P0, k0 = _refine(prob_r, pr, x0, P0, k0, j0, t0, v0, yaw_sd0, td_sd, t_to + io.refine_s, info)
     return InitialState(x=x0, P=P0, k=k0, j=j0, info=info)
+
+
+def hold_time_offset(prob: Problem) -> Problem:
+    """The same problem with the time offset in consider mode (its uncertainty kept, never updated).
+
+    Used when the initial search could not identify t_d: the filter then holds it at its prior instead
+    of letting a weakly informed, nonlinear update drift it (ISAS-Walk: to 0.35 s)."""
+    mask = prob.gain_mask.copy()
+    mask[18] = 0.0
+    return replace(prob, gain_mask=mask)
 
 
 def _refine(prob: Problem, pr: Prior, x0, P0, k0: int, j0: int, t0: float, v0, yaw_sd: float, td_sd: float,

@@ -18,7 +18,9 @@ Verdict (:func:`time_offset_verdict`)
     ``gain = (sd_prior / sd_post)^2 - 1`` (so independent of units and of the
     size of the offset): "identified" when the data carry at least 99 % of the
     final information (gain >= 99, i.e. sd shrank 10x), "weakly identified"
-    when they carry at least half of it (gain >= 1), "not identified" below.
+    when they carry at least half of it (gain >= 1), "not identified" below,
+    and always "not identified" when the initial search failed (the filter then
+    holds t_d at its prior in consider mode: no information is gained).
 """
 
 from __future__ import annotations
@@ -126,12 +128,13 @@ def time_offset_verdict(sd_post: float, sd_prior: float, fixed: bool = False,
     """
     if fixed:
         return "fixed", "time offset held at its configured value"
+    if init_status == "not identified":
+        return "not identified", ("the initial grid search could not locate it; held at its prior (consider "
+                                  "mode, not updated by the data)")
     if not (np.isfinite(sd_post) and sd_post > 0 and np.isfinite(sd_prior) and sd_prior > 0):
         return "not identified", "no finite posterior/prior sd"
     gain = (sd_prior / sd_post) ** 2 - 1.0
     note = f"sd {sd_post * 1e3:.3g} ms from prior {sd_prior * 1e3:.3g} ms (information gain {gain:.3g}x the prior)"
-    if init_status == "not identified":
-        note += "; the initial grid search could not locate it"
     if gain >= 99.0:
         return "identified", note
     if gain >= 1.0:
