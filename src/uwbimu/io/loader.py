@@ -513,6 +513,14 @@ def _load_uwb(src: _Source, options: LoadOptions, report: LoadReport) -> pd.Data
     return df[UWB_COLUMNS + (["tag"] if has_tag else [])]
 
 
+def _refuse_same_anchor(src: _Source, df: pd.DataFrame) -> None:
+    same = np.flatnonzero((df["anchor_a"] == df["anchor_b"]).to_numpy())
+    if len(same):
+        i = df.index[same[0]]
+        raise src.error(f"anchor_a and anchor_b are the same anchor {df.loc[i, 'anchor_a']!r}; a pair "
+                        f"needs two different anchors", i, "anchor_b")
+
+
 def _load_tdoa(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
     """``tdoa.csv``: ``t, anchor_a, anchor_b, tdoa [, tag]`` (anchor checks come later)."""
     df = _read_raw(src, TDOA_COLUMNS)
@@ -524,11 +532,7 @@ def _load_tdoa(src: _Source, options: LoadOptions, report: LoadReport) -> pd.Dat
     has_tag = "tag" in df.columns
     if has_tag:
         df = _to_text(src, df, "tag")
-    same = np.flatnonzero((df["anchor_a"] == df["anchor_b"]).to_numpy())
-    if len(same):
-        i = df.index[same[0]]
-        raise src.error(f"anchor_a and anchor_b are the same anchor {df.loc[i, 'anchor_a']!r}; a time "
-                        f"difference needs two different anchors", i, "anchor_b")
+    _refuse_same_anchor(src, df)
     if options.sort:
         df = _sort_by_time(src, df, report)
     _check_time_order(src, df)
@@ -545,10 +549,7 @@ def _load_anchor_ranges(src: _Source, options: LoadOptions, report: LoadReport) 
     df = _to_text(src, df, "anchor_a")
     df = _to_text(src, df, "anchor_b")
     df = _to_numeric(src, df, ["range"])
-    same = np.flatnonzero((df["anchor_a"] == df["anchor_b"]).to_numpy())
-    if len(same):
-        i = df.index[same[0]]
-        raise src.error(f"anchor_a and anchor_b are the same anchor {df.loc[i, 'anchor_a']!r}", i, "anchor_b")
+    _refuse_same_anchor(src, df)
     r = df["range"].to_numpy()
     bad = np.flatnonzero((r <= 0) | (r > options.max_range))
     if len(bad):
