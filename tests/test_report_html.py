@@ -5,6 +5,7 @@ from __future__ import annotations
 import base64
 import json
 import os
+import re
 import shutil
 import subprocess
 from html.parser import HTMLParser
@@ -157,7 +158,8 @@ def test_report_with_dataset_evaluates_and_shows_reference(tmp_path):
     text = render_report(out, dataset=ds)
     c = _parse(text)
     assert {"fig-trajectory", "fig-errors", "fig-convergence"} <= c.figures
-    assert "0.010" in text  # ATE of the 1 cm shift
+    ate = re.search(r"position ATE RMSE <b>([0-9.]+) m</b>", text)
+    assert ate is not None and abs(float(ate.group(1)) - 0.010) < 5e-4  # ATE of the 1 cm shift
     assert "+0.20" in text  # z-score of lever x: (0.101 - 0.1) / 0.005
     assert "n/a (ground truth in another frame)" not in text and "0.05" in text  # metrics.yaml as written
 

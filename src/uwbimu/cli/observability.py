@@ -60,8 +60,11 @@ def structural(
     except ConfigError as e:
         _fail(console, str(e))
     if as_json:
-        keys = ["rank", "dimension", "observable", "lie_order", "singular_values", "unobservable_directions", "conditions"]
-        extra = ["name", "model", "tolerance", "gap_decades", "raw_rank", "raw_dimension", "words", "rows", "state_names", "excitation", "n_points"]
+        keys = ["rank", "dimension", "observable", "verdict", "lie_order", "singular_values", "unobservable_directions", "conditions"]
+        extra = ["name", "model", "search_verdict", "search_rank", "lie_order_setting", "order_search", "stop_reason",
+                 "cross_check", "null_dimension_at_order", "removed_by_higher_orders", "tolerance", "cut",
+                 "gap_decades", "margin_decades", "scale", "raw_rank", "raw_dimension", "words", "rows",
+                 "state_names", "excitation", "n_points"]  # fmt: skip
         typer.echo(json.dumps(_jsonable({k: v[k] for k in keys + extra}), indent=2))
         return
     print_structural(console, v)
@@ -69,18 +72,43 @@ def structural(
 
 def print_structural(console: Console, v: dict) -> None:
     """Rich rendering of a :func:`structural_verdict` result."""
-    ok = "[green]observable[/green]" if v["observable"] else "[yellow]NOT observable[/yellow]"
+    ok = "[green]observable[/green]" if v["observable"] else f"[yellow]{v['verdict']}[/yellow]"
+    order = f"Lie order {v['lie_order']}" + (" (auto)" if v["lie_order_setting"] == "auto" else "")
     console.print(
-        f"[bold]{v['name']}[/bold] ({v['model']}, Lie order {v['lie_order']}, {v['n_points']} point(s)): {ok} - "
+        f"[bold]{v['name']}[/bold] ({v['model']}, {order}, {v['n_points']} point(s)): {ok} - "
         f"rank {v['rank']} / {v['dimension']} tangent dims"
         + (
             f" (quaternion as 4-vector: {v['raw_rank']} / {v['raw_dimension']})"
             if v["raw_rank"] is not None and v["model"] == "uwb_imu"
             else ""
         )
-        + "; "
-        f"gap {v['gap_decades']:.1f} decades at tol {v['tolerance']:g}"
     )
+    tol = "rounding-noise floor" if v["tolerance"] is None else f"relative tol {v['tolerance']:g}"
+    margin = v["margin_decades"]
+    console.print(
+        f"evidence: gap {v['gap_decades']:.1f} decades; weakest kept singular value "
+        f"{'n/a' if margin is None else f'{margin:.1f} decades'} above the cut ({tol}); states scaled by "
+        f"L = {v['scale']['length_m']:.3g} m, T = {v['scale']['time_s']:g} s; order search "
+        + ", ".join(f"{h['order']}:{h['rank']}" for h in v["order_search"])
+        + f" ({v['stop_reason']})"
+    )
+    if margin is not None and margin < 3:
+        console.print(
+            "note: the weakest direction is less than 3 decades above the cut: the point is nearly degenerate "
+            "(observable in theory, practically weak); see `uwbimu observability log` for the bound on a real log."
+        )
+    cc = v.get("cross_check")
+    if cc is not None:
+        console.print(
+            f"trajectory test ({cc['horizon_s']:g} s, generic inputs): rank {cc['rank']} (gap {cc['gap_decades']:.1f} decades)"
+            + ("" if cc["agree"] else " - higher than the Lie rank at the last order; the verdict uses it")
+        )
+    if v["lie_order_setting"] != "auto" and not v["observable"]:
+        console.print(
+            f"note: explicit Lie order {v['lie_order']}: the automatic search finds rank {v['search_rank']} / "
+            f"{v['dimension']} ({v['search_verdict']}); {v['removed_by_higher_orders']} of the order-{v['lie_order']} "
+            "null directions are removed by higher orders and not named."
+        )
     t = Table(title="seed conditions (sufficient)")
     t.add_column("condition")
     t.add_column("holds")
@@ -111,7 +139,8 @@ def delay(
     except (ConfigError, ValueError) as e:
         _fail(console, str(e))
     if as_json:
-        keys = ["identifiable", "conditions", "theorem1", "numeric", "basis", "agree", "n_points", "name"]
+        keys = ["identifiable", "conditions", "theorem1", "numeric", "first_order", "explanation", "basis", "agree",
+                "n_points", "name"]  # fmt: skip
         typer.echo(json.dumps(_jsonable({k: v[k] for k in keys}), indent=2))
         return
     ok = "[green]identifiable[/green]" if v["identifiable"] else "[yellow]NOT identifiable[/yellow]"
@@ -129,6 +158,15 @@ def delay(
     for k, s in v["numeric"]["sensitivity"].items():
         t.add_row(k, f"{s:.3e}")
     console.print(t)
+    num = v["numeric"]
+    power = "" if num["td_power"] is None else f", growing like t_d^{num['td_power']:g}"
+    console.print(
+        f"numeric check: the largest sensitivity over t_d in {num['probe_time_offsets']} s is "
+        f"{num['probe_over_noise']:.3g} x the rounding noise of the range ({num['tolerance']:.2e} m per unit input)"
+        f"{power}: the verdict does not depend on the configured t_d"
+    )
+    if v["explanation"]:
+        console.print(f"note: {v['explanation']}.")
     if v["identifiable"] and not v["theorem1"]:
         # identifiable only through an effect the seed's first-order argument drops:
         # say how large it is so that nobody mistakes "identifiable" for "well determined"
