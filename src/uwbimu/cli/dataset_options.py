@@ -92,3 +92,53 @@ def load(path, load_options):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return load_dataset(path, load_options)
+
+
+def estimator_options(estimator: str, config, preset):
+    """Estimator options from ``--config`` YAML or ``--preset`` NAME (defaults when neither)."""
+    from uwbimu.errors import UsageError
+
+    if config is not None and preset is not None:
+        raise UsageError("give --config or --preset, not both (copy the preset into your YAML to change it)")
+    try:
+        if estimator == "pointmass":
+            import yaml
+
+            from uwbimu.estimation.pointmass import PointMassOptions
+
+            if preset is not None:
+                raise UsageError("--preset applies to the eskf estimator only")
+            return (PointMassOptions.model_validate(yaml.safe_load(config.read_text()) or {})
+                    if config is not None else PointMassOptions())
+        from uwbimu.estimation import EskfOptions
+
+        if preset is not None:
+            try:
+                from uwbimu.estimation.presets import load_preset
+            except ImportError:
+                raise UsageError("--preset is not available in this installation (uwbimu.estimation.presets "
+                                 "is missing); use --config examples/estimator*.yaml") from None
+            try:
+                return load_preset(preset)
+            except (KeyError, ValueError, FileNotFoundError) as exc:
+                raise UsageError(f"--preset {preset!r}: {exc}") from None
+        return EskfOptions.from_yaml(config) if config is not None else EskfOptions()
+    except UsageError:
+        raise
+    except (OSError, ValueError) as exc:
+        raise UsageError(f"--config {config}: {exc}") from None
+
+
+def apply_dataset_properties(opts, ds, console=None):
+    """Apply the dataset's own properties to estimator options the user did not set explicitly.
+
+    Today: ``dataset.yaml``'s ``anchor_frame_up`` (known anchor biases and tag lever arms are
+    applied by the estimator itself).  Returns the (possibly updated) options.
+    """
+    frame = getattr(ds, "anchor_frame_up", "+z")
+    if hasattr(opts, "anchor_frame_up") and "anchor_frame_up" not in opts.model_fields_set \
+            and opts.anchor_frame_up != frame:
+        opts = opts.model_copy(update={"anchor_frame_up": frame})
+        if console is not None:
+            console.print(f"note: anchor_frame_up {frame} from the dataset's dataset.yaml")
+    return opts

@@ -203,7 +203,9 @@ def nonfinite_values(path: Path) -> str | None:
         for col in df.columns:
             if pd.api.types.is_numeric_dtype(df[col]):
                 v = df[col].to_numpy(float)
-                bad = ~np.isfinite(v)
+                # A column that is NaN throughout is a quantity not estimated (documented, e.g. the
+                # attitude sd of a point-mass filter); inf anywhere, or NaN among numbers, is not.
+                bad = np.isinf(v) if np.isnan(v).all() else ~np.isfinite(v)
                 if bad.any():
                     return f"{path.name}, line {int(np.argmax(bad)) + 2}, column '{col}': {v[np.argmax(bad)]}"
         return None
