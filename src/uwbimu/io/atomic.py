@@ -142,7 +142,11 @@ def check_output_target(out: Path, names=(), force: bool = False, protect=(), re
         if p is None:
             continue
         pr = Path(p).resolve()
-        pr_dir = pr.parent if pr.is_file() else pr
+        if pr.is_file():  # an input file: never the output itself, never inside a replaced folder
+            if res == pr or (replace and _inside(pr, res)):
+                raise _output_error(f"{out} would overwrite the input {p}", hint="choose another output")
+            continue
+        pr_dir = pr
         if _inside(res, pr_dir) and not force:
             raise _output_error(f"{out} is inside the input dataset folder {p}; outputs are never written into "
                                 f"a dataset folder", hint="choose another output folder (or --force)")
@@ -155,8 +159,8 @@ def check_output_target(out: Path, names=(), force: bool = False, protect=(), re
         if replace:
             others = [q.name for q in out.iterdir() if not q.name.startswith(".")]
             if others and not force:
-                raise _output_error(f"{out} exists and is not empty ({', '.join(sorted(others)[:5])}); it would "
-                                    f"be replaced as a whole", hint="use --force or another folder")
+                raise _output_error(f"refusing to replace {out}: it exists and is not empty "
+                                    f"({', '.join(sorted(others)[:5])})", hint="use --force or another folder")
         else:
             _refuse_foreign(out, names, force)
         if not os.access(out, os.W_OK | os.X_OK):
