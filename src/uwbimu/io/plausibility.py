@@ -78,6 +78,11 @@ def check_time_base(tables: dict[str, tuple[Any, pd.DataFrame]], lenient: bool,
     dt = _median_dt(t)
     rate = 1.0 / dt
     guess = _unit_guess(dt)
+    # Another table whose span matches the IMU's says the IMU stamps are in seconds after all.
+    for name, (_s, df) in tables.items():
+        tt = df["t"].to_numpy()
+        if name != "imu" and len(tt) > 1 and 1 / 3 < (tt[-1] - tt[0]) / span < 3:
+            guess = None
     for name, (s, df) in tables.items():
         tt = df["t"].to_numpy()
         if len(tt) > 1 and tt[-1] - tt[0] > MAX_SPAN_S:
