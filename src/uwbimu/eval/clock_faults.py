@@ -38,6 +38,9 @@ from uwbimu.models.state import PIU, TD, P, Q, V
 SIGNIFICANCE = 6.0
 #: Once a jump is significant, its onset is the first window this many sigmas off the earlier ones.
 ONSET_SIGNIFICANCE = 3.0
+#: Largest clock drift reported [s/s]: quartz clocks drift by tens of ppm; a larger "trend" of
+#: the effective offset is model mismatch, not a clock.
+MAX_DRIFT = 1e-3
 #: A jump is kept when correcting it lowers the clipped NIS sum by more than this (a likelihood
 #: ratio for one extra parameter; 30 is about 5.5 sigma).
 NIS_DROP_MIN = 30.0
@@ -157,7 +160,8 @@ def detect_clock_faults(result, dataset, significance: float = SIGNIFICANCE,
     if chi_line < chi_const:
         cov = np.linalg.inv((A * wt[:, None]).T @ A)
         s_rate = inflate * float(np.sqrt(cov[1, 1]))
-        if abs(coef[1]) > significance * s_rate and abs(coef[1]) * (tm[-1] - tm[0]) >= MIN_JUMP_S:
+        if (abs(coef[1]) > significance * s_rate and abs(coef[1]) * (tm[-1] - tm[0]) >= MIN_JUMP_S
+                and abs(coef[1]) <= MAX_DRIFT):
             events.append({"kind": "clock_drift", "rate": float(coef[1]), "sigma": s_rate,
                            "t0": float(tstart[0]), "t1": float(tm[-1])})
     return events
@@ -233,10 +237,10 @@ def _segment(dataset, a: float, b: float):
     return ds
 
 
-def _fit_cost(result) -> tuple[float, int]:
-    """Mean clipped NIS of the processed ranges (rejections cost the clip) and their count."""
+def _fit_cost(result, t_from: float = -np.inf) -> tuple[float, int]:
+    """Mean clipped NIS of the processed ranges from ``t_from`` on (rejections cost the clip), and their count."""
     nis = result.residuals["nis"].to_numpy(float)
-    nis = nis[np.isfinite(nis)]
+    nis = nis[np.isfinite(nis) & (result.residuals["t"].to_numpy(float) >= t_from)]
     return (float(np.mean(np.minimum(nis, 25.0))), len(nis)) if len(nis) else (np.inf, 0)
 
 
@@ -252,13 +256,16 @@ def estimate_jump_size(dataset, event: dict[str, Any], rerun: Callable, half_win
     of the re-run on ``[t - half_window, t + half_window]`` wins.
     """
     T = event["t"]
-    seg = _segment(dataset, T - half_window, T + half_window)
+    # The filter must have converged before the jump (initialisation takes several seconds):
+    # twice as much data before it as after, and only ranges near and after it are scored.
+    seg = _segment(dataset, T - 2 * half_window, T + half_window)
 
     counts: list[int] = []
 
     def cost(size: float) -> float:
         try:
-            c, n = _fit_cost(rerun(correct_clock_jumps(seg, [{"kind": "clock_jump", "t": T, "size": size}])))
+            c, n = _fit_cost(rerun(correct_clock_jumps(seg, [{"kind": "clock_jump", "t": T, "size": size}])),
+                             T - 2.0)
         except Exception:  # noqa: BLE001 - a candidate the estimator cannot run on is simply a bad fit
             return np.inf
         counts.append(n)
@@ -267,7 +274,7 @@ def estimate_jump_size(dataset, event: dict[str, Any], rerun: Callable, half_win
     if event.get("stamp_gap"):
         # A forward jump of J leaves a stamp gap of about J: search near -gap only, and only
         # when shifting by the gap fits better at all (a plain dropout does not).
-        step = 0.005
+        step = 0.01
         base = cost(0.0)
         if not cost(-event["stamp_gap"]) < base:
             out = dict(event)
@@ -275,19 +282,24 @@ def estimate_jump_size(dataset, event: dict[str, Any], rerun: Callable, half_win
             return out
         fine = min(((cost(c), c) for c in -event["stamp_gap"] + np.arange(-6, 7) * step), key=lambda x: x[0])
     else:
-        coarse = min(((cost(c), c) for c in np.linspace(-max_size, max_size, 21)), key=lambda x: x[0])
-        step = 2 * max_size / 20 / 10
-        fine = min(((cost(c), c) for c in coarse[1] + np.arange(-10, 11) * step), key=lambda x: x[0])
+        coarse = min(((cost(c), c) for c in np.linspace(-max_size, max_size, 11)), key=lambda x: x[0])
+        step = 2 * max_size / 10 / 10
+        fine = min(((cost(c), c) for c in coarse[1] + np.arange(-5, 6) * step), key=lambda x: x[0])
+    edge = (abs(fine[1]) >= max_size - 5 * step if not event.get("stamp_gap")
+            else abs(abs(fine[1]) - event["stamp_gap"]) >= 6 * step - 1e-12)
     base = cost(0.0) if not event.get("stamp_gap") else base
     out = dict(event)
+    if event.get("size_from") == "innovation regression":
+        out["size_regression"] = float(event["size"])
     out.update({"size": float(fine[1]), "resolution": float(step), "size_from": "segment re-run search",
+                "at_search_boundary": bool(edge),
                 "cost_uncorrected": base, "cost_corrected": fine[0],
                 # the clipped-NIS sum is a (robust) log-likelihood: its drop is a likelihood ratio
                 "nis_sum_drop": float((base - fine[0]) * (min(counts) if counts else 0))})
     return out
 
 
-def gap_candidates(dataset, max_candidates: int = 10, min_gap_s: float = MIN_JUMP_S) -> list[dict[str, Any]]:
+def gap_candidates(dataset, max_candidates: int = 3, min_gap_s: float = MIN_JUMP_S) -> list[dict[str, Any]]:
     """Forward-jump candidates: the largest gaps in the UWB stamps (a forward jump of J leaves a gap of J).
 
     A gap is also what a dropout looks like; :func:`handle_clock_faults` keeps a candidate
@@ -303,6 +315,21 @@ def gap_candidates(dataset, max_candidates: int = 10, min_gap_s: float = MIN_JUM
     idx = idx[np.argsort(d[idx])[::-1][:max_candidates]]
     return [{"kind": "clock_jump", "t": float(t[i + 1]), "size": -float(d[i] - typical), "sigma": float("nan"),
              "stamp_gap": float(d[i] - typical), "size_from": "stamp gap"} for i in sorted(idx)]
+
+
+def _credible(ev: dict[str, Any]) -> bool:
+    """Keep a jump only when the re-run evidence is clear and self-consistent.
+
+    On real logs model mismatch can make an arbitrary shift fit slightly better; such a
+    fit has no interior minimum (the best size sits on the search boundary) or contradicts
+    the sign of the innovation regression.
+    """
+    if not (ev.get("nis_sum_drop", 0.0) > NIS_DROP_MIN and abs(ev["size"]) >= MIN_JUMP_S):
+        return False
+    if ev.get("at_search_boundary"):
+        return False
+    reg = ev.get("size_regression")
+    return reg is None or np.sign(reg) == np.sign(ev["size"])
 
 
 def handle_clock_faults(result, dataset, rerun: Callable, console=None, max_rounds: int = 2):
@@ -325,14 +352,22 @@ def handle_clock_faults(result, dataset, rerun: Callable, console=None, max_roun
         if not jumps:
             break
         jumps = [estimate_jump_size(dataset, ev, rerun) for ev in jumps]
-        jumps = [ev for ev in jumps if ev["nis_sum_drop"] > NIS_DROP_MIN and abs(ev["size"]) >= MIN_JUMP_S]
+        jumps = [ev for ev in jumps if _credible(ev)]
         if not jumps:
+            break
+        corrected = correct_clock_jumps(dataset, jumps)
+        new = rerun(corrected)
+        # The whole log must fit clearly better too (a local improvement on a real log with
+        # model mismatch is not enough): same likelihood-ratio test on the full run.
+        c0, n0 = _fit_cost(result)
+        c1, n1 = _fit_cost(new)
+        if not (c0 - c1) * min(n0, n1) > NIS_DROP_MIN:
             break
         for ev in jumps:
             ev["handled"] = "UWB stamps after the jump shifted by its size; estimator re-run"
+            ev["full_log_nis_sum_drop"] = float((c0 - c1) * min(n0, n1))
         found.extend(jumps)
-        dataset = correct_clock_jumps(dataset, jumps)
-        result = rerun(dataset)
+        dataset, result = corrected, new
     for ev in found:
         if ev["kind"] == "clock_jump":
             msg = (f"UWB clock jump at t={ev['t']:.3f} s: the time offset changes by {1000 * ev['size']:+.1f} ms "
