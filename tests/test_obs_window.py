@@ -78,10 +78,8 @@ def test_transition_matches_reference_propagation():
     assert (np.abs(Phi - fd) / scale).max() < 0.02
 
 
-def test_information_matches_brute_force_fisher():
-    """Noise-free IMU: the kernel's information equals J^T J / sigma^2 from the reference."""
-    rng = np.random.default_rng(2)
-    dt, n = 1 / 200, 201
+def _window_case(rng, n, dt):
+    """A noise-free IMU window along the reference integration, ranges every 4th sample."""
     t, u = _imu_stream(rng, n, dt)
     x0 = _state20(rng)
     x0[S.TD] = 0.0
@@ -92,6 +90,14 @@ def test_information_matches_brute_force_fisher():
     R = quat_to_rotmat(X[:, S.Q])
     w = u[:, 3:] - X[:, S.BG]
     _, H = range_jacobians(X[ridx, 0:3], X[ridx, 3:6], R[ridx], w[ridx], x0[S.PIU], anchors[aidx])
+    return t, u, x0, anchors, X, ridx, aidx, R, w, H
+
+
+def test_information_matches_brute_force_fisher():
+    """Noise-free IMU: the kernel's information equals J^T J / sigma^2 from the reference."""
+    rng = np.random.default_rng(2)
+    dt, n = 1 / 200, 201
+    t, u, x0, anchors, X, ridx, aidx, R, w, H = _window_case(rng, n, dt)
     sigma = 0.05
     info = _window_information(
         R, u[:, :3] - X[:, S.BA], w, np.r_[np.diff(t), 0.0], ridx, H,
@@ -190,16 +196,7 @@ def test_pcrb_recursion_matches_independent_batch_conditioning():
 
     rng = np.random.default_rng(5)
     dt, n = 1 / 200, 101
-    t, u = _imu_stream(rng, n, dt)
-    x0 = _state20(rng)
-    x0[S.TD] = 0.0
-    anchors = rng.uniform(-5, 5, (4, 3))
-    X = ref.integrate_imu(x0, t, u)
-    ridx = np.arange(0, n, 4)
-    aidx = np.arange(len(ridx)) % 4
-    R = quat_to_rotmat(X[:, S.Q])
-    w = u[:, 3:] - X[:, S.BG]
-    _, H = range_jacobians(X[ridx, 0:3], X[ridx, 3:6], R[ridx], w[ridx], x0[S.PIU], anchors[aidx])
+    t, u, x0, anchors, X, ridx, aidx, R, w, H = _window_case(rng, n, dt)
     sigma = 0.05
     q = np.r_[np.zeros(3), np.full(3, 2.0**2), np.full(3, 0.2**2), np.full(3, 0.05**2), np.full(3, 5e-3**2)]
     P0 = np.diag(_scale_vector(DEFAULT_PRIOR_SD) ** 2)
