@@ -265,3 +265,22 @@ def test_pcrb_agrees_with_the_matched_eskf_sigma(matched_eskf):
     sd_b, sd_e = np.sqrt(np.diag(P_end)), res.sd[-1]
     for i in (15, 16, 17, 18):
         assert sd_e[i] == pytest.approx(sd_b[i], rel=0.05), S.ERROR_STATE_NAMES[i]
+
+
+def test_chained_windows_end_at_the_filter_sigma_and_flag_excitation(matched_eskf):
+    """Chained per-window PCRB (5 s windows along the filter's own trajectory): the last
+    window's bound is the filter's final sigma (the report's observability and calibration
+    sections agree), and every window of the excited flight is flagged as exciting."""
+    from uwbimu.observability.window import trajectory_from_result
+
+    ds, res = matched_eskf
+    table, meta = window_observability(ds, trajectory_from_result(res), WindowOptions(window=5.0))
+    assert meta["chain"] is True
+    last = table.iloc[-1]
+    for i, n in enumerate(("lx", "ly", "lz")):
+        assert last[f"sd_{n}"] == pytest.approx(res.calibration["lever_arm_sd"][i], rel=0.1), n
+    assert last["sd_td"] == pytest.approx(res.calibration["time_offset_sd"], rel=0.1)
+    assert table["lever_arm_excited"].all() and table["time_offset_excited"].all()
+    assert (table["lever_arm_info_gain"] >= 3).all()
+    # the bound only shrinks along the chain
+    assert (np.diff(table["sd_lx"].to_numpy()) < 1e-12).all()

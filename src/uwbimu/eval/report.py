@@ -546,7 +546,33 @@ def _repeatability_section(inp: ReportInputs) -> str:
     return "".join(parts)
 
 
-def _observability_windows(df: pd.DataFrame) -> str:
+def _bound_vs_sigma(df: pd.DataFrame, cal: Optional[dict]) -> str:
+    """The bound at the end of the log (last window of a chained PCRB) next to the filter's sigma."""
+    if not cal or len(df) == 0:
+        return ""
+    pairs = []
+    sd_l = cal.get("lever_arm_sd") or [None] * 3
+    for n, s_f in zip(("lx", "ly", "lz"), sd_l):
+        pairs.append((n, s_f, 100.0, "cm"))
+    pairs.append(("td", cal.get("time_offset_sd"), 1000.0, "ms"))
+    cells = []
+    for n, s_f, k, unit in pairs:
+        col = f"sd_{n}"
+        if s_f is None or col not in df.columns:
+            continue
+        b = pd.to_numeric(df[col], errors="coerce").to_numpy(float)[-1]
+        if not np.isfinite(b) or b <= 0 or not np.isfinite(float(s_f)):
+            continue
+        cells.append(f"{n} {k * b:.2f} vs {k * float(s_f):.2f} {unit} (σ / bound {float(s_f) / b:.2f})")
+    if not cells:
+        return ""
+    return ('<p class="note">Bound at the end of the log (last window; with the chained posterior Cramér-Rao bound '
+            "of <code>uwbimu observability log</code> this is the σ a matched filter should reach) vs the estimator's "
+            "σ of the calibration section: " + _e("; ".join(cells)) + ". σ / bound well below 1 means an over-confident "
+            "filter, well above 1 one that does not use all the information.</p>")  # fmt: skip
+
+
+def _observability_windows(df: pd.DataFrame, cal: Optional[dict] = None) -> str:
     """Timeline of the per-window table of ``uwbimu observability`` (t_start, t_end, sd_*, flags)."""
     from matplotlib.figure import Figure
 
@@ -585,7 +611,9 @@ def _observability_windows(df: pd.DataFrame) -> str:
             ax.legend(fontsize=7, ncol=3)
     fig.axes[-1].set_xlabel("window centre [s]")
     parts = [_fig("observability", fig, "Per-window observability: Cramér-Rao bounds of the lever arm and time offset "
-                  "(shaded: window flagged as not exciting the parameter).")]
+                  "at each window's end (shaded: window flagged as not exciting the parameter: its ranges add less "
+                  "than 3x the prior's precision).")]
+    parts.append(_bound_vs_sigma(df, cal))
     rows = []
     for k in range(len(df)):
         flags = []
@@ -610,7 +638,7 @@ def _observability_section(inp: ReportInputs) -> str:
     if df is None:
         return _missing("<code>observability.csv</code> not found (<code>uwbimu observability ... --out OUT</code>).")
     if {"t_start", "t_end"} <= set(df.columns):
-        return _observability_windows(df)
+        return _observability_windows(df, inp.calibration)
     tcol = "t" if "t" in df.columns else df.columns[0]
     num = [c for c in df.columns if c != tcol and pd.api.types.is_numeric_dtype(df[c])][:8]
     if not num:

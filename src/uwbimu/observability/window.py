@@ -93,10 +93,16 @@ class WindowOptions:
         with no prior and the IMU noise as a range-variance inflation
         (approximate, correlations dropped; kept for comparison).
     prior_sd : prior sd per block at each window start (see :data:`DEFAULT_PRIOR_SD`).
-    excited_sd_ratio : a window excites the lever arm (time offset) when its
-        ranges bring the bound to at most this fraction of the prior sd
-        (every lever-arm axis), i.e. add >= 1/ratio^2 - 1 times the prior
-        information; 0.5 is the estimator's own ``excitation.sd_ratio_warn``.
+    chain : ``True`` (default): the windows are chained like the estimator —
+        the prior of a window is the bound at the end of the previous one (the
+        first starts from ``prior_sd``), so ``sd_<state>`` at a window's end is
+        what a matched filter's sigma should be then; ``False``: every window
+        stands alone from ``prior_sd``.
+    excited_sd_ratio : a window excites the lever arm (time offset) when the
+        marginal precision its ranges add, ``1/sd_end^2 - 1/sd_prior_end^2``,
+        is at least ``1/ratio^2 - 1`` times the prior precision ``1/prior_sd^2``
+        (every lever-arm axis): the window alone would take the prior sd to
+        ``ratio`` x prior.  0.5 is the estimator's own ``excitation.sd_ratio_warn``.
     lever_sd_threshold, td_sd_threshold : optional absolute accuracy [m, s]
         the flags also require (None: not used).
     scales : typical magnitudes making the information dimensionless.
@@ -109,6 +115,7 @@ class WindowOptions:
     include_imu_noise: bool = True
     bound: str = "pcrb"
     prior_sd: dict = field(default_factory=lambda: dict(DEFAULT_PRIOR_SD))
+    chain: bool = True
     excited_sd_ratio: float = 0.5
     lever_sd_threshold: Optional[float] = None
     td_sd_threshold: Optional[float] = None
@@ -614,6 +621,8 @@ def window_observability(ds, trajectory: Optional[Trajectory] = None, options: O
         edges = np.r_[edges, imu_t[-1]]
     rows = []
     p, v, q, _, _ = pre["traj_at_imu"]
+    prior_sd = _scale_vector(opts.prior_sd)
+    P_chain = None
     for t0, t1 in zip(edges[:-1], edges[1:]):
         k0 = int(np.searchsorted(imu_t, t0, side="left"))
         k1 = int(np.searchsorted(imu_t, t1, side="right"))
@@ -622,18 +631,28 @@ def window_observability(ds, trajectory: Optional[Trajectory] = None, options: O
         row = {"t_start": float(t0), "t_end": float(t1), "n_ranges": nr}
         gyro = pre["w"][k0:k1]
         row["gyro_rms"] = float(np.sqrt(np.mean(np.sum(gyro**2, axis=1)))) if len(gyro) else 0.0
-        prior_sd = _scale_vector(opts.prior_sd)
-        if nr < opts.min_ranges or k1 - k0 < 2:
-            row.update({"min_eigenvalue": 0.0, "condition_number": float("inf"), "weakest_direction": "no data"})
-            row.update({f"sd_{n}": (float(s) if opts.bound == "pcrb" else float("inf")) for n, s in zip(ERROR_STATE_NAMES, prior_sd)})
-        elif opts.bound == "pcrb":
+        if opts.bound == "pcrb" and k1 - k0 >= 2:
+            start = np.diag(prior_sd**2) if (P_chain is None or not opts.chain) else P_chain
             args = (
                 np.ascontiguousarray(pre["R"][k0:k1]), np.ascontiguousarray(pre["f"][k0:k1]),
                 np.ascontiguousarray(pre["w"][k0:k1]), np.ascontiguousarray(pre["dt"][k0:k1]),
                 pre["ridx"][sel] - k0, np.ascontiguousarray(pre["H"][sel]), np.full(nr, sigma**2),
-                qd_used, np.diag(prior_sd**2),
+                qd_used, np.ascontiguousarray(start),
             )  # fmt: skip
             P_end, P_prior = _window_pcrb(*args)
+            P_chain = P_end
+            # marginal precision the window's ranges add, in units of the prior precision
+            prec = lambda P, i: 1.0 / max(P[i, i], 1e-300)  # noqa: E731
+            row["lever_arm_info_gain"] = float(min((prec(P_end, i) - prec(P_prior, i)) * prior_sd[i] ** 2 for i in (15, 16, 17)))
+            row["time_offset_info_gain"] = float((prec(P_end, 18) - prec(P_prior, 18)) * prior_sd[18] ** 2)
+        if nr < opts.min_ranges or k1 - k0 < 2:
+            row.update({"min_eigenvalue": 0.0, "condition_number": float("inf"), "weakest_direction": "no data"})
+            if opts.bound == "pcrb":
+                Pc = P_chain if (P_chain is not None and opts.chain) else np.diag(prior_sd**2)
+                row.update({f"sd_{n}": float(np.sqrt(Pc[i, i])) for i, n in enumerate(ERROR_STATE_NAMES)})
+            else:
+                row.update({f"sd_{n}": float("inf") for n in ERROR_STATE_NAMES})
+        elif opts.bound == "pcrb":
             # information the window's ranges add to the state at its end (prior removed)
             gained = _inv_psd(P_end) - _inv_psd(P_prior)
             x_ref = np.r_[p[k1 - 1], v[k1 - 1], q[k1 - 1], np.zeros(6), tr.lever_arm]
@@ -653,8 +672,9 @@ def window_observability(ds, trajectory: Optional[Trajectory] = None, options: O
             row.update({f"sd_{n}": float(s) for n, s in zip(ERROR_STATE_NAMES, res["sd"])})
         sd_l = max(row["sd_lx"], row["sd_ly"], row["sd_lz"])
         if opts.bound == "pcrb":
-            row["lever_arm_excited"] = bool(sd_l <= opts.excited_sd_ratio * opts.prior_sd["l"])
-            row["time_offset_excited"] = bool(row["sd_td"] <= opts.excited_sd_ratio * opts.prior_sd["td"])
+            need = 1.0 / opts.excited_sd_ratio**2 - 1.0  # gain that takes the prior sd to ratio x prior
+            row["lever_arm_excited"] = bool(row.get("lever_arm_info_gain", 0.0) >= need)
+            row["time_offset_excited"] = bool(row.get("time_offset_info_gain", 0.0) >= need)
         else:
             row["lever_arm_excited"] = bool(np.isfinite(sd_l))
             row["time_offset_excited"] = bool(np.isfinite(row["sd_td"]))
@@ -665,7 +685,13 @@ def window_observability(ds, trajectory: Optional[Trajectory] = None, options: O
         rows.append(row)
     cols = ["t_start", "t_end", "min_eigenvalue", "condition_number", "weakest_direction"]
     cols += [f"sd_{n}" for n in ERROR_STATE_NAMES] + ["n_ranges", "gyro_rms", "lever_arm_excited", "time_offset_excited"]
-    table = pd.DataFrame(rows)[cols]
+    if opts.bound == "pcrb":
+        cols += ["lever_arm_info_gain", "time_offset_info_gain"]
+    table = pd.DataFrame(rows)
+    for c in ("lever_arm_info_gain", "time_offset_info_gain"):
+        if c in cols and c not in table.columns:
+            table[c] = 0.0
+    table = table[cols]
     meta = {
         "range_sigma": sigma,
         "imu_noise": noise.model_dump(),
@@ -673,6 +699,7 @@ def window_observability(ds, trajectory: Optional[Trajectory] = None, options: O
         "bound": opts.bound,
         "prior_sd": dict(opts.prior_sd) if opts.bound == "pcrb" else None,
         "excited_sd_ratio": opts.excited_sd_ratio if opts.bound == "pcrb" else None,
+        "chain": opts.chain if opts.bound == "pcrb" else None,
         "ranges_unknown_anchor": pre["n_unknown_anchor"],
         "ranges_outside_imu_span": pre["n_outside"],
         "ranges_other_tags": pre["n_other_tag"],
