@@ -61,7 +61,7 @@ def structural(
         _fail(console, str(e))
     if as_json:
         keys = ["rank", "dimension", "observable", "verdict", "lie_order", "singular_values", "unobservable_directions", "conditions"]
-        extra = ["name", "model", "search_verdict", "search_rank", "lie_order_setting", "order_search", "stop_reason",
+        extra = ["name", "model", "measurement", "search_verdict", "search_rank", "lie_order_setting", "order_search", "stop_reason",
                  "cross_check", "null_dimension_at_order", "removed_by_higher_orders", "tolerance", "cut",
                  "gap_decades", "margin_decades", "scale", "raw_rank", "raw_dimension", "words", "rows",
                  "state_names", "excitation", "n_points"]  # fmt: skip
@@ -75,7 +75,8 @@ def print_structural(console: Console, v: dict) -> None:
     ok = "[green]observable[/green]" if v["observable"] else f"[yellow]{v['verdict']}[/yellow]"
     order = f"Lie order {v['lie_order']}" + (" (auto)" if v["lie_order_setting"] == "auto" else "")
     console.print(
-        f"[bold]{v['name']}[/bold] ({v['model']}, {order}, {v['n_points']} point(s)): {ok} - "
+        f"[bold]{v['name']}[/bold] ({v['model']}{', TDoA' if v.get('measurement') == 'tdoa' else ''}, {order}, "
+        f"{v['n_points']} point(s)): {ok} - "
         f"rank {v['rank']} / {v['dimension']} tangent dims"
         + (
             f" (quaternion as 4-vector: {v['raw_rank']} / {v['raw_dimension']})"
@@ -140,7 +141,7 @@ def delay(
         _fail(console, str(e))
     if as_json:
         keys = ["identifiable", "conditions", "theorem1", "numeric", "first_order", "explanation", "basis", "agree",
-                "n_points", "name"]  # fmt: skip
+                "n_points", "name", "measurement"]  # fmt: skip
         typer.echo(json.dumps(_jsonable({k: v[k] for k in keys}), indent=2))
         return
     ok = "[green]identifiable[/green]" if v["identifiable"] else "[yellow]NOT identifiable[/yellow]"
