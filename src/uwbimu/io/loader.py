@@ -34,8 +34,12 @@ import pandas as pd
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from uwbimu.errors import InputError
 from uwbimu.io.dataset import (
     ANCHOR_COLUMNS,
+    ANCHOR_QUAT_COLUMNS,
+    ANCHOR_RANGE_COLUMNS,
+    TDOA_COLUMNS,
     GT_COLUMNS,
     GT_VEL_COLUMNS,
     IMU_COLUMNS,
@@ -63,11 +67,23 @@ ACCEL_NORM_BAND = (4.0, 30.0)
 #: Quaternions whose norm differs from 1 by more than this are refused.
 QUAT_NORM_TOL = 1e-2
 
-_TEXT_COLUMNS = ("anchor", "tag")
+#: Default margin [m] by which |tdoa| may exceed the two anchors' separation (noise, NLOS bias).
+TDOA_MARGIN_M = 1.0
+
+_TEXT_COLUMNS = ("anchor", "tag", "anchor_a", "anchor_b")
 
 
-class DatasetError(ValueError):
-    """A dataset that cannot be used as is.
+def fmt_num(x: Any) -> str:
+    """A number as plain text for messages (never ``np.float64(1.6)``)."""
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return str(x)
+    return repr(int(v)) if v.is_integer() and abs(v) < 1e15 else repr(v)
+
+
+class DatasetError(InputError):
+    """A dataset that cannot be used as is (an :class:`uwbimu.errors.InputError`, exit code 1).
 
     Attributes
     ----------
@@ -78,8 +94,8 @@ class DatasetError(ValueError):
     """
 
     def __init__(self, message: str, file: Optional[str] = None, row: Optional[int] = None,
-                 column: Optional[str] = None):
-        super().__init__(message)
+                 column: Optional[str] = None, hint: Optional[str] = None):
+        super().__init__(message, hint=hint)
         self.file = file
         self.row = row
         self.column = column
@@ -108,6 +124,9 @@ class LoadOptions(BaseModel):
     )
     check_units: bool = Field(default=True, description="refuse gyro/accelerometer data that looks like deg/s or g")
     max_range: float = Field(default=MAX_RANGE_M, gt=0, description="largest accepted range, m")
+    tdoa_margin: float = Field(
+        default=TDOA_MARGIN_M, ge=0,
+        description="|tdoa| may exceed the two anchors' separation by this much (m) before it is refused")
 
 
 @dataclass
@@ -172,9 +191,10 @@ class _Source:
             return f"lines {int(df.index.min()) + 2}-{int(df.index.max()) + 2} (all data rows)"
         return f"data rows 1-{int(df.index.max()) + 1} (all)"
 
-    def error(self, msg: str, idx: Optional[int] = None, column: Optional[str] = None) -> DatasetError:
+    def error(self, msg: str, idx: Optional[int] = None, column: Optional[str] = None,
+              hint: Optional[str] = None) -> DatasetError:
         return DatasetError(f"{self.at(idx, column)}: {msg}", file=self.name,
-                            row=None if idx is None else self.row_number(idx), column=column)
+                            row=None if idx is None else self.row_number(idx), column=column, hint=hint)
 
 
 # ---------------------------------------------------------------------------
@@ -315,7 +335,7 @@ def _to_text(src: _Source, df: pd.DataFrame, col: str) -> pd.DataFrame:
             raise src.error("empty id", i, col)
         if not np.all(np.mod(vals.to_numpy(), 1) == 0):
             i = vals.index[int(np.argmax(np.mod(vals.to_numpy(), 1) != 0))]
-            raise src.error(f"id {vals[i]!r} is a non-integer number; use text ids", i, col)
+            raise src.error(f"id {fmt_num(vals[i])} is a non-integer number; use text ids", i, col)
         txt = vals.astype(np.int64).astype(str)
     else:
         missing = raw.isna()
@@ -347,9 +367,9 @@ def _check_time_order(src: _Source, df: pd.DataFrame) -> None:
         k = int(back[0])
         i_prev, i = df.index[k], df.index[k + 1]
         raise src.error(
-            f"timestamp goes backwards: t={t[k + 1]!r} after t={t[k]!r} "
+            f"timestamp goes backwards: t={fmt_num(t[k + 1])} after t={fmt_num(t[k])} "
             f"(at {src.at(i_prev).split(', ', 1)[1]}); pass sort=True (--sort) to sort the rows by time",
-            i, "t")
+            i, "t", hint="--sort sorts the rows by time")
 
 
 def _drop_or_refuse_duplicates(src: _Source, df: pd.DataFrame, key: list[str], what: str,
@@ -380,7 +400,7 @@ def _drop_or_refuse_duplicates(src: _Source, df: pd.DataFrame, key: list[str], w
 
 
 def _key_text(df: pd.DataFrame, i, key: list[str]) -> str:
-    return ", ".join(f"{k}={df.loc[i, k]!r}" for k in key)
+    return ", ".join(f"{k}={fmt_num(df.loc[i, k])}" if k == "t" else f"{k}={str(df.loc[i, k])!r}" for k in key)
 
 
 # ---------------------------------------------------------------------------
@@ -482,25 +502,119 @@ def _load_uwb(src: _Source, options: LoadOptions, report: LoadReport) -> pd.Data
     bad = np.flatnonzero(r <= 0)
     if len(bad):
         i = df.index[bad[0]]
-        raise src.error(f"range {r[bad[0]]!r} m is not positive", i, "range")
+        raise src.error(f"range {fmt_num(r[bad[0]])} m is not positive", i, "range")
     bad = np.flatnonzero(r > options.max_range)
     if len(bad):
         i = df.index[bad[0]]
-        raise src.error(f"range {r[bad[0]]!r} m is absurd (> {options.max_range:g} m); ranges are in metres",
+        raise src.error(f"range {fmt_num(r[bad[0]])} m is absurd (> {options.max_range:g} m); ranges are in metres",
                         i, "range")
     key = ["t", "anchor"] + (["tag"] if has_tag else [])
     df = _drop_or_refuse_duplicates(src, df, key, "range (same time and anchor)", options, report)
     return df[UWB_COLUMNS + (["tag"] if has_tag else [])]
 
 
+def _refuse_same_anchor(src: _Source, df: pd.DataFrame) -> None:
+    same = np.flatnonzero((df["anchor_a"] == df["anchor_b"]).to_numpy())
+    if len(same):
+        i = df.index[same[0]]
+        raise src.error(f"anchor_a and anchor_b are the same anchor {df.loc[i, 'anchor_a']!r}; a pair "
+                        f"needs two different anchors", i, "anchor_b")
+
+
+def _load_tdoa(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
+    """``tdoa.csv``: ``t, anchor_a, anchor_b, tdoa [, tag]`` (anchor checks come later)."""
+    df = _read_raw(src, TDOA_COLUMNS)
+    report.rows_read["tdoa"] = len(df)
+    _require_columns(src, df, TDOA_COLUMNS, report, optional=("tag",))
+    df = _to_numeric(src, df, ["t", "tdoa"])
+    df = _to_text(src, df, "anchor_a")
+    df = _to_text(src, df, "anchor_b")
+    has_tag = "tag" in df.columns
+    if has_tag:
+        df = _to_text(src, df, "tag")
+    _refuse_same_anchor(src, df)
+    if options.sort:
+        df = _sort_by_time(src, df, report)
+    _check_time_order(src, df)
+    key = ["t", "anchor_a", "anchor_b"] + (["tag"] if has_tag else [])
+    df = _drop_or_refuse_duplicates(src, df, key, "TDoA (same time and anchor pair)", options, report)
+    return df[TDOA_COLUMNS + (["tag"] if has_tag else [])]
+
+
+def _load_anchor_ranges(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
+    """``anchor_ranges.csv``: measured anchor-to-anchor ranges (several per pair allowed)."""
+    df = _read_raw(src, ANCHOR_RANGE_COLUMNS)
+    report.rows_read["anchor_ranges"] = len(df)
+    _require_columns(src, df, ANCHOR_RANGE_COLUMNS, report)
+    df = _to_text(src, df, "anchor_a")
+    df = _to_text(src, df, "anchor_b")
+    df = _to_numeric(src, df, ["range"])
+    _refuse_same_anchor(src, df)
+    r = df["range"].to_numpy()
+    bad = np.flatnonzero((r <= 0) | (r > options.max_range))
+    if len(bad):
+        i = df.index[bad[0]]
+        raise src.error(f"range {fmt_num(r[bad[0]])} m is not in (0, {options.max_range:g}] m", i, "range")
+    return df[ANCHOR_RANGE_COLUMNS]
+
+
 def _load_anchors(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
     df = _read_raw(src, ANCHOR_COLUMNS)
     report.rows_read["anchors"] = len(df)
-    _require_columns(src, df, ANCHOR_COLUMNS, report)
+    _require_columns(src, df, ANCHOR_COLUMNS, report, optional=tuple(ANCHOR_QUAT_COLUMNS))
+    quat = [c for c in ANCHOR_QUAT_COLUMNS if c in df.columns]
+    if quat and len(quat) != 4:
+        missing = [c for c in ANCHOR_QUAT_COLUMNS if c not in quat]
+        raise DatasetError(f"{src.name}: antenna orientation columns must come as qw, qx, qy, qz together; "
+                           f"missing {', '.join(missing)}", file=src.name,
+                           row=1 if src.is_csv else None, column=missing[0])
     df = _to_text(src, df, "anchor")
-    df = _to_numeric(src, df, ["x", "y", "z"])
+    df = _to_numeric(src, df, ["x", "y", "z"] + quat)
     df = _drop_or_refuse_duplicates(src, df, ["anchor"], "anchor id", options, report)
-    return df[ANCHOR_COLUMNS]
+    if quat:
+        q = df[ANCHOR_QUAT_COLUMNS].to_numpy()
+        n = np.linalg.norm(q, axis=1)
+        bad = np.flatnonzero(np.abs(n - 1.0) > QUAT_NORM_TOL)
+        if len(bad):
+            raise src.error(f"antenna orientation (qw, qx, qy, qz) has norm {n[bad[0]]:.4f}, not 1 "
+                            f"(a unit Hamilton quaternion, antenna frame -> world, is expected)",
+                            df.index[bad[0]], "qw")
+        df[ANCHOR_QUAT_COLUMNS] = q / n[:, None]
+    return df[ANCHOR_COLUMNS + (ANCHOR_QUAT_COLUMNS if quat else [])]
+
+
+def _check_anchor_ids(src: _Source, df: pd.DataFrame, columns: tuple[str, ...], anchors_src: _Source,
+                      known: set[str]) -> None:
+    """Every anchor id in ``columns`` of ``df`` must be in anchors.csv."""
+    for col in columns:
+        unknown = [a for a in pd.unique(df[col]) if a not in known]
+        if unknown:
+            firsts = [f"'{a}' (first at {src.at(df.index[(df[col] == a).to_numpy()][0]).split(', ', 1)[1]})"
+                      for a in unknown]
+            i0 = df.index[(df[col] == unknown[0]).to_numpy()][0]
+            raise DatasetError(
+                f"{src.name}, column '{col}': anchor id(s) used in {src.name} but missing from "
+                f"{anchors_src.name}: {', '.join(firsts)}; {anchors_src.name} has: {', '.join(sorted(known))}",
+                file=src.name, row=src.row_number(i0), column=col)
+
+
+def _check_tdoa_bound(src: _Source, tdoa: pd.DataFrame, anchors: pd.DataFrame, margin: float) -> None:
+    """|tdoa| cannot exceed the anchors' separation (triangle inequality) plus a noise margin."""
+    pos = {a: np.array([x, y, z]) for a, x, y, z in anchors[["anchor", "x", "y", "z"]].itertuples(index=False)}
+    pa = np.array([pos[a] for a in tdoa["anchor_a"]])
+    pb = np.array([pos[b] for b in tdoa["anchor_b"]])
+    sep = np.linalg.norm(pa - pb, axis=1)
+    val = tdoa["tdoa"].to_numpy()
+    bad = np.flatnonzero(np.abs(val) > sep + margin)
+    if len(bad):
+        k = int(bad[0])
+        i = tdoa.index[k]
+        raise src.error(
+            f"|tdoa| = {abs(val[k]):.3f} m exceeds the separation {sep[k]:.3f} m of anchors "
+            f"{tdoa.loc[i, 'anchor_a']!r} and {tdoa.loc[i, 'anchor_b']!r} plus the {margin:g} m margin "
+            f"({len(bad)} such row(s)); a range difference cannot exceed the anchors' distance: check the "
+            f"unit (metres expected, not seconds or ticks) and the anchor positions", i, "tdoa",
+            hint="--tdoa-margin widens the margin if these are genuine outliers")
 
 
 def _load_groundtruth(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
@@ -635,10 +749,13 @@ def load_dataset(path: str | Path, options: Optional[LoadOptions] = None, **kwar
                            f"not a file", file=str(folder))
     report = LoadReport(path=folder)
 
+    tdoa_src = _find_table(folder, "tdoa", False)
     srcs = {
         "imu": _find_table(folder, "imu", True),
-        "uwb": _find_table(folder, "uwb", True),
+        "uwb": _find_table(folder, "uwb", tdoa_src is None),
+        "tdoa": tdoa_src,
         "anchors": _find_table(folder, "anchors", True),
+        "anchor_ranges": _find_table(folder, "anchor_ranges", False),
         "groundtruth": _find_table(folder, "groundtruth", False),
     }
     for k, s in srcs.items():
@@ -651,28 +768,32 @@ def load_dataset(path: str | Path, options: Optional[LoadOptions] = None, **kwar
         report.files["meta"] = meta_path.name
 
     imu = _load_imu(srcs["imu"], options, report)
-    uwb = _load_uwb(srcs["uwb"], options, report)
+    if srcs["uwb"] is not None:
+        uwb = _load_uwb(srcs["uwb"], options, report)
+    else:
+        uwb = pd.DataFrame({"t": pd.Series(dtype=float), "anchor": pd.Series(dtype=object),
+                            "range": pd.Series(dtype=float)})
+    tdoa = _load_tdoa(srcs["tdoa"], options, report) if srcs["tdoa"] else None
     anchors = _load_anchors(srcs["anchors"], options, report)
+    anchor_ranges = (_load_anchor_ranges(srcs["anchor_ranges"], options, report)
+                     if srcs["anchor_ranges"] else None)
     gt = _load_groundtruth(srcs["groundtruth"], options, report) if srcs["groundtruth"] else None
 
     # Every anchor that ranges must have a position.
     known = set(anchors["anchor"])
-    unknown = [a for a in pd.unique(uwb["anchor"]) if a not in known]
-    if unknown:
-        usrc = srcs["uwb"]
-        firsts = [f"'{a}' (first at {usrc.at(uwb.index[(uwb['anchor'] == a).to_numpy()][0]).split(', ', 1)[1]})"
-                  for a in unknown]
-        i0 = uwb.index[(uwb["anchor"] == unknown[0]).to_numpy()][0]
-        raise DatasetError(
-            f"{usrc.name}, column 'anchor': anchor id(s) used in {usrc.name} but missing from "
-            f"{srcs['anchors'].name}: {', '.join(firsts)}; {srcs['anchors'].name} has: "
-            f"{', '.join(sorted(known))}",
-            file=usrc.name, row=usrc.row_number(i0), column="anchor")
+    if srcs["uwb"] is not None:
+        _check_anchor_ids(srcs["uwb"], uwb, ("anchor",), srcs["anchors"], known)
+    if tdoa is not None:
+        _check_anchor_ids(srcs["tdoa"], tdoa, ("anchor_a", "anchor_b"), srcs["anchors"], known)
+        _check_tdoa_bound(srcs["tdoa"], tdoa, anchors, options.tdoa_margin)
+    if anchor_ranges is not None:
+        _check_anchor_ids(srcs["anchor_ranges"], anchor_ranges, ("anchor_a", "anchor_b"), srcs["anchors"], known)
 
     if gt is not None and options.check_units and options.gyro_units == "rad/s":
         _check_gyro_against_truth(srcs["imu"], imu, gt)
 
-    for name, df in (("imu", imu), ("uwb", uwb), ("anchors", anchors), ("groundtruth", gt)):
+    for name, df in (("imu", imu), ("uwb", uwb), ("tdoa", tdoa), ("anchors", anchors),
+                     ("anchor_ranges", anchor_ranges), ("groundtruth", gt)):
         if df is not None:
             report.rows_kept[name] = len(df)
     ds = Dataset(
@@ -683,6 +804,8 @@ def load_dataset(path: str | Path, options: Optional[LoadOptions] = None, **kwar
         meta=meta,
         path=folder,
         report=report,
+        tdoa=None if tdoa is None else tdoa.reset_index(drop=True),
+        anchor_ranges=None if anchor_ranges is None else anchor_ranges.reset_index(drop=True),
     )
     if report.actions:
         warnings.warn("; ".join(report.actions), LoadRepairWarning, stacklevel=2)
