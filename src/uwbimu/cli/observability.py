@@ -114,7 +114,7 @@ def print_structural(console: Console, v: dict) -> None:
     t.add_column("condition")
     t.add_column("holds")
     for k, c in v["conditions"].items():
-        t.add_row(k, "yes" if c else "no")
+        t.add_row(k, ("yes" if c else "no") if isinstance(c, bool) else str(c))
     console.print(t)
     if v["unobservable_directions"]:
         t = Table(title="unobservable directions (weakest point)")
