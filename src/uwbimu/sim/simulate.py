@@ -48,7 +48,9 @@ class SimResult:
     range_true : (R,) noise-free range of each emitted range [m].
     range_nlos : (R,) bool, whether an NLOS excess was added.
     tdoa_t_nominal, tdoa_true, tdoa_nlos : the same per row of ``dataset.tdoa`` (TDoA modes;
-        empty otherwise); ``tdoa_true`` takes each distance at its packet's arrival.
+        empty otherwise); ``tdoa_true`` takes each distance at its packet's arrival;
+        ``tdoa_packets`` (T, 2) the indices ``(j, k)`` of the two packets of each row (rows sharing an
+        index share that packet's error).
     """
 
     dataset: Dataset
@@ -62,6 +64,7 @@ class SimResult:
     tdoa_t_nominal: np.ndarray = field(default_factory=lambda: np.zeros(0))
     tdoa_true: np.ndarray = field(default_factory=lambda: np.zeros(0))
     tdoa_nlos: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    tdoa_packets: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))
 
 
 def _noop(stage: str, frac: float) -> None:
@@ -131,7 +134,8 @@ def simulate_full(scenario: Scenario, progress: Optional[Progress] = None) -> Si
     lo = max(0.0, s[0] - t_d)
     hi = min(duration, s[-1] - t_d)
     tdoa = None
-    tinfo: dict = {"t_nominal": np.zeros(0), "true": np.zeros(0), "nlos": np.zeros(0, bool)}
+    tinfo: dict = {"t_nominal": np.zeros(0), "true": np.zeros(0), "nlos": np.zeros(0, bool),
+                   "packets": np.zeros((0, 2), int)}
     if scenario.uwb.mode == "twr":
         from uwbimu.sim.ranging import simulate_ranges
 
@@ -198,4 +202,5 @@ def simulate_full(scenario: Scenario, progress: Optional[Progress] = None) -> Si
         tdoa_t_nominal=tinfo["t_nominal"],
         tdoa_true=tinfo["true"],
         tdoa_nlos=tinfo["nlos"],
+        tdoa_packets=tinfo["packets"],
     )
