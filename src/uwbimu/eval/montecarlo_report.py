@@ -104,8 +104,10 @@ def summarize(df: pd.DataFrame, cfg, runs: int, traces: dict | None = None, boun
                     cell["nees_time_steps_within_95pct_band"] = float(np.mean((avg > lo) & (avg < hi)))
                     cell["nees_time_steps_above_band"] = float(np.mean(avg >= hi))
                 # survivorship: error bands and NEES are over the runs still producing estimates
-                cell["runs_alive_min"] = int(np.min(n_t))
-                cell["runs_alive_end"] = int(n_t[-1])
+                alive = alive_counts(np.isfinite(nees_t))
+                cell["runs_alive_max"] = int(np.max(alive))
+                cell["runs_alive_min"] = int(np.min(alive[int(np.argmax(alive == np.max(alive))):]))
+                cell["runs_alive_end"] = int(alive[-1])
             cells.append(cell)
     if bounds:
         for cell in cells:
@@ -189,6 +191,21 @@ def study_bounds(out: Path, cfg) -> dict:
     return bounds
 
 
+def alive_counts(valid: np.ndarray) -> np.ndarray:
+    """Runs alive at each grid time: between a run's first and last finite estimate (plus one grid
+    step, so that an output rate not aligned with the grid does not read as a loss).  ``valid`` is
+    (R, T) bool; returns (T,) ints."""
+    valid = np.asarray(valid, bool)
+    R, T = valid.shape
+    idx = np.arange(T)
+    out = np.zeros(T, int)
+    for r in range(R):
+        f = np.flatnonzero(valid[r])
+        if len(f):
+            out += (idx >= f[0]) & (idx <= f[-1] + 1)
+    return out
+
+
 def _mark_divergences(ax, tr: dict, k: int, label: bool = False) -> None:
     """Red vertical ticks at the grid times where any run's estimator declared a divergence."""
     if "divergence" not in tr:
@@ -259,7 +276,7 @@ def _make_plots(out: Path, df: pd.DataFrame, cfg, runs: int, traces: dict) -> li
             ax.fill_between(tr["t"], lo_t, hi_t, color="g", alpha=0.2, label="95% band for that many runs")
             _mark_divergences(ax, tr, k)
             ax2 = ax.twinx()
-            ax2.plot(tr["t"], n_ok, color="0.4", lw=0.8, ls=":", label="runs alive")
+            ax2.plot(tr["t"], alive_counts(np.isfinite(nees)), color="0.4", lw=0.8, ls=":", label="runs alive")
             ax2.set_ylim(0, max(int(np.max(n_ok)) if n_ok.size else 1, 1) * 1.05)
             ax2.set_ylabel("runs alive", fontsize=8)
             ax.set_title(f"{s.name} / {e.name}", fontsize=9)
@@ -308,7 +325,7 @@ def _make_plots(out: Path, df: pd.DataFrame, cfg, runs: int, traces: dict) -> li
                 continue
             k = tr["estimators"].index(e.name)
             # Survivorship: the bands below are over the runs still producing estimates at t.
-            alive = np.sum(np.all(np.isfinite(tr["err"][:, k, :, :]), axis=-1), axis=0)
+            alive = alive_counts(np.all(np.isfinite(tr["err"][:, k, :, :]), axis=-1))
             axs[3, j].plot(tr["t"], alive, color="0.2", lw=1)
             axs[3, j].set_ylim(0, len(tr["runs"]) * 1.05 + 0.5)
             axs[3, j].set_ylabel("runs alive")
