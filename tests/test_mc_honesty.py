@@ -61,3 +61,23 @@ def test_study_reports_every_quantity_against_its_bound(tmp_path):
     again = run_study(_cfg(crlb=True), out, runs=2, workers=1, plots=False)
     assert again["cells"][0]["crlb"] == cached["s"]["bound"]
     assert again["execution"]["runs_resumed_from_disk"] == 2
+
+
+def test_tdoa_vs_twr_study_cells_are_inside_and_outside_the_hull():
+    from pathlib import Path
+
+    from uwbimu.eval.montecarlo import load_config, resolved_study
+    from uwbimu.eval.montecarlo_crlb import inside_hull_fraction
+    from uwbimu.sim import Scenario
+
+    cfg = load_config(Path(__file__).parents[1] / "examples" / "montecarlo" / "tdoa_vs_twr.yaml")
+    assert cfg.crlb
+    modes = {}
+    for sc in resolved_study(cfg)["scenarios"]:
+        s = Scenario.model_validate(sc["scenario"])
+        traj = s.trajectory.build(0)
+        frac = inside_hull_fraction(traj.sample(np.arange(0.0, s.duration, 0.1)).p, s.anchor_positions())
+        assert frac == (1.0 if sc["name"].endswith("inside") else 0.0), sc["name"]
+        modes[sc["name"]] = (s.uwb.mode, s.uwb.rate_hz, s.anchors)
+    assert {m for m, _, _ in modes.values()} == {"twr", "tdoa2", "tdoa3"}
+    assert {(r, a) for _, r, a in modes.values()} == {(400.0, "bitcraze8")}  # same rate and layout everywhere
