@@ -94,7 +94,7 @@ def test_cli_isas_walk(tmp_path):
     assert "estimator_isas.yaml" in r.output and "z-down" in r.output
     assert not (tmp_path / "ds" / "groundtruth.csv").exists()
     r = CliRunner().invoke(app, ["import", "isas-walk", str(EXCERPT), str(tmp_path / "ds")])
-    assert r.exit_code == 1 and "not empty" in r.output
+    assert r.exit_code == 4 and "not empty" in r.output
 
 
 def test_noise_density_from_low_frequency_spectrum():

@@ -78,12 +78,11 @@ def register(app: typer.Typer) -> None:
         if fmt not in ("csv", "parquet"):
             err.print(f"[red]error:[/] --format must be csv or parquet, got {fmt!r}")
             raise typer.Exit(code=2)
-        if out.exists() and (not out.is_dir() or any(out.iterdir())) and not force:
-            err.print(f"[red]refusing:[/] {out} exists and is not empty (use --force to replace it)")
-            raise typer.Exit(code=1)
-        if out.exists() and not out.is_dir():
-            err.print(f"[red]error:[/] {out} is a file, not a folder")
-            raise typer.Exit(code=1)
+        from uwbimu.io.atomic import check_output_target, output_folder
+
+        path = Path(scenario)
+        protect = [path] if path.is_file() else []
+        check_output_target(out, force=force, protect=protect, replace=True)
 
         path = Path(scenario)
         try:
@@ -118,5 +117,6 @@ def register(app: typer.Typer) -> None:
                 err.print(f"[red]error:[/] {exc}")
                 raise typer.Exit(code=1) from None
             bar.update(task, description=f"writing {out}")
-            write_dataset(ds, out, overwrite=force, fmt=fmt)
+            with output_folder(out, force=force, protect=protect, replace=True) as tmp:
+                write_dataset(ds, tmp, overwrite=True, fmt=fmt)
         _summary(console, ds, out, time.perf_counter() - t0)

@@ -35,6 +35,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from uwbimu.errors import InputError
+from uwbimu.io import plausibility
 from uwbimu.io.dataset import (
     ANCHOR_COLUMNS,
     ANCHOR_QUAT_COLUMNS,
@@ -53,6 +54,7 @@ __all__ = [
     "LoadOptions",
     "LoadReport",
     "LoadRepairWarning",
+    "LoadWarning",
     "load_dataset",
     "load_meta",
     "MAX_RANGE_M",
@@ -101,6 +103,16 @@ class DatasetError(InputError):
         self.column = column
 
 
+def _plain(v: Any) -> Any:
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+class LoadWarning(UserWarning):
+    """Emitted by :func:`load_dataset` for data it accepts but doubts (low rate, coplanar anchors, ...)."""
+
+
 class LoadRepairWarning(UserWarning):
     """Emitted when :func:`load_dataset` repaired (dropped, sorted, rescaled) data on request."""
 
@@ -124,6 +136,14 @@ class LoadOptions(BaseModel):
     )
     check_units: bool = Field(default=True, description="refuse gyro/accelerometer data that looks like deg/s or g")
     max_range: float = Field(default=MAX_RANGE_M, gt=0, description="largest accepted range, m")
+    lenient: bool = Field(
+        default=False,
+        description="accept an IMU below 10 Hz and degenerate anchor geometry (one anchor, all anchors at one "
+        "point or on one line) with a warning instead of refusing them")
+    clock_jumps: Literal["refuse", "split"] = Field(
+        default="refuse",
+        description="a clock that jumps back once (stamps increasing before and after): refuse, or keep the "
+        "longest monotonic part of that table (split) and report the jump")
     tdoa_margin: float = Field(
         default=TDOA_MARGIN_M, ge=0,
         description="|tdoa| may exceed the two anchors' separation by this much (m) before it is refused")
@@ -141,6 +161,13 @@ class LoadReport:
     reordered: dict[str, int] = field(default_factory=dict)  # table -> rows that were out of order
     actions: list[str] = field(default_factory=list)  # human-readable repairs
     notes: list[str] = field(default_factory=list)  # harmless observations (extra columns...)
+    #: structured warnings ``{"code", "file", "message", ...}`` (codes: :mod:`uwbimu.io.plausibility`)
+    warnings: list[dict] = field(default_factory=list)
+
+    def warn(self, code: str, file: str, message: str, **fields: Any) -> None:
+        """Record a structured warning (announced by ``load_dataset`` as a :class:`LoadWarning`)."""
+        self.warnings.append({"code": code, "file": file, "message": message,
+                              **{k: _plain(v) for k, v in fields.items()}})
 
     @property
     def repaired(self) -> bool:
@@ -150,6 +177,7 @@ class LoadReport:
         lines = [f"loaded {self.path}: " + ", ".join(f"{k} {v} rows" for k, v in self.rows_kept.items())]
         lines += [f"repair: {a}" for a in self.actions]
         lines += [f"note: {n}" for n in self.notes]
+        lines += [f"warning ({w['code']}): {w['file']}: {w['message']}" for w in self.warnings]
         return "\n".join(lines)
 
 
@@ -360,16 +388,41 @@ def _sort_by_time(src: _Source, df: pd.DataFrame, report: LoadReport) -> pd.Data
     return df
 
 
-def _check_time_order(src: _Source, df: pd.DataFrame) -> None:
+def _check_time_order(src: _Source, df: pd.DataFrame, options: Optional[LoadOptions] = None,
+                      report: Optional[LoadReport] = None) -> pd.DataFrame:
+    """Refuse time going backwards; recognise a clock jump (monotonic before and after)."""
     t = df["t"].to_numpy()
     back = np.flatnonzero(np.diff(t) < 0)
-    if len(back):
-        k = int(back[0])
-        i_prev, i = df.index[k], df.index[k + 1]
+    if not len(back):
+        return df
+    k = int(back[0])
+    i_prev, i = df.index[k], df.index[k + 1]
+    step = float(t[k] - t[k + 1])
+    dt = np.diff(t)
+    typical = float(np.median(dt[dt > 0])) if np.any(dt > 0) else 0.0
+    if len(back) == 1 and typical > 0 and step > 5 * typical:
+        # One backward step much larger than the sample interval, increasing on both sides: a clock
+        # jump (reset), not shuffled rows. Sorting would interleave the two parts.
+        if options is not None and options.clock_jumps == "split" and report is not None:
+            before, after = df.iloc[: k + 1], df.iloc[k + 1:]
+            keep, drop = (before, after) if len(before) >= len(after) else (after, before)
+            report.warn("clock_jump", src.name, f"the clock jumps back by {step:.6g} s at "
+                        f"{src.at(i).split(', ', 1)[1]}; kept the longer monotonic part ({len(keep)} rows), "
+                        f"dropped {len(drop)} rows", t=float(t[k + 1]), size=-step, table=src.table,
+                        rows_dropped=int(len(drop)))
+            report.dropped[f"{src.table}: rows on the other side of a clock jump"] = int(len(drop))
+            report.actions.append(f"{src.name}: split at a backward clock jump of {step:.6g} s, "
+                                  f"dropped {len(drop)} rows")
+            return keep
         raise src.error(
-            f"timestamp goes backwards: t={fmt_num(t[k + 1])} after t={fmt_num(t[k])} "
-            f"(at {src.at(i_prev).split(', ', 1)[1]}); pass sort=True (--sort) to sort the rows by time",
-            i, "t", hint="--sort sorts the rows by time")
+            f"the clock jumps back by {step:.6g} s (t={fmt_num(t[k + 1])} after t={fmt_num(t[k])} at "
+            f"{src.at(i_prev).split(', ', 1)[1]}); the stamps increase before and after it, so this is a clock "
+            f"jump, not shuffled rows (sorting would interleave the two parts)", i, "t",
+            hint="--split-clock-jumps keeps the longer monotonic part and reports the jump")
+    raise src.error(
+        f"timestamp goes backwards: t={fmt_num(t[k + 1])} after t={fmt_num(t[k])} "
+        f"(at {src.at(i_prev).split(', ', 1)[1]}); pass sort=True (--sort) to sort the rows by time",
+        i, "t", hint="--sort sorts the rows by time")
 
 
 def _drop_or_refuse_duplicates(src: _Source, df: pd.DataFrame, key: list[str], what: str,
@@ -396,7 +449,8 @@ def _drop_or_refuse_duplicates(src: _Source, df: pd.DataFrame, key: list[str], w
     hint = ("; it repeats that row exactly: pass drop_duplicate_rows=True (--drop-duplicates) to drop such rows"
             if exact[i] else "; the values differ, fix the file")
     raise src.error(f"duplicate {what} {_key_text(df, i, key)}, first at "
-                    f"{src.at(first).split(', ', 1)[1]}{hint}", i, key[0])
+                    f"{src.at(first).split(', ', 1)[1]}{hint}", i, key[0],
+                    hint="--drop-duplicates drops exact repeats" if exact[i] else None)
 
 
 def _key_text(df: pd.DataFrame, i, key: list[str]) -> str:
@@ -413,7 +467,7 @@ def _load_imu(src: _Source, options: LoadOptions, report: LoadReport) -> pd.Data
     df = _to_numeric(src, df, IMU_COLUMNS)
     if options.sort:
         df = _sort_by_time(src, df, report)
-    _check_time_order(src, df)
+    df = _check_time_order(src, df, options, report)
     df = _drop_or_refuse_duplicates(src, df, ["t"], "IMU timestamp", options, report)
     if options.gyro_units == "deg/s":
         df[["wx", "wy", "wz"]] = df[["wx", "wy", "wz"]] * (math.pi / 180.0)
@@ -436,7 +490,7 @@ def _check_imu_units(src: _Source, df: pd.DataFrame) -> None:
             f"{src.name}, {where}, columns 'ax', 'ay', 'az': the accelerometer looks like it is in g "
             f"(median |a| = {a_med:.3f}, expected about 9.81 m/s^2 with gravity included); "
             f"multiply ax, ay, az by 9.81 or load with accel_units='g' (--accel-units g)",
-            file=src.name, row=src.row_number(df.index[0]), column="ax")
+            file=src.name, row=src.row_number(df.index[0]), column="ax", hint="--accel-units g converts from g")
     if not ACCEL_NORM_BAND[0] <= a_med <= ACCEL_NORM_BAND[1]:
         hint = ("gravity seems to have been removed; this toolkit needs specific force (gravity included)"
                 if a_med < ACCEL_NORM_BAND[0] else "the unit looks wrong (mg? ft/s^2?); m/s^2 is expected")
@@ -452,7 +506,7 @@ def _check_imu_units(src: _Source, df: pd.DataFrame) -> None:
             f"(99th percentile of |w| = {w99:.1f}, above the {GYRO_MAX_RAD_S:.1f} rad/s (2000 deg/s) full "
             f"scale of MEMS gyros); multiply wx, wy, wz by pi/180 or load with gyro_units='deg/s' "
             f"(--gyro-units deg)",
-            file=src.name, row=src.row_number(df.index[0]), column="wx")
+            file=src.name, row=src.row_number(df.index[0]), column="wx", hint="--gyro-units deg converts from deg/s")
 
 
 def _check_gyro_against_truth(src: _Source, imu: pd.DataFrame, gt: pd.DataFrame) -> None:
@@ -483,7 +537,7 @@ def _check_gyro_against_truth(src: _Source, imu: pd.DataFrame, gt: pd.DataFrame)
             f"(90th percentile |w| = {w90:.2f} is {ratio:.0f} times the ground-truth rotation rate "
             f"{g90:.3f} rad/s; 57.3 is expected for deg/s); multiply wx, wy, wz by pi/180 or load with "
             f"gyro_units='deg/s' (--gyro-units deg)",
-            file=src.name, row=src.row_number(imu.index[0]), column="wx")
+            file=src.name, row=src.row_number(imu.index[0]), column="wx", hint="--gyro-units deg converts from deg/s")
 
 
 def _load_uwb(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
@@ -497,7 +551,7 @@ def _load_uwb(src: _Source, options: LoadOptions, report: LoadReport) -> pd.Data
         df = _to_text(src, df, "tag")
     if options.sort:
         df = _sort_by_time(src, df, report)
-    _check_time_order(src, df)
+    df = _check_time_order(src, df, options, report)
     r = df["range"].to_numpy()
     bad = np.flatnonzero(r <= 0)
     if len(bad):
@@ -535,7 +589,7 @@ def _load_tdoa(src: _Source, options: LoadOptions, report: LoadReport) -> pd.Dat
     _refuse_same_anchor(src, df)
     if options.sort:
         df = _sort_by_time(src, df, report)
-    _check_time_order(src, df)
+    df = _check_time_order(src, df, options, report)
     key = ["t", "anchor_a", "anchor_b"] + (["tag"] if has_tag else [])
     df = _drop_or_refuse_duplicates(src, df, key, "TDoA (same time and anchor pair)", options, report)
     return df[TDOA_COLUMNS + (["tag"] if has_tag else [])]
@@ -630,7 +684,7 @@ def _load_groundtruth(src: _Source, options: LoadOptions, report: LoadReport) ->
     df = _to_numeric(src, df, GT_COLUMNS + vel)
     if options.sort:
         df = _sort_by_time(src, df, report)
-    _check_time_order(src, df)
+    df = _check_time_order(src, df, options, report)
     df = _drop_or_refuse_duplicates(src, df, ["t"], "ground-truth timestamp", options, report)
     q = df[["qw", "qx", "qy", "qz"]].to_numpy()
     n = np.linalg.norm(q, axis=1)
@@ -789,6 +843,18 @@ def load_dataset(path: str | Path, options: Optional[LoadOptions] = None, **kwar
     if anchor_ranges is not None:
         _check_anchor_ids(srcs["anchor_ranges"], anchor_ranges, ("anchor_a", "anchor_b"), srcs["anchors"], known)
 
+    # Time base, rates and physics across tables (see uwbimu.io.plausibility).
+    timed = {"imu": (srcs["imu"], imu)}
+    for name, df in (("uwb", uwb if srcs["uwb"] is not None else None), ("tdoa", tdoa), ("groundtruth", gt)):
+        if df is not None:
+            timed[name] = (srcs[name], df)
+    plausibility.check_time_base(timed, options.lenient, report.warn)
+    plausibility.check_imu_physics(srcs["imu"], imu, report.warn)
+    plausibility.check_coordinates(srcs["anchors"], anchors, ["x", "y", "z"], "anchor")
+    if gt is not None:
+        plausibility.check_coordinates(srcs["groundtruth"], gt, ["px", "py", "pz"], "ground-truth")
+    plausibility.check_anchor_geometry(srcs["anchors"], anchors, options.lenient, report.warn)
+
     if gt is not None and options.check_units and options.gyro_units == "rad/s":
         _check_gyro_against_truth(srcs["imu"], imu, gt)
 
@@ -809,4 +875,6 @@ def load_dataset(path: str | Path, options: Optional[LoadOptions] = None, **kwar
     )
     if report.actions:
         warnings.warn("; ".join(report.actions), LoadRepairWarning, stacklevel=2)
+    for w in report.warnings:
+        warnings.warn(f"{w['file']}: {w['message']}", LoadWarning, stacklevel=2)
     return ds
