@@ -138,4 +138,4 @@ def test_cli(tmp_path, sim):
     assert r.exit_code == 0, r.output
     assert (tmp_path / "o" / "tdoa.csv").is_file()
     r = CliRunner().invoke(app, ["import", "util", str(path), str(tmp_path / "o")])
-    assert r.exit_code == 1  # non-empty destination refused
+    assert r.exit_code == 4  # non-empty destination refused (OutputError)
