@@ -46,7 +46,10 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from uwbimu.estimation.kernels import cov_step, range_jacobian
+try:  # the shared physics layer (core, issue 11); older trees keep it in estimation.kernels
+    from uwbimu.models.kernels import cov_step, range_jacobian
+except ImportError:  # pragma: no cover
+    from uwbimu.estimation.kernels import cov_step, range_jacobian
 from uwbimu.models.reference import G_WORLD
 
 
