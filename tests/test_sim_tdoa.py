@@ -146,3 +146,14 @@ def test_refusals_name_the_field():
         validate_scenario(two)
     with pytest.raises(ScenarioError, match="uwb.mode"):
         validate_scenario({**base, "uwb": {**base["uwb"], "mode": "tdoa4"}})
+
+
+def test_clock_random_walk_grows_with_time():
+    res = simulate_full(_short("crazyflie-tdoa3", sigma=0.0, clock_sigma=0.0, clock_rw=0.05))
+    df = res.dataset.tdoa
+    err = df["tdoa"].to_numpy() - res.tdoa_true
+    t = df["t"].to_numpy()
+    early, late = np.var(err[t < 2.0]), np.var(err[t > 6.0])
+    # a random walk of density q: each anchor's error variance is q^2 t, the difference's 2 q^2 t
+    assert late > 2 * early > 0
+    assert 0.3 < np.mean(err[t > 6.0] ** 2) / (2 * 0.05**2 * 7.0) < 3.0

@@ -5,8 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Optional
 
-import numpy as np
-
 import typer
 from rich.console import Console
 from rich.markup import escape
@@ -51,19 +49,25 @@ def crlb_table(summary: dict) -> Optional[Table]:
     cells = [c for c in summary["cells"] if c.get("crlb")]
     if not cells:
         return None
-    table = Table(title="against the posterior Cramer-Rao bound (ratio = RMS over runs / bound)")
-    for col in ("scenario", "estimator", "inside hull", "RMSE 3-D / bound [m]", "lever x/y/z bound [mm]",
-                "lever ratio x/y/z", "t_d bound [ms]", "t_d ratio"):
+    table = Table(title="against the posterior Cramer-Rao bound (ratio = RMS over runs / bound ± its standard "
+                        "error from the spread over runs)")
+    for col in ("scenario", "estimator", "inside hull", "RMSE 3-D / bound [m]", "ratio", "lever x/y/z bound [mm]",
+                "lever ratio x y z", "t_d bound [ms]", "t_d ratio"):
         table.add_column(escape(col), justify="left" if col in ("scenario", "estimator") else "right")
     for c in cells:
         b, r = c["crlb"], c.get("ratio_to_crlb", {})
-        rm = [c.get(f"rmse_{a}_all_runs") for a in "xyz"]
-        rm3 = f"{np.sqrt(sum(v**2 for v in rm)):.3f}" if all(v is not None for v in rm) else "-"
+        se = c.get("ratio_to_crlb_se", {})
+
+        def ratio(k: str) -> str:
+            return f"{r[k]:.2f}±{se[k]:.2f}" if k in r and k in se else (f"{r[k]:.2f}" if k in r else "-")
+
+        rm3 = c.get("rmse_3d_all_runs")
         table.add_row(
-            c["scenario"], c["estimator"], f"{100 * b['inside_hull_fraction']:.0f}%", f"{rm3} / {b['rmse_3d']:.3f}",
+            c["scenario"], c["estimator"], f"{100 * b['inside_hull_fraction']:.0f}%",
+            f"{rm3:.4f} / {b['rmse_3d']:.4f}" if rm3 is not None else f"- / {b['rmse_3d']:.4f}", ratio("rmse_3d"),
             "/".join(f"{1e3 * b[f'lever_arm_sd_{a}']:.1f}" for a in "xyz"),
-            "/".join(f"{r[f'lever_arm_err_{a}']:.2f}" if f"lever_arm_err_{a}" in r else "-" for a in "xyz"),
-            f"{1e3 * b['time_offset_sd']:.2f}", f"{r['time_offset_err']:.2f}" if "time_offset_err" in r else "-",
+            " ".join(ratio(f"lever_arm_err_{a}") for a in "xyz"),
+            f"{1e3 * b['time_offset_sd']:.2f}", ratio("time_offset_err"),
         )
     return table
 

@@ -28,10 +28,14 @@ time offset ``init.td_sd_after_grid`` (0.03 s).
 
 Not modelled (the bound is for the model without them): NLOS excess,
 dropouts beyond the schedule actually simulated (the bound uses the rows
-that were emitted in the seeded run), the anchor-clock random walk, and the
-few millimetres of tag motion between the two packets of a difference
-(both distances are taken at the later packet's instant).  Measurements are
-applied at the end of the IMU interval that contains them (<= one IMU period).
+that were emitted in the seeded run) and the anchor-clock random walk.  Each
+distance of a difference is linearised at its own packet's arrival, as the
+simulator draws it (A's Jacobian mapped to B's instant to first order,
+``range_jacobian``'s ``delta``): taking both at B's instant would credit the
+model with noise-free velocity information from the telescoping chain of
+differences and give a bound that is too low.  Measurements are
+applied at the end of the IMU interval that contains them, with every Jacobian
+mapped from its own instant to that one.
 """
 
 from __future__ import annotations
@@ -42,7 +46,10 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from uwbimu.estimation.kernels import cov_step, range_jacobian
+try:  # the shared physics layer (core, issue 11); older trees keep it in estimation.kernels
+    from uwbimu.models.kernels import cov_step, range_jacobian
+except ImportError:  # pragma: no cover
+    from uwbimu.estimation.kernels import cov_step, range_jacobian
 from uwbimu.models.reference import G_WORLD
 
 
@@ -136,26 +143,40 @@ def posterior_bound(sim_result, scenario) -> dict[str, Any]:
         ia = np.array([ids.index(a) for a in tab["anchor_a"]], dtype=int)
         ib = np.array([ids.index(b) for b in tab["anchor_b"]], dtype=int)
         packets = sim_result.tdoa_packets
+        t_geo = sim_result.tdoa_t_nominal  # true instants (the table's stamps may carry jitter)
     else:
         tab = ds.uwb
         t_meas = tab["t"].to_numpy(float)
         ib = np.array([ids.index(a) for a in tab["anchor"]], dtype=int)
         ia = ib
+        t_geo = sim_result.range_t_nominal
     n = len(t_meas)
     # truth at each measurement instant, as a nominal state (biases 0: the input U is bias-free)
-    p, qq = sim_result.trajectory.pose(t_meas)
-    s = sim_result.trajectory.sample(t_meas)
+    p, qq = sim_result.trajectory.pose(t_geo)
+    s = sim_result.trajectory.sample(t_geo)
     xt = np.zeros((n, 20))
     xt[:, 0:3], xt[:, 3:6], xt[:, 6:10], xt[:, 16:19], xt[:, 19] = p, s.v, qq, lever, t_d
     ut = np.column_stack([np.zeros((n, 3)), s.w])
+    if tdoa_mode:  # anchor A's distance is taken at its own packet's arrival (as simulated)
+        t_a = sim_result.tdoa_t_a
+        pa_, qa_ = sim_result.trajectory.pose(t_a)
+        sa_ = sim_result.trajectory.sample(t_a)
+        xa = np.zeros((n, 20))
+        xa[:, 0:3], xa[:, 3:6], xa[:, 6:10], xa[:, 16:19], xa[:, 19] = pa_, sa_.v, qa_, lever, t_d
+        ua = np.column_stack([np.zeros((n, 3)), sa_.w])
+    # measurement m is applied after the IMU interval that contains its UWB time; every Jacobian is
+    # mapped from its own instant to that application instant (first order, range_jacobian's delta),
+    # so that no distance is taken at the wrong time
+    meas_step = np.clip(np.searchsorted(mo.t, t_meas, side="left") - 1, 0, N - 2)
+    t_apply = mo.t[meas_step + 1]
     H = np.zeros((n, D))
     hb, ha = np.zeros(19), np.zeros(19)
     refresh = np.full((n, 2), -1, dtype=np.int64)
     held = np.full(max(M, 1), -1, dtype=np.int64)  # packet index whose error each anchor's state holds
     for m in range(n):
-        range_jacobian(xt[m], ut[m], A[ib[m]], -1, 0.0, hb)
+        range_jacobian(xt[m], ut[m], A[ib[m]], -1, float(t_apply[m] - t_geo[m]), hb)
         if tdoa_mode:
-            range_jacobian(xt[m], ut[m], A[ia[m]], -1, 0.0, ha)
+            range_jacobian(xa[m], ua[m], A[ia[m]], -1, float(t_apply[m] - t_a[m]), ha)
             H[m, :19] = hb - ha
             H[m, 19 + ib[m]] += 1.0
             H[m, 19 + ia[m]] -= 1.0
@@ -166,8 +187,6 @@ def posterior_bound(sim_result, scenario) -> dict[str, Any]:
         else:
             H[m, :19] = hb
     r_var = np.zeros(n) if tdoa_mode else np.full(n, float(u.sigma**2))
-    # measurement m is applied after the IMU interval that contains its UWB time
-    meas_step = np.searchsorted(mo.t, t_meas, side="left") - 1
     order = np.argsort(meas_step, kind="stable")
     P = _prior(noise, M, packet_var)
     pos_var = np.zeros((N, 3))

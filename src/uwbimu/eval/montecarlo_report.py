@@ -48,6 +48,17 @@ def _nanstats(x: np.ndarray) -> dict[str, Any]:
     }
 
 
+def _rms_se(v: np.ndarray) -> tuple:
+    """RMS of the finite values and its standard error ``sd(v^2) / (2 RMS sqrt(n))`` (None, None if empty)."""
+    v = np.asarray(v, float)
+    v = v[np.isfinite(v)]
+    if not len(v):
+        return None, None
+    rms = float(np.sqrt(np.mean(v**2)))
+    se = float(np.std(v**2, ddof=1) / (2 * rms * np.sqrt(len(v)))) if len(v) > 1 and rms > 0 else None
+    return rms, se
+
+
 def summarize(df: pd.DataFrame, cfg, runs: int, traces: dict | None = None, bounds: dict | None = None) -> dict:
     """Aggregates per scenario x estimator (means, medians, percentiles).
 
@@ -80,14 +91,14 @@ def summarize(df: pd.DataFrame, cfg, runs: int, traces: dict | None = None, boun
             cell["runs_truncated"] = int(np.sum(cov < 0.98))
             # RMS over runs of the per-run RMSE: the "per-axis RMSE over all seeds".
             for a in AXES:
-                v = ok[f"rmse_{a}"].to_numpy(float)
-                v = v[np.isfinite(v)]
-                cell[f"rmse_{a}_all_runs"] = float(np.sqrt(np.mean(v**2))) if len(v) else None
-            # every estimated calibration quantity: RMS over runs of the final error (None: not estimated)
+                cell[f"rmse_{a}_all_runs"], cell[f"rmse_{a}_all_runs_se"] = _rms_se(ok[f"rmse_{a}"].to_numpy(float))
+            # every estimated calibration quantity: RMS over runs of the final error (None: not estimated),
+            # with the standard error of that RMS from the spread over runs (delta method)
+            m2 = np.sum([ok[f"rmse_{a}"].to_numpy(float) ** 2 for a in AXES], axis=0) if len(ok) else np.zeros(0)
+            cell["rmse_3d_all_runs"], cell["rmse_3d_all_runs_se"] = _rms_se(np.sqrt(m2))
             for c in ("lever_arm_err_x", "lever_arm_err_y", "lever_arm_err_z", "time_offset_err"):
                 v = ok[c].to_numpy(float) if c in ok else np.zeros(0)
-                v = v[np.isfinite(v)]
-                cell[f"{c}_rms_all_runs"] = float(np.sqrt(np.mean(v**2))) if len(v) else None
+                cell[f"{c}_rms_all_runs"], cell[f"{c}_rms_all_runs_se"] = _rms_se(v)
             cell["runs_diverged"] = int(np.sum(ok["divergences"].to_numpy(float) > 0)) if "divergences" in ok else 0
             cell["nees_kind"] = sorted(set(ok["nees_kind"].dropna().astype(str)))
             if traces is not None and traces.get(sc.name) is not None and est.name in traces[sc.name]["estimators"]:
@@ -115,15 +126,16 @@ def summarize(df: pd.DataFrame, cfg, runs: int, traces: dict | None = None, boun
             if b is None:
                 continue
             cell["crlb"] = b
-            ratios = {}
-            for key, bkey in (("rmse_x_all_runs", "rmse_x"), ("rmse_y_all_runs", "rmse_y"),
-                              ("rmse_z_all_runs", "rmse_z"), ("lever_arm_err_x_rms_all_runs", "lever_arm_sd_x"),
-                              ("lever_arm_err_y_rms_all_runs", "lever_arm_sd_y"),
-                              ("lever_arm_err_z_rms_all_runs", "lever_arm_sd_z"),
-                              ("time_offset_err_rms_all_runs", "time_offset_sd")):
+            ratios, ratio_se = {}, {}
+            pairs = [(f"rmse_{a}", f"rmse_{a}_all_runs", f"rmse_{a}") for a in (*AXES, "3d")]
+            pairs += [(f"lever_arm_err_{a}", f"lever_arm_err_{a}_rms_all_runs", f"lever_arm_sd_{a}") for a in AXES]
+            pairs += [("time_offset_err", "time_offset_err_rms_all_runs", "time_offset_sd")]
+            for name, key, bkey in pairs:
                 if cell.get(key) is not None and b.get(bkey):
-                    ratios[key.replace("_all_runs", "").replace("_rms", "")] = cell[key] / b[bkey]
-            cell["ratio_to_crlb"] = ratios
+                    ratios[name] = cell[key] / b[bkey]
+                    if cell.get(f"{key}_se") is not None:  # sampling uncertainty of the ratio
+                        ratio_se[name] = cell[f"{key}_se"] / b[bkey]
+            cell["ratio_to_crlb"], cell["ratio_to_crlb_se"] = ratios, ratio_se
     return {"name": cfg.name, "description": cfg.description, "runs_per_scenario": runs,
             "seed_base": cfg.seed_base, "skip_initial_s": cfg.skip_initial_s, "cells": cells}
 

@@ -50,7 +50,7 @@ class SimResult:
     tdoa_t_nominal, tdoa_true, tdoa_nlos : the same per row of ``dataset.tdoa`` (TDoA modes;
         empty otherwise); ``tdoa_true`` takes each distance at its packet's arrival;
         ``tdoa_packets`` (T, 2) the indices ``(j, k)`` of the two packets of each row (rows sharing an
-        index share that packet's error).
+        index share that packet's error); ``tdoa_t_a`` the arrival instant of packet ``j`` (anchor_a).
     """
 
     dataset: Dataset
@@ -65,6 +65,7 @@ class SimResult:
     tdoa_true: np.ndarray = field(default_factory=lambda: np.zeros(0))
     tdoa_nlos: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     tdoa_packets: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))
+    tdoa_t_a: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def _noop(stage: str, frac: float) -> None:
@@ -135,7 +136,7 @@ def simulate_full(scenario: Scenario, progress: Optional[Progress] = None) -> Si
     hi = min(duration, s[-1] - t_d)
     tdoa = None
     tinfo: dict = {"t_nominal": np.zeros(0), "true": np.zeros(0), "nlos": np.zeros(0, bool),
-                   "packets": np.zeros((0, 2), int)}
+                   "packets": np.zeros((0, 2), int), "t_a_nominal": np.zeros(0)}
     if scenario.uwb.mode == "twr":
         from uwbimu.sim.ranging import simulate_ranges
 
@@ -203,4 +204,5 @@ def simulate_full(scenario: Scenario, progress: Optional[Progress] = None) -> Si
         tdoa_true=tinfo["true"],
         tdoa_nlos=tinfo["nlos"],
         tdoa_packets=tinfo["packets"],
+        tdoa_t_a=tinfo["t_a_nominal"],
     )

@@ -102,7 +102,8 @@ def simulate_tdoa(scenario: Scenario, traj: Trajectory, lo: float, hi: float, rn
     """Simulate the ``tdoa`` table; returns ``(DataFrame, info)``.
 
     ``info`` holds ``counts`` (packets scheduled / received / NLOS and each
-    loss cause, differences emitted) and, per emitted row, ``t_nominal``,
+    loss cause, differences emitted) and, per emitted row, ``t_nominal`` (B's
+    arrival), ``t_a_nominal`` (A's arrival),
     ``true`` (noise-free difference with each distance at its packet's
     arrival), ``nlos`` (either packet NLOS) and ``packets`` (indices j, k).
     """
@@ -176,6 +177,7 @@ def simulate_tdoa(scenario: Scenario, traj: Trajectory, lo: float, hi: float, rn
     info = {
         "counts": counts,
         "t_nominal": t[k][order],
+        "t_a_nominal": t[j][order],
         "true": true[order],
         "nlos": (nlos[j] | nlos[k])[order],
         "packets": np.column_stack([j, k])[order] if len(k) else np.zeros((0, 2), int),
