@@ -170,3 +170,74 @@ def test_theorem1_pointwise_vanishing_cases_are_identifiable(case):
     assert v["first_order"][key] < 1e-9  # the seed's eq. (13) term vanishes at this point
     assert v["theorem1"] and v["identifiable"] and v["agree"] and v["explanation"]
     assert v["numeric"]["td_power"] >= 2  # ... the delayed input enters at higher order in t_d
+
+
+# --------------------------------------------------------------------------
+# issue 13 item 4: TDoA
+# --------------------------------------------------------------------------
+A4 = A3 + [[2.0, 2.0, 3.0]]
+
+
+def test_tdoa_rank_minimum_anchors_and_degenerate_geometries():
+    from uwbimu.observability.config import ConfigError
+
+    base = {"measurement": "tdoa", "lever_arm": LEVER, "random_points": 3, "seed": 1}
+    with pytest.raises(ConfigError, match="at least 2 anchors"):
+        structural_verdict({**base, "anchors": [[0, 0, 0]]})
+    # one difference and full IMU excitation already reach 18 (order 3)
+    v = structural_verdict({**base, "anchors": A4[:2]})
+    assert (v["rank"], v["dimension"], v["verdict"]) == (18, 18, "observable") and v["measurement"] == "tdoa"
+    # coplanar anchors with the tag in their plane: the zeroth-order rank drops, order 3 restores it
+    sq = [[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.0, 5.0, 0.0], [5.0, 5.0, 0.0]]
+    v = structural_verdict({**base, "anchors": sq, "points": [{"antenna": [1, 2, 0]}]})
+    assert v["rank"] == 18 and v["order_search"][0]["rank"] == 2
+    # tag on the pair's hyperboloid axis: the difference has no gradient there; the IMU-driven
+    # higher-order rows still reach 18, one order later than off the axis
+    v = structural_verdict({**base, "anchors": A4[:2], "points": [{"antenna": [-2, 0, -0.2]}]})
+    assert v["conditions"]["tdoa_pairs_on_axis"] == [[0, 1]] and v["conditions"]["tdoa_gradient_rank"] == 0
+    # the lone order-0 row is rounding noise: judged against its size at a generic point, not normalised into rank
+    assert v["order_search"][0]["rank"] == 0
+    assert v["rank"] == 18 and v["lie_order"] == 4
+    # vertical anchor pair: the yaw about it stays (subspace check)
+    a = [[0.0, 0.0, 0.0], [0.0, 0.0, 3.0]]
+    v = structural_verdict({**base, "anchors": a})
+    assert v["rank"] == 17 and v["cross_check"]["rank"] == 17
+    assert subspace_angles(_null(v), _yaw_generator(_weakest_state(v), np.zeros(3))).max() < 1e-6
+
+
+def test_tdoa_theorem1_analogue_matches_the_numeric_sensitivity():
+    """docs/observability.md: for a TDoA r_i - r_0 the seed's eq. (13) terms become
+    d/d a_j = -(e_i - e_0)^T R e_j t_d^2 / 2 and d/d w_j = -(e_i - e_0)^T R (e_j x p_IU) t_d."""
+    from uwbimu.models import reference as ref
+    from uwbimu.observability.delay import delayed_input_sensitivity
+    from uwbimu.observability.models import sample_uwb_imu_state
+
+    rng = np.random.default_rng(11)
+    x = sample_uwb_imu_state(rng, lever_arm=np.array(LEVER))
+    x[3:6] = 0.0
+    t_d = 1e-3
+    x20 = np.r_[x, t_d]
+    A = np.asarray(A4)
+    sens = delayed_input_sensitivity(x20, np.zeros(6), A, t_d, "tdoa")
+    R = ref.rotation_matrix(x[6:10])
+    tag = ref.antenna_position(x20)
+    E = (A - tag) / np.linalg.norm(A - tag, axis=1, keepdims=True)
+    D = E[1:] - E[0]
+    for j in range(3):
+        e = np.eye(3)[j]
+        assert sens[:, j] == pytest.approx(-(D @ R[:, j]) * t_d**2 / 2, rel=0.05, abs=1e-10)
+        assert sens[:, 3 + j] == pytest.approx(-(D @ (R @ np.cross(e, LEVER))) * t_d, rel=0.05, abs=1e-9)
+
+
+def test_tdoa_time_offset_conditions():
+    from uwbimu.observability.delay import delay_verdict
+
+    base = {"measurement": "tdoa", "anchors": A4, "lever_arm": LEVER, "random_points": 3, "seed": 1, "time_offset": 0.02}
+    v = delay_verdict({**base, "excitation": {"accel": [], "gyro": ["x", "y", "z"]}})
+    assert v["conditions"] == {"T1": True, "T2": False, "T3": True} and v["identifiable"] and v["agree"]
+    assert not delay_verdict({**base, "excitation": {"accel": [], "gyro": []}})["identifiable"]
+    # on the pair's axis T1' fails and the first-order terms vanish, yet t_d enters at order t_d^2
+    v = delay_verdict({**base, "anchors": A4[:2], "points": [{"antenna": [-2, 0, -0.2]}]})
+    assert v["conditions"]["T1"] is False and not v["theorem1"]
+    assert max(v["first_order"].values()) < 1e-9
+    assert v["identifiable"] and v["numeric"]["td_power"] == 2.0 and v["explanation"]

@@ -123,6 +123,12 @@ def _register_rosbag(app: typer.Typer) -> None:
 _register_inrol(import_app)
 _register_isas_walk(import_app)
 _register_rosbag(import_app)
+# TDoA importers (owner: tdoa helper; the commands live with the importers to keep this hook small).
+from uwbimu.io.importers.util import register_cli as _register_util  # noqa: E402
+from uwbimu.io.importers.cf_usdlog import register_cli as _register_cf_usdlog  # noqa: E402
+
+_register_util(import_app)
+_register_cf_usdlog(import_app)
 
 
 def register(app: typer.Typer) -> None:

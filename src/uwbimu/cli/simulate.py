@@ -33,10 +33,16 @@ def _summary(console: Console, ds, out: Path, seconds: float) -> None:
     counts = extra.get("uwb_counts", {})
     table.add_row(r"duration \[s]", f"{extra.get('duration', ds.duration):g}")
     table.add_row("IMU samples", f"{len(ds.imu)} @ {ds.meta.imu_rate_hz:g} Hz")
-    table.add_row("ranges emitted / scheduled", f"{counts.get('emitted', len(ds.uwb))} / {counts.get('scheduled', '?')}")
     lost = {k: v for k, v in counts.items() if k.startswith("dropped_") and v}
-    table.add_row("ranges lost", ", ".join(f"{k[8:]} {v}" for k, v in lost.items()) or "0")
-    table.add_row("NLOS ranges", str(counts.get("nlos", 0)))
+    if "packets_scheduled" in counts:  # TDoA (uwbimu.sim.tdoa): packets, then differences
+        table.add_row("TDoA packets received / scheduled", f"{counts['packets_received']} / {counts['packets_scheduled']}")
+        table.add_row("packets lost", ", ".join(f"{k[8:]} {v}" for k, v in lost.items()) or "0")
+        table.add_row("NLOS packets", str(counts.get("packets_nlos", 0)))
+        table.add_row("TDoA differences emitted", str(counts.get("emitted", 0)))
+    else:
+        table.add_row("ranges emitted / scheduled", f"{counts.get('emitted', len(ds.uwb))} / {counts.get('scheduled', '?')}")
+        table.add_row("ranges lost", ", ".join(f"{k[8:]} {v}" for k, v in lost.items()) or "0")
+        table.add_row("NLOS ranges", str(counts.get("nlos", 0)))
     for k, v in extra.get("imu_saturation", {}).items():
         table.add_row(f"IMU {k.replace('_', ' ')}", str(v))
     truth = ds.meta.truth

@@ -70,6 +70,9 @@ class ObservabilityConfig(BaseModel):
     ----------
     model : ``uwb_imu`` (seed 001, 19 numbers / 18 tangent dims without t_d) or
         ``point_mass`` (seed 002, 6 states).
+    measurement : ``range`` (two-way ranges to every anchor) or ``tdoa``
+        (uwb_imu only: time differences of arrival ``|p_U - p_i| - |p_U - p_0|``,
+        i = 1..N-1, which span the codistribution of every pair's difference).
     anchors : anchor (beacon) positions, world frame [m].
     lever_arm : ``p_IU`` [m, IMU frame]; None = random per point (uwb_imu).
     altimeter : add a height measurement ``z`` (point_mass only).
@@ -98,6 +101,7 @@ class ObservabilityConfig(BaseModel):
     name: str = "unnamed"
     description: str = ""
     model: Literal["uwb_imu", "point_mass"] = "uwb_imu"
+    measurement: Literal["range", "tdoa"] = "range"
     anchors: list[Vec3] = Field(min_length=1)
     lever_arm: Optional[Vec3] = Field(default=None, min_length=3, max_length=3)
     altimeter: bool = False
@@ -173,6 +177,10 @@ def load_config(source: Union[str, os.PathLike, dict, ObservabilityConfig]) -> O
         raise ConfigError(f"{where}: field 'lever_arm' is only available for model uwb_imu")
     if cfg.model == "point_mass" and any(sp.q or sp.b_a or sp.b_g for sp in cfg.points):
         raise ConfigError(f"{where}: field 'points': q, b_a, b_g are only available for model uwb_imu")
+    if cfg.measurement == "tdoa" and cfg.model != "uwb_imu":
+        raise ConfigError(f"{where}: field 'measurement': tdoa is only available for model uwb_imu")
+    if cfg.measurement == "tdoa" and len(cfg.anchors) < 2:
+        raise ConfigError(f"{where}: field 'anchors': measurement tdoa needs at least 2 anchors")
     if cfg.model == "uwb_imu" and cfg.altimeter:
         raise ConfigError(f"{where}: field 'altimeter' is only available for model point_mass")
     return cfg

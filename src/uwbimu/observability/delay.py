@@ -45,17 +45,45 @@ NOISE_MULTIPLE = 1e3
 _AXES = ("x", "y", "z")
 
 
-def theorem1_conditions(x20: np.ndarray, anchors: np.ndarray, accel_axes, gyro_axes, tol: float = 1e-9) -> dict[str, bool]:
-    """Evaluate T1-T3 at a 20-number state for a set of anchors."""
+def _sight_rows(x20: np.ndarray, anchors: np.ndarray, measurement: str = "range") -> np.ndarray:
+    """Rows ``c`` with ``d h / d p_U = -c``: unit lines of sight ``e_i`` (ranges) or
+    their differences ``e_i - e_0`` (TDoA ``r_i - r_0``)."""
     tag = ref.antenna_position(x20)
-    d = np.linalg.norm(np.asarray(anchors, float) - tag, axis=1)
-    t1 = bool(np.any(d > tol))
+    E = np.asarray(anchors, float) - tag
+    E = E / np.maximum(np.linalg.norm(E, axis=1, keepdims=True), 1e-300)
+    return E[1:] - E[0] if measurement == "tdoa" else E
+
+
+def measurements(x20: np.ndarray, anchors: np.ndarray, measurement: str = "range") -> np.ndarray:
+    """Ranges to every anchor, or the TDoA ``r_i - r_0`` (i = 1..N-1) [m]."""
+    r = np.array([ref.range_measurement(x20, a) for a in np.asarray(anchors, float)])
+    return r[1:] - r[0] if measurement == "tdoa" else r
+
+
+def theorem1_conditions(x20: np.ndarray, anchors: np.ndarray, accel_axes, gyro_axes, tol: float = 1e-9,
+                        measurement: str = "range") -> dict[str, bool]:
+    """Evaluate T1-T3 at a 20-number state for a set of anchors.
+
+    T1 for ranges: the antenna is not at an anchor.  Its TDoA analogue (T1'):
+    some pair's difference has a non-zero gradient, ``e_b != e_a`` — the antenna
+    is not on the axis of every pair's hyperboloids (the line through the two
+    anchors, outside the segment between them).  T2, T3 are unchanged.
+    """
+    tag = ref.antenna_position(x20)
+    if measurement == "tdoa":
+        A = np.asarray(anchors, float)
+        E = (A - tag) / np.maximum(np.linalg.norm(A - tag, axis=1, keepdims=True), 1e-300)
+        t1 = bool(any(np.linalg.norm(E[j] - E[i]) > tol for i in range(len(A)) for j in range(i + 1, len(A))))
+    else:
+        d = np.linalg.norm(np.asarray(anchors, float) - tag, axis=1)
+        t1 = bool(np.any(d > tol))
     t2 = len(accel_axes) > 0
     t3 = bool(np.linalg.norm(x20[16:19]) > tol) and len(gyro_axes) == 3
     return {"T1": t1, "T2": t2, "T3": t3}
 
 
-def delayed_input_sensitivity(x20: np.ndarray, u: np.ndarray, anchors: np.ndarray, t_d: float) -> np.ndarray:
+def delayed_input_sensitivity(x20: np.ndarray, u: np.ndarray, anchors: np.ndarray, t_d: float,
+                              measurement: str = "range") -> np.ndarray:
     """``d range_i / d u_j`` of the input applied at ``t_r - t_d`` (reference model).
 
     Parameters
@@ -65,17 +93,18 @@ def delayed_input_sensitivity(x20: np.ndarray, u: np.ndarray, anchors: np.ndarra
     anchors : (N, 3) anchor positions [m].
     t_d : time offset [s].
 
+    measurement : ``range`` or ``tdoa`` (rows ``r_i - r_0``).
+
     Returns
     -------
-    (N, 6) sensitivities [m per unit input].
+    (N, 6) (ranges) or (N-1, 6) (TDoA) sensitivities [m per unit input].
     """
     A = np.asarray(anchors, float)
 
     def ranges(uu):
-        xr = ref.propagate(x20, uu, uu, t_d)
-        return np.array([ref.range_measurement(xr, a) for a in A])
+        return measurements(ref.propagate(x20, uu, uu, t_d), A, measurement)
 
-    out = np.empty((len(A), 6))
+    out = np.empty((len(A) - 1 if measurement == "tdoa" else len(A), 6))
     for j in range(6):
         du = np.zeros(6)
         du[j] = _STEP
@@ -84,12 +113,14 @@ def delayed_input_sensitivity(x20: np.ndarray, u: np.ndarray, anchors: np.ndarra
 
 
 def _noise(x20: np.ndarray, anchors: np.ndarray) -> float:
-    """Rounding noise [m per unit input] of the central difference at this point."""
+    """Rounding noise [m per unit input] of the central difference at this point
+    (the ranges' own scale; a TDoA is a difference of two of them)."""
     r = max(1.0, max(ref.range_measurement(x20, a) for a in anchors))
     return NOISE_MULTIPLE * np.finfo(float).eps * r / _STEP
 
 
-def first_order_criterion(x20: np.ndarray, anchors: np.ndarray, accel_axes, gyro_axes) -> dict[str, float]:
+def first_order_criterion(x20: np.ndarray, anchors: np.ndarray, accel_axes, gyro_axes,
+                          measurement: str = "range") -> dict[str, float]:
     """The seed's first-order terms of eq. (13)-(16) at a point (dimensionless).
 
     ``accel``: ``max |e_i^T R e_j|`` over anchors ``i`` and excited accelerometer
@@ -101,11 +132,10 @@ def first_order_criterion(x20: np.ndarray, anchors: np.ndarray, accel_axes, gyro
     line (``e_i`` parallel to ``R p_IU``).  The delayed input then still enters
     at higher order in ``t_d`` and as soon as the line of sight turns along the
     trajectory: Theorem 1's argument, evaluated at one point, does not see it.
+    For TDoA ``e_i`` is replaced by ``e_i - e_0`` (see :func:`_sight_rows`).
     """
     R = ref.rotation_matrix(x20[6:10])
-    tag = ref.antenna_position(x20)
-    E = np.asarray(anchors, float) - tag
-    E = E / np.maximum(np.linalg.norm(E, axis=1, keepdims=True), 1e-300)
+    E = _sight_rows(x20, anchors, measurement)
     lever = x20[16:19]
     out = {"accel": 0.0, "gyro": 0.0}
     for a in accel_axes:
@@ -152,14 +182,14 @@ def delay_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[str, An
     for x19, p in evaluation_points(cfg):
         x20 = np.r_[x19, cfg.time_offset]
         u = p[3 * len(A) :]
-        conds = theorem1_conditions(x20, A, acc, gyr)
+        conds = theorem1_conditions(x20, A, acc, gyr, measurement=cfg.measurement)
         thm = conds["T1"] and (conds["T2"] or conds["T3"])
-        sens = delayed_input_sensitivity(x20, u, A, cfg.time_offset)
+        sens = delayed_input_sensitivity(x20, u, A, cfg.time_offset, cfg.measurement)
         per_chan = {chan[j]: float(np.abs(sens[:, j]).max()) for j in excited}
         noise = _noise(x20, A)
         probe = []
         for td in PROBE_TIME_OFFSETS:
-            s_td = delayed_input_sensitivity(np.r_[x19, td], u, A, td)
+            s_td = delayed_input_sensitivity(np.r_[x19, td], u, A, td, cfg.measurement)
             probe.append(max((float(np.abs(s_td[:, j]).max()) for j in excited), default=0.0))
         nonzero = max(probe, default=0.0) > noise
         power = None  # slope of log |dh/du| vs log t_d over the smallest pair of probes above the noise
@@ -168,7 +198,7 @@ def delay_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[str, An
                 T = PROBE_TIME_OFFSETS
                 power = round(float(np.log10(probe[i + 1] / probe[i]) / np.log10(T[i + 1] / T[i])), 1)
                 break
-        first = first_order_criterion(x20, A, acc, gyr)
+        first = first_order_criterion(x20, A, acc, gyr, cfg.measurement)
         points.append({"conditions": conds, "theorem1": thm, "sensitivity": per_chan, "numeric_nonzero": bool(nonzero),
                        "probe_over_noise": max(probe, default=0.0) / noise, "noise": noise, "td_power": power,
                        "first_order": first})  # fmt: skip
@@ -184,6 +214,7 @@ def delay_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[str, An
     basis = "Theorem 1" if thm_all else ("input-output sensitivity (eq. 12, k=0)" if num_all else "none")
     return {
         "name": cfg.name,
+        "measurement": cfg.measurement,
         "identifiable": bool(identifiable),
         "conditions": w["conditions"],
         "theorem1": bool(thm_all),
@@ -211,11 +242,15 @@ def _explain(pt: dict, acc, gyr) -> str:
     """Why Theorem 1 and the numeric check (or the seed's pointwise criterion) differ."""
     c, f = pt["conditions"], pt["first_order"]
     notes = []
-    if c["T2"] and f["accel"] < 1e-6:
-        notes.append("the excited accelerometer axes are perpendicular to every line of sight at this point, so the "
-                     "seed's first-order criterion (eq. 13) vanishes here")  # fmt: skip
-    if c["T3"] and f["gyro"] < 1e-6 and not (c["T2"] and f["accel"] >= 1e-6):
-        notes.append("every anchor lies on the IMU-antenna line at this point, so the gyro term of eq. (13) vanishes here")
+    if not c["T1"]:
+        notes.append("the antenna is at an anchor (ranges) / on the axis of every anchor pair's hyperboloids (TDoA: "
+                     "the difference is constant there, its gradient zero) at this point")  # fmt: skip
+    elif c["T2"] and f["accel"] < 1e-6:
+        notes.append("the excited accelerometer axes are perpendicular to every line of sight (TDoA: every difference "
+                     "of lines of sight) at this point, so the seed's first-order criterion (eq. 13) vanishes here")  # fmt: skip
+    if c["T1"] and c["T3"] and f["gyro"] < 1e-6 and not (c["T2"] and f["accel"] >= 1e-6):
+        notes.append("every line of sight (TDoA: every difference of lines of sight) is parallel to the IMU-antenna "
+                     "line at this point, so the gyro term of eq. (13) vanishes here")  # fmt: skip
     if not pt["theorem1"] and pt["numeric_nonzero"]:
         p = pt["td_power"]
         notes.append("Theorem 1's sufficient conditions fail, but the delayed input still enters the range"

@@ -165,7 +165,7 @@ class RankResult:
         return self.rank == self.dim
 
 
-def numerical_rank(M: np.ndarray, tol: Optional[float] = None):
+def numerical_rank(M: np.ndarray, tol: Optional[float] = None, row_ref: Optional[np.ndarray] = None):
     """Rank of ``M`` after normalising its rows, with the singular-value gap.
 
     Rows are scaled to unit norm first: rank is invariant to it, and it keeps
@@ -178,6 +178,10 @@ def numerical_rank(M: np.ndarray, tol: Optional[float] = None):
     ----------
     tol : relative tolerance (``sigma_i > tol * sigma_max`` counts); ``None``
         (default) = the rounding-noise floor :func:`noise_floor` of the matrix.
+    row_ref : (rows,) typical norm of each row (e.g. at a generic point); a row
+        below ``ZERO_ROW_TOL`` of it is zero too.  Without it a matrix whose
+        rows are *all* rounding noise (a lone vanishing gradient) would be
+        normalised into rank.
 
     Returns
     -------
@@ -188,6 +192,8 @@ def numerical_rank(M: np.ndarray, tol: Optional[float] = None):
     ncol = M.shape[1]
     norms = np.linalg.norm(M, axis=1)
     keep = norms > max(ZERO_ROW_TOL * (norms.max() if norms.size else 0.0), 1e-300)
+    if row_ref is not None:
+        keep &= norms > ZERO_ROW_TOL * np.asarray(row_ref, float)
     if not np.any(keep):
         return 0, np.zeros(ncol), np.eye(ncol), 0.0
     Mn = M[keep] / norms[keep, None]
@@ -312,6 +318,20 @@ class LieObservability:
         self._all_fn = ca.Function("O_all", [m.x, m.params], [ca.jacobian(ca.vertcat(*allL), m.x)])
 
     # ------------------------------------------------------------------
+    def _row_floor(self, kind: str, OT: np.ndarray, D: np.ndarray) -> Optional[np.ndarray]:
+        """Typical norm of each row of ``O T diag(D)`` (reference: a generic point of the
+        model's sampler, unscaled), or None without a sampler."""
+        if self.model.sampler is None:
+            return None
+        cache = self.__dict__.setdefault("_row_refs", {})
+        if kind not in cache:
+            xg, pg = self.model.sampler(np.random.default_rng(2024))
+            fn = self._pruned_fn if kind == "pruned" else self._all_fn
+            Og = np.asarray(fn(_as_dm(xg), _as_dm(pg))) @ self.tangent_basis(xg, pg)
+            cache[kind] = np.linalg.norm(Og, axis=1)
+        # column scaling changes every row norm by at most max(D) / min(D)
+        return cache[kind] * float(np.min(D)) if len(cache[kind]) == OT.shape[0] else None
+
     def tangent_basis(self, x, p) -> np.ndarray:
         """(n, d) tangent basis at ``x``."""
         return np.asarray(self._T(_as_dm(x), _as_dm(p)))
@@ -353,7 +373,7 @@ class LieObservability:
         used = "pruned"
         if words in ("auto", "pruned") and self._pruned_fn is not None:
             O_raw = np.asarray(self._pruned_fn(x, p))
-            rank, s, Vt, cut = numerical_rank(O_raw @ Ts, tol)
+            rank, s, Vt, cut = numerical_rank(O_raw @ Ts, tol, self._row_floor("pruned", O_raw @ T, D))
             weak = rank == T.shape[1] and s[rank - 1] < PRUNED_MARGIN * s[0]
             if (rank < T.shape[1] or weak) and words == "auto":
                 used = "all"
@@ -363,7 +383,7 @@ class LieObservability:
             if self._all_fn is None:
                 self._build_all()
             O_raw = np.asarray(self._all_fn(x, p))
-            rank, s, Vt, cut = numerical_rank(O_raw @ Ts, tol)
+            rank, s, Vt, cut = numerical_rank(O_raw @ Ts, tol, self._row_floor("all", O_raw @ T, D))
         d = T.shape[1]
         s_full = np.zeros(d)
         s_full[: min(d, len(s))] = s[:d]

@@ -74,7 +74,31 @@ def uwb_imu_conditions(cfg: ObservabilityConfig, x: np.ndarray, anchors: np.ndar
     c2 = any(off_plane(tag, anchors, t) for t in triples)
     c3 = len(cfg.accel_axes()) == 3
     c4 = len(cfg.gyro_axes()) == 3
-    return {"C1": c1, "C2": c2, "C3": c3, "C4": c4, "theorem2": c1 and c2 and c3 and c4}
+    out = {"C1": c1, "C2": c2, "C3": c3, "C4": c4, "theorem2": c1 and c2 and c3 and c4}
+    if cfg.measurement == "tdoa":
+        # seed 001 states C1-C4 for ranges; for TDoA report the geometry that matters instead
+        out.update(tdoa_geometry(tag, anchors))
+    return out
+
+
+def tdoa_geometry(tag: np.ndarray, anchors: np.ndarray) -> dict[str, Any]:
+    """TDoA geometry at an antenna position: which anchor pairs carry a gradient.
+
+    ``d(r_b - r_a)/d p_U = -(e_b - e_a)`` (unit lines of sight): it vanishes
+    exactly when the tag is on the line through anchors ``a`` and ``b`` outside
+    the segment between them (the axis of that pair's hyperboloids), where the
+    difference is the constant ``+-|p_b - p_a|``.
+    """
+    A = np.asarray(anchors, dtype=float)
+    E = A - tag
+    E = E / np.maximum(np.linalg.norm(E, axis=1, keepdims=True), 1e-300)
+    dead = [(i, j) for i, j in itertools.combinations(range(len(A)), 2) if np.linalg.norm(E[j] - E[i]) < 1e-9]
+    G = np.array([E[j] - E[i] for i, j in itertools.combinations(range(len(A)), 2)])
+    return {
+        "tdoa_pairs_on_axis": [list(p) for p in dead],
+        "tdoa_gradient_rank": int(np.linalg.matrix_rank(G, tol=1e-9)) if len(G) else 0,
+        "anchors_noncoplanar": anchors_noncoplanar(A),
+    }
 
 
 def point_mass_conditions(cfg: ObservabilityConfig, x: np.ndarray, anchors: np.ndarray) -> dict[str, Any]:
@@ -170,7 +194,7 @@ def compiled_for(cfg: ObservabilityConfig, order: int | None = None):
         raise ValueError("compiled_for: lie_order is 'auto'; pass the order (e.g. structural_verdict(...)['lie_order'])")
     k = int(cfg.lie_order if order is None else order)
     if cfg.model == "uwb_imu":
-        spec = UwbImuSpec(len(cfg.anchors), cfg.accel_axes(), cfg.gyro_axes())
+        spec = UwbImuSpec(len(cfg.anchors), cfg.accel_axes(), cfg.gyro_axes(), cfg.measurement)
         return compiled_uwb_imu(spec, k), UWB_IMU_TANGENT_NAMES
     spec = PointMassSpec(len(cfg.anchors), cfg.altimeter, cfg.accel_axes())
     return compiled_point_mass(spec, k), POINT_MASS_NAMES
@@ -349,6 +373,7 @@ def structural_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[st
     return {
         "name": cfg.name,
         "model": cfg.model,
+        "measurement": cfg.measurement,
         "rank": rank,
         "dimension": dim,
         "observable": observable,
