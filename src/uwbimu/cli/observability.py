@@ -8,6 +8,8 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+
+from uwbimu.cli.dataset_options import with_load_options
 from rich.console import Console
 from rich.table import Table
 
@@ -180,6 +182,7 @@ def delay(
 
 
 @obs_app.command("log")
+@with_load_options
 def log(
     dataset: Path = typer.Argument(..., help="dataset folder"),
     window: float = typer.Option(20.0, "--window", help="window length (s)"),
@@ -196,6 +199,7 @@ def log(
         None, "--trajectory", help="linearise about an estimator's states.csv (or its output folder) instead of the ground truth"
     ),
     force: bool = typer.Option(False, "--force", help="replace existing outputs in OUT"),
+    load_options=None,
 ) -> None:
     """Per-window posterior Cramer-Rao bound, information gained and excitation flags of a log."""
     from uwbimu.io.atomic import write_csv, write_json
@@ -219,7 +223,7 @@ def log(
     from uwbimu.errors import InputError
     from uwbimu.io.loader import load_dataset
 
-    ds = load_dataset(dataset)  # a refused dataset is an InputError (exit 1, file / line / column named)
+    ds = load_dataset(dataset, load_options)  # a refused dataset is an InputError (exit 1, file / line / column named)
     traj = None
     if trajectory is not None:
         try:
