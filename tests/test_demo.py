@@ -3,12 +3,12 @@
 import io
 
 import pytest
-import typer
 from rich.console import Console
 from typer.testing import CliRunner
 
 from uwbimu.cli.demo import DEMO_MARKER, run_demo
 from uwbimu.cli.main import app
+from uwbimu.errors import OutputError
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +41,7 @@ def test_demo_reruns_into_its_own_folder(demo_run, tmp_path):
     user = tmp_path / "mine"
     user.mkdir()
     (user / "precious.txt").write_text("keep me")
-    with pytest.raises(typer.BadParameter, match="not written by `uwbimu demo`"):
+    with pytest.raises(OutputError, match="not written by `uwbimu demo`"):
         run_demo(user, Console(file=io.StringIO()), duration=5.0)
     assert (user / "precious.txt").read_text() == "keep me"
 

@@ -187,12 +187,12 @@ def test_cli_check_prints_tables_and_flags(tmp_path):
     # An existing --csv file is kept unless --force; a dataset's own file never is replaced.
     (tmp_path / "res.csv").write_text("mine")
     res = runner.invoke(app, ["check", str(tmp_path / "d"), "--csv", str(tmp_path / "res.csv")])
-    assert res.exit_code == 2 and "--force" in res.output and (tmp_path / "res.csv").read_text() == "mine"
+    assert res.exit_code == 4 and "--force" in res.output and (tmp_path / "res.csv").read_text() == "mine"
     res = runner.invoke(app, ["check", str(tmp_path / "d"), "--csv", str(tmp_path / "res.csv"), "--force"])
     assert res.exit_code == 0 and (tmp_path / "res.csv").read_text().startswith("anchor,n,median")
     before = (tmp_path / "d" / "uwb.csv").read_bytes()
     res = runner.invoke(app, ["check", str(tmp_path / "d"), "--csv", str(tmp_path / "d" / "uwb.csv"), "--force"])
-    assert res.exit_code == 2 and (tmp_path / "d" / "uwb.csv").read_bytes() == before
+    assert res.exit_code == 4 and (tmp_path / "d" / "uwb.csv").read_bytes() == before
 
 
 def test_cli_check_refusal_exit_code_without_traceback(tmp_path):

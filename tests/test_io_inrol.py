@@ -105,7 +105,7 @@ def test_refuses_non_empty_destination_without_force(imported, tmp_path):
     (dst / "mine.txt").write_text("keep me")
     runner = CliRunner()
     res = runner.invoke(app, ["import", "inrol", str(EXCERPT), str(dst)], env=ENV)
-    assert res.exit_code == 1 and "--force" in res.output
+    assert res.exit_code == 4 and "--force" in res.output
     assert (dst / "mine.txt").read_text() == "keep me"
     res = runner.invoke(app, ["import", "inrol", str(EXCERPT), str(dst), "--force"], env=ENV)
     assert res.exit_code == 0, res.output

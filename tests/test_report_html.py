@@ -5,6 +5,7 @@ from __future__ import annotations
 import base64
 import json
 import os
+import re
 import shutil
 import subprocess
 from html.parser import HTMLParser
@@ -157,7 +158,8 @@ def test_report_with_dataset_evaluates_and_shows_reference(tmp_path):
     text = render_report(out, dataset=ds)
     c = _parse(text)
     assert {"fig-trajectory", "fig-errors", "fig-convergence"} <= c.figures
-    assert "0.010" in text  # ATE of the 1 cm shift
+    ate = re.search(r"position ATE RMSE <b>([0-9.]+) m</b>", text)
+    assert ate is not None and abs(float(ate.group(1)) - 0.010) < 5e-4  # ATE of the 1 cm shift
     assert "+0.20" in text  # z-score of lever x: (0.101 - 0.1) / 0.005
     assert "n/a (ground truth in another frame)" not in text and "0.05" in text  # metrics.yaml as written
 
@@ -264,3 +266,24 @@ def test_report_observability_window_table(tmp_path):
     assert "fig-observability" in c.figures
     assert "lever arm not excited" in text and "0.0–5.0" in text and "5.0–10.0" in text
     assert "time offset not excited" in text
+
+
+def test_report_repeatability_shows_the_per_window_bound(tmp_path):
+    """With a dataset the repeatability table carries each window's posterior Cramer-Rao bound
+    (RMS over windows), the same numbers posterior_crb gives; without IMU data it says '–'."""
+    sim = pytest.importorskip("uwbimu.sim")
+    from uwbimu.observability.window import posterior_crb
+
+    ds = sim.simulate(sim.builtin_scenario("calibration-flight").model_copy(update={"duration": 30.0}))
+    out = make_output(tmp_path / "out")
+    text = render_report(out, dataset=ds)
+    row = re.search(r"lx \[cm\]</td>(.*?)</tr>", text, flags=re.S)
+    assert row is not None
+    cells = re.findall(r"<td[^>]*>(.*?)</td>", row.group(1))
+    wins = json.loads((out / "repeatability.json").read_text())["windows"]
+    expect = np.sqrt(np.mean([posterior_crb(ds, t_start=w["t0"], t_end=w["t1"])[0][15, 15] for w in wins]))
+    assert float(cells[4]) == pytest.approx(100 * expect, abs=0.006)
+    # no IMU in the dataset: no bound, a warning, no failure
+    bare = Dataset(imu=pd.DataFrame(), uwb=pd.DataFrame(), anchors=ds.anchors, groundtruth=ds.groundtruth, meta=ds.meta)
+    text = render_report(out, dataset=bare)
+    assert "no per-window Cramér-Rao bound" in text

@@ -8,70 +8,54 @@ from typing import Optional
 
 import typer
 
-GYRO_UNITS = {"rad": "rad/s", "rad/s": "rad/s", "deg": "deg/s", "deg/s": "deg/s"}
-ACCEL_UNITS = {"m/s2": "m/s^2", "m/s^2": "m/s^2", "ms2": "m/s^2", "si": "m/s^2", "g": "g"}
+from uwbimu.cli.dataset_options import ACCEL_UNITS, GYRO_UNITS, with_load_options  # noqa: F401 (re-export)
 
 
 def register(app: typer.Typer) -> None:
     @app.command("check")
+    @with_load_options
     def check(
         dataset: Path = typer.Argument(..., help="Dataset folder (imu, uwb, anchors[, groundtruth] .csv/.parquet)."),
-        drop_duplicates: bool = typer.Option(False, "--drop-duplicates",
-                                             help="Drop rows that exactly repeat an earlier row (counted)."),
-        sort: bool = typer.Option(False, "--sort", help="Sort rows by time when out of order (counted)."),
-        gyro_units: str = typer.Option("rad", "--gyro-units", help="Unit of wx,wy,wz in the file: rad | deg."),
-        accel_units: str = typer.Option("m/s2", "--accel-units", help="Unit of ax,ay,az in the file: m/s2 | g."),
-        no_unit_check: bool = typer.Option(False, "--no-unit-check",
-                                           help="Skip the deg/s and g plausibility checks."),
         move_threshold: float = typer.Option(0.3, "--move-threshold",
                                              help="Flag anchors whose refitted position moves more than this, in m."),
         strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when an anchor is flagged."),
         csv: Optional[Path] = typer.Option(None, "--csv", help="Also write the per-anchor residual table here."),
-        force: bool = typer.Option(False, "--force", help="Replace an existing --csv file."),
+        fix: Optional[Path] = typer.Option(None, "--fix", help="Write a repaired copy of the dataset (the repairs "
+                                           "asked for with --sort, --drop-duplicates, units, ...) to this folder."),
+        force: bool = typer.Option(False, "--force", help="Replace an existing --csv file / --fix folder."),
+        load_options=None,
     ) -> None:
         """Validate a dataset (refusing bad input) and print rates, gaps, anchors and range residuals."""
         from rich.console import Console
 
-        from uwbimu.io.check import CheckOptions, check_dataset
-        from uwbimu.io.loader import DatasetError, LoadOptions, load_dataset
-
-        console = Console()
-        if gyro_units.lower() not in GYRO_UNITS:
-            console.print(f"[red]error:[/red] --gyro-units must be rad or deg, got {gyro_units!r}")
-            raise typer.Exit(code=2)
-        if accel_units.lower() not in ACCEL_UNITS:
-            console.print(f"[red]error:[/red] --accel-units must be m/s2 or g, got {accel_units!r}")
-            raise typer.Exit(code=2)
-        opts = LoadOptions(drop_duplicate_rows=drop_duplicates, sort=sort,
-                           gyro_units=GYRO_UNITS[gyro_units.lower()], accel_units=ACCEL_UNITS[accel_units.lower()],
-                           check_units=not no_unit_check)
-        import warnings
-
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-        if csv is not None and csv.exists():
+        from uwbimu.cli.dataset_options import load
+        from uwbimu.errors import CheckFlagged, UsageError
+        from uwbimu.io.atomic import check_output_target, output_folder, write_csv
+        from uwbimu.io.check import CheckOptions, check_dataset
+        from uwbimu.io.dataset import write_dataset
+        from uwbimu.io.loader import DatasetError
+
+        console = Console()
+        protect = [dataset]
+        if csv is not None:
             # Never overwrite a user's file by accident, and never a dataset's own input.
-            inside = csv.resolve().parent == (dataset if dataset.is_dir() else dataset.parent).resolve()
-            if inside or not force:
-                why = "it is inside the dataset folder" if inside else "use --force to replace it"
-                console.print(f"[red]error:[/red] --csv {csv} exists; {why}")
-                raise typer.Exit(code=2)
+            check_output_target(csv.parent if str(csv.parent) else Path("."), [csv.name], force, protect)
+        if fix is not None:
+            check_output_target(fix, force=force, protect=protect, replace=True)
         try:
             chk = CheckOptions(move_threshold=move_threshold)
         except ValueError:
-            console.print(f"[red]error:[/red] --move-threshold must be > 0 m, got {move_threshold!r}")
-            raise typer.Exit(code=2)
+            raise UsageError(f"--move-threshold must be > 0 m, got {move_threshold!r}") from None
         with Progress(TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(),
                       console=console, transient=True) as bar:
             task = bar.add_task(f"loading {dataset}", total=1.0)
             try:
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore")  # repairs are printed from the report below
-                    ds = load_dataset(dataset, opts)
-            except DatasetError as exc:
+                ds = load(dataset, load_options)
+            except DatasetError:
                 bar.stop()
-                console.print(f"[red]refused:[/red] {exc}", soft_wrap=True)
-                raise typer.Exit(code=1)
+                raise
 
             def progress(stage: str, frac: float) -> None:
                 # Loading is the first 30 % of the bar, the diagnostics the rest.
@@ -81,12 +65,26 @@ def register(app: typer.Typer) -> None:
             result = check_dataset(ds, chk, progress=progress)
         print_check(console, ds, result)
         if csv is not None and result.residual_table is not None:
-            from uwbimu.io.atomic import write_csv
-
-            write_csv(csv, result.residual_table.reset_index())
+            with output_folder(csv.parent if str(csv.parent) else Path("."), force, protect, names=[csv.name],
+                               finite=False) as tmp:
+                write_csv(tmp / csv.name, result.residual_table.reset_index())
             console.print(f"wrote {csv}")
+        if fix is not None:
+            with output_folder(fix, force, protect, replace=True, finite=False) as tmp:
+                write_dataset(ds, tmp, overwrite=True, fmt=_table_format(ds))
+            rep = ds.report
+            console.print(f"wrote the repaired copy {fix} ({len(rep.actions)} repair(s))" if rep.actions
+                          else f"wrote {fix} (an unchanged copy: no repair was asked for or needed)")
+            for a in rep.actions:
+                console.print(f"  repaired: {a}", soft_wrap=True)
         if strict and result.flags:
-            raise typer.Exit(code=3)
+            raise CheckFlagged(f"{len(result.flags)} anchor(s) flagged: "
+                               + ", ".join(sorted({f.anchor for f in result.flags})))
+
+
+def _table_format(ds) -> str:
+    files = getattr(ds.report, "files", {}) if ds.report is not None else {}
+    return "parquet" if files.get("imu", "").endswith(".parquet") else "csv"
 
 
 def _f(x, fmt: str = ".3f") -> str:
@@ -111,6 +109,8 @@ def print_check(console, ds, result) -> None:
             console.print(f"[yellow]repair:[/yellow] {a}")
         for n in rep.notes:
             console.print(f"note: {n}")
+        for w in rep.warnings:
+            console.print(f"[yellow]warning ({w['code']}):[/yellow] {w['file']}: {w['message']}", soft_wrap=True)
 
     # Numbers are never cut short ("-0.0…"): min_width keeps a column as wide
     # as its numbers, headers wrap instead, ids fold, and collapsed padding

@@ -10,7 +10,6 @@ report.  Everything lands in one output folder.
 
 from __future__ import annotations
 
-import shutil
 import time
 from pathlib import Path
 
@@ -24,17 +23,17 @@ from rich.table import Table
 DEMO_MARKER = ".uwbimu-demo"
 
 
-def _prepare_out(out: Path, force: bool) -> None:
-    if out.exists() and any(out.iterdir()):
-        if not (out / DEMO_MARKER).exists() and not force:
-            raise typer.BadParameter(
-                f"{out} exists, is not empty and was not written by `uwbimu demo`; "
-                "choose another --out or pass --force",
-                param_hint="--out",
-            )
-        shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / DEMO_MARKER).write_text("written by uwbimu demo; the folder is replaced on the next run\n")
+def _check_out(out: Path, force: bool) -> None:
+    """Refuse a non-empty --out that the demo did not write (unless --force), before any work."""
+    from uwbimu.errors import OutputError
+    from uwbimu.io.atomic import check_output_target
+
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out} is a file, not a folder", hint="choose another --out")
+    if out.is_dir() and any(out.iterdir()) and not (out / DEMO_MARKER).exists() and not force:
+        raise OutputError(f"{out} exists, is not empty and was not written by `uwbimu demo`",
+                          hint="choose another --out or pass --force")
+    check_output_target(out, force=True, replace=True)
 
 
 def _summary_table(ds, seconds: float) -> Table:
@@ -101,7 +100,25 @@ def _truth_comparison(result, ds) -> Table:
 
 
 def run_demo(out: Path, console: Console, force: bool = False, duration: float | None = None) -> dict:
-    """Run the whole demo into ``out``; returns the key figures (for tests)."""
+    """Run the whole demo into ``out``; returns the key figures (for tests).
+
+    Everything is written into a temporary folder that replaces ``out`` at the end (the
+    output rule): an interrupted demo leaves the previous ``out`` as it was.
+    """
+    from uwbimu.cli.estimate import NAN_DOCUMENTED
+    from uwbimu.io.atomic import output_folder
+
+    _check_out(out, force)
+    with output_folder(out, force=True, replace=True,
+                       finite=NAN_DOCUMENTED + ("observability.csv", "repeatability.json")) as work:
+        (work / DEMO_MARKER).write_text("written by uwbimu demo; the folder is replaced on the next run\n")
+        figures = _run_demo_into(work, console, duration)
+    figures["report"] = str(out / Path(figures["report"]).relative_to(work))
+    console.print(f"[bold green]report:[/bold green] {figures['report']}")
+    return figures
+
+
+def _run_demo_into(out: Path, console: Console, duration: float | None) -> dict:
     from uwbimu.cli.check import print_check
     from uwbimu.cli.estimate import run_with_progress
     from uwbimu.estimation import EskfOptions, compute_metrics, write_outputs
@@ -118,7 +135,6 @@ def run_demo(out: Path, console: Console, force: bool = False, duration: float |
     from uwbimu.observability.window import WindowOptions, trajectory_from_result, window_observability
     from uwbimu.sim import builtin_scenario, simulate
 
-    _prepare_out(out, force)
     figures: dict = {}
 
     # 1. simulate the default calibration flight and write it as a dataset
@@ -179,7 +195,6 @@ def run_demo(out: Path, console: Console, force: bool = False, duration: float |
     # 7. the report
     report = write_report(est_dir, dataset=ds)
     figures["report"] = str(report)
-    console.print(f"[bold green]report:[/bold green] {report}")
     return figures
 
 

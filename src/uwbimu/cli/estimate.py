@@ -8,6 +8,8 @@ from typing import Optional
 import numpy as np
 import typer
 from rich.console import Console
+
+from uwbimu.cli.dataset_options import with_load_options
 from rich.table import Table
 
 #: Files ``uwbimu estimate`` writes; an output folder holding anything else is refused without --force.
@@ -15,6 +17,9 @@ OUTPUT_FILES = {
     "trajectory.csv", "states.csv", "calibration.yaml", "residuals.csv", "events.yaml", "residual_table.csv", "run.json",
     "metrics.yaml", "trajectory.png", "position_error.png", "calibration.png", "nis.png",
 }
+#: Outputs whose NaN cells are documented (residuals of rejected/unpredicted ranges, metrics "n/a",
+#: sd of states an estimator does not estimate); trajectory.csv and calibration.yaml must be finite.
+NAN_DOCUMENTED = ("residuals.csv", "residual_table.csv", "metrics.yaml", "states.csv", "events.yaml")
 
 
 def calibration_table(result, dataset=None, title: str = "Calibration (value ± 1σ)") -> Table:
@@ -73,61 +78,36 @@ def run_with_progress(dataset, options, console: Console):
 
 def register(app: typer.Typer) -> None:
     @app.command("estimate")
+    @with_load_options
     def estimate_cmd(
         dataset: Path = typer.Argument(..., help="dataset folder (imu.csv, uwb.csv, anchors.csv [, groundtruth.csv])"),
         out: Path = typer.Option(..., "--out", "-o", help="output folder"),
         config: Optional[Path] = typer.Option(None, "--config", "-c", help="estimator options YAML (see examples/estimator.yaml)"),
-        preset: Optional[str] = typer.Option(
-            None, "--preset", help="shipped estimator preset: default, real, isas-walk (--config keys override it)"),
+        preset: Optional[str] = typer.Option(None, "--preset", help="shipped estimator options: default, real, isas-walk"),
         plots: bool = typer.Option(True, "--plots/--no-plots", help="PNG plots when ground truth exists"),
-        force: bool = typer.Option(False, "--force", help="write into a folder that holds other files"),
+        force: bool = typer.Option(False, "--force", help="write over files uwbimu did not write in the output folder"),
         estimator: str = typer.Option(
             "eskf", "--estimator", help="eskf (19-state ESKF) or pointmass (seed 002's 6-state EKF)"
         ),
+        clock_faults: bool = typer.Option(True, "--clock-faults/--no-clock-faults",
+                                          help="detect UWB clock jumps/drift from the innovations and re-run with "
+                                               "the jumps corrected"),
+        load_options=None,
     ) -> None:
         """Estimate trajectory, lever arm and time offset with the UWB-IMU error-state EKF."""
+        from uwbimu.cli.dataset_options import apply_dataset_properties, estimator_options, load, print_load_warnings
         from uwbimu.estimation import InitialisationError, write_outputs
-        from uwbimu.io.loader import DatasetError, load_dataset
+        from uwbimu.errors import EstimationError, UsageError
+        from uwbimu.io.atomic import check_output_target, output_folder
 
         console = Console()
-        err = Console(stderr=True)
         if estimator not in ("eskf", "pointmass"):
-            err.print(f"[red]error:[/] --estimator must be 'eskf' or 'pointmass', got {estimator!r}")
-            raise typer.Exit(code=2)
-        if preset is not None and estimator != "eskf":
-            err.print("[red]error:[/] --preset applies to --estimator eskf only")
-            raise typer.Exit(code=2)
-        try:
-            if estimator == "pointmass":
-                import yaml
-
-                from uwbimu.estimation.pointmass import PointMassOptions
-
-                opts = (PointMassOptions.model_validate(yaml.safe_load(config.read_text()) or {})
-                        if config is not None else PointMassOptions())
-            else:
-                from uwbimu.estimation.presets import load_options
-
-                opts = load_options(preset, config)
-        except (OSError, ValueError) as exc:
-            err.print(f"[red]error:[/] {exc}")
-            raise typer.Exit(code=2)
-        if out.exists() and not out.is_dir():
-            err.print(f"[red]error:[/] {out} is a file, not a folder")
-            raise typer.Exit(code=2)
-        if out.resolve() == dataset.resolve():
-            err.print("[red]refusing:[/] --out is the dataset folder; the input is never overwritten")
-            raise typer.Exit(code=1)
-        if out.exists() and not force:
-            other = sorted(p.name for p in out.iterdir() if p.name not in OUTPUT_FILES and not p.name.startswith("."))
-            if other:
-                err.print(f"[red]refusing:[/] {out} holds other files ({', '.join(other[:5])}); use --force or another folder")
-                raise typer.Exit(code=1)
-        try:
-            ds = load_dataset(dataset)
-        except (DatasetError, FileNotFoundError, NotADirectoryError) as exc:
-            err.print(f"[red]invalid dataset:[/] {exc}")
-            raise typer.Exit(code=1)
+            raise UsageError(f"--estimator must be 'eskf' or 'pointmass', got {estimator!r}")
+        opts = estimator_options(estimator, config, preset)
+        check_output_target(out, sorted(OUTPUT_FILES), force, protect=[dataset])
+        ds = load(dataset, load_options)
+        print_load_warnings(console, ds)
+        opts = apply_dataset_properties(opts, ds, console)
         try:
             if estimator == "pointmass":
                 from uwbimu.estimation.pointmass import run_pointmass
@@ -136,10 +116,15 @@ def register(app: typer.Typer) -> None:
                     res = run_pointmass(ds, opts)
             else:
                 res = run_with_progress(ds, opts, console)
+                if clock_faults:
+                    from uwbimu.eval.clock_faults import handle_clock_faults
+
+                    res, ds = handle_clock_faults(res, ds, lambda d: run_with_progress(d, opts, console), console)
         except (InitialisationError, ValueError) as exc:
-            err.print(f"[red]estimation failed:[/] {exc}")
-            raise typer.Exit(code=1)
-        written = write_outputs(res, ds, out, plots=plots)
+            raise EstimationError(str(exc)) from None
+        with output_folder(out, force, protect=[dataset], names=sorted(OUTPUT_FILES),
+                           finite=NAN_DOCUMENTED) as tmp:
+            written = write_outputs(res, ds, tmp, plots=plots)
         console.print(residual_rich_table(written["residual_table"]))
         console.print(calibration_table(res, ds))
         m = written["metrics"]

@@ -8,6 +8,10 @@ from typing import Optional
 import typer
 
 
+#: Files ``uwbimu evaluate`` writes into the estimator output folder.
+EVALUATION_FILES = ("evaluation.json", "evaluation_errors.csv", "evaluation_trajectory.png", "evaluation_errors.png")
+
+
 def _parse_distances(text: str) -> list[float]:
     try:
         vals = [float(x) for x in text.split(",") if x.strip()]
@@ -32,6 +36,7 @@ def register(app: typer.Typer) -> None:
             None, "--attitude/--no-attitude",
             help="Compare attitudes (default: yes, unless the dataset.yaml next to the ground truth marks its body "
                  "frame as not the IMU frame, as ISAS-Walk's)."),
+        force: bool = typer.Option(False, "--force", help="Replace evaluation files in OUT that uwbimu did not write."),
     ) -> None:
         """Score OUT/trajectory.csv against ground truth (ATE after alignment, RPE); writes OUT/evaluation.json."""
         from rich.console import Console
@@ -40,17 +45,26 @@ def register(app: typer.Typer) -> None:
         from uwbimu.eval.evaluate import evaluate_output
         from uwbimu.eval.files import EvalInputError
 
+        from uwbimu.errors import InputError, UsageError
+        from uwbimu.io.atomic import check_output_target, output_folder
+
         console = Console()
         if align not in ALIGN_MODES:
-            console.print(f"[red]error:[/red] --align must be one of {', '.join(ALIGN_MODES)}, got {align!r}")
-            raise typer.Exit(code=2)
+            raise UsageError(f"--align must be one of {', '.join(ALIGN_MODES)}, got {align!r}")
         dist = _parse_distances(distances)
+        names = list(EVALUATION_FILES)
+        gt_folder = groundtruth  # a file is protected itself, a dataset folder as a whole
+        check_output_target(out, names, force, protect=[gt_folder])
         try:
-            s = evaluate_output(out, groundtruth, align=align, distances=dist, max_gap=max_gap,
-                                skip_initial=skip_initial, plots=not no_plots, compare_attitude=attitude)
+            # Scores of empty sets are NaN by design (n/a); the finiteness rule guards estimates.
+            with output_folder(out, force, protect=[gt_folder], names=names, finite=False) as tmp:
+                s = evaluate_output(tmp, groundtruth, align=align, distances=dist, max_gap=max_gap,
+                                    skip_initial=skip_initial, plots=not no_plots, compare_attitude=attitude,
+                                    trajectory=out / "trajectory.csv")
         except (EvalInputError, ValueError) as exc:
-            console.print(f"[red]error:[/red] {exc}", soft_wrap=True)
-            raise typer.Exit(code=1)
+            if isinstance(exc, (InputError, UsageError)):
+                raise
+            raise InputError(str(exc)) from None
         print_summary(console, s)
         console.print(f"wrote {out / 'evaluation.json'}")
 

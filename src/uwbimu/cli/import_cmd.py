@@ -30,8 +30,12 @@ import_app = typer.Typer(
 FORCE_HELP = "Replace DST if it exists and is not empty."
 
 
-def run_import(do_import: Callable[..., object], with_progress: bool = False) -> None:
+def run_import(do_import: Callable[..., object], with_progress: bool = False, dst: Optional[Path] = None,
+               src: Optional[Path] = None, force: bool = False) -> None:
     """Run an importer call, print what it changed and where it wrote; exit 1 on a refusal.
+
+    With ``dst`` (and ``src``, ``force``) the destination is checked before any work
+    (writable, not the source, not a non-empty folder unless ``force``).
 
     ``do_import`` returns an :class:`uwbimu.io.importers.ImportResult`.  With
     ``with_progress`` it is called as ``do_import(progress)`` where
@@ -41,9 +45,12 @@ def run_import(do_import: Callable[..., object], with_progress: bool = False) ->
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from uwbimu.io.loader import DatasetError
+    from uwbimu.errors import OutputError
+    from uwbimu.io.atomic import check_output_target
 
     console = Console()
+    if dst is not None:
+        check_output_target(dst, force=force, protect=[src] if src is not None else [], replace=True)
     try:
         if with_progress:
             with Progress(TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(),
@@ -54,9 +61,8 @@ def run_import(do_import: Callable[..., object], with_progress: bool = False) ->
         else:
             with console.status("converting..."):
                 result = do_import()
-    except (DatasetError, FileExistsError, ValueError) as exc:
-        console.print(f"[red]error:[/red] {exc}", soft_wrap=True)
-        raise typer.Exit(code=1)
+    except FileExistsError as exc:
+        raise OutputError(str(exc), hint="use --force or another destination") from None
     ds = result.dataset
     for c in result.changes:
         console.print(f"[yellow]changed:[/yellow] {c}", soft_wrap=True)
@@ -80,7 +86,7 @@ def _register_inrol(app: typer.Typer) -> None:
         from uwbimu.io.importers import inrol as imp
 
         run_import(lambda progress: imp.import_dataset(src, dst, force=force, name=name, progress=progress),
-                   with_progress=True)
+                   with_progress=True, dst=dst, src=src, force=force)
 
 
 def _register_isas_walk(app: typer.Typer) -> None:
@@ -95,7 +101,8 @@ def _register_isas_walk(app: typer.Typer) -> None:
         """Convert an ISAS-Walk (SFUISE) sequence: fresh ranges only, documented anchor offsets as known biases."""
         from uwbimu.io.importers import isas_walk as imp
 
-        run_import(lambda: imp.import_dataset(src, dst, force=force, with_groundtruth=not no_groundtruth))
+        run_import(lambda: imp.import_dataset(src, dst, force=force, with_groundtruth=not no_groundtruth),
+                   dst=dst, src=src, force=force)
 
 
 def _register_rosbag(app: typer.Typer) -> None:
@@ -109,13 +116,19 @@ def _register_rosbag(app: typer.Typer) -> None:
         """Convert a ROS 1 or ROS 2 bag (sensor_msgs/Imu + a configurable range message) with a mapping YAML."""
         from uwbimu.io.importers import rosbag as imp
 
-        run_import(lambda: imp.import_dataset(bag, dst, topics, force=force))
+        run_import(lambda: imp.import_dataset(bag, dst, topics, force=force), dst=dst, src=bag, force=force)
 
 
 # One line per importer.
 _register_inrol(import_app)
 _register_isas_walk(import_app)
 _register_rosbag(import_app)
+# TDoA importers (owner: tdoa helper; the commands live with the importers to keep this hook small).
+from uwbimu.io.importers.util import register_cli as _register_util  # noqa: E402
+from uwbimu.io.importers.cf_usdlog import register_cli as _register_cf_usdlog  # noqa: E402
+
+_register_util(import_app)
+_register_cf_usdlog(import_app)
 
 
 def register(app: typer.Typer) -> None:

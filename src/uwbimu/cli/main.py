@@ -7,6 +7,10 @@ lists them, so ``uwbimu --help`` shows every verb with a one-line summary.
 
 from __future__ import annotations
 
+import functools
+import os
+import sys
+
 import typer
 
 app = typer.Typer(
@@ -37,6 +41,66 @@ from uwbimu.cli import observability as _observability; _observability.register(
 from uwbimu.cli import estimate as _estimate; _estimate.register(app)  # noqa: E402,E702
 from uwbimu.cli import montecarlo as _montecarlo; _montecarlo.register(app)  # noqa: E402,E702
 from uwbimu.cli import place as _place; _place.register(app)  # noqa: E402,E702
+
+
+#: Set to 1 to let unexpected exceptions show their traceback (for bug reports).
+TRACEBACK_ENV = "UWBIMU_TRACEBACK"
+#: Exit code of an unexpected internal error (a bug: please report it).
+INTERNAL_ERROR_EXIT = 70
+
+
+def report_error(exc: BaseException) -> int:
+    """Print an error as one line on stderr (plus a hint line) and return its exit code."""
+    from uwbimu.errors import UwbimuError
+
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    if isinstance(exc, UwbimuError):
+        label = {1: "refused", 2: "usage error", 3: "flagged", 4: "output refused", 5: "estimation failed"}
+        print(f"uwbimu: {label.get(exc.exit_code, 'error')}: {text}", file=sys.stderr)
+        if exc.hint:
+            print(f"hint: {exc.hint}", file=sys.stderr)
+        return exc.exit_code
+    if isinstance(exc, PermissionError):
+        print(f"uwbimu: output refused: {text}", file=sys.stderr)
+        print("hint: choose a writable output folder", file=sys.stderr)
+        return 4
+    print(f"uwbimu: internal error ({type(exc).__name__}): {text}", file=sys.stderr)
+    print(f"hint: this is a bug; rerun with {TRACEBACK_ENV}=1 and report the traceback", file=sys.stderr)
+    return INTERNAL_ERROR_EXIT
+
+
+def guarded(func):
+    """Wrap a verb so that every error ends as one stderr line and its exit code, never a traceback."""
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        try:
+            return func(*args, **kwargs)
+        except (typer.Exit, typer.Abort, SystemExit, KeyboardInterrupt):
+            raise
+        except Exception as exc:  # noqa: BLE001 - the one place that turns errors into exit codes
+            import click
+
+            if isinstance(exc, click.exceptions.ClickException):
+                raise
+            if os.environ.get(TRACEBACK_ENV) == "1":
+                raise
+            raise typer.Exit(code=report_error(exc)) from None
+
+    wrapper._uwbimu_guarded = True
+    return wrapper
+
+
+def _guard_all(typer_app: typer.Typer) -> None:
+    for cmd in typer_app.registered_commands:
+        if cmd.callback is not None and not getattr(cmd.callback, "_uwbimu_guarded", False):
+            cmd.callback = guarded(cmd.callback)
+    for group in typer_app.registered_groups:
+        if group.typer_instance is not None:
+            _guard_all(group.typer_instance)
+
+
+_guard_all(app)
 
 
 def main() -> None:  # pragma: no cover - entry point

@@ -18,19 +18,56 @@ def _fmt(cell: dict, key: str, stat: str = "median", scale: float = 1.0, digits:
     return f"{v[stat] * scale:.{digits}f}"
 
 
+def _ms(cell: dict, key: str, scale: float, digits: int = 1) -> str:
+    v = cell.get(key)
+    return "-" if v is None else f"{v * scale:.{digits}f}"
+
+
 def summary_table(summary: dict) -> Table:
+    """Every estimated quantity per cell: RMS over runs of position RMSE per axis, of the lever-arm
+    error per axis and of the time-offset error; runs that diverged and the fewest runs alive."""
     table = Table(title=f"{summary['name']}: {summary['runs_per_scenario']} runs per scenario")
-    for col in ("scenario", "estimator", "ok/runs", "RMSE x [m]", "RMSE y [m]", "RMSE z [m]", "NEES pos",
-                "lever err [mm]", "t_d err [ms]", "est. [s/run]"):
+    for col in ("scenario", "estimator", "ok/runs", "diverged", "RMSE x [m]", "RMSE y [m]", "RMSE z [m]", "NEES pos",
+                "lever x/y/z RMS [mm]", "t_d RMS [ms]", "est. [s/run]"):
         table.add_column(escape(col), justify="left" if col in ("scenario", "estimator") else "right",
                          no_wrap=col in ("scenario", "estimator", "ok/runs"))
     for c in summary["cells"]:
         table.add_row(
             c["scenario"], c["estimator"],
             f"{c['runs'] - c['failed']}/{c['runs']}" + (f" ({c['runs_truncated']} cut)" if c.get("runs_truncated") else ""),
+            str(c.get("runs_diverged", 0)),
             *(f"{c[f'rmse_{a}_all_runs']:.3f}" if c.get(f"rmse_{a}_all_runs") is not None else "-" for a in "xyz"),
-            _fmt(c, "nees_pos_mean", "mean", digits=2), _fmt(c, "lever_arm_err", "median", 1e3, 1),
-            _fmt(c, "time_offset_err", "median", 1e3, 1), _fmt(c, "est_s", "mean", digits=2),
+            _fmt(c, "nees_pos_mean", "mean", digits=2),
+            "/".join(_ms(c, f"lever_arm_err_{a}_rms_all_runs", 1e3) for a in "xyz"),
+            _ms(c, "time_offset_err_rms_all_runs", 1e3, 2), _fmt(c, "est_s", "mean", digits=2),
+        )
+    return table
+
+
+def crlb_table(summary: dict) -> Optional[Table]:
+    """Cells against their posterior Cramer-Rao bound (None when the study has no bounds)."""
+    cells = [c for c in summary["cells"] if c.get("crlb")]
+    if not cells:
+        return None
+    table = Table(title="against the posterior Cramer-Rao bound (ratio = RMS over runs / bound ± its standard "
+                        "error from the spread over runs)")
+    for col in ("scenario", "estimator", "inside hull", "RMSE 3-D / bound [m]", "ratio", "lever x/y/z bound [mm]",
+                "lever ratio x y z", "t_d bound [ms]", "t_d ratio"):
+        table.add_column(escape(col), justify="left" if col in ("scenario", "estimator") else "right")
+    for c in cells:
+        b, r = c["crlb"], c.get("ratio_to_crlb", {})
+        se = c.get("ratio_to_crlb_se", {})
+
+        def ratio(k: str) -> str:
+            return f"{r[k]:.2f}±{se[k]:.2f}" if k in r and k in se else (f"{r[k]:.2f}" if k in r else "-")
+
+        rm3 = c.get("rmse_3d_all_runs")
+        table.add_row(
+            c["scenario"], c["estimator"], f"{100 * b['inside_hull_fraction']:.0f}%",
+            f"{rm3:.4f} / {b['rmse_3d']:.4f}" if rm3 is not None else f"- / {b['rmse_3d']:.4f}", ratio("rmse_3d"),
+            "/".join(f"{1e3 * b[f'lever_arm_sd_{a}']:.1f}" for a in "xyz"),
+            " ".join(ratio(f"lever_arm_err_{a}") for a in "xyz"),
+            f"{1e3 * b['time_offset_sd']:.2f}", ratio("time_offset_err"),
         )
     return table
 
@@ -90,6 +127,9 @@ def register(app: typer.Typer) -> None:
             err.print(f"[red]error:[/] {exc}")
             raise typer.Exit(code=1) from None
         console.print(summary_table(summary))
+        ct = crlb_table(summary)
+        if ct is not None:
+            console.print(ct)
         ex = summary["execution"]
         console.print(
             f"{ex['backend']} x{ex['workers']}, chunks of {ex['chunk_size']} runs, "

@@ -8,6 +8,8 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+
+from uwbimu.cli.dataset_options import with_load_options
 from rich.console import Console
 from rich.table import Table
 
@@ -60,8 +62,11 @@ def structural(
     except ConfigError as e:
         _fail(console, str(e))
     if as_json:
-        keys = ["rank", "dimension", "observable", "lie_order", "singular_values", "unobservable_directions", "conditions"]
-        extra = ["name", "model", "tolerance", "gap_decades", "raw_rank", "raw_dimension", "words", "rows", "state_names", "excitation", "n_points"]
+        keys = ["rank", "dimension", "observable", "verdict", "lie_order", "singular_values", "unobservable_directions", "conditions"]
+        extra = ["name", "model", "measurement", "search_verdict", "search_rank", "lie_order_setting", "order_search", "stop_reason",
+                 "cross_check", "null_dimension_at_order", "removed_by_higher_orders", "tolerance", "cut",
+                 "gap_decades", "margin_decades", "scale", "raw_rank", "raw_dimension", "words", "rows",
+                 "state_names", "excitation", "n_points"]  # fmt: skip
         typer.echo(json.dumps(_jsonable({k: v[k] for k in keys + extra}), indent=2))
         return
     print_structural(console, v)
@@ -69,23 +74,49 @@ def structural(
 
 def print_structural(console: Console, v: dict) -> None:
     """Rich rendering of a :func:`structural_verdict` result."""
-    ok = "[green]observable[/green]" if v["observable"] else "[yellow]NOT observable[/yellow]"
+    ok = "[green]observable[/green]" if v["observable"] else f"[yellow]{v['verdict']}[/yellow]"
+    order = f"Lie order {v['lie_order']}" + (" (auto)" if v["lie_order_setting"] == "auto" else "")
     console.print(
-        f"[bold]{v['name']}[/bold] ({v['model']}, Lie order {v['lie_order']}, {v['n_points']} point(s)): {ok} - "
+        f"[bold]{v['name']}[/bold] ({v['model']}{', TDoA' if v.get('measurement') == 'tdoa' else ''}, {order}, "
+        f"{v['n_points']} point(s)): {ok} - "
         f"rank {v['rank']} / {v['dimension']} tangent dims"
         + (
             f" (quaternion as 4-vector: {v['raw_rank']} / {v['raw_dimension']})"
             if v["raw_rank"] is not None and v["model"] == "uwb_imu"
             else ""
         )
-        + "; "
-        f"gap {v['gap_decades']:.1f} decades at tol {v['tolerance']:g}"
     )
+    tol = "rounding-noise floor" if v["tolerance"] is None else f"relative tol {v['tolerance']:g}"
+    margin = v["margin_decades"]
+    console.print(
+        f"evidence: gap {v['gap_decades']:.1f} decades; weakest kept singular value "
+        f"{'n/a' if margin is None else f'{margin:.1f} decades'} above the cut ({tol}); states scaled by "
+        f"L = {v['scale']['length_m']:.3g} m, T = {v['scale']['time_s']:g} s; order search "
+        + ", ".join(f"{h['order']}:{h['rank']}" for h in v["order_search"])
+        + f" ({v['stop_reason']})"
+    )
+    if margin is not None and margin < 3:
+        console.print(
+            "note: the weakest direction is less than 3 decades above the cut: the point is nearly degenerate "
+            "(observable in theory, practically weak); see `uwbimu observability log` for the bound on a real log."
+        )
+    cc = v.get("cross_check")
+    if cc is not None:
+        console.print(
+            f"trajectory test ({cc['horizon_s']:g} s, generic inputs): rank {cc['rank']} (gap {cc['gap_decades']:.1f} decades)"
+            + ("" if cc["agree"] else " - higher than the Lie rank at the last order; the verdict uses it")
+        )
+    if v["lie_order_setting"] != "auto" and not v["observable"]:
+        console.print(
+            f"note: explicit Lie order {v['lie_order']}: the automatic search finds rank {v['search_rank']} / "
+            f"{v['dimension']} ({v['search_verdict']}); {v['removed_by_higher_orders']} of the order-{v['lie_order']} "
+            "null directions are removed by higher orders and not named."
+        )
     t = Table(title="seed conditions (sufficient)")
     t.add_column("condition")
     t.add_column("holds")
     for k, c in v["conditions"].items():
-        t.add_row(k, "yes" if c else "no")
+        t.add_row(k, ("yes" if c else "no") if isinstance(c, bool) else str(c))
     console.print(t)
     if v["unobservable_directions"]:
         t = Table(title="unobservable directions (weakest point)")
@@ -111,7 +142,8 @@ def delay(
     except (ConfigError, ValueError) as e:
         _fail(console, str(e))
     if as_json:
-        keys = ["identifiable", "conditions", "theorem1", "numeric", "basis", "agree", "n_points", "name"]
+        keys = ["identifiable", "conditions", "theorem1", "numeric", "first_order", "explanation", "basis", "agree",
+                "n_points", "name", "measurement"]  # fmt: skip
         typer.echo(json.dumps(_jsonable({k: v[k] for k in keys}), indent=2))
         return
     ok = "[green]identifiable[/green]" if v["identifiable"] else "[yellow]NOT identifiable[/yellow]"
@@ -129,6 +161,15 @@ def delay(
     for k, s in v["numeric"]["sensitivity"].items():
         t.add_row(k, f"{s:.3e}")
     console.print(t)
+    num = v["numeric"]
+    power = "" if num["td_power"] is None else f", growing like t_d^{num['td_power']:g}"
+    console.print(
+        f"numeric check: the largest sensitivity over t_d in {num['probe_time_offsets']} s is "
+        f"{num['probe_over_noise']:.3g} x the rounding noise of the range ({num['tolerance']:.2e} m per unit input)"
+        f"{power}: the verdict does not depend on the configured t_d"
+    )
+    if v["explanation"]:
+        console.print(f"note: {v['explanation']}.")
     if v["identifiable"] and not v["theorem1"]:
         # identifiable only through an effect the seed's first-order argument drops:
         # say how large it is so that nobody mistakes "identifiable" for "well determined"
@@ -141,20 +182,26 @@ def delay(
 
 
 @obs_app.command("log")
+@with_load_options
 def log(
     dataset: Path = typer.Argument(..., help="dataset folder"),
     window: float = typer.Option(20.0, "--window", help="window length (s)"),
     out: Path = typer.Option(..., "--out", "-o", help="output folder (observability.csv, observability.png)"),
     range_sigma: Optional[float] = typer.Option(None, "--range-sigma", help="range sd (m) (default: dataset meta, else 0.1)"),
     no_imu_noise: bool = typer.Option(False, "--no-imu-noise", help="ignore IMU noise (noise-free IMU)"),
-    lever_sd: float = typer.Option(0.1, "--lever-sd-threshold", help="lever arm counts as excited below this CRLB (m)"),
-    td_sd: float = typer.Option(0.03, "--td-sd-threshold", help="time offset counts as excited below this CRLB (s)"),
+    bound: str = typer.Option("pcrb", "--bound", help="pcrb (posterior CRB from the window-start prior, IMU noise as "
+                              "process noise) or gramian (former approximate Gramian, no prior)"),
+    excited_ratio: float = typer.Option(0.5, "--excited-sd-ratio", help="excited when the window brings the bound to "
+                                        "at most this fraction of the prior sd"),
+    lever_sd: Optional[float] = typer.Option(None, "--lever-sd-threshold", help="also require this lever-arm bound (m)"),
+    td_sd: Optional[float] = typer.Option(None, "--td-sd-threshold", help="also require this time-offset bound (s)"),
     trajectory: Optional[Path] = typer.Option(
         None, "--trajectory", help="linearise about an estimator's states.csv (or its output folder) instead of the ground truth"
     ),
     force: bool = typer.Option(False, "--force", help="replace existing outputs in OUT"),
+    load_options=None,
 ) -> None:
-    """Per-window information (Gramian), CRLB and excitation flags of a log."""
+    """Per-window posterior Cramer-Rao bound, information gained and excitation flags of a log."""
     from uwbimu.io.atomic import write_csv, write_json
     from uwbimu.observability.window import (
         WindowOptions,
@@ -166,37 +213,49 @@ def log(
     console = Console()
     if window <= 0:
         _fail(console, f"--window must be positive, got {window}")
+    if bound not in ("pcrb", "gramian"):
+        _fail(console, f"--bound must be pcrb or gramian, got {bound}")
+    if not 0 < excited_ratio < 1:
+        _fail(console, f"--excited-sd-ratio must be in (0, 1), got {excited_ratio}")
     csv_path, png_path = out / "observability.csv", out / "observability.png"
     if not force and (csv_path.exists() or png_path.exists()):
         _fail(console, f"{out} already holds observability outputs; pass --force to replace them")
-    try:
-        from uwbimu.io.loader import DatasetError, load_dataset
-    except ImportError:  # pragma: no cover - loader is part of the package
-        _fail(console, "the dataset loader (uwbimu.io.loader) is not available")
-    try:
-        ds = load_dataset(dataset)
-    except (DatasetError, FileNotFoundError, ValueError) as e:
-        _fail(console, str(e))
+    from uwbimu.errors import InputError
+    from uwbimu.io.loader import load_dataset
+
+    ds = load_dataset(dataset, load_options)  # a refused dataset is an InputError (exit 1, file / line / column named)
     traj = None
     if trajectory is not None:
         try:
             traj = trajectory_from_states_csv(trajectory)
         except ValueError as e:
-            _fail(console, str(e))
+            raise InputError(str(e), hint="pass the states.csv of `uwbimu estimate` (or its output folder)") from None
     elif ds.groundtruth is None:
-        _fail(
-            console,
-            f"{dataset}: no groundtruth table; pass --trajectory (an estimator's states.csv) to linearise about",
+        raise InputError(
+            f"{dataset}: no groundtruth table; pass --trajectory (an estimator's states.csv) to linearise about"
         )
     opts = WindowOptions(
-        window=window, range_sigma=range_sigma, include_imu_noise=not no_imu_noise,
-        lever_sd_threshold=lever_sd, td_sd_threshold=td_sd,
+        window=window, range_sigma=range_sigma, include_imu_noise=not no_imu_noise, bound=bound,
+        excited_sd_ratio=excited_ratio, lever_sd_threshold=lever_sd, td_sd_threshold=td_sd,
     )  # fmt: skip
+    from uwbimu.io.atomic import check_output_target, output_folder
+
+    names = [csv_path.name, png_path.name, "observability_meta.json"]
+    check_output_target(out, names, force=force, protect=[dataset])  # refused before any work (OutputError)
     with console.status("computing per-window information"):
         table, meta = window_observability(ds, traj, options=opts)
-    write_csv(csv_path, table)
-    write_json(out / "observability_meta.json", meta)
-    plot_timeline(table, png_path, lever_sd, td_sd)
+    # outputs whole or not at all; sd columns may hold inf (--bound gramian: unbounded direction)
+    with output_folder(out, force, protect=[dataset], names=names, finite=False) as tmp:
+        write_csv(tmp / csv_path.name, table)
+        write_json(tmp / "observability_meta.json", meta)
+        plot_timeline(table, tmp / png_path.name, lever_sd, td_sd)  # dashed: absolute thresholds, if given
+    if bound == "pcrb":
+        need = 1.0 / excited_ratio**2 - 1.0
+        console.print(
+            "posterior Cramer-Rao bound at each window's end, windows chained from the prior sd "
+            + ", ".join(f"{k} {v:g}" for k, v in opts.prior_sd.items())
+            + f" (SI); excited = the window adds >= {need:g} x the prior's precision"
+        )
     t = Table(title=f"{dataset} - {len(table)} window(s) of {window:g} s")
     for c in ("t_start", "t_end", "min eig", "cond", "weakest", "sd lever max (m)", "sd t_d (s)", "lever", "t_d"):
         t.add_column(c)

@@ -7,62 +7,82 @@ from typing import Optional
 
 import typer
 
+from uwbimu.cli.dataset_options import with_load_options
+
 
 def register(app: typer.Typer) -> None:
     @app.command("report")
+    @with_load_options
     def report(
         out: Path = typer.Argument(..., help="Estimator output folder (calibration.yaml, trajectory.csv, residuals.csv)."),
         dataset: Optional[Path] = typer.Option(None, "--dataset", "-d",
                                                help="Dataset folder: adds anchors, documented/true calibration, ground truth."),
         output: Optional[Path] = typer.Option(None, "--output", "-o", help="HTML file to write (default OUT/report.html)."),
+        force: bool = typer.Option(False, "--force", help="Replace an --output file uwbimu did not write."),
+        load_options=None,
     ) -> None:
         """Write one self-contained HTML calibration report (plots embedded, opens offline)."""
         from rich.console import Console
 
+        from uwbimu.cli.dataset_options import load, print_load_warnings
         from uwbimu.eval.files import EvalInputError
         from uwbimu.eval.report import write_report
-        from uwbimu.io.loader import DatasetError
+        from uwbimu.errors import InputError
+        from uwbimu.io.atomic import check_output_target, output_folder
 
         console = Console()
+        target = output if output is not None else out / "report.html"
+        folder = target.parent if str(target.parent) else Path(".")
+        protect = [dataset] if dataset is not None else []
+        # Never over a file uwbimu did not write, never into (or over) a dataset.
+        check_output_target(folder, [target.name], force, protect)
+        ds = None
+        if dataset is not None:
+            ds = load(dataset, load_options)
+            print_load_warnings(console, ds)
         try:
-            path = write_report(out, dataset=dataset, path=output)
-        except (EvalInputError, DatasetError) as exc:
-            console.print(f"[red]error:[/red] {exc}", soft_wrap=True)
-            raise typer.Exit(code=1)
-        console.print(f"wrote {path}")
+            with output_folder(folder, force, protect, names=[target.name], finite=False) as tmp:
+                write_report(out, dataset=ds, path=tmp / target.name)
+        except EvalInputError as exc:
+            raise InputError(str(exc)) from None
+        console.print(f"wrote {target}")
 
     @app.command("repeatability")
+    @with_load_options
     def repeatability_cmd(
         dataset: Path = typer.Argument(..., help="Dataset folder."),
         out: Path = typer.Option(..., "--out", help="Folder for repeatability.json (e.g. the estimator output folder)."),
         windows: int = typer.Option(4, "--windows", "-k", min=2, help="Number of windows."),
         config: Optional[Path] = typer.Option(None, "--config", help="Estimator options YAML."),
+        preset: Optional[str] = typer.Option(None, "--preset", help="Shipped estimator options: default, real, isas-walk."),
         level: float = typer.Option(0.01, "--level", help="Significance level of the chi-square test."),
+        force: bool = typer.Option(False, "--force", help="Replace a repeatability.json uwbimu did not write."),
+        load_options=None,
     ) -> None:
         """Calibrate K windows of a log and compare the spread of lever arm / time offset with the filter's sigma."""
         from rich.console import Console
         from rich.progress import Progress
         from rich.table import Table
 
+        from uwbimu.cli.dataset_options import apply_dataset_properties, estimator_options, load, print_load_warnings
         from uwbimu.eval.repeatability import repeatability
-        from uwbimu.io.atomic import write_json
-        from uwbimu.io.loader import DatasetError, load_dataset
+        from uwbimu.io.atomic import check_output_target, output_folder, write_json
 
         console = Console()
-        try:
-            ds = load_dataset(dataset)
-        except DatasetError as exc:
-            console.print(f"[red]error:[/red] {exc}", soft_wrap=True)
-            raise typer.Exit(code=1)
-        from uwbimu.estimation import EskfOptions, run_eskf
+        check_output_target(out, ["repeatability.json"], force, protect=[dataset])
+        opts = estimator_options("eskf", config, preset)
+        ds = load(dataset, load_options)
+        print_load_warnings(console, ds)
+        opts = apply_dataset_properties(opts, ds, console)
+        from uwbimu.estimation import run_eskf
 
-        opts = EskfOptions.from_yaml(config) if config is not None else None
         with Progress(console=console) as prog:
             task = prog.add_task("calibrating windows", total=windows)
             rep = repeatability(ds, windows, lambda w: run_eskf(w, opts), level=level,
                                 progress=lambda d, n: prog.update(task, completed=d))
         rep["dataset"] = str(dataset)
-        write_json(out / "repeatability.json", rep)
+        with output_folder(out, force, protect=[dataset], names=["repeatability.json"], finite=False) as tmp:
+            write_json(tmp / "repeatability.json", rep)
         t = Table(title=f"Repeatability over {windows} windows of {rep['window_s']:.1f} s")
         for c in ("parameter", "mean", "spread sd", "predicted sigma", "ratio", "chi2/dof", "p", "verdict"):
             t.add_column(c, justify="right")

@@ -33,10 +33,16 @@ def _summary(console: Console, ds, out: Path, seconds: float) -> None:
     counts = extra.get("uwb_counts", {})
     table.add_row(r"duration \[s]", f"{extra.get('duration', ds.duration):g}")
     table.add_row("IMU samples", f"{len(ds.imu)} @ {ds.meta.imu_rate_hz:g} Hz")
-    table.add_row("ranges emitted / scheduled", f"{counts.get('emitted', len(ds.uwb))} / {counts.get('scheduled', '?')}")
     lost = {k: v for k, v in counts.items() if k.startswith("dropped_") and v}
-    table.add_row("ranges lost", ", ".join(f"{k[8:]} {v}" for k, v in lost.items()) or "0")
-    table.add_row("NLOS ranges", str(counts.get("nlos", 0)))
+    if "packets_scheduled" in counts:  # TDoA (uwbimu.sim.tdoa): packets, then differences
+        table.add_row("TDoA packets received / scheduled", f"{counts['packets_received']} / {counts['packets_scheduled']}")
+        table.add_row("packets lost", ", ".join(f"{k[8:]} {v}" for k, v in lost.items()) or "0")
+        table.add_row("NLOS packets", str(counts.get("packets_nlos", 0)))
+        table.add_row("TDoA differences emitted", str(counts.get("emitted", 0)))
+    else:
+        table.add_row("ranges emitted / scheduled", f"{counts.get('emitted', len(ds.uwb))} / {counts.get('scheduled', '?')}")
+        table.add_row("ranges lost", ", ".join(f"{k[8:]} {v}" for k, v in lost.items()) or "0")
+        table.add_row("NLOS ranges", str(counts.get("nlos", 0)))
     for k, v in extra.get("imu_saturation", {}).items():
         table.add_row(f"IMU {k.replace('_', ' ')}", str(v))
     truth = ds.meta.truth
@@ -72,12 +78,11 @@ def register(app: typer.Typer) -> None:
         if fmt not in ("csv", "parquet"):
             err.print(f"[red]error:[/] --format must be csv or parquet, got {fmt!r}")
             raise typer.Exit(code=2)
-        if out.exists() and (not out.is_dir() or any(out.iterdir())) and not force:
-            err.print(f"[red]refusing:[/] {out} exists and is not empty (use --force to replace it)")
-            raise typer.Exit(code=1)
-        if out.exists() and not out.is_dir():
-            err.print(f"[red]error:[/] {out} is a file, not a folder")
-            raise typer.Exit(code=1)
+        from uwbimu.io.atomic import check_output_target, output_folder
+
+        path = Path(scenario)
+        protect = [path] if path.is_file() else []
+        check_output_target(out, force=force, protect=protect, replace=True)
 
         path = Path(scenario)
         try:
@@ -112,5 +117,6 @@ def register(app: typer.Typer) -> None:
                 err.print(f"[red]error:[/] {exc}")
                 raise typer.Exit(code=1) from None
             bar.update(task, description=f"writing {out}")
-            write_dataset(ds, out, overwrite=force, fmt=fmt)
+            with output_folder(out, force=force, protect=protect, replace=True) as tmp:
+                write_dataset(ds, tmp, overwrite=True, fmt=fmt)
         _summary(console, ds, out, time.perf_counter() - t0)

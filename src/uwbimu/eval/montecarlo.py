@@ -102,6 +102,11 @@ class MonteCarloConfig(_Strict):
     chunk_size: Optional[int] = Field(default=None, ge=1, description="runs per task; None: automatic")
     skip_initial_s: float = Field(default=0.0, ge=0, description="exclude the first seconds from RMSE and NEES [s]")
     trace_rate_hz: float = Field(default=5.0, gt=0, description="rate of the stored error traces (for plots) [Hz]")
+    crlb: bool = Field(
+        default=False,
+        description="compute each scenario's posterior Cramer-Rao bound (uwbimu.eval.montecarlo_crlb) once, on the "
+        "seeds of run 0, and report RMSE / calibration errors against it (does not change any run)",
+    )
     scenarios: list[ScenarioEntry] = Field(min_length=1)
     estimators: list[EstimatorEntry] = Field(min_length=1)
 
@@ -184,6 +189,7 @@ def resolved_study(cfg: MonteCarloConfig) -> dict:
     d.pop("runs")
     d.pop("chunk_size")  # how work is cut does not change any result
     d.pop("description")
+    d.pop("crlb")  # computed at the end from the scenarios; no run depends on it
     d["scenarios"] = [{"name": e.name, "scenario": resolve_scenario(e)} for e in cfg.scenarios]
     d["format_version"] = FORMAT_VERSION
     return json.loads(json.dumps(d, sort_keys=True))
@@ -289,8 +295,9 @@ def run_metrics(result, ds, skip_initial_s: float = 0.0) -> tuple[dict, dict]:
     fin = np.all(np.isfinite(p), axis=1)
     span = float(gt_t[-1] - gt_t[0])
     row["coverage"] = float((t[fin][-1] - t[fin][0]) / span) if fin.sum() > 1 and span > 0 else 0.0
+    div_t = [float(ev["t"]) for ev in (result.events or []) if ev.get("kind") == "divergence" and "t" in ev]
     row["divergences"] = sum(1 for ev in (result.events or []) if ev.get("kind") == "divergence")
-    return row, {"t": t, "err": err, "sd": sd, "nees": nees}
+    return row, {"t": t, "err": err, "sd": sd, "nees": nees, "divergence_t": np.asarray(div_t, float)}
 
 
 def run_chunk(task: dict) -> dict:
@@ -330,6 +337,7 @@ def _run_chunk(task: dict) -> dict:
     tr_sd = np.full((R, E, T, 3), np.nan)
     tr_nees = np.full((R, E, T), np.nan)
     tr_truth = np.full((R, T, 3), np.nan)  # true position on the grid (for estimate-vs-truth plots)
+    tr_div = np.zeros((R, E, T), bool)  # a divergence event in the grid cell (marked in the figures)
     for ri, run in enumerate(task["runs"]):
         st, sn, si = run_seeds(task["seed_base"], run)
         base = {"scenario": task["scenario_name"], "run": int(run), "seed_truth": st, "seed_noise": sn,
@@ -366,6 +374,9 @@ def _run_chunk(task: dict) -> dict:
                         tr_err[ri, ei, inside, a] = np.interp(grid[inside], tt, trace["err"][:, a])
                         tr_sd[ri, ei, inside, a] = np.interp(grid[inside], tt, trace["sd"][:, a])
                     tr_nees[ri, ei, inside] = np.interp(grid[inside], tt, trace["nees"])
+                dv = trace.get("divergence_t", np.zeros(0)) - float(ds.groundtruth["t"].iloc[0])
+                if T and len(dv):
+                    tr_div[ri, ei, np.clip(np.rint(dv * float(task["trace_rate_hz"])).astype(int), 0, T - 1)] = True
             except Exception as exc:
                 row.update(status="failed", error=f"{type(exc).__name__}: {exc}", est_s=time.perf_counter() - t1,
                            est_cpu_s=time.process_time() - c1)
@@ -375,7 +386,7 @@ def _run_chunk(task: dict) -> dict:
         "runs": [int(r) for r in task["runs"]],
         "rows": rows,
         "traces": {"t": grid, "err": tr_err, "sd": tr_sd, "nees": tr_nees, "truth": tr_truth,
-                   "estimators": np.array(names)},
+                   "divergence": tr_div, "estimators": np.array(names)},
     }
 
 

@@ -84,3 +84,228 @@ def _json_default(o):
     if isinstance(o, np.bool_):
         return bool(o)
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+# ---------------------------------------------------------------------------
+# The output rule: one folder of outputs, written whole or not at all
+# ---------------------------------------------------------------------------
+#: Record of the files uwbimu verbs wrote into a folder (name -> sha256); only
+#: files listed here, and unchanged since, may be replaced without ``force``.
+MANIFEST = ".uwbimu-outputs.json"
+#: File names that make a folder a dataset folder (its input files).
+DATASET_FILES = tuple(f"{t}.{ext}" for t in ("imu", "uwb", "tdoa", "anchors", "anchor_ranges", "groundtruth")
+                      for ext in ("csv", "parquet")) + ("dataset.yaml", "dataset.yml")
+
+
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def read_manifest(folder: Path) -> dict[str, str]:
+    """Files (name -> sha256) that uwbimu wrote into ``folder`` (empty when none or unreadable)."""
+    try:
+        data = json.loads((Path(folder) / MANIFEST).read_text())
+        return {str(k): str(v) for k, v in data.get("files", {}).items()}
+    except (OSError, ValueError, AttributeError):
+        return {}
+
+
+def is_dataset_folder(folder: Path) -> bool:
+    """True when ``folder`` holds dataset input files (imu.csv, uwb.csv, dataset.yaml, ...)."""
+    return folder.is_dir() and any((folder / n).exists() for n in DATASET_FILES)
+
+
+def _inside(a: Path, b: Path) -> bool:
+    """``a`` is ``b`` or lies below it (both resolved)."""
+    return a == b or b in a.parents
+
+
+def _output_error(message: str, hint: str | None = None):
+    from uwbimu.errors import OutputError
+
+    return OutputError(message, hint=hint)
+
+
+def check_output_target(out: Path, names=(), force: bool = False, protect=(), replace: bool = False) -> None:
+    """Refuse an output folder before any work (see :func:`output_folder`); raises OutputError."""
+    out = Path(out)
+    res = out.resolve()
+    if out.exists() and not out.is_dir():
+        raise _output_error(f"{out} is a file, not a folder", hint="give a folder for the outputs")
+    for p in protect:
+        if p is None:
+            continue
+        pr = Path(p).resolve()
+        if pr.is_file():  # an input file: never the output itself, never inside a replaced folder
+            if res == pr or (replace and _inside(pr, res)):
+                raise _output_error(f"{out} would overwrite the input {p}", hint="choose another output")
+            continue
+        pr_dir = pr
+        if _inside(res, pr_dir) and not force:
+            raise _output_error(f"{out} is inside the input dataset folder {p}; outputs are never written into "
+                                f"a dataset folder", hint="choose another output folder (or --force)")
+        if replace and _inside(pr_dir, res):
+            raise _output_error(f"replacing {out} would delete the input {p}", hint="choose another output folder")
+    if out.is_dir():
+        if is_dataset_folder(out) and not force and not replace:
+            raise _output_error(f"{out} holds a dataset (imu.csv, uwb.csv, ...); outputs are not written into a "
+                                f"dataset folder", hint="choose another output folder (or --force)")
+        if replace:
+            others = [q.name for q in out.iterdir() if not q.name.startswith(".")]
+            if others and not force:
+                raise _output_error(f"refusing to replace {out}: it exists and is not empty "
+                                    f"({', '.join(sorted(others)[:5])})", hint="use --force or another folder")
+        else:
+            _refuse_foreign(out, names, force)
+        if not os.access(out, os.W_OK | os.X_OK):
+            raise _output_error(f"{out} is not writable", hint="choose a writable output folder")
+    else:
+        parent = next((q for q in res.parents if q.exists()), None)
+        if parent is None or not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+            raise _output_error(f"cannot create {out}: {parent} is not a writable folder",
+                                hint="choose a writable output folder")
+
+
+def _refuse_foreign(out: Path, names, force: bool) -> None:
+    """Refuse to replace files in ``out`` that uwbimu did not write (or that changed since)."""
+    manifest = read_manifest(out)
+    is_dataset = is_dataset_folder(out)
+    for name in names:
+        target = out / name
+        if not target.exists():
+            continue
+        if target.is_dir():
+            raise _output_error(f"{target} is a folder; an output file of that name cannot be written")
+        if is_dataset and name in DATASET_FILES:
+            raise _output_error(f"{target} is an input file of a dataset; it is never overwritten",
+                                hint="choose another output folder")
+        if not force and manifest.get(name) != _sha256(target):
+            why = "was changed since uwbimu wrote it" if name in manifest else "was not written by uwbimu"
+            raise _output_error(f"{target} exists and {why}; refusing to overwrite it",
+                                hint="use --force to replace it, or another output folder")
+
+
+def nonfinite_values(path: Path) -> str | None:
+    """Describe the first NaN/inf in an output table or document (None when all values are finite)."""
+    import math
+
+    suffix = path.suffix.lower()
+    if suffix == ".csv":
+        import numpy as np
+        import pandas as pd
+
+        try:
+            df = pd.read_csv(path)
+        except (ValueError, OSError):
+            return None
+        for col in df.columns:
+            if pd.api.types.is_numeric_dtype(df[col]):
+                v = df[col].to_numpy(float)
+                # A column that is NaN throughout is a quantity not estimated (documented, e.g. the
+                # attitude sd of a point-mass filter); inf anywhere, or NaN among numbers, is not.
+                bad = np.isinf(v) if np.isnan(v).all() else ~np.isfinite(v)
+                if bad.any():
+                    return f"{path.name}, line {int(np.argmax(bad)) + 2}, column '{col}': {v[np.argmax(bad)]}"
+        return None
+    if suffix in (".yaml", ".yml", ".json"):
+        try:
+            obj = yaml.safe_load(path.read_text()) if suffix != ".json" else json.loads(path.read_text())
+        except (ValueError, yaml.YAMLError, OSError):
+            return None
+        stack = [("", obj)]
+        while stack:
+            key, o = stack.pop()
+            if isinstance(o, float) and not math.isfinite(o):
+                return f"{path.name}, key '{key.lstrip('.')}': {o}"
+            if isinstance(o, dict):
+                stack.extend((f"{key}.{k}", v) for k, v in o.items())
+            elif isinstance(o, list):
+                stack.extend((f"{key}[{i}]", v) for i, v in enumerate(o))
+    return None
+
+
+@contextmanager
+def output_folder(out: str | os.PathLike, force: bool = False, protect=(), names=(), replace: bool = False,
+                  finite: bool | tuple = True) -> Iterator[Path]:
+    """Write a set of outputs into ``out`` whole or not at all (the toolkit's output rule).
+
+    Checks the target before any work, yields an empty temporary folder for the
+    outputs and, when the block ends without an exception, moves them into ``out``.
+    An exception leaves ``out`` as it was.
+
+    Parameters
+    ----------
+    out : the output folder (created if missing).
+    force : allow writing into a dataset folder or over files uwbimu did not write
+        (never over a dataset's input files, never over a protected input).
+    protect : input paths (dataset folders, files); ``out`` may not lie inside one unless
+        ``force``, and a ``replace`` may never delete one.
+    names : output file names known in advance, checked before any work.
+    replace : the outputs replace the folder as a whole (a dataset written by
+        ``simulate`` / ``import``); an existing non-empty ``out`` needs ``force``.
+    finite : refuse (:class:`uwbimu.errors.EstimationError`) outputs holding NaN or inf;
+        a tuple names files exempt from the check (documented NaN columns).
+
+    Raises
+    ------
+    uwbimu.errors.OutputError : the target is refused or not writable (nothing written).
+    uwbimu.errors.EstimationError : an output holds NaN / inf (nothing written).
+    """
+    import shutil
+
+    out = Path(out)
+    check_output_target(out, names, force, protect, replace)
+    exists = out.is_dir()
+    parent = out if exists and not replace else out.parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.uwbimu-tmp-", dir=parent))
+    except OSError as exc:
+        raise _output_error(f"cannot write into {parent}: {exc.strerror or exc}",
+                            hint="choose a writable output folder") from None
+    try:
+        yield tmp
+        files = sorted(p.relative_to(tmp) for p in tmp.rglob("*") if p.is_file())
+        exempt = finite if isinstance(finite, tuple) else ()
+        if finite is not False:
+            for rel in files:
+                if rel.name in exempt:
+                    continue
+                bad = nonfinite_values(tmp / rel)
+                if bad is not None:
+                    from uwbimu.errors import EstimationError
+
+                    raise EstimationError(f"an output holds a non-finite value ({bad}); nothing was written",
+                                          hint="the estimate diverged: check the dataset with `uwbimu check`")
+        umask = os.umask(0)
+        os.umask(umask)
+        for rel in files:
+            os.chmod(tmp / rel, 0o666 & ~umask)
+        if replace or not exists:
+            manifest = {str(rel): _sha256(tmp / rel) for rel in files}
+            (tmp / MANIFEST).write_text(json.dumps({"files": manifest}, indent=1) + "\n")
+            os.chmod(tmp, 0o777 & ~umask)
+            if exists:
+                backup = Path(tempfile.mkdtemp(prefix=f".{out.name}.uwbimu-old-", dir=out.parent))
+                backup.rmdir()
+                out.rename(backup)
+                tmp.rename(out)
+                shutil.rmtree(backup, ignore_errors=True)
+            else:
+                tmp.rename(out)
+            return
+        _refuse_foreign(out, [str(rel) for rel in files], force)
+        manifest = read_manifest(out)
+        for rel in files:
+            (out / rel).parent.mkdir(parents=True, exist_ok=True)
+            manifest[str(rel)] = _sha256(tmp / rel)
+            os.replace(tmp / rel, out / rel)
+        write_json(out / MANIFEST, {"files": manifest})
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

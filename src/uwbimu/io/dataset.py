@@ -4,7 +4,12 @@ A dataset is a folder::
 
     imu.csv          t, ax, ay, az, wx, wy, wz     (IMU clock s; m/s^2; rad/s; IMU frame)
     uwb.csv          t, anchor, range [, tag]      (UWB clock s; anchor id text; m)
-    anchors.csv      anchor, x, y, z               (world frame, m)
+                     optional when tdoa.csv exists
+    tdoa.csv         t, anchor_a, anchor_b, tdoa [, tag]  (optional; UWB clock s; m,
+                     tdoa = |p_U - p_b| - |p_U - p_a|)
+    anchors.csv      anchor, x, y, z [, qw, qx, qy, qz]  (world frame, m; optional
+                     antenna orientation, antenna frame -> world)
+    anchor_ranges.csv  anchor_a, anchor_b, range   (optional; measured inter-anchor ranges, m)
     groundtruth.csv  t, px, py, pz, qw, qx, qy, qz [, vx, vy, vz]   (optional; UWB clock,
                      pose of the IMU frame in the world)
     dataset.yaml     optional metadata (:class:`DatasetMeta`)
@@ -22,21 +27,24 @@ import shutil
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Literal, Optional
 
 import numpy as np
 import pandas as pd
 import yaml
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from uwbimu.models.imu import ImuNoise
 
 IMU_COLUMNS = ["t", "ax", "ay", "az", "wx", "wy", "wz"]
 UWB_COLUMNS = ["t", "anchor", "range"]
 ANCHOR_COLUMNS = ["anchor", "x", "y", "z"]
+ANCHOR_QUAT_COLUMNS = ["qw", "qx", "qy", "qz"]
+TDOA_COLUMNS = ["t", "anchor_a", "anchor_b", "tdoa"]
+ANCHOR_RANGE_COLUMNS = ["anchor_a", "anchor_b", "range"]
 GT_COLUMNS = ["t", "px", "py", "pz", "qw", "qx", "qy", "qz"]
 GT_VEL_COLUMNS = ["vx", "vy", "vz"]
-TABLES = ("imu", "uwb", "anchors", "groundtruth")
+TABLES = ("imu", "uwb", "tdoa", "anchors", "anchor_ranges", "groundtruth")
 
 
 class TagMeta(BaseModel):
@@ -71,7 +79,26 @@ class DatasetMeta(BaseModel):
     known_anchor_bias: Optional[dict[str, float]] = None  # documented constant biases (subtract)
     source: Optional[str] = None
     license: Optional[str] = None
+    anchor_frame_up: Optional[Literal["+z", "-z"]] = Field(
+        default=None,
+        description="which way the anchors' frame z axis points: '+z' (up, the convention) or '-z' "
+        "(z down, e.g. ISAS-Walk's RTLS frame); None = '+z'. Every verb applies it.",
+    )
     extra: dict = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _legacy_anchor_frame_up(self) -> "DatasetMeta":
+        # Datasets written before anchor_frame_up was a field keep it under extra.
+        legacy = self.extra.get("anchor_frame_up")
+        if legacy is not None:
+            if legacy not in ("+z", "-z"):
+                raise ValueError(f"extra.anchor_frame_up must be '+z' or '-z', got {legacy!r}")
+            if self.anchor_frame_up is None:
+                self.anchor_frame_up = legacy
+            elif self.anchor_frame_up != legacy:
+                raise ValueError(f"anchor_frame_up {self.anchor_frame_up!r} contradicts "
+                                 f"extra.anchor_frame_up {legacy!r}")
+        return self
 
 
 @dataclass
@@ -81,9 +108,15 @@ class Dataset:
     Attributes
     ----------
     imu : DataFrame with columns ``IMU_COLUMNS`` (IMU clock).
-    uwb : DataFrame with ``t, anchor, range`` and optionally ``tag`` (UWB clock).
-    anchors : DataFrame ``anchor, x, y, z`` (world frame).
+    uwb : DataFrame with ``t, anchor, range`` and optionally ``tag`` (UWB clock); empty
+        (same columns) when the dataset holds only TDoA.
+    anchors : DataFrame ``anchor, x, y, z`` (world frame), plus ``qw, qx, qy, qz``
+        (antenna frame -> world, unit Hamilton quaternion) when the file gives them.
     groundtruth : optional DataFrame ``GT_COLUMNS`` (+ velocity) on the UWB clock.
+    tdoa : optional DataFrame ``t, anchor_a, anchor_b, tdoa`` (+ ``tag``), UWB clock,
+        ``tdoa = |p_U - p_b| - |p_U - p_a|`` in m.
+    anchor_ranges : optional DataFrame ``anchor_a, anchor_b, range`` (m), measured
+        anchor-to-anchor ranges.
     meta : :class:`DatasetMeta`.
     path : folder it was read from, if any.
     report : load report (rows read/kept, repairs) when read by ``load_dataset``.
@@ -97,6 +130,8 @@ class Dataset:
     path: Optional[Path] = None
     #: :class:`uwbimu.io.loader.LoadReport` when read by ``load_dataset`` (rows, repairs).
     report: Optional[Any] = field(default=None, repr=False, compare=False)
+    tdoa: Optional[pd.DataFrame] = None
+    anchor_ranges: Optional[pd.DataFrame] = None
 
     # --- convenient array views -------------------------------------------
     @property
@@ -119,6 +154,11 @@ class Dataset:
         """(M, 3) positions for a sequence of anchor ids."""
         pos = self.anchor_positions()
         return np.array([pos[str(i)] for i in ids])
+
+    @property
+    def anchor_frame_up(self) -> str:
+        """``"+z"`` or ``"-z"``: the anchors' frame up axis (``meta.anchor_frame_up``, default +z)."""
+        return self.meta.anchor_frame_up or "+z"
 
     @property
     def duration(self) -> float:
@@ -152,8 +192,16 @@ def write_dataset(ds: Dataset, folder: str | os.PathLike, overwrite: bool = Fals
     try:
         _write_table(ds.imu[IMU_COLUMNS], tmp / f"imu.{fmt}")
         uwb_cols = UWB_COLUMNS + (["tag"] if "tag" in ds.uwb.columns else [])
-        _write_table(ds.uwb[uwb_cols], tmp / f"uwb.{fmt}")
-        _write_table(ds.anchors[ANCHOR_COLUMNS], tmp / f"anchors.{fmt}")
+        if len(ds.uwb) or ds.tdoa is None:
+            _write_table(ds.uwb[uwb_cols], tmp / f"uwb.{fmt}")
+        if ds.tdoa is not None:
+            tdoa_cols = TDOA_COLUMNS + (["tag"] if "tag" in ds.tdoa.columns else [])
+            _write_table(ds.tdoa[tdoa_cols], tmp / f"tdoa.{fmt}")
+        anchor_cols = ANCHOR_COLUMNS + (ANCHOR_QUAT_COLUMNS if set(ANCHOR_QUAT_COLUMNS) <= set(ds.anchors.columns)
+                                        else [])
+        _write_table(ds.anchors[anchor_cols], tmp / f"anchors.{fmt}")
+        if ds.anchor_ranges is not None:
+            _write_table(ds.anchor_ranges[ANCHOR_RANGE_COLUMNS], tmp / f"anchor_ranges.{fmt}")
         if ds.groundtruth is not None:
             cols = GT_COLUMNS + [c for c in GT_VEL_COLUMNS if c in ds.groundtruth.columns]
             _write_table(ds.groundtruth[cols], tmp / f"groundtruth.{fmt}")

@@ -34,8 +34,13 @@ import pandas as pd
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from uwbimu.errors import InputError
+from uwbimu.io import plausibility
 from uwbimu.io.dataset import (
     ANCHOR_COLUMNS,
+    ANCHOR_QUAT_COLUMNS,
+    ANCHOR_RANGE_COLUMNS,
+    TDOA_COLUMNS,
     GT_COLUMNS,
     GT_VEL_COLUMNS,
     IMU_COLUMNS,
@@ -49,6 +54,7 @@ __all__ = [
     "LoadOptions",
     "LoadReport",
     "LoadRepairWarning",
+    "LoadWarning",
     "load_dataset",
     "load_meta",
     "MAX_RANGE_M",
@@ -63,11 +69,23 @@ ACCEL_NORM_BAND = (4.0, 30.0)
 #: Quaternions whose norm differs from 1 by more than this are refused.
 QUAT_NORM_TOL = 1e-2
 
-_TEXT_COLUMNS = ("anchor", "tag")
+#: Default margin [m] by which |tdoa| may exceed the two anchors' separation (noise, NLOS bias).
+TDOA_MARGIN_M = 1.0
+
+_TEXT_COLUMNS = ("anchor", "tag", "anchor_a", "anchor_b")
 
 
-class DatasetError(ValueError):
-    """A dataset that cannot be used as is.
+def fmt_num(x: Any) -> str:
+    """A number as plain text for messages (never ``np.float64(1.6)``)."""
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return str(x)
+    return repr(int(v)) if v.is_integer() and abs(v) < 1e15 else repr(v)
+
+
+class DatasetError(InputError):
+    """A dataset that cannot be used as is (an :class:`uwbimu.errors.InputError`, exit code 1).
 
     Attributes
     ----------
@@ -78,11 +96,21 @@ class DatasetError(ValueError):
     """
 
     def __init__(self, message: str, file: Optional[str] = None, row: Optional[int] = None,
-                 column: Optional[str] = None):
-        super().__init__(message)
+                 column: Optional[str] = None, hint: Optional[str] = None):
+        super().__init__(message, hint=hint)
         self.file = file
         self.row = row
         self.column = column
+
+
+def _plain(v: Any) -> Any:
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+class LoadWarning(UserWarning):
+    """Emitted by :func:`load_dataset` for data it accepts but doubts (low rate, coplanar anchors, ...)."""
 
 
 class LoadRepairWarning(UserWarning):
@@ -108,6 +136,17 @@ class LoadOptions(BaseModel):
     )
     check_units: bool = Field(default=True, description="refuse gyro/accelerometer data that looks like deg/s or g")
     max_range: float = Field(default=MAX_RANGE_M, gt=0, description="largest accepted range, m")
+    lenient: bool = Field(
+        default=False,
+        description="accept an IMU below 10 Hz and degenerate anchor geometry (one anchor, all anchors at one "
+        "point or on one line) with a warning instead of refusing them")
+    clock_jumps: Literal["refuse", "split"] = Field(
+        default="refuse",
+        description="a clock that jumps back once (stamps increasing before and after): refuse, or keep the "
+        "longest monotonic part of that table (split) and report the jump")
+    tdoa_margin: float = Field(
+        default=TDOA_MARGIN_M, ge=0,
+        description="|tdoa| may exceed the two anchors' separation by this much (m) before it is refused")
 
 
 @dataclass
@@ -122,6 +161,13 @@ class LoadReport:
     reordered: dict[str, int] = field(default_factory=dict)  # table -> rows that were out of order
     actions: list[str] = field(default_factory=list)  # human-readable repairs
     notes: list[str] = field(default_factory=list)  # harmless observations (extra columns...)
+    #: structured warnings ``{"code", "file", "message", ...}`` (codes: :mod:`uwbimu.io.plausibility`)
+    warnings: list[dict] = field(default_factory=list)
+
+    def warn(self, code: str, file: str, message: str, **fields: Any) -> None:
+        """Record a structured warning (announced by ``load_dataset`` as a :class:`LoadWarning`)."""
+        self.warnings.append({"code": code, "file": file, "message": message,
+                              **{k: _plain(v) for k, v in fields.items()}})
 
     @property
     def repaired(self) -> bool:
@@ -131,6 +177,7 @@ class LoadReport:
         lines = [f"loaded {self.path}: " + ", ".join(f"{k} {v} rows" for k, v in self.rows_kept.items())]
         lines += [f"repair: {a}" for a in self.actions]
         lines += [f"note: {n}" for n in self.notes]
+        lines += [f"warning ({w['code']}): {w['file']}: {w['message']}" for w in self.warnings]
         return "\n".join(lines)
 
 
@@ -172,9 +219,10 @@ class _Source:
             return f"lines {int(df.index.min()) + 2}-{int(df.index.max()) + 2} (all data rows)"
         return f"data rows 1-{int(df.index.max()) + 1} (all)"
 
-    def error(self, msg: str, idx: Optional[int] = None, column: Optional[str] = None) -> DatasetError:
+    def error(self, msg: str, idx: Optional[int] = None, column: Optional[str] = None,
+              hint: Optional[str] = None) -> DatasetError:
         return DatasetError(f"{self.at(idx, column)}: {msg}", file=self.name,
-                            row=None if idx is None else self.row_number(idx), column=column)
+                            row=None if idx is None else self.row_number(idx), column=column, hint=hint)
 
 
 # ---------------------------------------------------------------------------
@@ -315,7 +363,7 @@ def _to_text(src: _Source, df: pd.DataFrame, col: str) -> pd.DataFrame:
             raise src.error("empty id", i, col)
         if not np.all(np.mod(vals.to_numpy(), 1) == 0):
             i = vals.index[int(np.argmax(np.mod(vals.to_numpy(), 1) != 0))]
-            raise src.error(f"id {vals[i]!r} is a non-integer number; use text ids", i, col)
+            raise src.error(f"id {fmt_num(vals[i])} is a non-integer number; use text ids", i, col)
         txt = vals.astype(np.int64).astype(str)
     else:
         missing = raw.isna()
@@ -340,16 +388,41 @@ def _sort_by_time(src: _Source, df: pd.DataFrame, report: LoadReport) -> pd.Data
     return df
 
 
-def _check_time_order(src: _Source, df: pd.DataFrame) -> None:
+def _check_time_order(src: _Source, df: pd.DataFrame, options: Optional[LoadOptions] = None,
+                      report: Optional[LoadReport] = None) -> pd.DataFrame:
+    """Refuse time going backwards; recognise a clock jump (monotonic before and after)."""
     t = df["t"].to_numpy()
     back = np.flatnonzero(np.diff(t) < 0)
-    if len(back):
-        k = int(back[0])
-        i_prev, i = df.index[k], df.index[k + 1]
+    if not len(back):
+        return df
+    k = int(back[0])
+    i_prev, i = df.index[k], df.index[k + 1]
+    step = float(t[k] - t[k + 1])
+    dt = np.diff(t)
+    typical = float(np.median(dt[dt > 0])) if np.any(dt > 0) else 0.0
+    if len(back) == 1 and typical > 0 and step > 5 * typical:
+        # One backward step much larger than the sample interval, increasing on both sides: a clock
+        # jump (reset), not shuffled rows. Sorting would interleave the two parts.
+        if options is not None and options.clock_jumps == "split" and report is not None:
+            before, after = df.iloc[: k + 1], df.iloc[k + 1:]
+            keep, drop = (before, after) if len(before) >= len(after) else (after, before)
+            report.warn("clock_jump", src.name, f"the clock jumps back by {step:.6g} s at "
+                        f"{src.at(i).split(', ', 1)[1]}; kept the longer monotonic part ({len(keep)} rows), "
+                        f"dropped {len(drop)} rows", t=float(t[k + 1]), size=-step, table=src.table,
+                        rows_dropped=int(len(drop)))
+            report.dropped[f"{src.table}: rows on the other side of a clock jump"] = int(len(drop))
+            report.actions.append(f"{src.name}: split at a backward clock jump of {step:.6g} s, "
+                                  f"dropped {len(drop)} rows")
+            return keep
         raise src.error(
-            f"timestamp goes backwards: t={t[k + 1]!r} after t={t[k]!r} "
-            f"(at {src.at(i_prev).split(', ', 1)[1]}); pass sort=True (--sort) to sort the rows by time",
-            i, "t")
+            f"the clock jumps back by {step:.6g} s (t={fmt_num(t[k + 1])} after t={fmt_num(t[k])} at "
+            f"{src.at(i_prev).split(', ', 1)[1]}); the stamps increase before and after it, so this is a clock "
+            f"jump, not shuffled rows (sorting would interleave the two parts)", i, "t",
+            hint="--split-clock-jumps keeps the longer monotonic part and reports the jump")
+    raise src.error(
+        f"timestamp goes backwards: t={fmt_num(t[k + 1])} after t={fmt_num(t[k])} "
+        f"(at {src.at(i_prev).split(', ', 1)[1]}); pass sort=True (--sort) to sort the rows by time",
+        i, "t", hint="--sort sorts the rows by time")
 
 
 def _drop_or_refuse_duplicates(src: _Source, df: pd.DataFrame, key: list[str], what: str,
@@ -376,11 +449,12 @@ def _drop_or_refuse_duplicates(src: _Source, df: pd.DataFrame, key: list[str], w
     hint = ("; it repeats that row exactly: pass drop_duplicate_rows=True (--drop-duplicates) to drop such rows"
             if exact[i] else "; the values differ, fix the file")
     raise src.error(f"duplicate {what} {_key_text(df, i, key)}, first at "
-                    f"{src.at(first).split(', ', 1)[1]}{hint}", i, key[0])
+                    f"{src.at(first).split(', ', 1)[1]}{hint}", i, key[0],
+                    hint="--drop-duplicates drops exact repeats" if exact[i] else None)
 
 
 def _key_text(df: pd.DataFrame, i, key: list[str]) -> str:
-    return ", ".join(f"{k}={df.loc[i, k]!r}" for k in key)
+    return ", ".join(f"{k}={fmt_num(df.loc[i, k])}" if k == "t" else f"{k}={str(df.loc[i, k])!r}" for k in key)
 
 
 # ---------------------------------------------------------------------------
@@ -393,7 +467,7 @@ def _load_imu(src: _Source, options: LoadOptions, report: LoadReport) -> pd.Data
     df = _to_numeric(src, df, IMU_COLUMNS)
     if options.sort:
         df = _sort_by_time(src, df, report)
-    _check_time_order(src, df)
+    df = _check_time_order(src, df, options, report)
     df = _drop_or_refuse_duplicates(src, df, ["t"], "IMU timestamp", options, report)
     if options.gyro_units == "deg/s":
         df[["wx", "wy", "wz"]] = df[["wx", "wy", "wz"]] * (math.pi / 180.0)
@@ -416,7 +490,7 @@ def _check_imu_units(src: _Source, df: pd.DataFrame) -> None:
             f"{src.name}, {where}, columns 'ax', 'ay', 'az': the accelerometer looks like it is in g "
             f"(median |a| = {a_med:.3f}, expected about 9.81 m/s^2 with gravity included); "
             f"multiply ax, ay, az by 9.81 or load with accel_units='g' (--accel-units g)",
-            file=src.name, row=src.row_number(df.index[0]), column="ax")
+            file=src.name, row=src.row_number(df.index[0]), column="ax", hint="--accel-units g converts from g")
     if not ACCEL_NORM_BAND[0] <= a_med <= ACCEL_NORM_BAND[1]:
         hint = ("gravity seems to have been removed; this toolkit needs specific force (gravity included)"
                 if a_med < ACCEL_NORM_BAND[0] else "the unit looks wrong (mg? ft/s^2?); m/s^2 is expected")
@@ -432,7 +506,7 @@ def _check_imu_units(src: _Source, df: pd.DataFrame) -> None:
             f"(99th percentile of |w| = {w99:.1f}, above the {GYRO_MAX_RAD_S:.1f} rad/s (2000 deg/s) full "
             f"scale of MEMS gyros); multiply wx, wy, wz by pi/180 or load with gyro_units='deg/s' "
             f"(--gyro-units deg)",
-            file=src.name, row=src.row_number(df.index[0]), column="wx")
+            file=src.name, row=src.row_number(df.index[0]), column="wx", hint="--gyro-units deg converts from deg/s")
 
 
 def _check_gyro_against_truth(src: _Source, imu: pd.DataFrame, gt: pd.DataFrame) -> None:
@@ -463,7 +537,7 @@ def _check_gyro_against_truth(src: _Source, imu: pd.DataFrame, gt: pd.DataFrame)
             f"(90th percentile |w| = {w90:.2f} is {ratio:.0f} times the ground-truth rotation rate "
             f"{g90:.3f} rad/s; 57.3 is expected for deg/s); multiply wx, wy, wz by pi/180 or load with "
             f"gyro_units='deg/s' (--gyro-units deg)",
-            file=src.name, row=src.row_number(imu.index[0]), column="wx")
+            file=src.name, row=src.row_number(imu.index[0]), column="wx", hint="--gyro-units deg converts from deg/s")
 
 
 def _load_uwb(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
@@ -477,30 +551,124 @@ def _load_uwb(src: _Source, options: LoadOptions, report: LoadReport) -> pd.Data
         df = _to_text(src, df, "tag")
     if options.sort:
         df = _sort_by_time(src, df, report)
-    _check_time_order(src, df)
+    df = _check_time_order(src, df, options, report)
     r = df["range"].to_numpy()
     bad = np.flatnonzero(r <= 0)
     if len(bad):
         i = df.index[bad[0]]
-        raise src.error(f"range {r[bad[0]]!r} m is not positive", i, "range")
+        raise src.error(f"range {fmt_num(r[bad[0]])} m is not positive", i, "range")
     bad = np.flatnonzero(r > options.max_range)
     if len(bad):
         i = df.index[bad[0]]
-        raise src.error(f"range {r[bad[0]]!r} m is absurd (> {options.max_range:g} m); ranges are in metres",
+        raise src.error(f"range {fmt_num(r[bad[0]])} m is absurd (> {options.max_range:g} m); ranges are in metres",
                         i, "range")
     key = ["t", "anchor"] + (["tag"] if has_tag else [])
     df = _drop_or_refuse_duplicates(src, df, key, "range (same time and anchor)", options, report)
     return df[UWB_COLUMNS + (["tag"] if has_tag else [])]
 
 
+def _refuse_same_anchor(src: _Source, df: pd.DataFrame) -> None:
+    same = np.flatnonzero((df["anchor_a"] == df["anchor_b"]).to_numpy())
+    if len(same):
+        i = df.index[same[0]]
+        raise src.error(f"anchor_a and anchor_b are the same anchor {df.loc[i, 'anchor_a']!r}; a pair "
+                        f"needs two different anchors", i, "anchor_b")
+
+
+def _load_tdoa(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
+    """``tdoa.csv``: ``t, anchor_a, anchor_b, tdoa [, tag]`` (anchor checks come later)."""
+    df = _read_raw(src, TDOA_COLUMNS)
+    report.rows_read["tdoa"] = len(df)
+    _require_columns(src, df, TDOA_COLUMNS, report, optional=("tag",))
+    df = _to_numeric(src, df, ["t", "tdoa"])
+    df = _to_text(src, df, "anchor_a")
+    df = _to_text(src, df, "anchor_b")
+    has_tag = "tag" in df.columns
+    if has_tag:
+        df = _to_text(src, df, "tag")
+    _refuse_same_anchor(src, df)
+    if options.sort:
+        df = _sort_by_time(src, df, report)
+    df = _check_time_order(src, df, options, report)
+    key = ["t", "anchor_a", "anchor_b"] + (["tag"] if has_tag else [])
+    df = _drop_or_refuse_duplicates(src, df, key, "TDoA (same time and anchor pair)", options, report)
+    return df[TDOA_COLUMNS + (["tag"] if has_tag else [])]
+
+
+def _load_anchor_ranges(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
+    """``anchor_ranges.csv``: measured anchor-to-anchor ranges (several per pair allowed)."""
+    df = _read_raw(src, ANCHOR_RANGE_COLUMNS)
+    report.rows_read["anchor_ranges"] = len(df)
+    _require_columns(src, df, ANCHOR_RANGE_COLUMNS, report)
+    df = _to_text(src, df, "anchor_a")
+    df = _to_text(src, df, "anchor_b")
+    df = _to_numeric(src, df, ["range"])
+    _refuse_same_anchor(src, df)
+    r = df["range"].to_numpy()
+    bad = np.flatnonzero((r <= 0) | (r > options.max_range))
+    if len(bad):
+        i = df.index[bad[0]]
+        raise src.error(f"range {fmt_num(r[bad[0]])} m is not in (0, {options.max_range:g}] m", i, "range")
+    return df[ANCHOR_RANGE_COLUMNS]
+
+
 def _load_anchors(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
     df = _read_raw(src, ANCHOR_COLUMNS)
     report.rows_read["anchors"] = len(df)
-    _require_columns(src, df, ANCHOR_COLUMNS, report)
+    _require_columns(src, df, ANCHOR_COLUMNS, report, optional=tuple(ANCHOR_QUAT_COLUMNS))
+    quat = [c for c in ANCHOR_QUAT_COLUMNS if c in df.columns]
+    if quat and len(quat) != 4:
+        missing = [c for c in ANCHOR_QUAT_COLUMNS if c not in quat]
+        raise DatasetError(f"{src.name}: antenna orientation columns must come as qw, qx, qy, qz together; "
+                           f"missing {', '.join(missing)}", file=src.name,
+                           row=1 if src.is_csv else None, column=missing[0])
     df = _to_text(src, df, "anchor")
-    df = _to_numeric(src, df, ["x", "y", "z"])
+    df = _to_numeric(src, df, ["x", "y", "z"] + quat)
     df = _drop_or_refuse_duplicates(src, df, ["anchor"], "anchor id", options, report)
-    return df[ANCHOR_COLUMNS]
+    if quat:
+        q = df[ANCHOR_QUAT_COLUMNS].to_numpy()
+        n = np.linalg.norm(q, axis=1)
+        bad = np.flatnonzero(np.abs(n - 1.0) > QUAT_NORM_TOL)
+        if len(bad):
+            raise src.error(f"antenna orientation (qw, qx, qy, qz) has norm {n[bad[0]]:.4f}, not 1 "
+                            f"(a unit Hamilton quaternion, antenna frame -> world, is expected)",
+                            df.index[bad[0]], "qw")
+        df[ANCHOR_QUAT_COLUMNS] = q / n[:, None]
+    return df[ANCHOR_COLUMNS + (ANCHOR_QUAT_COLUMNS if quat else [])]
+
+
+def _check_anchor_ids(src: _Source, df: pd.DataFrame, columns: tuple[str, ...], anchors_src: _Source,
+                      known: set[str]) -> None:
+    """Every anchor id in ``columns`` of ``df`` must be in anchors.csv."""
+    for col in columns:
+        unknown = [a for a in pd.unique(df[col]) if a not in known]
+        if unknown:
+            firsts = [f"'{a}' (first at {src.at(df.index[(df[col] == a).to_numpy()][0]).split(', ', 1)[1]})"
+                      for a in unknown]
+            i0 = df.index[(df[col] == unknown[0]).to_numpy()][0]
+            raise DatasetError(
+                f"{src.name}, column '{col}': anchor id(s) used in {src.name} but missing from "
+                f"{anchors_src.name}: {', '.join(firsts)}; {anchors_src.name} has: {', '.join(sorted(known))}",
+                file=src.name, row=src.row_number(i0), column=col)
+
+
+def _check_tdoa_bound(src: _Source, tdoa: pd.DataFrame, anchors: pd.DataFrame, margin: float) -> None:
+    """|tdoa| cannot exceed the anchors' separation (triangle inequality) plus a noise margin."""
+    pos = {a: np.array([x, y, z]) for a, x, y, z in anchors[["anchor", "x", "y", "z"]].itertuples(index=False)}
+    pa = np.array([pos[a] for a in tdoa["anchor_a"]])
+    pb = np.array([pos[b] for b in tdoa["anchor_b"]])
+    sep = np.linalg.norm(pa - pb, axis=1)
+    val = tdoa["tdoa"].to_numpy()
+    bad = np.flatnonzero(np.abs(val) > sep + margin)
+    if len(bad):
+        k = int(bad[0])
+        i = tdoa.index[k]
+        raise src.error(
+            f"|tdoa| = {abs(val[k]):.3f} m exceeds the separation {sep[k]:.3f} m of anchors "
+            f"{tdoa.loc[i, 'anchor_a']!r} and {tdoa.loc[i, 'anchor_b']!r} plus the {margin:g} m margin "
+            f"({len(bad)} such row(s)); a range difference cannot exceed the anchors' distance: check the "
+            f"unit (metres expected, not seconds or ticks) and the anchor positions", i, "tdoa",
+            hint="--tdoa-margin widens the margin if these are genuine outliers")
 
 
 def _load_groundtruth(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
@@ -516,7 +684,7 @@ def _load_groundtruth(src: _Source, options: LoadOptions, report: LoadReport) ->
     df = _to_numeric(src, df, GT_COLUMNS + vel)
     if options.sort:
         df = _sort_by_time(src, df, report)
-    _check_time_order(src, df)
+    df = _check_time_order(src, df, options, report)
     df = _drop_or_refuse_duplicates(src, df, ["t"], "ground-truth timestamp", options, report)
     q = df[["qw", "qx", "qy", "qz"]].to_numpy()
     n = np.linalg.norm(q, axis=1)
@@ -635,10 +803,13 @@ def load_dataset(path: str | Path, options: Optional[LoadOptions] = None, **kwar
                            f"not a file", file=str(folder))
     report = LoadReport(path=folder)
 
+    tdoa_src = _find_table(folder, "tdoa", False)
     srcs = {
         "imu": _find_table(folder, "imu", True),
-        "uwb": _find_table(folder, "uwb", True),
+        "uwb": _find_table(folder, "uwb", tdoa_src is None),
+        "tdoa": tdoa_src,
         "anchors": _find_table(folder, "anchors", True),
+        "anchor_ranges": _find_table(folder, "anchor_ranges", False),
         "groundtruth": _find_table(folder, "groundtruth", False),
     }
     for k, s in srcs.items():
@@ -651,28 +822,44 @@ def load_dataset(path: str | Path, options: Optional[LoadOptions] = None, **kwar
         report.files["meta"] = meta_path.name
 
     imu = _load_imu(srcs["imu"], options, report)
-    uwb = _load_uwb(srcs["uwb"], options, report)
+    if srcs["uwb"] is not None:
+        uwb = _load_uwb(srcs["uwb"], options, report)
+    else:
+        uwb = pd.DataFrame({"t": pd.Series(dtype=float), "anchor": pd.Series(dtype=object),
+                            "range": pd.Series(dtype=float)})
+    tdoa = _load_tdoa(srcs["tdoa"], options, report) if srcs["tdoa"] else None
     anchors = _load_anchors(srcs["anchors"], options, report)
+    anchor_ranges = (_load_anchor_ranges(srcs["anchor_ranges"], options, report)
+                     if srcs["anchor_ranges"] else None)
     gt = _load_groundtruth(srcs["groundtruth"], options, report) if srcs["groundtruth"] else None
 
     # Every anchor that ranges must have a position.
     known = set(anchors["anchor"])
-    unknown = [a for a in pd.unique(uwb["anchor"]) if a not in known]
-    if unknown:
-        usrc = srcs["uwb"]
-        firsts = [f"'{a}' (first at {usrc.at(uwb.index[(uwb['anchor'] == a).to_numpy()][0]).split(', ', 1)[1]})"
-                  for a in unknown]
-        i0 = uwb.index[(uwb["anchor"] == unknown[0]).to_numpy()][0]
-        raise DatasetError(
-            f"{usrc.name}, column 'anchor': anchor id(s) used in {usrc.name} but missing from "
-            f"{srcs['anchors'].name}: {', '.join(firsts)}; {srcs['anchors'].name} has: "
-            f"{', '.join(sorted(known))}",
-            file=usrc.name, row=usrc.row_number(i0), column="anchor")
+    if srcs["uwb"] is not None:
+        _check_anchor_ids(srcs["uwb"], uwb, ("anchor",), srcs["anchors"], known)
+    if tdoa is not None:
+        _check_anchor_ids(srcs["tdoa"], tdoa, ("anchor_a", "anchor_b"), srcs["anchors"], known)
+        _check_tdoa_bound(srcs["tdoa"], tdoa, anchors, options.tdoa_margin)
+    if anchor_ranges is not None:
+        _check_anchor_ids(srcs["anchor_ranges"], anchor_ranges, ("anchor_a", "anchor_b"), srcs["anchors"], known)
+
+    # Time base, rates and physics across tables (see uwbimu.io.plausibility).
+    timed = {"imu": (srcs["imu"], imu)}
+    for name, df in (("uwb", uwb if srcs["uwb"] is not None else None), ("tdoa", tdoa), ("groundtruth", gt)):
+        if df is not None:
+            timed[name] = (srcs[name], df)
+    plausibility.check_time_base(timed, options.lenient, report.warn)
+    plausibility.check_imu_physics(srcs["imu"], imu, report.warn)
+    plausibility.check_coordinates(srcs["anchors"], anchors, ["x", "y", "z"], "anchor")
+    if gt is not None:
+        plausibility.check_coordinates(srcs["groundtruth"], gt, ["px", "py", "pz"], "ground-truth")
+    plausibility.check_anchor_geometry(srcs["anchors"], anchors, options.lenient, report.warn)
 
     if gt is not None and options.check_units and options.gyro_units == "rad/s":
         _check_gyro_against_truth(srcs["imu"], imu, gt)
 
-    for name, df in (("imu", imu), ("uwb", uwb), ("anchors", anchors), ("groundtruth", gt)):
+    for name, df in (("imu", imu), ("uwb", uwb), ("tdoa", tdoa), ("anchors", anchors),
+                     ("anchor_ranges", anchor_ranges), ("groundtruth", gt)):
         if df is not None:
             report.rows_kept[name] = len(df)
     ds = Dataset(
@@ -683,7 +870,11 @@ def load_dataset(path: str | Path, options: Optional[LoadOptions] = None, **kwar
         meta=meta,
         path=folder,
         report=report,
+        tdoa=None if tdoa is None else tdoa.reset_index(drop=True),
+        anchor_ranges=None if anchor_ranges is None else anchor_ranges.reset_index(drop=True),
     )
     if report.actions:
         warnings.warn("; ".join(report.actions), LoadRepairWarning, stacklevel=2)
+    for w in report.warnings:
+        warnings.warn(f"{w['file']}: {w['message']}", LoadWarning, stacklevel=2)
     return ds

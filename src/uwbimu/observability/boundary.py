@@ -8,6 +8,7 @@ case by default, seeded), nothing is typed in by hand.
 from __future__ import annotations
 
 import argparse
+import re
 import time
 
 import numpy as np
@@ -46,6 +47,13 @@ UWB_CASES = [
      {"excitation": {"accel": [], "gyro": []}, "nominal_input": [0, 0, 0, 0, 0, 0]}),
     ("3 anchors, C1-C4, Lie order 2", "(order 3 in the seed)", {"lie_order": 2}),
     ("3 anchors, C1-C4, Lie order 1", "(order 3 in the seed)", {"lie_order": 1}),
+    ("2 anchors, horizontal baseline, zero lever arm, gyro x,y only", "C1, C3, C4 fail",
+     {"anchors": [[0, 0, 0], [5, 0, 0]], "lever_arm": [0, 0, 0], "excitation": {"accel": [], "gyro": ["x", "y"]}}),
+    ("same, Lie order 3", "C1, C3, C4 fail",
+     {"anchors": [[0, 0, 0], [5, 0, 0]], "lever_arm": [0, 0, 0], "excitation": {"accel": [], "gyro": ["x", "y"]}, "lie_order": 3}),
+    ("zero lever arm, gyro only", "C3 fails", {"lever_arm": [0, 0, 0], "excitation": {"accel": [], "gyro": ALL}}),
+    ("1 anchor, zero lever arm, all axes excited", "C1 fails", {"anchors": [[1.0, 2.0, 3.0]], "lever_arm": [0, 0, 0]}),
+    ("2 anchors 1e-8 rad off vertical", "C1 fails", {"anchors": [[0, 0, 0], [3e-8, 0, 3]]}),
 ]  # fmt: skip
 
 PM_B3 = [[0.0, 0.0, 0.0], [4.0, 0.0, 0.0], [0.0, 4.0, 0.0]]
@@ -67,10 +75,20 @@ PM_CASES = [
     ("2 beacons + altimeter, on vertical plane, v in that plane, not along line", 3, "rank 6 (v not along line)", {"anchors": [[0, 0, 0], [4, 0, 0.5]], "altimeter": True, "points": [{"p": [1, 0, 1.5], "v": [0.3, 0.0, 0.5]}]}),
     ("2 beacons, no altimeter (random points)", 3, "-", {"anchors": [[0, 0, 0], [4, 0, 0.5]], "random_points": 20}),
     ("2 beacons, no altimeter, accel excited", 3, "-", {"anchors": [[0, 0, 0], [4, 0, 0.5]], "random_points": 20, "excitation": {"accel": ALL}}),
+    ("3 beacons, in plane, v in plane", "auto", "rank < 6", {"anchors": PM_B3, "points": [{"p": [1, 1, 0], "v": [0.5, 0.2, 0.0]}]}),
+    ("3 beacons, 1e-6 m off plane, v in plane", "auto", "rank 6", {"anchors": PM_B3, "points": [{"p": [1, 1, 1e-6], "v": [0.5, 0.2, 0.0]}]}),
+    ("3 beacons, in plane, v leaves plane", "auto", "rank 6", {"anchors": PM_B3, "points": [{"p": [1, 1, 0], "v": [0.5, 0.2, 0.7]}]}),
 ]  # fmt: skip
 
 DELAY_CASES = [
     ("all axes excited", {}),
+    ("gyro x,y,z only, zero lever arm, t_d = 0.5 ms", {"excitation": {"accel": [], "gyro": ALL}, "lever_arm": [0, 0, 0], "time_offset": 5e-4}),
+    ("accel x only, x perpendicular to the line of sight (1 anchor)",
+     {"anchors": [[1.0, 6.0, 2.0]], "excitation": {"accel": ["x"], "gyro": []}, "random_points": 1,
+      "points": [{"antenna": [1.0, 1.0, 1.0], "q": [1, 0, 0, 0], "v": [0.5, 0.2, 0.1]}]}),
+    ("gyro x,y,z only, anchor on the IMU-antenna line (1 anchor)",
+     {"anchors": [[2.0, 1.5, 3.0]], "excitation": {"accel": [], "gyro": ALL}, "random_points": 1,
+      "points": [{"p": [1.0, 1.0, 1.0], "q": [1, 0, 0, 0], "v": [0.5, 0.2, 0.1]}]}),
     ("accel x only (T2)", {"excitation": {"accel": ["x"], "gyro": []}}),
     ("gyro x,y,z only, lever arm != 0 (T3)", {"excitation": {"accel": [], "gyro": ALL}}),
     ("gyro x,y only, lever arm != 0", {"excitation": {"accel": [], "gyro": ["x", "y"]}}),
@@ -79,28 +97,80 @@ DELAY_CASES = [
 ]
 
 
-def _names(v: dict, limit: int = 3) -> str:
-    names = []
+_AXIS_PART = re.compile(r" along (?:(?:body|world) )?(?:\[[^\]]*\](?: \((?:body|world)\))?|[xyz])|: .*$")
+
+
+def direction_family(name: str) -> str:
+    """The generator family of a named direction, without its basis-dependent axis.
+
+    Inside a multi-dimensional null space the individual vectors (and so the
+    axes in their names) depend on an arbitrary basis choice of the SVD; the
+    families (which candidate subspace a direction was found in) and their
+    dimensions do not.
+    """
+    return _AXIS_PART.sub("", name).strip()
+
+
+A4 = A3 + [[2.0, 2.0, 3.0]]
+SQUARE = [[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.0, 5.0, 0.0], [5.0, 5.0, 0.0]]
+
+#: (case, config overrides) for TDoA (differences to anchor 0) with the 19-state model
+TDOA_CASES = [
+    ("2 anchors (1 difference), all axes excited", {"anchors": A4[:2]}),
+    ("3 anchors", {"anchors": A3}),
+    ("4 non-coplanar anchors", {"anchors": A4}),
+    ("4 coplanar anchors, tag off their plane", {"anchors": SQUARE}),
+    ("4 coplanar anchors, tag in their plane", {"anchors": SQUARE, "points": [{"antenna": [1, 2, 0]}, {"antenna": [3, 1, 0]}]}),
+    ("2 anchors, tag on the pair's hyperboloid axis", {"anchors": A4[:2], "points": [{"antenna": [-2, 0, -0.2]}, {"antenna": [7.5, 0, 0.75]}]}),
+    ("2 anchors, vertical baseline", {"anchors": [[0, 0, 0], [0, 0, 3]]}),
+    ("4 anchors, zero lever arm", {"anchors": A4, "lever_arm": [0, 0, 0]}),
+]  # fmt: skip
+
+TDOA_DELAY_CASES = [
+    ("all axes excited", {}),
+    ("accel x only (T2)", {"excitation": {"accel": ["x"], "gyro": []}}),
+    ("gyro x,y,z only, lever arm != 0 (T3)", {"excitation": {"accel": [], "gyro": ALL}}),
+    ("gyro x,y,z only, zero lever arm", {"excitation": {"accel": [], "gyro": ALL}, "lever_arm": [0, 0, 0]}),
+    ("2 anchors, tag on the pair's axis (T1' fails)", {"anchors": A4[:2], "points": [{"antenna": [-2, 0, -0.2]}], "random_points": 1}),
+    ("nothing excited", {"excitation": {"accel": [], "gyro": []}}),
+]  # fmt: skip
+
+
+def _names(v: dict) -> str:
+    """Basis-independent summary: generator families and the dimension each spans."""
+    fams: dict[str, int] = {}
     for d in v["unobservable_directions"]:
-        n = d["name"]
-        n = n.split(":")[0] + (": ..." if ":" in n and not n.startswith("unnamed") else "") if len(n) > 70 else n
-        if n not in names:
-            names.append(n)
-    extra = len(v["unobservable_directions"]) - min(limit, len(names))
-    s = "; ".join(names[:limit])
-    return s + (f" (+{extra} more)" if extra > 0 else "") if s else "-"
+        f = direction_family(d["name"])
+        fams[f] = fams.get(f, 0) + 1
+    return "; ".join(f"{f} (x{k})" if k > 1 else f for f, k in fams.items()) or "-"
+
+
+def _order(v: dict) -> str:
+    """Lie order of the reported rank, the setting and why the search stopped."""
+    if v["lie_order_setting"] == "auto":
+        return f"auto: {v['lie_order']} ({v['stop_reason']})"
+    return f"{v['lie_order']} (explicit)"
+
+
+def _cross(v: dict) -> str:
+    cc = v["cross_check"]
+    return "-" if cc is None else str(cc["rank"])
+
+
+def _margin(v: dict) -> str:
+    return "-" if v["margin_decades"] is None else f"{v['margin_decades']:.1f}"
 
 
 def uwb_table(points: int) -> str:
     lines = [
-        "| case | seed statement | rank / 18 (min over points) | gap [decades] (min) | unobservable directions (weakest point) |",
-        "|---|---|---|---|---|",
-    ]
+        "| case | seed statement | rank / 18 (min over points) | verdict | Lie order | trajectory test rank | margin [decades] (min) | unobservable families (weakest point; xk = k dimensions) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]  # fmt: skip
     for case, seed, over in UWB_CASES:
         cfg = {"name": case, "anchors": A3, "lever_arm": LEVER, "random_points": points, "seed": 1}
         cfg.update(over)
         v = structural_verdict(cfg)
-        lines.append(f"| {case} | {seed} | {v['rank']} | {v['gap_decades']:.1f} | {_names(v)} |")
+        lines.append(f"| {case} | {seed} | {v['rank']} | {v['verdict']} | {_order(v)} | {_cross(v)} | {_margin(v)} | {_names(v)} |")
     return "\n".join(lines)
 
 
@@ -125,27 +195,44 @@ def _rank(M) -> int:
 
 
 def point_mass_table(points: int) -> str:
-    lines = ["| case | Lie order | seed 002 statement | rank / 6 (min) | gap [decades] | unobservable directions |", "|---|---|---|---|---|---|"]
+    lines = ["| case | Lie order | seed 002 statement | rank / 6 (min) | verdict | margin [decades] | unobservable families |",
+             "|---|---|---|---|---|---|---|"]  # fmt: skip
     for case, order, seed, over in PM_CASES:
         cfg = {"name": case, "model": "point_mass", "lie_order": order, "nominal_input": [0, 0, 0], "seed": 1}
         cfg.update(over)
         if "random_points" in cfg:
             cfg["random_points"] = points
         v = structural_verdict(cfg)
-        lines.append(f"| {case} | {order} | {seed} | {v['rank']} | {v['gap_decades']:.1f} | {_names(v)} |")
+        lines.append(f"| {case} | {_order(v)} | {seed} | {v['rank']} | {v['verdict']} | {_margin(v)} | {_names(v)} |")
     return "\n".join(lines)
 
 
-def delay_table(points: int) -> str:
-    lines = ["| case | T1 | T2 | T3 | Theorem 1 | max \\|dh/du\\| (weakest point) | identifiable |", "|---|---|---|---|---|---|---|"]
-    for case, over in DELAY_CASES:
-        cfg = {"anchors": A3, "lever_arm": LEVER, "random_points": points, "time_offset": 0.02, "seed": 1}
+def tdoa_table(points: int) -> str:
+    lines = ["| case | rank / 18 (min) | verdict | Lie order | trajectory test rank | margin [decades] | pairs on an axis (weakest point) | unobservable families |",
+             "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for case, over in TDOA_CASES:
+        cfg = {"name": case, "measurement": "tdoa", "anchors": A4, "lever_arm": LEVER, "random_points": points, "seed": 1}
+        cfg.update(over)
+        v = structural_verdict(cfg)
+        axis = v["conditions"].get("tdoa_pairs_on_axis") or "-"
+        lines.append(f"| {case} | {v['rank']} | {v['verdict']} | {_order(v)} | {_cross(v)} | {_margin(v)} | {axis} | {_names(v)} |")
+    return "\n".join(lines)
+
+
+def delay_table(points: int, cases=None, measurement: str = "range") -> str:
+    lines = ["| case | T1 | T2 | T3 | Theorem 1 | first-order criterion (accel / gyro) | max \\|dh/du\\| at t_d (weakest point) | power of t_d | identifiable |",
+             "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for case, over in cases or DELAY_CASES:
+        cfg = {"anchors": A3 if measurement == "range" else A4, "lever_arm": LEVER, "random_points": points,
+               "time_offset": 0.02, "seed": 1, "measurement": measurement}  # fmt: skip
         cfg.update(over)
         v = delay_verdict(cfg)
-        c = v["conditions"]
-        s = max(v["numeric"]["sensitivity"].values(), default=0.0)
+        c, f, num = v["conditions"], v["first_order"], v["numeric"]
+        s = max(num["sensitivity"].values(), default=0.0)
         yn = lambda b: "yes" if b else "no"  # noqa: E731
-        lines.append(f"| {case} | {yn(c['T1'])} | {yn(c['T2'])} | {yn(c['T3'])} | {yn(v['theorem1'])} | {s:.2e} | {yn(v['identifiable'])} |")
+        pw = "-" if num["td_power"] is None else f"{num['td_power']:.0f}"
+        lines.append(f"| {case} | {yn(c['T1'])} | {yn(c['T2'])} | {yn(c['T3'])} | {yn(v['theorem1'])} | "
+                     f"{f['accel']:.2f} / {f['gyro']:.2f} | {s:.2e} | {pw} | {yn(v['identifiable'])} |")  # fmt: skip
     return "\n".join(lines)
 
 
@@ -156,10 +243,13 @@ def main(argv=None) -> None:
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
     parts = [
-        "### 19-state UWB-IMU model (Lie order 3 unless stated)\n", uwb_table(a.points),
+        "### 19-state UWB-IMU model (lie_order: auto unless stated)\n", uwb_table(a.points),
         "\n\n### Lemma 2-4 blocks vs excited axes (same axes for accelerometer and gyro)\n", lemma_table(a.points),
         "\n\n### Point mass (seed 002), drift only with zero nominal acceleration unless stated\n", point_mass_table(a.points),
-        "\n\n### Time offset (Theorem 1), t_d = 0.02 s\n", delay_table(a.points),
+        "\n\n### Time offset (Theorem 1), t_d = 0.02 s unless stated\n", delay_table(a.points),
+        "\n\n### TDoA (differences to anchor 0), lie_order: auto, anchors A3 + [2, 2, 3] unless stated\n", tdoa_table(a.points),
+        "\n\n### TDoA time offset (T1' = some pair's difference has a gradient), t_d = 0.02 s\n",
+        delay_table(a.points, TDOA_DELAY_CASES, "tdoa"),
         f"\n\n_Generated by `python -m uwbimu.observability.boundary --points {a.points}` in {time.perf_counter() - t0:.1f} s._\n",
     ]  # fmt: skip
     text = "".join(parts)

@@ -33,10 +33,23 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-#: Default relative tolerance of the rank decision: a singular value of the
-#: row-normalised, tangent-projected observability matrix counts when it is
-#: larger than ``RANK_TOL * sigma_max``.
+#: Legacy fixed relative tolerance (``tol=RANK_TOL``); the default decision is
+#: adaptive (:func:`noise_floor`), so that a genuinely small singular value
+#: (a geometry 1e-8 rad off a degenerate one) is not cut by a fixed threshold.
 RANK_TOL = 1e-8
+
+#: Multiple of the rounding level ``eps sqrt(rows) sigma_max`` below which a
+#: singular value of the row-normalised matrix is rounding noise.  Measured on
+#: every boundary case of docs/observability.md (orders 1-4, up to 1914 rows):
+#: the singular values of exact null directions are <= 2e-15, i.e. < 1e-2 of
+#: this floor, while genuine ones go down to what the geometry makes them.
+NOISE_FACTOR = 100.0
+
+
+def noise_floor(sigma_max: float, rows: int) -> float:
+    """Rounding-noise level of the singular values of a row-normalised matrix."""
+    return NOISE_FACTOR * np.finfo(float).eps * np.sqrt(max(rows, 1)) * max(sigma_max, 1e-300)
+
 
 #: Tolerance of the greedy word selection at generic points (residual of a new
 #: unit row after projection on the kept rows).  Generic dependence leaves
@@ -113,7 +126,14 @@ class RankResult:
         descending (zeros appended when there are fewer rows than ``dim``).
     null_space : (dim, dim - rank) orthonormal basis of the unobservable
         tangent directions (right singular vectors of the dropped values).
-    tol : relative tolerance used (``sigma_i > tol * sigma_max`` is kept).
+    tol : relative tolerance used (``sigma_i > tol * sigma_max`` is kept);
+        ``None`` = adaptive (rounding-noise floor, :func:`noise_floor`).
+    cut : the absolute threshold the decision used.
+    margin_decades : ``log10(smallest_kept / cut)``: how far the weakest kept
+        direction is above the threshold (small = the verdict rests on a
+        nearly degenerate geometry).
+    col_scale : the characteristic scales the tangent columns were multiplied
+        by (nondimensionalised states), or None.
     smallest_kept, largest_dropped : the two singular values around the cut
         (``largest_dropped`` is None when nothing was dropped).
     gap_decades : ``log10(smallest_kept / max(largest_dropped, eps sigma_max))``,
@@ -128,7 +148,7 @@ class RankResult:
     dim: int
     singular_values: np.ndarray
     null_space: np.ndarray
-    tol: float
+    tol: Optional[float]
     smallest_kept: float
     largest_dropped: Optional[float]
     gap_decades: float
@@ -136,13 +156,16 @@ class RankResult:
     words: str
     raw_rank: int
     raw_dim: int
+    cut: float = 0.0
+    margin_decades: float = float("inf")
+    col_scale: Optional[np.ndarray] = None
 
     @property
     def full_rank(self) -> bool:
         return self.rank == self.dim
 
 
-def numerical_rank(M: np.ndarray, tol: float = RANK_TOL):
+def numerical_rank(M: np.ndarray, tol: Optional[float] = None, row_ref: Optional[np.ndarray] = None):
     """Rank of ``M`` after normalising its rows, with the singular-value gap.
 
     Rows are scaled to unit norm first: rank is invariant to it, and it keeps
@@ -151,23 +174,37 @@ def numerical_rank(M: np.ndarray, tol: float = RANK_TOL):
     row norm are rounding noise of identically-zero Lie derivatives and are
     dropped (see :data:`ZERO_ROW_TOL`).
 
+    Parameters
+    ----------
+    tol : relative tolerance (``sigma_i > tol * sigma_max`` counts); ``None``
+        (default) = the rounding-noise floor :func:`noise_floor` of the matrix.
+    row_ref : (rows,) typical norm of each row (e.g. at a generic point); a row
+        below ``ZERO_ROW_TOL`` of it is zero too.  Without it a matrix whose
+        rows are *all* rounding noise (a lone vanishing gradient) would be
+        normalised into rank.
+
     Returns
     -------
-    rank, s (min(rows, cols),) singular values, Vt (cols, cols) right singular vectors.
+    rank, s (min(rows, cols),) singular values, Vt (cols, cols) right singular
+    vectors, cut (the absolute threshold used).
     """
     M = np.asarray(M, dtype=float)
     ncol = M.shape[1]
     norms = np.linalg.norm(M, axis=1)
     keep = norms > max(ZERO_ROW_TOL * (norms.max() if norms.size else 0.0), 1e-300)
+    if row_ref is not None:
+        keep &= norms > ZERO_ROW_TOL * np.asarray(row_ref, float)
     if not np.any(keep):
-        return 0, np.zeros(ncol), np.eye(ncol)
+        return 0, np.zeros(ncol), np.eye(ncol), 0.0
     Mn = M[keep] / norms[keep, None]
+    rows = Mn.shape[0]
     if Mn.shape[0] < ncol:  # pad so that Vt is square (null space complete)
         Mn = np.vstack([Mn, np.zeros((ncol - Mn.shape[0], ncol))])
     # thin SVD: the U factor of a tall matrix is never needed
     _, s, Vt = np.linalg.svd(Mn, full_matrices=False)
-    rank = int(np.sum(s > tol * s[0]))
-    return rank, s, Vt
+    cut = noise_floor(s[0], rows) if tol is None else tol * s[0]
+    rank = int(np.sum(s > cut))
+    return rank, s, Vt, cut
 
 
 def _as_dm(v):
@@ -281,6 +318,20 @@ class LieObservability:
         self._all_fn = ca.Function("O_all", [m.x, m.params], [ca.jacobian(ca.vertcat(*allL), m.x)])
 
     # ------------------------------------------------------------------
+    def _row_floor(self, kind: str, OT: np.ndarray, D: np.ndarray) -> Optional[np.ndarray]:
+        """Typical norm of each row of ``O T diag(D)`` (reference: a generic point of the
+        model's sampler, unscaled), or None without a sampler."""
+        if self.model.sampler is None:
+            return None
+        cache = self.__dict__.setdefault("_row_refs", {})
+        if kind not in cache:
+            xg, pg = self.model.sampler(np.random.default_rng(2024))
+            fn = self._pruned_fn if kind == "pruned" else self._all_fn
+            Og = np.asarray(fn(_as_dm(xg), _as_dm(pg))) @ self.tangent_basis(xg, pg)
+            cache[kind] = np.linalg.norm(Og, axis=1)
+        # column scaling changes every row norm by at most max(D) / min(D)
+        return cache[kind] * float(np.min(D)) if len(cache[kind]) == OT.shape[0] else None
+
     def tangent_basis(self, x, p) -> np.ndarray:
         """(n, d) tangent basis at ``x``."""
         return np.asarray(self._T(_as_dm(x), _as_dm(p)))
@@ -302,19 +353,27 @@ class LieObservability:
             O = np.asarray(self._all_fn(x, p))
         return O @ self.tangent_basis(x, p) if tangent else O
 
-    def rank_test(self, x, p=(), tol: float = RANK_TOL, words: str = "auto") -> RankResult:
+    def rank_test(
+        self, x, p=(), tol: Optional[float] = None, words: str = "auto", col_scale: Optional[np.ndarray] = None
+    ) -> RankResult:
         """Decide the rank at ``(x, p)``.
 
         ``words="auto"`` uses the pruned words and falls back to all words when
         they do not give full rank, or give it with ``sigma_min / sigma_max <
-        PRUNED_MARGIN`` (see module docstring).
+        PRUNED_MARGIN`` (see module docstring).  ``tol=None`` decides at the
+        rounding-noise floor (:func:`noise_floor`).  ``col_scale`` (d,) are
+        characteristic scales of the tangent coordinates: the columns are
+        multiplied by them before the decision (nondimensionalised states), and
+        the null space is mapped back to physical tangent coordinates.
         """
         x, p = _as_dm(x), _as_dm(p)
         T = self.tangent_basis(x, p)
+        D = np.ones(T.shape[1]) if col_scale is None else np.asarray(col_scale, float)
+        Ts = T * D[None, :]
         used = "pruned"
         if words in ("auto", "pruned") and self._pruned_fn is not None:
             O_raw = np.asarray(self._pruned_fn(x, p))
-            rank, s, Vt = numerical_rank(O_raw @ T, tol)
+            rank, s, Vt, cut = numerical_rank(O_raw @ Ts, tol, self._row_floor("pruned", O_raw @ T, D))
             weak = rank == T.shape[1] and s[rank - 1] < PRUNED_MARGIN * s[0]
             if (rank < T.shape[1] or weak) and words == "auto":
                 used = "all"
@@ -324,17 +383,20 @@ class LieObservability:
             if self._all_fn is None:
                 self._build_all()
             O_raw = np.asarray(self._all_fn(x, p))
-            rank, s, Vt = numerical_rank(O_raw @ T, tol)
+            rank, s, Vt, cut = numerical_rank(O_raw @ Ts, tol, self._row_floor("all", O_raw @ T, D))
         d = T.shape[1]
         s_full = np.zeros(d)
         s_full[: min(d, len(s))] = s[:d]
-        null = Vt[rank:].T.copy()
+        null = Vt[rank:].T * D[:, None]  # scaled null vectors -> physical tangent coordinates
+        if null.shape[1]:
+            null = np.linalg.qr(null)[0]
         eps_floor = np.finfo(float).eps * (s_full[0] if s_full[0] > 0 else 1.0)
         kept = float(s_full[rank - 1]) if rank > 0 else 0.0
         dropped = float(s_full[rank]) if rank < d else None
         denom = max(dropped if dropped is not None else 0.0, eps_floor)
         gap = float(np.log10(kept / denom)) if kept > 0 else 0.0
-        raw_rank, _, _ = numerical_rank(O_raw, tol)
+        margin = float(np.log10(kept / cut)) if kept > 0 and cut > 0 else (float("inf") if kept > 0 else 0.0)
+        raw_rank = numerical_rank(O_raw, tol)[0]
         return RankResult(
             rank=rank,
             dim=d,
@@ -348,6 +410,9 @@ class LieObservability:
             words=used,
             raw_rank=raw_rank,
             raw_dim=int(O_raw.shape[1]),
+            cut=float(cut),
+            margin_decades=margin,
+            col_scale=None if col_scale is None else D,
         )
 
 

@@ -51,6 +51,7 @@ class UwbImuSpec:
     n_anchors: int = 3
     accel_axes: tuple[str, ...] = AXES
     gyro_axes: tuple[str, ...] = AXES
+    measurement: str = "range"  # "range" | "tdoa"
 
 
 @dataclass(frozen=True)
@@ -101,7 +102,12 @@ def uwb_imu_model(spec: UwbImuSpec) -> ControlAffineModel:
         fields.append(F[:, 3 + j])
         names.append(f"w{AXES[j]}")
     pU = ref.antenna_position(x20, ops)
-    h = ca.vertcat(*[0.5 * ca.sumsqr(A[3 * i : 3 * i + 3] - pU) for i in range(N)])
+    if spec.measurement == "tdoa":
+        # differences to anchor 0 span every pair's difference (r_b - r_a = (r_b - r_0) - (r_a - r_0))
+        r = [ca.norm_2(A[3 * i : 3 * i + 3] - pU) for i in range(N)]
+        h = ca.vertcat(*[r[i] - r[0] for i in range(1, N)])
+    else:
+        h = ca.vertcat(*[0.5 * ca.sumsqr(A[3 * i : 3 * i + 3] - pU) for i in range(N)])
     Xi = ref.quaternion_rate_matrix(x[6:10], ops)
     T = ca.SX.zeros(19, 18)
     T[0:6, 0:6] = ca.SX.eye(6)
@@ -113,7 +119,7 @@ def uwb_imu_model(spec: UwbImuSpec) -> ControlAffineModel:
         return sample_uwb_imu_state(rng), np.r_[rng.uniform(-5, 5, 3 * N), rng.normal(0, 2, 6)]
 
     return ControlAffineModel(
-        name=f"uwb_imu[{N} anchors]",
+        name=f"uwb_imu[{N} anchors{', tdoa' if spec.measurement == 'tdoa' else ''}]",
         x=x,
         params=ca.vertcat(A, u0),
         drift=drift,

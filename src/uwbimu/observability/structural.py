@@ -74,7 +74,31 @@ def uwb_imu_conditions(cfg: ObservabilityConfig, x: np.ndarray, anchors: np.ndar
     c2 = any(off_plane(tag, anchors, t) for t in triples)
     c3 = len(cfg.accel_axes()) == 3
     c4 = len(cfg.gyro_axes()) == 3
-    return {"C1": c1, "C2": c2, "C3": c3, "C4": c4, "theorem2": c1 and c2 and c3 and c4}
+    out = {"C1": c1, "C2": c2, "C3": c3, "C4": c4, "theorem2": c1 and c2 and c3 and c4}
+    if cfg.measurement == "tdoa":
+        # seed 001 states C1-C4 for ranges; for TDoA report the geometry that matters instead
+        out.update(tdoa_geometry(tag, anchors))
+    return out
+
+
+def tdoa_geometry(tag: np.ndarray, anchors: np.ndarray) -> dict[str, Any]:
+    """TDoA geometry at an antenna position: which anchor pairs carry a gradient.
+
+    ``d(r_b - r_a)/d p_U = -(e_b - e_a)`` (unit lines of sight): it vanishes
+    exactly when the tag is on the line through anchors ``a`` and ``b`` outside
+    the segment between them (the axis of that pair's hyperboloids), where the
+    difference is the constant ``+-|p_b - p_a|``.
+    """
+    A = np.asarray(anchors, dtype=float)
+    E = A - tag
+    E = E / np.maximum(np.linalg.norm(E, axis=1, keepdims=True), 1e-300)
+    dead = [(i, j) for i, j in itertools.combinations(range(len(A)), 2) if np.linalg.norm(E[j] - E[i]) < 1e-9]
+    G = np.array([E[j] - E[i] for i, j in itertools.combinations(range(len(A)), 2)])
+    return {
+        "tdoa_pairs_on_axis": [list(p) for p in dead],
+        "tdoa_gradient_rank": int(np.linalg.matrix_rank(G, tol=1e-9)) if len(G) else 0,
+        "anchors_noncoplanar": anchors_noncoplanar(A),
+    }
 
 
 def point_mass_conditions(cfg: ObservabilityConfig, x: np.ndarray, anchors: np.ndarray) -> dict[str, Any]:
@@ -152,17 +176,89 @@ def evaluation_points(cfg: ObservabilityConfig) -> list[tuple[np.ndarray, np.nda
     return out
 
 
-def compiled_for(cfg: ObservabilityConfig):
+#: Upper bound on the Lie rows of the next order's all-words matrix
+#: (rows(k) * (1 + fields)); above it the automatic search stops ("row budget")
+#: and the trajectory test decides.  2000 rows ~ 3 s to build for the
+#: 19-state model (measured: 1914 rows at order 4 with 3 anchors, 2-3 s; 3330
+#: rows at order 5 with one anchor, 14.7 s).
+ROW_BUDGET = 2000
+
+#: Time scale [s] of the nondimensionalised states (velocity L/T, accelerometer
+#: bias L/T^2, gyro bias 1/T): the seconds over which a range observes motion.
+TIME_SCALE = 1.0
+
+
+def compiled_for(cfg: ObservabilityConfig, order: int | None = None):
     """The cached compiled engine for the configuration's model structure."""
+    if order is None and cfg.lie_order == "auto":
+        raise ValueError("compiled_for: lie_order is 'auto'; pass the order (e.g. structural_verdict(...)['lie_order'])")
+    k = int(cfg.lie_order if order is None else order)
     if cfg.model == "uwb_imu":
-        spec = UwbImuSpec(len(cfg.anchors), cfg.accel_axes(), cfg.gyro_axes())
-        return compiled_uwb_imu(spec, cfg.lie_order), UWB_IMU_TANGENT_NAMES
+        spec = UwbImuSpec(len(cfg.anchors), cfg.accel_axes(), cfg.gyro_axes(), cfg.measurement)
+        return compiled_uwb_imu(spec, k), UWB_IMU_TANGENT_NAMES
     spec = PointMassSpec(len(cfg.anchors), cfg.altimeter, cfg.accel_axes())
-    return compiled_point_mass(spec, cfg.lie_order), POINT_MASS_NAMES
+    return compiled_point_mass(spec, k), POINT_MASS_NAMES
+
+
+def geometry_scale(cfg: ObservabilityConfig, x: np.ndarray) -> float:
+    """Length scale L [m] of a point: extent of the anchors and the tag (>= 1 mm)."""
+    A = np.asarray(cfg.anchors, dtype=float)
+    tag = ref.antenna_position(np.r_[x, 0.0]) if cfg.model == "uwb_imu" else x[0:3]
+    pts = np.vstack([A, tag])
+    return max(1e-3, float(np.ptp(pts, axis=0).max()))
+
+
+def tangent_scales(cfg: ObservabilityConfig, x: np.ndarray) -> np.ndarray:
+    """Characteristic scale of each tangent coordinate (nondimensionalised states).
+
+    Lengths (position, lever arm) by the geometry scale ``L``, velocity by
+    ``L/T``, accelerometer bias by ``L/T^2``, attitude by 1 rad, gyro bias by
+    ``1/T`` with ``T = TIME_SCALE``.  A singular value of the scaled matrix is
+    then a relative measure of how far the point is from a degenerate one.
+    """
+    L, T = geometry_scale(cfg, x), TIME_SCALE
+    if cfg.model == "uwb_imu":
+        return np.repeat([L, L / T, 1.0, L / T**2, 1.0 / T, L], 3)
+    return np.repeat([L, L / T], 3)
+
+
+def _search_orders(cfg, pts, scales):
+    """Automatic Lie-order search (see :class:`ObservabilityConfig`, ``lie_order``)."""
+    words = "all" if cfg.all_words else "auto"
+    history, results, stop = [], {}, "cap"
+    for k in range(cfg.lie_order_cap + 1):
+        engine, _ = compiled_for(cfg, k)
+        res = [engine.rank_test(x, p, tol=cfg.tolerance, words=words, col_scale=D) for (x, p), D in zip(pts, scales)]
+        results[k] = res
+        r = min(rr.rank for rr in res)
+        history.append({"order": k, "rank": int(r), "rows": int(max(rr.rows for rr in res))})
+        if r == res[0].dim:
+            stop = "full rank"
+            break
+        if len(history) >= 3 and history[-1]["rank"] == history[-2]["rank"] == history[-3]["rank"]:
+            stop = "stalled"
+            break
+        if k == cfg.lie_order_cap:
+            break
+        if history[-1]["rows"] * (1 + len(engine.model.fields)) > ROW_BUDGET and not all(rr.words == "pruned" for rr in res):
+            stop = "row budget"
+            break
+    return history, results, stop
 
 
 def structural_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[str, Any]:
     """Lie-derivative rank test of a configuration (the ``structural`` verb).
+
+    With ``lie_order: auto`` (default) the order is raised until the rank is
+    full or has not grown for two orders (cap ``lie_order_cap`` and
+    :data:`ROW_BUDGET`); a rank deficit is cross-checked by the trajectory
+    sensitivity test (:mod:`uwbimu.observability.trajectory`), whose rank
+    counts too (both are lower bounds of the true rank).  With an explicit
+    order ``k`` the rank at ``k`` is reported; a deficit there is "not shown
+    observable at order k", and only directions that the automatic search
+    leaves unobservable are named.  The rank decision is taken on
+    nondimensionalised states (:func:`tangent_scales`) at the rounding-noise
+    floor unless ``tolerance`` is set.
 
     Parameters
     ----------
@@ -172,54 +268,134 @@ def structural_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[st
     -------
     dict with ``rank`` (minimum over the evaluated points), ``dimension``
     (tangent dimension: 18 for ``uwb_imu``, 6 for ``point_mass``),
-    ``observable`` (full rank at every point), ``lie_order``,
-    ``singular_values`` (row-normalised matrix at the weakest point),
-    ``unobservable_directions`` (``[{name, vector}]`` at the weakest point),
-    ``conditions`` (the seeds' sufficient conditions at the weakest point),
-    and as evidence ``tolerance``, ``gap_decades`` (min over points),
+    ``observable`` (full rank at every point), ``verdict`` (``observable``,
+    ``not observable`` or ``not shown observable at order k``),
+    ``search_verdict`` / ``search_rank`` (what the automatic search and the
+    trajectory test found, also reported for an explicit order), ``lie_order``
+    (the order of the reported rank), ``lie_order_setting``, ``order_search``
+    (``[{order, rank, rows}]``), ``stop_reason`` (``full rank``, ``stalled``,
+    ``cap``, ``row budget``), ``cross_check`` (trajectory test: ``rank``,
+    ``gap_decades``, ``agree``; None when not run), ``singular_values``
+    (row-normalised, nondimensionalised matrix at the weakest point),
+    ``unobservable_directions`` (``[{name, vector}]`` at the weakest point, in
+    physical tangent coordinates), ``null_dimension_at_order`` and
+    ``removed_by_higher_orders`` (explicit order), ``order_null_space`` (the
+    null vectors at the reported order and weakest point, unnamed: at an
+    explicit order they may include directions that higher orders remove),
+    ``conditions`` (the seeds'
+    sufficient conditions at the weakest point), and as evidence
+    ``tolerance``, ``cut`` (absolute threshold at the weakest point),
+    ``gap_decades`` and ``margin_decades`` (min over points), ``scale``
+    (geometry length scale L [m] and time scale [s] of the weakest point),
     ``raw_rank``/``raw_dimension`` (quaternion as a 4-vector, the seed's
-    19-column count; ``raw_rank`` only when all words were used, set
-    ``all_words: true`` to force it), ``points`` (per-point rank and gap), ``words``,
-    ``state_names`` and ``elapsed_s``.
+    19-column count; ``raw_rank`` only when all words were used), ``points``
+    (per-point rank and gap), ``words``, ``state_names`` and ``elapsed_s``.
     """
+    from uwbimu.observability.trajectory import trajectory_rank
+
     t0 = time.perf_counter()
     cfg = load_config(config)
-    engine, names = compiled_for(cfg)
     A = np.asarray(cfg.anchors, dtype=float)
-    results = []
-    for x, p in evaluation_points(cfg):
-        results.append((x, p, engine.rank_test(x, p, tol=cfg.tolerance, words="all" if cfg.all_words else "auto")))
-    # weakest point: lowest rank, then smallest gap
-    iw = min(range(len(results)), key=lambda i: (results[i][2].rank, results[i][2].gap_decades))
-    xw, pw, rw = results[iw]
+    pts = evaluation_points(cfg)
+    scales = [tangent_scales(cfg, x) for x, _ in pts]
+    history, by_order, stop = _search_orders(cfg, pts, scales)
+    final_k = history[-1]["order"]
+    final = by_order[final_k]
+    dim = final[0].dim
+    # trajectory cross-check of a deficit: its rank is a lower bound too
+    cross = None
+    traj_null = {}
+    if min(r.rank for r in final) < dim:
+        engine, _ = compiled_for(cfg, final_k)
+        tr = []
+        for i, ((x, p), D) in enumerate(zip(pts, scales)):
+            t = trajectory_rank(engine.model, x, p, engine.tangent_basis(x, p), col_scale=D, seed=cfg.seed)
+            tr.append(t)
+            traj_null[i] = t
+        cross = {
+            "rank": int(min(t.rank for t in tr)),
+            "gap_decades": round(float(min(t.gap_decades for t in tr)), 2),
+            "agree": bool(all(t.rank == r.rank for t, r in zip(tr, final))),
+            "horizon_s": tr[0].horizon_s,
+        }
+    # per point: the final rank (Lie, or the trajectory test where it shows more)
+    final_rank = []
+    for i, r in enumerate(final):
+        t = traj_null.get(i)
+        final_rank.append(max(r.rank, t.rank) if t is not None else r.rank)
+    explicit = cfg.lie_order != "auto"
+    if explicit:
+        k = int(cfg.lie_order)
+        if k in by_order:
+            at_k = by_order[k]
+        elif history[-1]["rank"] == dim:  # full below k: rank only grows with the order
+            at_k = final
+        else:
+            engine, _ = compiled_for(cfg, k)
+            words = "all" if cfg.all_words else "auto"
+            at_k = [engine.rank_test(x, p, tol=cfg.tolerance, words=words, col_scale=D) for (x, p), D in zip(pts, scales)]
+        reported, reported_rank, order_used = at_k, [r.rank for r in at_k], k
+    else:
+        reported, reported_rank, order_used = final, final_rank, final_k
+    # weakest point: lowest rank, then smallest margin above the threshold
+    iw = min(range(len(pts)), key=lambda i: (reported_rank[i], reported[i].margin_decades))
+    xw, pw = pts[iw]
+    rw = reported[iw]
     cond_fn = uwb_imu_conditions if cfg.model == "uwb_imu" else point_mass_conditions
-    # the constant gyro reading of a non-excited gyro enters a known generator
+    # name only the directions that stay unobservable after the search
+    names = UWB_IMU_TANGENT_NAMES if cfg.model == "uwb_imu" else POINT_MASS_NAMES
+    fw = final[iw]
+    tw = traj_null.get(iw)
+    null = tw.null_space if tw is not None and tw.rank > fw.rank else fw.null_space
+    if final_rank[iw] == dim:
+        null = np.zeros((dim, 0))
     gyro = pw[3 * len(A) + 3 : 3 * len(A) + 6] if cfg.model == "uwb_imu" and not cfg.gyro_axes() else None
-    dirs = name_directions(rw.null_space, candidates_for(cfg.model, names, xw, A, gyro_reading=gyro), names)
+    dirs = name_directions(null, candidates_for(cfg.model, names, xw, A, gyro_reading=gyro), names)
+    rank = int(min(reported_rank))
+    observable = rank == dim
+    search_verdict = "observable" if min(final_rank) == dim else "not observable"
+    verdict = "observable" if observable else (f"not shown observable at order {order_used}" if explicit else search_verdict)
     points = [
         {
-            "rank": r.rank,
+            "rank": int(rr),
+            "lie_rank": r.rank,
             "gap_decades": round(r.gap_decades, 2),
+            "margin_decades": round(r.margin_decades, 2) if np.isfinite(r.margin_decades) else None,
             "smallest_kept": r.smallest_kept,
             "largest_dropped": r.largest_dropped,
             "raw_rank": r.raw_rank if r.words == "all" else None,
             "words": r.words,
             "state": x.tolist(),
         }
-        for x, _, r in results
+        for (x, _), r, rr in zip(pts, reported, reported_rank)
     ]
+    margins = [r.margin_decades for r in reported if np.isfinite(r.margin_decades)]
     return {
         "name": cfg.name,
         "model": cfg.model,
-        "rank": int(min(r.rank for _, _, r in results)),
-        "dimension": rw.dim,
-        "observable": all(r.full_rank for _, _, r in results),
-        "lie_order": cfg.lie_order,
+        "measurement": cfg.measurement,
+        "rank": rank,
+        "dimension": dim,
+        "observable": observable,
+        "verdict": verdict,
+        "search_verdict": search_verdict,
+        "search_rank": int(min(final_rank)),
+        "lie_order": order_used,
+        "lie_order_setting": cfg.lie_order,
+        "order_search": history,
+        "stop_reason": stop,
+        "cross_check": cross,
         "singular_values": rw.singular_values.tolist(),
         "unobservable_directions": dirs,
+        "null_dimension_at_order": dim - rank,
+        "order_null_space": rw.null_space.T.tolist(),
+        "removed_by_higher_orders": (dim - rank) - len(dirs),
         "conditions": cond_fn(cfg, xw, A),
         "tolerance": cfg.tolerance,
-        "gap_decades": round(float(min(r.gap_decades for _, _, r in results)), 2),
+        "cut": rw.cut,
+        "gap_decades": round(float(min(r.gap_decades for r in reported)), 2),
+        "margin_decades": round(float(min(margins)), 2) if margins else None,
+        "scale": {"length_m": geometry_scale(cfg, xw), "time_s": TIME_SCALE},
         # with pruned words (selected on tangent columns, <= 18 rows) the
         # 4-vector count is not meaningful: reported only for all words
         "raw_rank": rw.raw_rank if rw.words == "all" else None,
@@ -228,14 +404,14 @@ def structural_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[st
         "rows": rw.rows,
         "state_names": list(names),
         "excitation": {"accel": list(cfg.accel_axes()), "gyro": list(cfg.gyro_axes())},
-        "n_points": len(results),
+        "n_points": len(pts),
         "weakest_point": iw,
         "points": points,
         "elapsed_s": time.perf_counter() - t0,
     }
 
 
-def config_for_dataset(ds, lie_order: int = 3, random_points: int = 5, seed: int = 0) -> ObservabilityConfig:
+def config_for_dataset(ds, lie_order="auto", random_points: int = 5, seed: int = 0) -> ObservabilityConfig:
     """Structural configuration of a dataset's setup: its anchors and lever arm.
 
     The lever arm is the true one (``meta.truth``) when known, else the first
@@ -256,7 +432,7 @@ def config_for_dataset(ds, lie_order: int = 3, random_points: int = 5, seed: int
 
 def format_verdict(v: dict[str, Any]) -> str:
     """One-line summary of a :func:`structural_verdict` result (for the demo)."""
-    head = "observable" if v["observable"] else "NOT observable"
+    head = v.get("verdict", "observable" if v["observable"] else "not observable")
     s = (
         f"{head}: rank {v['rank']}/{v['dimension']} (Lie order {v['lie_order']}, {v['n_points']} point(s), "
         f"singular-value gap >= {v['gap_decades']:.1f} decades)"

@@ -48,6 +48,12 @@ from uwbimu.observability.directions import candidates_for, name_directions
 #: Typical magnitudes used to make the information dimensionless (per block).
 DEFAULT_SCALES = {"p": 1.0, "v": 1.0, "th": 1.0, "ba": 0.1, "bg": 0.01, "l": 0.1, "td": 0.01}
 
+#: Prior sd per block at each window's start [m, m/s, rad, m/s^2, rad/s, m, s]:
+#: the ESKF's defaults (``EskfOptions``: position 0.3 m, velocity 0.5 m/s,
+#: lever arm 0.3 m, t_d 0.1 s; attitude 0.1 rad ~ 6 deg roll/pitch after
+#: levelling; biases of a consumer IMU).
+DEFAULT_PRIOR_SD = {"p": 0.3, "v": 0.5, "th": 0.1, "ba": 0.1, "bg": 0.01, "l": 0.3, "td": 0.1}
+
 
 @dataclass
 class Trajectory:
@@ -74,14 +80,45 @@ class Trajectory:
 
 @dataclass
 class WindowOptions:
-    """Options of :func:`window_observability`."""
+    """Options of :func:`window_observability`.
+
+    Attributes
+    ----------
+    window : window length [s] (one window spanning the log: the whole-log bound).
+    range_sigma, imu_noise : noise model (None: dataset meta, else 0.1 m / BMI088).
+    include_imu_noise : IMU white noise and bias random walks as process noise.
+    bound : ``"pcrb"`` (default): posterior Cramer-Rao bound from the stated
+        prior ``prior_sd`` at the window start, IMU noise as process noise;
+        ``"gramian"``: the former noise-weighted Gramian of the start state
+        with no prior and the IMU noise as a range-variance inflation
+        (approximate, correlations dropped; kept for comparison).
+    prior_sd : prior sd per block at each window start (see :data:`DEFAULT_PRIOR_SD`).
+    chain : ``True`` (default): the windows are chained like the estimator —
+        the prior of a window is the bound at the end of the previous one (the
+        first starts from ``prior_sd``), so ``sd_<state>`` at a window's end is
+        what a matched filter's sigma should be then; ``False``: every window
+        stands alone from ``prior_sd``.
+    excited_sd_ratio : a window excites the lever arm (time offset) when the
+        marginal precision its ranges add, ``1/sd_end^2 - 1/sd_prior_end^2``,
+        is at least ``1/ratio^2 - 1`` times the prior precision ``1/prior_sd^2``
+        (every lever-arm axis): the window alone would take the prior sd to
+        ``ratio`` x prior.  0.5 is the estimator's own ``excitation.sd_ratio_warn``.
+    lever_sd_threshold, td_sd_threshold : optional absolute accuracy [m, s]
+        the flags also require (None: not used).
+    scales : typical magnitudes making the information dimensionless.
+    min_ranges : fewer ranges in a window: "no data".
+    """
 
     window: float = 20.0
-    range_sigma: Optional[float] = None  # None: dataset meta, else 0.1 m
-    imu_noise: Optional[ImuNoise] = None  # None: dataset meta, else BMI088
+    range_sigma: Optional[float] = None
+    imu_noise: Optional[ImuNoise] = None
     include_imu_noise: bool = True
-    lever_sd_threshold: float = 0.1  # m
-    td_sd_threshold: float = 0.03  # s
+    bound: str = "pcrb"
+    prior_sd: dict = field(default_factory=lambda: dict(DEFAULT_PRIOR_SD))
+    chain: bool = True
+    excited_sd_ratio: float = 0.5
+    lever_sd_threshold: Optional[float] = None
+    td_sd_threshold: Optional[float] = None
     scales: dict = field(default_factory=lambda: dict(DEFAULT_SCALES))
     min_ranges: int = 10
 
@@ -319,6 +356,65 @@ def _window_information(R, f, w, dt, rng_idx, Hr, sig2, qdiag, use_noise):
 
 
 @njit(cache=True)
+def _propagate_cov(P, PT, R, f, E, dt, qdiag):
+    """In place ``P <- F P F^T + Q dt`` (19x19; the lever arm and t_d are constants)."""
+    _step_rows(P, R, f, E, dt)  # F P
+    n = P.shape[0]
+    for a in range(n):
+        for b in range(n):
+            PT[a, b] = P[b, a]
+    _step_rows(PT, R, f, E, dt)  # F (F P)^T = F P F^T
+    for a in range(n):
+        for b in range(n):
+            P[a, b] = 0.5 * (PT[a, b] + PT[b, a])
+    for a in range(15):
+        P[a, a] += qdiag[a] * dt
+
+
+@njit(cache=True)
+def _window_pcrb(R, f, w, dt, rng_idx, Hr, sig2, qdiag, P0):
+    """Posterior Cramer-Rao bound of the 19-dim error state at the window end.
+
+    The covariance form of the information recursion of the linear-Gaussian
+    error-state model along the trajectory (Tichavsky et al. 1998): between
+    ranges ``P <- F P F^T + Q dt`` (IMU white noise and bias random walks as
+    process noise, ``qdiag`` (15,) densities squared of p, v, th, b_a, b_g), at
+    a range ``P <- P - P h^T h P / (h P h^T + sigma^2)``.  ``P0`` (19x19) is the
+    prior at the window start.  Same inputs as :func:`_window_information`.
+    Returns ``(P_end, P_prior_end)``: the bound with the window's ranges and
+    the prior propagated without them.
+    """
+    K = R.shape[0]
+    M = Hr.shape[0]
+    P = P0.copy()
+    Pn = P0.copy()
+    PT = np.zeros((19, 19))
+    E = np.zeros((3, 3))
+    Ph = np.empty(19)
+    j = 0
+    for k in range(K):
+        while j < M and rng_idx[j] == k:
+            s2 = sig2[j]
+            for a in range(19):
+                acc = 0.0
+                for b in range(19):
+                    acc += P[a, b] * Hr[j, b]
+                Ph[a] = acc
+            for a in range(19):
+                s2 += Hr[j, a] * Ph[a]
+            for a in range(19):
+                for b in range(19):
+                    P[a, b] -= Ph[a] * Ph[b] / s2
+            j += 1
+        if k == K - 1:
+            break
+        _exp_neg(w[k], dt[k], E)
+        _propagate_cov(P, PT, R[k], f[k], E, dt[k], qdiag)
+        _propagate_cov(Pn, PT, R[k], f[k], E, dt[k], qdiag)
+    return P, Pn
+
+
+@njit(cache=True)
 def _transition(R, f, w, dt):
     Phi = np.eye(19)
     E = np.zeros((3, 3))
@@ -345,6 +441,13 @@ def transition_matrix(R, f, w, dt) -> np.ndarray:
 # --------------------------------------------------------------------------
 # analysis of one information matrix
 # --------------------------------------------------------------------------
+def _inv_psd(P: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive (semi)definite matrix via its eigenvalues."""
+    lam, V = np.linalg.eigh(0.5 * (P + P.T))
+    lam = np.maximum(lam, 1e-300)
+    return (V / lam) @ V.T
+
+
 def _scale_vector(scales: dict) -> np.ndarray:
     keys = ["p"] * 3 + ["v"] * 3 + ["th"] * 3 + ["ba"] * 3 + ["bg"] * 3 + ["l"] * 3 + ["td"]
     return np.array([scales[k] for k in keys], float)
@@ -435,6 +538,54 @@ def _prepare(ds, tr: Trajectory, opts: WindowOptions):
     }  # fmt: skip
 
 
+def _noise_model(ds, opts: "WindowOptions"):
+    sigma = opts.range_sigma or (ds.meta.range_sigma if ds.meta.range_sigma else 0.1)
+    noise = opts.imu_noise or (ds.meta.imu_noise if ds.meta.imu_noise is not None else BMI088)
+    qd = np.zeros(15)
+    qd[3:6] = noise.accel_noise_density**2
+    qd[6:9] = noise.gyro_noise_density**2
+    qd[9:12] = noise.accel_bias_rw**2
+    qd[12:15] = noise.gyro_bias_rw**2
+    return sigma, noise, (qd if opts.include_imu_noise else np.zeros(15))
+
+
+def posterior_crb(ds, trajectory: Optional[Trajectory] = None, t_start: Optional[float] = None,
+                  t_end: Optional[float] = None, prior_cov: Optional[np.ndarray] = None,
+                  options: Optional[WindowOptions] = None) -> tuple[np.ndarray, np.ndarray]:
+    """Posterior Cramer-Rao bound of the 19-dim error state over ``[t_start, t_end]``.
+
+    Parameters
+    ----------
+    ds : dataset (IMU, UWB, anchors); trajectory : linearisation trajectory
+        (default: the ground truth).
+    t_start, t_end : IMU-clock interval [s] (default: the whole IMU span).
+    prior_cov : (19, 19) error-state covariance at ``t_start`` (default:
+        ``diag(options.prior_sd)^2``), e.g. an estimator's covariance at that
+        instant for a matched comparison.
+    options : :class:`WindowOptions` (noise model).
+
+    Returns
+    -------
+    ``(P_end, P_prior_end)``: the bound at ``t_end`` and the prior propagated
+    without ranges (both (19, 19), error-state order of :mod:`uwbimu.models.state`).
+    """
+    opts = options or WindowOptions()
+    tr = trajectory if trajectory is not None else trajectory_from_groundtruth(ds)
+    sigma, _, qd = _noise_model(ds, opts)
+    pre = _prepare(ds, tr, opts)
+    imu_t = pre["imu_t"]
+    k0 = int(np.searchsorted(imu_t, imu_t[0] if t_start is None else t_start, side="left"))
+    k1 = int(np.searchsorted(imu_t, imu_t[-1] if t_end is None else t_end, side="right"))
+    sel = (pre["ridx"] >= k0) & (pre["ridx"] < k1)
+    P0 = np.diag(_scale_vector(opts.prior_sd) ** 2) if prior_cov is None else np.asarray(prior_cov, float)
+    return _window_pcrb(
+        np.ascontiguousarray(pre["R"][k0:k1]), np.ascontiguousarray(pre["f"][k0:k1]),
+        np.ascontiguousarray(pre["w"][k0:k1]), np.ascontiguousarray(pre["dt"][k0:k1]),
+        pre["ridx"][sel] - k0, np.ascontiguousarray(pre["H"][sel]), np.full(int(sel.sum()), sigma**2),
+        qd, np.ascontiguousarray(P0),
+    )  # fmt: skip
+
+
 def window_observability(ds, trajectory: Optional[Trajectory] = None, options: Optional[WindowOptions] = None) -> tuple[pd.DataFrame, dict]:
     """Per-window information analysis of a dataset along a trajectory.
 
@@ -461,13 +612,8 @@ def window_observability(ds, trajectory: Optional[Trajectory] = None, options: O
     if opts.window <= 0:
         raise ValueError(f"window must be positive, got {opts.window}")
     tr = trajectory if trajectory is not None else trajectory_from_groundtruth(ds)
-    sigma = opts.range_sigma or (ds.meta.range_sigma if ds.meta.range_sigma else 0.1)
-    noise = opts.imu_noise or (ds.meta.imu_noise if ds.meta.imu_noise is not None else BMI088)
-    qd = np.zeros(15)
-    qd[3:6] = noise.accel_noise_density**2
-    qd[6:9] = noise.gyro_noise_density**2
-    qd[9:12] = noise.accel_bias_rw**2
-    qd[12:15] = noise.gyro_bias_rw**2
+    sigma, noise, qd_used = _noise_model(ds, opts)
+    qd = _noise_model(ds, WindowOptions(range_sigma=sigma, imu_noise=noise))[2]
     pre = _prepare(ds, tr, opts)
     imu_t = pre["imu_t"]
     edges = np.arange(imu_t[0], imu_t[-1] + 1e-9, opts.window)
@@ -475,6 +621,8 @@ def window_observability(ds, trajectory: Optional[Trajectory] = None, options: O
         edges = np.r_[edges, imu_t[-1]]
     rows = []
     p, v, q, _, _ = pre["traj_at_imu"]
+    prior_sd = _scale_vector(opts.prior_sd)
+    P_chain = None
     for t0, t1 in zip(edges[:-1], edges[1:]):
         k0 = int(np.searchsorted(imu_t, t0, side="left"))
         k1 = int(np.searchsorted(imu_t, t1, side="right"))
@@ -483,9 +631,34 @@ def window_observability(ds, trajectory: Optional[Trajectory] = None, options: O
         row = {"t_start": float(t0), "t_end": float(t1), "n_ranges": nr}
         gyro = pre["w"][k0:k1]
         row["gyro_rms"] = float(np.sqrt(np.mean(np.sum(gyro**2, axis=1)))) if len(gyro) else 0.0
+        if opts.bound == "pcrb" and k1 - k0 >= 2:
+            start = np.diag(prior_sd**2) if (P_chain is None or not opts.chain) else P_chain
+            args = (
+                np.ascontiguousarray(pre["R"][k0:k1]), np.ascontiguousarray(pre["f"][k0:k1]),
+                np.ascontiguousarray(pre["w"][k0:k1]), np.ascontiguousarray(pre["dt"][k0:k1]),
+                pre["ridx"][sel] - k0, np.ascontiguousarray(pre["H"][sel]), np.full(nr, sigma**2),
+                qd_used, np.ascontiguousarray(start),
+            )  # fmt: skip
+            P_end, P_prior = _window_pcrb(*args)
+            P_chain = P_end
+            # marginal precision the window's ranges add, in units of the prior precision
+            prec = lambda P, i: 1.0 / max(P[i, i], 1e-300)  # noqa: E731
+            row["lever_arm_info_gain"] = float(min((prec(P_end, i) - prec(P_prior, i)) * prior_sd[i] ** 2 for i in (15, 16, 17)))
+            row["time_offset_info_gain"] = float((prec(P_end, 18) - prec(P_prior, 18)) * prior_sd[18] ** 2)
         if nr < opts.min_ranges or k1 - k0 < 2:
             row.update({"min_eigenvalue": 0.0, "condition_number": float("inf"), "weakest_direction": "no data"})
-            row.update({f"sd_{n}": float("inf") for n in ERROR_STATE_NAMES})
+            if opts.bound == "pcrb":
+                Pc = P_chain if (P_chain is not None and opts.chain) else np.diag(prior_sd**2)
+                row.update({f"sd_{n}": float(np.sqrt(Pc[i, i])) for i, n in enumerate(ERROR_STATE_NAMES)})
+            else:
+                row.update({f"sd_{n}": float("inf") for n in ERROR_STATE_NAMES})
+        elif opts.bound == "pcrb":
+            # information the window's ranges add to the state at its end (prior removed)
+            gained = _inv_psd(P_end) - _inv_psd(P_prior)
+            x_ref = np.r_[p[k1 - 1], v[k1 - 1], q[k1 - 1], np.zeros(6), tr.lever_arm]
+            res = analyse_information(gained, opts.scales, x_ref, np.unique(pre["anchors"][sel], axis=0))
+            row.update({k: res[k] for k in ("min_eigenvalue", "condition_number", "weakest_direction")})
+            row.update({f"sd_{n}": float(np.sqrt(max(P_end[i, i], 0.0))) for i, n in enumerate(ERROR_STATE_NAMES)})
         else:
             info = _window_information(
                 np.ascontiguousarray(pre["R"][k0:k1]), np.ascontiguousarray(pre["f"][k0:k1]),
@@ -497,16 +670,36 @@ def window_observability(ds, trajectory: Optional[Trajectory] = None, options: O
             res = analyse_information(info, opts.scales, x_ref, np.unique(pre["anchors"][sel], axis=0))
             row.update({k: res[k] for k in ("min_eigenvalue", "condition_number", "weakest_direction")})
             row.update({f"sd_{n}": float(s) for n, s in zip(ERROR_STATE_NAMES, res["sd"])})
-        row["lever_arm_excited"] = bool(max(row["sd_lx"], row["sd_ly"], row["sd_lz"]) < opts.lever_sd_threshold)
-        row["time_offset_excited"] = bool(row["sd_td"] < opts.td_sd_threshold)
+        sd_l = max(row["sd_lx"], row["sd_ly"], row["sd_lz"])
+        if opts.bound == "pcrb":
+            need = 1.0 / opts.excited_sd_ratio**2 - 1.0  # gain that takes the prior sd to ratio x prior
+            row["lever_arm_excited"] = bool(row.get("lever_arm_info_gain", 0.0) >= need)
+            row["time_offset_excited"] = bool(row.get("time_offset_info_gain", 0.0) >= need)
+        else:
+            row["lever_arm_excited"] = bool(np.isfinite(sd_l))
+            row["time_offset_excited"] = bool(np.isfinite(row["sd_td"]))
+        if opts.lever_sd_threshold is not None:
+            row["lever_arm_excited"] &= bool(sd_l < opts.lever_sd_threshold)
+        if opts.td_sd_threshold is not None:
+            row["time_offset_excited"] &= bool(row["sd_td"] < opts.td_sd_threshold)
         rows.append(row)
     cols = ["t_start", "t_end", "min_eigenvalue", "condition_number", "weakest_direction"]
     cols += [f"sd_{n}" for n in ERROR_STATE_NAMES] + ["n_ranges", "gyro_rms", "lever_arm_excited", "time_offset_excited"]
-    table = pd.DataFrame(rows)[cols]
+    if opts.bound == "pcrb":
+        cols += ["lever_arm_info_gain", "time_offset_info_gain"]
+    table = pd.DataFrame(rows)
+    for c in ("lever_arm_info_gain", "time_offset_info_gain"):
+        if c in cols and c not in table.columns:
+            table[c] = 0.0
+    table = table[cols]
     meta = {
         "range_sigma": sigma,
         "imu_noise": noise.model_dump(),
         "include_imu_noise": opts.include_imu_noise,
+        "bound": opts.bound,
+        "prior_sd": dict(opts.prior_sd) if opts.bound == "pcrb" else None,
+        "excited_sd_ratio": opts.excited_sd_ratio if opts.bound == "pcrb" else None,
+        "chain": opts.chain if opts.bound == "pcrb" else None,
         "ranges_unknown_anchor": pre["n_unknown_anchor"],
         "ranges_outside_imu_span": pre["n_outside"],
         "ranges_other_tags": pre["n_other_tag"],

@@ -101,6 +101,41 @@ _BUILTINS: dict[str, dict] = {
 }
 
 
+# A Crazyflie-class quadrotor (BMI088 at 500 Hz, Loco deck antenna 9 cm above the IMU, as in the
+# UTIL dataset's platform) flying a 3-D Lissajous inside the Bitcraze 8-anchor box (4 x 4 x 2.4 m),
+# Loco Positioning TDoA3 at 400 packets/s (about 50 per anchor), tag timestamp noise 4 cm and anchor
+# clock noise 3 cm per packet, i.e. a difference sd of sqrt(2 (0.04^2 + 0.03^2)) = 7.1 cm.
+_QUAD: dict = {
+    "duration": 60.0,
+    "imu": {"rate_hz": 500.0, "noise": "bmi088"},
+    "uwb": {"mode": "tdoa3", "rate_hz": 400.0, "sigma": 0.04, "clock_sigma": 0.03},
+    "anchors": "bitcraze8",
+    "lever_arm": [-0.012, 0.001, 0.091],
+    "time_offset": 0.01,
+    "trajectory": {
+        "type": "lissajous",
+        "center": [2.0, 2.0, 1.3],
+        "amplitude": [1.3, 1.2, 0.5],
+        "frequency": [0.11, 0.15, 0.13],
+        "attitude": {"amplitude": [0.3, 0.3, 0.8], "frequency": [0.45, 0.37, 0.07]},
+    },
+}
+_BUILTINS["crazyflie-tdoa3"] = {
+    "description": "Small quadrotor in the Bitcraze 8-anchor box, Loco TDoA3 (400 packets/s), BMI088 at 500 Hz",
+    **_QUAD,
+}
+_BUILTINS["crazyflie-tdoa2"] = {
+    "description": "As crazyflie-tdoa3 with Loco TDoA2 (fixed slot order, consecutive-slot differences)",
+    **_QUAD,
+    "uwb": {**_QUAD["uwb"], "mode": "tdoa2"},
+}
+_BUILTINS["crazyflie-twr"] = {
+    "description": "As crazyflie-tdoa3 with two-way ranging (round robin, 400 ranges/s, sigma 5 cm)",
+    **_QUAD,
+    "uwb": {"mode": "twr", "rate_hz": 400.0, "sigma": 0.05},
+}
+
+
 def _merge(base: dict, over: dict) -> dict:
     out = copy.deepcopy(base)
     for k, v in over.items():

@@ -21,6 +21,28 @@ from uwbimu.sim.scenario import Scenario
 from uwbimu.sim.trajectory import Trajectory
 
 
+def nlos_probability(u, t: np.ndarray, anchor: np.ndarray) -> np.ndarray:
+    """Per-event NLOS probability: ``nlos_prob``, raised to ``prob`` inside each burst window."""
+    p_nlos = np.full(len(t), u.nlos_prob)
+    for b in u.nlos_bursts:
+        inside = (t >= b.t0) & (t < b.t1)
+        if b.anchor is not None:
+            inside &= anchor == b.anchor
+        p_nlos = np.where(inside, np.maximum(p_nlos, b.prob), p_nlos)
+    return p_nlos
+
+
+def in_outage(u, t: np.ndarray, anchor: np.ndarray) -> np.ndarray:
+    """Per-event flag: inside an outage window of its anchor (or of all anchors)."""
+    outage = np.zeros(len(t), bool)
+    for t0, t1, a in u.outages:
+        hit = (t >= t0) & (t < t1)
+        if a is not None:
+            hit &= anchor == a
+        outage |= hit
+    return outage
+
+
 def schedule(scenario: Scenario, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Nominal ranging events in the UWB window ``[lo, hi]``.
 
@@ -67,22 +89,11 @@ def simulate_ranges(scenario: Scenario, traj: Trajectory, lo: float, hi: float, 
     drop_u = rng.random(n)
     jitter = rng.standard_normal(n) * u.jitter_sd
 
-    p_nlos = np.full(n, u.nlos_prob)
-    for b in u.nlos_bursts:
-        inside = (t >= b.t0) & (t < b.t1)
-        if b.anchor is not None:
-            inside &= ids[ai] == b.anchor
-        p_nlos = np.where(inside, np.maximum(p_nlos, b.prob), p_nlos)
-    nlos = nlos_u < p_nlos
+    nlos = nlos_u < nlos_probability(u, t, ids[ai])
     bias = np.array([u.anchor_bias.get(a, 0.0) for a in ids], dtype=float)[ai] if n else np.zeros(0)
     meas = true + white + bias + np.where(nlos, excess, 0.0)
 
-    outage = np.zeros(n, bool)
-    for t0, t1, a in u.outages:
-        hit = (t >= t0) & (t < t1)
-        if a is not None:
-            hit &= ids[ai] == a
-        outage |= hit
+    outage = in_outage(u, t, ids[ai])
     too_far = (true > u.max_range) if u.max_range is not None else np.zeros(n, bool)
     dropped = drop_u < u.dropout_prob
     nonpos = meas <= 0

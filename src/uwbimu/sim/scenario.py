@@ -34,6 +34,18 @@ ANCHOR_PRESETS: dict[str, dict[str, Vec3]] = {
         "A6": (4.90, 7.85, 2.70),
         "A7": (0.15, 3.80, 2.80),
     },
+    # Bitcraze Loco Positioning "box" layout: 8 anchors at the corners of a 4 x 4 x 2.4 m volume
+    # (ids 0-7 as the Loco nodes are numbered; 0-3 at the floor, 4-7 at the ceiling, 4 above 0 ...).
+    "bitcraze8": {
+        "0": (0.0, 0.0, 0.1),
+        "1": (4.0, 0.0, 0.1),
+        "2": (4.0, 4.0, 0.1),
+        "3": (0.0, 4.0, 0.1),
+        "4": (0.0, 0.0, 2.5),
+        "5": (4.0, 0.0, 2.5),
+        "6": (4.0, 4.0, 2.5),
+        "7": (0.0, 4.0, 2.5),
+    },
     # Four anchors only (minimal 3-D set): two low, two high, on different walls.
     "room4": {
         "A0": (0.20, 0.30, 0.35),
@@ -131,13 +143,39 @@ class NlosBurst(_Spec):
 
 
 class UwbSpec(_Spec):
-    """Two-way ranging on the UWB clock."""
+    """UWB on the UWB clock: two-way ranging (``twr``) or time differences of arrival (``tdoa2`` / ``tdoa3``)."""
 
-    rate_hz: float = Field(default=50.0, gt=0, le=5000, description="range slots per second [Hz]")
+    mode: Literal["twr", "tdoa2", "tdoa3"] = Field(
+        default="twr",
+        description="twr: ranges (uwb.csv); tdoa2: slotted anchors, consecutive-slot differences; "
+        "tdoa3: free-running anchors, random pairs (tdoa.csv); see uwbimu.sim.tdoa",
+    )
+    rate_hz: float = Field(
+        default=50.0, gt=0, le=5000,
+        description="twr: range slots per second; tdoa2: anchor slots (packets) per second; tdoa3: mean packets "
+        "per second over all anchors [Hz]",
+    )
     schedule: Literal["round_robin", "all"] = Field(
         default="round_robin", description="round_robin: one (tag, anchor) pair per slot; all: every pair each slot"
     )
-    sigma: float = Field(default=0.05, ge=0, description="white range noise sd [m]")
+    sigma: float = Field(
+        default=0.05, ge=0,
+        description="twr: white range noise sd; tdoa: tag receive-timestamp noise sd per packet (a difference "
+        "has sqrt(2) times it) [m]",
+    )
+    clock_sigma: float = Field(default=0.0, ge=0, description="tdoa: anchor clock error sd per packet, white [m]")
+    anchor_clock_sigma: dict[str, float] = Field(
+        default_factory=dict, description="tdoa: clock_sigma per anchor id (overrides clock_sigma) [m]"
+    )
+    clock_rw: float = Field(
+        default=0.0, ge=0, description="tdoa: anchor clock error random walk [m/sqrt(s)] (residual drift correction)"
+    )
+    tdoa3_max_age: float = Field(
+        default=0.1, gt=0, description="tdoa3: a packet is differenced with another anchor's packet at most this old [s]"
+    )
+    tdoa3_interval_jitter: float = Field(
+        default=0.5, ge=0, lt=1, description="tdoa3: relative spread of an anchor's transmit interval (uniform +-)"
+    )
     nlos_prob: float = Field(default=0.0, ge=0, le=1, description="probability that a range is NLOS")
     nlos_scale: float = Field(default=0.3, gt=0, description="mean of the positive exponential NLOS excess [m]")
     nlos_bursts: list[NlosBurst] = Field(default_factory=list, description="windows of raised NLOS probability")
@@ -149,7 +187,7 @@ class UwbSpec(_Spec):
     max_range: Optional[float] = Field(default=None, gt=0, description="ranges beyond this true distance are lost [m]")
     jitter_sd: float = Field(default=0.0, ge=0, description="timestamp jitter sd [s] (the range is at the nominal instant)")
 
-    @field_validator("anchor_bias", mode="before")
+    @field_validator("anchor_bias", "anchor_clock_sigma", mode="before")
     @classmethod
     def _keys_as_text(cls, v):
         return {str(k): val for k, val in v.items()} if isinstance(v, dict) else v
@@ -219,6 +257,14 @@ class Scenario(_Spec):
         refs = [("uwb.anchor_bias", k) for k in self.uwb.anchor_bias]
         refs += [("uwb.outages", o[2]) for o in self.uwb.outages if o[2] is not None]
         refs += [("uwb.nlos_bursts", b.anchor) for b in self.uwb.nlos_bursts if b.anchor is not None]
+        refs += [("uwb.anchor_clock_sigma", k) for k in self.uwb.anchor_clock_sigma]
+        if self.uwb.mode != "twr":
+            if len(ids) < 2:
+                raise ValueError(f"uwb.mode {self.uwb.mode}: at least two anchors are needed")
+            if self.tags is not None and len(self.tags) > 1:
+                raise ValueError(f"uwb.mode {self.uwb.mode}: one tag only (TDoA is simulated for a single tag)")
+            if any(v < 0 for v in self.uwb.anchor_clock_sigma.values()):
+                raise ValueError("uwb.anchor_clock_sigma: values must be >= 0")
         for where, a in refs:
             if a not in ids:
                 raise ValueError(f"{where}: unknown anchor {a!r}; anchors are {ids}")

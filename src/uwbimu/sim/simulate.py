@@ -17,7 +17,7 @@ instant; its logged stamp is nominal plus jitter.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Optional
 
 import numpy as np
@@ -47,6 +47,10 @@ class SimResult:
     range_t_nominal : (R,) true instant of each emitted range (UWB clock), rows of ``dataset.uwb``.
     range_true : (R,) noise-free range of each emitted range [m].
     range_nlos : (R,) bool, whether an NLOS excess was added.
+    tdoa_t_nominal, tdoa_true, tdoa_nlos : the same per row of ``dataset.tdoa`` (TDoA modes;
+        empty otherwise); ``tdoa_true`` takes each distance at its packet's arrival;
+        ``tdoa_packets`` (T, 2) the indices ``(j, k)`` of the two packets of each row (rows sharing an
+        index share that packet's error); ``tdoa_t_a`` the arrival instant of packet ``j`` (anchor_a).
     """
 
     dataset: Dataset
@@ -57,6 +61,11 @@ class SimResult:
     range_t_nominal: np.ndarray
     range_true: np.ndarray
     range_nlos: np.ndarray
+    tdoa_t_nominal: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    tdoa_true: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    tdoa_nlos: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    tdoa_packets: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), int))
+    tdoa_t_a: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def _noop(stage: str, frac: float) -> None:
@@ -123,11 +132,22 @@ def simulate_full(scenario: Scenario, progress: Optional[Progress] = None) -> Si
 
     # ---- UWB --------------------------------------------------------------
     progress("uwb", 0.6)
-    from uwbimu.sim.ranging import simulate_ranges
-
     lo = max(0.0, s[0] - t_d)
     hi = min(duration, s[-1] - t_d)
-    uwb, rinfo = simulate_ranges(scenario, traj, lo, hi, rng_uwb)
+    tdoa = None
+    tinfo: dict = {"t_nominal": np.zeros(0), "true": np.zeros(0), "nlos": np.zeros(0, bool),
+                   "packets": np.zeros((0, 2), int), "t_a_nominal": np.zeros(0)}
+    if scenario.uwb.mode == "twr":
+        from uwbimu.sim.ranging import simulate_ranges
+
+        uwb, rinfo = simulate_ranges(scenario, traj, lo, hi, rng_uwb)
+    else:
+        from uwbimu.sim.tdoa import simulate_tdoa, tdoa_sigma
+
+        tdoa, tinfo = simulate_tdoa(scenario, traj, lo, hi, rng_uwb)
+        uwb = pd.DataFrame({"t": np.zeros(0), "anchor": np.zeros(0, dtype=str), "range": np.zeros(0)})
+        rinfo = {"counts": tinfo["counts"], "t_nominal": np.zeros(0), "true": np.zeros(0),
+                 "nlos": np.zeros(0, bool)}
 
     # ---- metadata ---------------------------------------------------------
     tags = scenario.tag_list()
@@ -146,7 +166,7 @@ def simulate_full(scenario: Scenario, progress: Optional[Progress] = None) -> Si
         description=scenario.description or f"simulated by uwbimu.sim ({scenario.trajectory.type})",
         imu_noise=noise,
         imu_rate_hz=rate,
-        range_sigma=float(scenario.uwb.sigma) if scenario.uwb.sigma > 0 else None,
+        range_sigma=float(scenario.uwb.sigma) if scenario.uwb.sigma > 0 and tdoa is None else None,
         tags=[TagMeta(name=t.name, lever_arm=None if t.nominal_lever_arm is None else [float(x) for x in t.nominal_lever_arm]) for t in tags],
         truth=truth,
         source="uwbimu.sim",
@@ -164,10 +184,12 @@ def simulate_full(scenario: Scenario, progress: Optional[Progress] = None) -> Si
             "uwb_counts": rinfo["counts"],
             "uwb_window": [float(lo), float(hi)],
             "range_sigma": float(scenario.uwb.sigma),
+            "uwb_mode": scenario.uwb.mode,
+            **({"tdoa_sigma": tdoa_sigma(scenario)} if tdoa is not None else {}),
             "scenario": scenario.model_dump(mode="json", exclude_none=True),
         },
     )
-    ds = Dataset(imu=imu, uwb=uwb, anchors=anchors, groundtruth=gt, meta=meta)
+    ds = Dataset(imu=imu, uwb=uwb, anchors=anchors, groundtruth=gt, meta=meta, tdoa=tdoa)
     progress("done", 1.0)
     return SimResult(
         dataset=ds,
@@ -178,4 +200,9 @@ def simulate_full(scenario: Scenario, progress: Optional[Progress] = None) -> Si
         range_t_nominal=rinfo["t_nominal"],
         range_true=rinfo["true"],
         range_nlos=rinfo["nlos"],
+        tdoa_t_nominal=tinfo["t_nominal"],
+        tdoa_true=tinfo["true"],
+        tdoa_nlos=tinfo["nlos"],
+        tdoa_packets=tinfo["packets"],
+        tdoa_t_a=tinfo["t_a_nominal"],
     )

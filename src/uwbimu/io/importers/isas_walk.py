@@ -262,7 +262,7 @@ def convert(src: Union[str, os.PathLike], with_groundtruth: bool = True) -> Impo
     rate = float(1.0 / np.median(dt)) if len(dt) else None
     imu_noise, noise_note = _imu_noise_at_rest(imu)
     changes.append(f"imu noise: {noise_note}")
-    changes.append(f"the anchors' frame is z-down (recorded as extra.anchor_frame_up: -z): estimate with "
+    changes.append(f"the anchors' frame is z-down (recorded as anchor_frame_up: -z in dataset.yaml): estimate with "
                    f"--config {RECOMMENDED_CONFIG}")
     meta = DatasetMeta(
         name=f"isas-walk:{src.name}",
@@ -294,12 +294,12 @@ def convert(src: Union[str, os.PathLike], with_groundtruth: bool = True) -> Impo
                                    "note": "inverse variances of SFUISE's spline residuals (not sensor densities)"},
             "ranges_dropped_stale": n_stale,
             "uwb_time_offset_note": "not documented (all stamps from the recording host)",
-            "anchor_frame_up": "-z",
             "anchor_frame_note": "the anchors' frame has z pointing down: the at-rest specific force mapped into it "
             "is about (0.46, 0.76, -9.94) m/s^2; the source documents no transform; the ESKF option "
             "anchor_frame_up: -z handles it",
             "recommended_config": RECOMMENDED_CONFIG,
         },
+        anchor_frame_up="-z",
     )
     ds = Dataset(imu=imu, uwb=uwb, anchors=anchors, groundtruth=gt, meta=meta)
     extra_files: dict = {}

@@ -1,0 +1,323 @@
+"""Importer for the Crazyflie uSD-card event log (``uwbimu import cf-usdlog LOG DST --anchors A``).
+
+The decoder is written from the format description (Bitcraze
+``crazyflie-firmware/tools/usdlog/cfusdlog.py``; the UTIL devkit ships the
+same file).  A log file is, little-endian throughout::
+
+    uint8   0xBC                        magic
+    uint16  version                     1 or 2
+    uint16  n_event_types
+    n_event_types x {                   header
+        uint16  event id
+        char[]  event name, NUL-terminated         e.g. "estTDOA"
+        uint16  n_variables
+        n_variables x char[] "name(T)", NUL-terminated, T a struct type code (e.g. "acc.x(f)")
+    }
+    records until the last 4 bytes {
+        uint16  event id
+        uint32  timestamp [ms]   (version 1)  |  uint64 timestamp [us]  (version 2)
+        packed payload of the event's variables (struct format "<" + type codes)
+    }
+    uint32  CRC-32 (zlib) of every byte before it
+
+Events used (names as the firmware's ``EVENTTRIGGER`` and the uSD config give them):
+
+* ``estTDOA`` (``idA``, ``idB``, ``distanceDiff``): ``distanceDiff`` is, as in
+  the firmware's TDoA model, ``|p - p_B| - |p - p_A|`` [m] -> ``tdoa.csv``
+  (``anchor_a = idA``, ``anchor_b = idB``) unchanged;
+* ``estAcceleration`` (``acc.x/y/z`` [g]) -> m/s^2 (x 9.81, the value the
+  Crazyflie firmware and the UTIL devkit use);
+* ``estGyroscope`` (``gyro.x/y/z`` [deg/s]) -> rad/s;
+* ``estPose`` with ``locSrv.x/y/z/qx/qy/qz/qw`` (motion-capture pose sent to
+  the Crazyflie, the UTIL set-up), if present -> ``groundtruth.csv``.
+
+All events carry the Crazyflie's own clock, so IMU and TDoA share a clock
+(the UWB clock of the dataset); times are shifted by the earliest stamp.
+The accelerometer is linearly interpolated to the gyro stamps (the two
+streams are logged separately), and gyro samples outside the accelerometer's
+span are dropped; both are recorded in ``extra.import_changes``.
+
+Refused (``DatasetError`` naming the file and the record or header entry):
+bad magic, unsupported version, CRC mismatch (unless ``ignore_crc``), a
+record with an unknown event id, a truncated record, a header type code
+that is not a struct code, missing events or variables, and TDoA rows whose
+anchor ids are not in the anchors file.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import struct
+import zlib
+from pathlib import Path
+from typing import Optional, Union
+
+import numpy as np
+import pandas as pd
+
+from uwbimu.io.dataset import GT_COLUMNS, IMU_COLUMNS, TDOA_COLUMNS, UWB_COLUMNS, Dataset, DatasetMeta, TagMeta
+from uwbimu.io.importers import ImportResult, write_import
+from uwbimu.io.loader import DatasetError
+from uwbimu.models.imu import imu_preset
+
+__all__ = ["decode", "convert", "import_dataset", "combine_imu", "read_anchors_csv", "G_CRAZYFLIE", "encode"]
+
+#: Standard gravity used by the Crazyflie firmware to convert g to m/s^2.
+G_CRAZYFLIE = 9.81
+_STRUCT_CODES = set("bBhHiIqQfd?")
+
+
+def _name(data: bytes, idx: int, path: Path, what: str) -> tuple[str, int]:
+    end = data.find(b"\x00", idx)
+    if end < 0:
+        raise DatasetError(f"{path.name}: header {what} at byte {idx} is not NUL-terminated", file=path.name)
+    try:
+        return data[idx:end].decode("utf-8"), end + 1
+    except UnicodeDecodeError:
+        raise DatasetError(f"{path.name}: header {what} at byte {idx} is not UTF-8 text", file=path.name) from None
+
+
+def decode(path: Union[str, os.PathLike], ignore_crc: bool = False) -> tuple[dict, dict]:
+    """Decode a uSD event log.
+
+    Returns ``(events, info)``: ``events[name]`` maps ``"timestamp"`` (ms, float)
+    and each variable name to a NumPy array; ``info`` holds ``version``,
+    ``records`` and ``crc_ok``.
+    """
+    path = Path(path)
+    data = path.read_bytes()
+    if len(data) < 9 or data[0] != 0xBC:
+        raise DatasetError(f"{path.name}: not a Crazyflie uSD log (first byte must be 0xBC, file has "
+                           f"{len(data)} bytes)", file=path.name)
+    crc_ok = zlib.crc32(data[:-4]) == struct.unpack("<I", data[-4:])[0]
+    if not crc_ok and not ignore_crc:
+        raise DatasetError(f"{path.name}: CRC-32 of the log does not match its last 4 bytes (truncated or "
+                           "corrupted file)", file=path.name, hint="--ignore-crc decodes the complete records anyway")
+    version, n_types = struct.unpack("<HH", data[1:5])
+    if version not in (1, 2):
+        raise DatasetError(f"{path.name}: unsupported log version {version} (1 and 2 are known)", file=path.name)
+    idx = 5
+    types: dict[int, dict] = {}
+    for k in range(n_types):
+        if idx + 2 > len(data) - 4:
+            raise DatasetError(f"{path.name}: header ends inside event type {k}", file=path.name)
+        (eid,) = struct.unpack("<H", data[idx:idx + 2])
+        name, idx = _name(data, idx + 2, path, f"event type {k} name")
+        (n_var,) = struct.unpack("<H", data[idx:idx + 2])
+        idx += 2
+        fmt, variables = "<", []
+        for v in range(n_var):
+            spec, idx = _name(data, idx, path, f"variable {v} of event {name!r}")
+            if len(spec) < 4 or spec[-3] != "(" or spec[-1] != ")" or spec[-2] not in _STRUCT_CODES:
+                raise DatasetError(f"{path.name}: header variable {spec!r} of event {name!r} is not 'name(T)' "
+                                   f"with a type code T in {''.join(sorted(_STRUCT_CODES))}", file=path.name,
+                                   column=name)
+            fmt += spec[-2]
+            variables.append(spec[:-3])
+        types[eid] = {"name": name, "fmt": fmt, "size": struct.calcsize(fmt), "vars": variables}
+    rows: dict[int, list] = {eid: [] for eid in types}
+    stamps: dict[int, list] = {eid: [] for eid in types}
+    head_fmt, head_size = ("<HI", 6) if version == 1 else ("<HQ", 10)
+    end = len(data) - 4
+    n = 0
+    while idx < end:
+        if idx + head_size > end:
+            raise DatasetError(f"{path.name}: record {n} at byte {idx} is truncated (header)", file=path.name, row=n)
+        eid, stamp = struct.unpack(head_fmt, data[idx:idx + head_size])
+        if eid not in types:
+            raise DatasetError(f"{path.name}: record {n} at byte {idx} has unknown event id {eid} (known: "
+                               f"{sorted(types)})", file=path.name, row=n)
+        ev = types[eid]
+        start = idx + head_size
+        if start + ev["size"] > end:
+            raise DatasetError(f"{path.name}: record {n} ({ev['name']}) at byte {idx} is truncated", file=path.name,
+                               row=n, column=ev["name"])
+        rows[eid].append(struct.unpack(ev["fmt"], data[start:start + ev["size"]]))
+        stamps[eid].append(stamp if version == 1 else stamp / 1000.0)
+        idx = start + ev["size"]
+        n += 1
+    events = {}
+    for eid, ev in types.items():
+        if not rows[eid]:
+            continue
+        arr = list(zip(*rows[eid]))
+        out = {"timestamp": np.asarray(stamps[eid], dtype=float)}
+        out.update({v: np.asarray(col) for v, col in zip(ev["vars"], arr)})
+        events[ev["name"]] = out
+    return events, {"version": version, "records": n, "crc_ok": crc_ok}
+
+
+def encode(events: list[tuple[str, list[tuple[str, str]]]], records: list[tuple[int, float, tuple]],
+           version: int = 2) -> bytes:
+    """Build a uSD log (the inverse of :func:`decode`; used by the tests and for fixtures).
+
+    ``events``: ``[(name, [(variable, type code), ...]), ...]`` with ids 0, 1, ...;
+    ``records``: ``[(event id, timestamp in ms, values), ...]``.
+    """
+    out = bytearray(b"\xbc") + struct.pack("<HH", version, len(events))
+    fmts = []
+    for eid, (name, variables) in enumerate(events):
+        out += struct.pack("<H", eid) + name.encode() + b"\x00" + struct.pack("<H", len(variables))
+        for v, code in variables:
+            out += f"{v}({code})".encode() + b"\x00"
+        fmts.append("<" + "".join(c for _, c in variables))
+    for eid, t_ms, values in records:
+        stamp = struct.pack("<HI", eid, int(round(t_ms))) if version == 1 else struct.pack("<HQ", eid, int(round(t_ms * 1000)))
+        out += stamp + struct.pack(fmts[eid], *values)
+    out += struct.pack("<I", zlib.crc32(bytes(out)))
+    return bytes(out)
+
+
+def combine_imu(t_acc: np.ndarray, acc_g: np.ndarray, t_gyro: np.ndarray, gyro_dps: np.ndarray, source: str,
+                changes: list[str]) -> pd.DataFrame:
+    """IMU table on the gyro stamps: accelerometer [g] interpolated, converted to m/s^2 and rad/s.
+
+    Gyro samples outside the accelerometer's span are dropped (counted in ``changes``).
+    """
+    inside = (t_gyro >= t_acc[0]) & (t_gyro <= t_acc[-1])
+    if inside.sum() < 2:
+        raise DatasetError(f"{source}: the gyro and accelerometer streams do not overlap", file=source)
+    if not inside.all():
+        changes.append(f"{source}: {int((~inside).sum())} gyro sample(s) outside the accelerometer's time span "
+                       "dropped")
+    t = t_gyro[inside]
+    acc = np.column_stack([np.interp(t, t_acc, acc_g[:, i]) for i in range(3)]) * G_CRAZYFLIE
+    gyro = np.radians(gyro_dps[inside])
+    changes.append(f"{source}: accelerometer [g] interpolated linearly to the gyro stamps and multiplied by "
+                   f"{G_CRAZYFLIE}; gyro [deg/s] converted to rad/s")
+    return pd.DataFrame(np.column_stack([t, acc, gyro]), columns=IMU_COLUMNS)
+
+
+def read_anchors_csv(path: Union[str, os.PathLike]) -> pd.DataFrame:
+    """An anchors file in the dataset format (``anchor, x, y, z`` [+ ``qw, qx, qy, qz``]), ids as text."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: anchors file not found", file=path.name)
+    df = pd.read_csv(path, dtype={"anchor": str}, comment="#")
+    missing = [c for c in ("anchor", "x", "y", "z") if c not in df.columns]
+    if missing:
+        raise DatasetError(f"{path.name}: missing column(s) {missing}; expected anchor, x, y, z", file=path.name,
+                           row=1, column=missing[0])
+    for c in [c for c in ("x", "y", "z", "qw", "qx", "qy", "qz") if c in df.columns]:
+        vals = pd.to_numeric(df[c], errors="coerce").to_numpy(float)
+        bad = ~np.isfinite(vals)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise DatasetError(f"{path.name}, line {i + 2}, column '{c}': not a finite number ({df[c].iloc[i]!r})",
+                               file=path.name, row=i + 2, column=c)
+        df[c] = vals
+    return df
+
+
+def _need(events: dict, name: str, variables: list[str], path: Path) -> dict:
+    if name not in events:
+        raise DatasetError(f"{path.name}: no {name!r} events in the log (it holds: {sorted(events)})",
+                           file=path.name, column=name)
+    ev = events[name]
+    missing = [v for v in variables if v not in ev]
+    if missing:
+        raise DatasetError(f"{path.name}: event {name!r} lacks variable(s) {missing} (it has "
+                           f"{[k for k in ev if k != 'timestamp']})", file=path.name, column=name)
+    return ev
+
+
+def tdoa_table(t: np.ndarray, id_a, id_b, diff, anchors: pd.DataFrame, source: str, what: str,
+               first: int = 0) -> pd.DataFrame:
+    """``tdoa`` frame from id arrays; refuses non-finite values and ids not in ``anchors``.
+
+    Errors name ``source``, then ``what`` and the row number ``i + first``
+    (e.g. ``what="line", first=2`` for a CSV with a header).
+    """
+    a = np.asarray(id_a)
+    b = np.asarray(id_b)
+    diff = np.asarray(diff, dtype=float)
+    bad = ~np.isfinite(diff)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise DatasetError(f"{source}, {what} {i + first}: TDoA value is not finite ({diff[i]!r})", file=source,
+                           row=i + first, column="tdoa")
+    fmt = np.vectorize(lambda v: str(int(v)) if float(v).is_integer() else str(v), otypes=[object])
+    sa, sb = (fmt(a), fmt(b)) if len(a) else (a.astype(str), b.astype(str))
+    known = set(anchors["anchor"].astype(str))
+    for col, ids in (("anchor_a", sa), ("anchor_b", sb)):
+        unknown = ~np.isin(ids, list(known))
+        if unknown.any():
+            i = int(np.argmax(unknown))
+            raise DatasetError(f"{source}, {what} {i + first}, column '{col}': anchor id {ids[i]!r} is not in "
+                               f"the anchors file ({sorted(known)})", file=source, row=i + first, column=col)
+    return pd.DataFrame({"t": t, "anchor_a": sa.astype(str), "anchor_b": sb.astype(str), "tdoa": diff},
+                        columns=TDOA_COLUMNS)
+
+
+def convert(log: Union[str, os.PathLike], anchors: Union[str, os.PathLike], ignore_crc: bool = False,
+            name: Optional[str] = None) -> ImportResult:
+    """Convert a uSD event log plus an anchors file into a :class:`Dataset` (not written)."""
+    log = Path(log)
+    if not log.is_file():
+        raise DatasetError(f"{log}: log file not found", file=log.name)
+    anchors_df = read_anchors_csv(anchors)
+    events, info = decode(log, ignore_crc=ignore_crc)
+    changes: list[str] = []
+    if not info["crc_ok"]:
+        changes.append(f"{log.name}: CRC mismatch ignored (--ignore-crc); {info['records']} complete records decoded")
+    td = _need(events, "estTDOA", ["idA", "idB", "distanceDiff"], log)
+    acc = _need(events, "estAcceleration", ["acc.x", "acc.y", "acc.z"], log)
+    gyr = _need(events, "estGyroscope", ["gyro.x", "gyro.y", "gyro.z"], log)
+    t0 = min(float(e["timestamp"][0]) for e in events.values())
+    sec = lambda e: (e["timestamp"] - t0) / 1000.0  # noqa: E731
+    changes.append(f"{log.name}: Crazyflie clock [ms] -> s, origin at the first record (t0 = {t0} ms)")
+    imu = combine_imu(sec(acc), np.column_stack([acc[f"acc.{a}"] for a in "xyz"]).astype(float), sec(gyr),
+                      np.column_stack([gyr[f"gyro.{a}"] for a in "xyz"]).astype(float), log.name, changes)
+    tdoa = tdoa_table(sec(td), td["idA"], td["idB"], td["distanceDiff"], anchors_df, log.name, "estTDOA event")
+    gt = None
+    pose_vars = ["locSrv.x", "locSrv.y", "locSrv.z", "locSrv.qx", "locSrv.qy", "locSrv.qz", "locSrv.qw"]
+    if "estPose" in events and all(v in events["estPose"] for v in pose_vars):
+        ev = events["estPose"]
+        gt = pd.DataFrame(np.column_stack([sec(ev)] + [ev[v].astype(float) for v in
+                                          ("locSrv.x", "locSrv.y", "locSrv.z", "locSrv.qw", "locSrv.qx",
+                                           "locSrv.qy", "locSrv.qz")]), columns=GT_COLUMNS)
+        changes.append(f"{log.name}: estPose locSrv.* (external pose sent to the Crazyflie) -> groundtruth.csv")
+    dt = float(np.median(np.diff(imu["t"].to_numpy()))) if len(imu) > 1 else math.nan
+    meta = DatasetMeta(
+        name=name or f"cf-usdlog:{log.name}",
+        description="Crazyflie uSD-card event log (estTDOA, estAcceleration, estGyroscope)",
+        imu_noise=imu_preset("bmi088"),
+        imu_rate_hz=1.0 / dt if dt > 0 else None,
+        tags=[TagMeta(name="tag0")],
+        source=f"Crazyflie uSD event log {log.name} (format version {info['version']})",
+        extra={"import_changes": list(changes), "uwb_mode": "tdoa", "usd_events": sorted(events)},
+    )
+    uwb = pd.DataFrame({"t": np.zeros(0), "anchor": np.zeros(0, dtype=str), "range": np.zeros(0)},
+                       columns=UWB_COLUMNS)
+    ds = Dataset(imu=imu, uwb=uwb, anchors=anchors_df, groundtruth=gt, meta=meta, tdoa=tdoa)
+    return ImportResult(dataset=ds, changes=changes)
+
+
+def import_dataset(log, dst, anchors, force: bool = False, ignore_crc: bool = False,
+                   name: Optional[str] = None) -> ImportResult:
+    """Convert ``log`` and write it to ``dst`` (refuses a non-empty ``dst`` unless ``force``)."""
+    res = convert(log, anchors, ignore_crc=ignore_crc, name=name)
+    write_import(res, dst, force=force, src=log)
+    return res
+
+
+def register_cli(app) -> None:
+    """Add ``uwbimu import cf-usdlog`` to the ``import`` Typer app (hook in ``uwbimu.cli.import_cmd``)."""
+    import typer
+
+    from uwbimu.cli.import_cmd import FORCE_HELP, run_import
+
+    @app.command("cf-usdlog")
+    def cf_usdlog(
+        log: Path = typer.Argument(..., help="Crazyflie uSD-card event log (binary, e.g. log00)."),
+        dst: Path = typer.Argument(..., help="Output dataset folder."),
+        anchors: Path = typer.Option(..., "--anchors", help="anchors.csv (anchor, x, y, z [, qw, qx, qy, qz]); ids "
+                                                            "as the Loco nodes' (0-7)."),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
+        ignore_crc: bool = typer.Option(False, "--ignore-crc", help="Decode a log whose CRC does not match "
+                                                                    "(e.g. cut by a power loss); recorded."),
+        name: Optional[str] = typer.Option(None, "--name", help="Dataset name (default from LOG)."),
+    ) -> None:
+        """Convert a Crazyflie uSD event log (estTDOA, estAcceleration in g, estGyroscope in deg/s) to a TDoA dataset."""
+        run_import(lambda: import_dataset(log, dst, anchors, force=force, ignore_crc=ignore_crc, name=name))
