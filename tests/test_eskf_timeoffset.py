@@ -61,3 +61,21 @@ def test_verdict_is_scale_free(scale):
 
 def test_verdict_after_a_failed_initial_search_is_not_identified():
     assert time_offset_verdict(0.001, 0.1, init_status="not identified")[0] == "not identified"
+
+
+def test_hover_time_offset_is_not_identified_and_held_at_its_prior():
+    """Near-hover (no velocity change): the start cannot locate t_d, so it is held at its prior and
+    reported "not identified" (before: -129 +/- 26 ms for a true 30 ms, 6 sigma off)."""
+    from uwbimu.estimation import EskfOptions, run_eskf
+    from uwbimu.sim import builtin_scenario, simulate
+
+    ds = simulate(builtin_scenario("hover").model_copy(update={"duration": 25.0}))
+    opts = EskfOptions(store_covariance=False)
+    res = run_eskf(ds, opts)
+    cal = res.calibration
+    assert cal["time_offset_verdict"] == "not identified"
+    assert cal["time_offset"] == (opts.time_offset.prior or 0.0)
+    assert cal["time_offset_sd"] == pytest.approx(opts.time_offset.prior_sd)
+    assert abs(cal["time_offset"] - ds.meta.truth.time_offset) < 3 * cal["time_offset_sd"]
+    kinds = [e["kind"] for e in res.events]
+    assert "time_offset_held" in kinds and "time_offset_verdict" in kinds
