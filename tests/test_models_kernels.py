@@ -91,3 +91,14 @@ def test_stale_cache_is_flushed_when_dependency_sources_change(tmp_path, monkeyp
     src.write_text("A = 2\n")
     assert MK.refresh_stale_cache(g, [dep]) is True      # edited dependency -> flush
     assert len(flushed) == 2
+
+
+def test_quat_from_euler_is_zyx():
+    from uwbimu.models.quaternion import quat_from_euler
+
+    r, p, y = 0.3, -0.4, 2.0
+    c, s = np.cos, np.sin
+    Rz = np.array([[c(y), -s(y), 0], [s(y), c(y), 0], [0, 0, 1]])
+    Ry = np.array([[c(p), 0, s(p)], [0, 1, 0], [-s(p), 0, c(p)]])
+    Rx = np.array([[1, 0, 0], [0, c(r), -s(r)], [0, s(r), c(r)]])
+    np.testing.assert_allclose(quat_to_rotmat(quat_from_euler(r, p, y)), Rz @ Ry @ Rx, atol=1e-14)

@@ -25,7 +25,7 @@ from uwbimu.estimation import kernels as K
 from uwbimu.estimation.timeoffset import search_time_offset
 from uwbimu.estimation.filterpass import REC_NIS, REC_S, REC_STATUS, Problem, run_pass
 from uwbimu.estimation.options import EskfOptions
-from uwbimu.models.quaternion import quat_multiply, quat_to_rotmat
+from uwbimu.models.quaternion import quat_from_euler, quat_to_rotmat
 
 
 @dataclass
@@ -136,14 +136,6 @@ def motion_start(prob: Problem, k0: int, max_s: float, smooth_s: float = 0.1,
     return float(t[k0 + idx[0]]) if idx[0] > m else float(t[k0])
 
 
-def euler_to_quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """``q = Rz(yaw) Ry(pitch) Rx(roll)`` (body -> world), Hamilton ``[w, x, y, z]``."""
-    qz = np.array([math.cos(yaw / 2), 0, 0, math.sin(yaw / 2)])
-    qy = np.array([math.cos(pitch / 2), 0, math.sin(pitch / 2), 0])
-    qx = np.array([math.cos(roll / 2), math.sin(roll / 2), 0, 0])
-    return quat_multiply(qz, quat_multiply(qy, qx))
-
-
 @dataclass
 class Prior:
     """Everything needed to assemble ``x0``/``P0`` besides the hypothesis (yaw, t_d)."""
@@ -173,7 +165,7 @@ def assemble(prob: Problem, pr: Prior, yaw: float, yaw_sd: float, td: float, td_
     dt = prob.imu_t[k0] - td - t0_uwb  # UWB-time elapsed since the fix
     x[0:3] = pr.p + v_t0 * dt
     x[3:6] = pr.v
-    q = euler_to_quat(pr.roll, pr.pitch, yaw)
+    q = quat_from_euler(pr.roll, pr.pitch, yaw)
     x[6:10] = q
     x[10:13] = pr.ba
     x[13:16] = pr.bg
