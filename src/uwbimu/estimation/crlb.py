@@ -18,6 +18,7 @@ import numpy as np
 
 from uwbimu.estimation import kernels as K
 from uwbimu.estimation.filterpass import Problem
+from uwbimu.models import state as S
 
 
 def posterior_crlb(prob: Problem, x_true: np.ndarray, P0: np.ndarray, k0: int, j0: int = 0,
@@ -47,7 +48,7 @@ def posterior_crlb(prob: Problem, x_true: np.ndarray, P0: np.ndarray, k0: int, j
     k = k0
     k_last = n - 1 if t_end is None else min(n - 1, int(np.searchsorted(prob.imu_t, t_end)))
     for j in range(j0, len(prob.uwb_t)):
-        tau = prob.uwb_t[j] + x_true[min(k, n - 1), 19]  # IMU time of the range (true offset)
+        tau = prob.uwb_t[j] + x_true[min(k, n - 1), S.TD]  # IMU time of the range (true offset)
         if tau < prob.imu_t[k0]:
             continue
         k_tau = int(np.searchsorted(prob.imu_t, tau))  # first IMU sample at or after tau

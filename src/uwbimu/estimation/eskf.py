@@ -27,6 +27,7 @@ from uwbimu.estimation.filterpass import (
 )
 from uwbimu.estimation.init import InitialisationError, InitialState, hold_time_offset, initialise
 from uwbimu.estimation.timeoffset import time_offset_verdict
+from uwbimu.models import state as S
 from uwbimu.estimation.options import EskfOptions
 from uwbimu.estimation.result import EstimationResult
 from uwbimu.io.dataset import Dataset
@@ -373,9 +374,9 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
     t_out = t_imu - X[:, 19]
     fixed = np.zeros(19, dtype=bool)
     if opts.lever_arm.mode == "fixed":
-        fixed[15:18] = True
+        fixed[S.EPIU] = True
     if opts.time_offset.mode == "fixed":
-        fixed[18] = True
+        fixed[S.ETD] = True
     sd = np.sqrt(np.clip(D[:, :19], 0, None))
     sd[:, fixed] = np.nan
 
@@ -422,16 +423,16 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
     sd_end = np.sqrt(np.clip(np.diag(passes[-1].P), 0, None))
     noise = info["imu_noise"]
     calibration: dict[str, Any] = {
-        "lever_arm": [float(v) for v in x_end[16:19]],
-        "lever_arm_sd": [float(v) if not fixed[15] else 0.0 for v in sd_end[15:18]],
+        "lever_arm": [float(v) for v in x_end[S.PIU]],
+        "lever_arm_sd": [float(v) if not fixed[S.EPIU.start] else 0.0 for v in sd_end[S.EPIU]],
         "lever_arm_mode": opts.lever_arm.mode,
-        "time_offset": float(x_end[19]),
-        "time_offset_sd": float(sd_end[18]) if not fixed[18] else 0.0,
+        "time_offset": float(x_end[S.TD]),
+        "time_offset_sd": float(sd_end[S.ETD]) if not fixed[S.ETD] else 0.0,
         "time_offset_mode": opts.time_offset.mode,
-        "accel_bias": [float(v) for v in x_end[10:13]],
-        "accel_bias_sd": [float(v) for v in sd_end[9:12]],
-        "gyro_bias": [float(v) for v in x_end[13:16]],
-        "gyro_bias_sd": [float(v) for v in sd_end[12:15]],
+        "accel_bias": [float(v) for v in x_end[S.BA]],
+        "accel_bias_sd": [float(v) for v in sd_end[S.EBA]],
+        "gyro_bias": [float(v) for v in x_end[S.BG]],
+        "gyro_bias_sd": [float(v) for v in sd_end[S.EBG]],
     }
     # per-tag block (the top-level lever_arm keys stay for the first/used tag)
     calibration["tags"] = {str(info["tag"] or "tag0"): {"lever_arm": calibration["lever_arm"],

@@ -25,6 +25,7 @@ from uwbimu.estimation import kernels as K
 from uwbimu.estimation.timeoffset import search_time_offset
 from uwbimu.estimation.filterpass import REC_NIS, REC_S, REC_STATUS, Problem, run_pass
 from uwbimu.estimation.options import EskfOptions
+from uwbimu.models import state as S
 from uwbimu.models.quaternion import quat_from_euler, quat_to_rotmat
 
 
@@ -338,7 +339,7 @@ def hold_time_offset(prob: Problem) -> Problem:
     Used when the initial search could not identify t_d: the filter then holds it at its prior instead
     of letting a weakly informed, nonlinear update drift it (ISAS-Walk: to 0.35 s)."""
     mask = prob.gain_mask.copy()
-    mask[18] = 0.0
+    mask[S.ETD] = 0.0
     return replace(prob, gain_mask=mask)
 
 
