@@ -12,6 +12,21 @@ import os
 import sys
 
 import typer
+from typer.core import TyperOption
+
+
+def _flag_type_hidden(display_type_rich):
+    """Typer >= 0.2x prints a ``<bool>`` type column for on/off flags; a flag takes no value."""
+
+    @functools.wraps(display_type_rich)
+    def wrapper(self, ctx):
+        return None if self.is_flag else display_type_rich(self, ctx)
+
+    return wrapper
+
+
+# CLI-only presentation tweak (the library never touches typer).
+TyperOption.display_type_rich = _flag_type_hidden(TyperOption.display_type_rich)
 
 app = typer.Typer(
     name="uwbimu",
@@ -20,6 +35,22 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_show_locals=False,
 )
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        from uwbimu import __version__
+
+        print(f"uwbimu {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                 help="Print the uwbimu version and exit."),
+) -> None:
+    """UWB-aided inertial localization: simulate, check, estimate, analyse observability, design."""
 
 # One line per verb module (keep sorted by workflow order).
 from uwbimu.cli import demo as _demo  # noqa: E402
