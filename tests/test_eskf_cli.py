@@ -40,8 +40,12 @@ def test_cli_estimate_writes_every_output(tmp_path, short_ds):
     r = CliRunner().invoke(app, ["estimate", str(data), "--out", str(out), "--config", str(cfg)])
     assert r.exit_code == 0, r.output
     for f in ("trajectory.csv", "calibration.yaml", "residuals.csv", "metrics.yaml", "trajectory.png",
-              "position_error.png", "calibration.png", "nis.png", "states.csv", "events.yaml"):
+              "position_error.png", "calibration.png", "nis.png", "states.csv", "events.yaml", "run.json"):
         assert (out / f).is_file(), f
+    import json
+    run = json.loads((out / "run.json").read_text())
+    assert run["imu_samples"] == len(short_ds.imu) and run["ranges"] == len(short_ds.uwb)
+    assert 0 < run["filter_cpu_seconds"] <= run["total_cpu_seconds"]
     traj = pd.read_csv(out / "trajectory.csv")
     assert list(traj.columns[:11]) == ["t", "px", "py", "pz", "qw", "qx", "qy", "qz", "vx", "vy", "vz"]
     assert {"sd_px", "sd_py", "sd_pz", "sd_vx", "sd_thz"} <= set(traj.columns)
@@ -53,6 +57,8 @@ def test_cli_estimate_writes_every_output(tmp_path, short_ds):
     for k in ("lever_arm", "lever_arm_sd", "time_offset", "time_offset_sd", "accel_bias", "accel_bias_sd",
               "gyro_bias", "gyro_bias_sd", "uwbimu_version", "config"):
         assert k in cal
+    assert cal["tags"][next(iter(cal["tags"]))]["lever_arm"] == cal["lever_arm"]
+    assert cal["time_offset_verdict"] in ("identified", "weakly identified", "not identified")
     assert cal["config"]["output_rate_hz"] == 10 and cal["config"]["init"]["bank_window_s"] == 6
     met = yaml.safe_load((out / "metrics.yaml").read_text())
     for k in ("position_rmse", "orientation_rmse_deg", "nees_mean", "lever_arm_error", "time_offset_error"):

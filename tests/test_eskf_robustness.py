@@ -182,3 +182,20 @@ def test_rotation_gate_window_rms_matches_brute_force():
         assert prob.rotation_rms(k, b) == pytest.approx(ref, rel=1e-9, abs=1e-12)
     off, _ = build_problem(ds, EskfOptions(lever_arm={"min_rotation_rate": 0.0}))
     assert off.rot_ms is None
+
+
+@pytest.mark.parametrize("spike_t", [0.3, 1.0])
+def test_range_spike_during_initialisation_consumes_no_reinitialisation(spike_t):
+    """One +100 m range in the initialiser's window: the multilateration drops it (5 sd of the inliers'
+    robust scale) instead of inflating the position prior, so the supervisor never fires."""
+    ds = _sim("calibration-flight", 20.0)
+    uwb = ds.uwb.copy()
+    j = int(np.searchsorted(uwb["t"].to_numpy(), spike_t))
+    uwb.loc[uwb.index[j], "range"] += 100.0
+    ds.uwb = uwb
+    res = run_eskf(ds, EskfOptions(store_covariance=False))
+    kinds = [e["kind"] for e in res.events]
+    assert "divergence" not in kinds and "reinitialised" not in kinds
+    init = next(e for e in res.events if e["kind"] == "initialised")
+    assert init["fix_rms"] < 0.5
+    assert not res.residuals.loc[j, "accepted"]

@@ -145,7 +145,8 @@ def test_log_command_writes_csv_and_png(tmp_path):
     assert res.exit_code == 0, res.output
     assert np.allclose(pd.read_csv(out / "observability.csv")["sd_lx"], table["sd_lx"], rtol=1e-6)
     res = runner.invoke(app, ["observability", "log", str(folder), "--out", str(out), "--force", "--trajectory", str(tmp_path / "nope")])
-    assert res.exit_code == 2 and "estimator states file" in " ".join(res.output.split())
+    # a refused input is exit 1 (uwbimu.errors.InputError), not a usage error
+    assert res.exit_code == 1 and "estimator states file" in " ".join(res.output.split())
 
 
 def test_dataset_helpers_for_the_demo():

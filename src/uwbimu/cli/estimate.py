@@ -14,7 +14,7 @@ from rich.table import Table
 
 #: Files ``uwbimu estimate`` writes; an output folder holding anything else is refused without --force.
 OUTPUT_FILES = {
-    "trajectory.csv", "states.csv", "calibration.yaml", "residuals.csv", "events.yaml", "residual_table.csv",
+    "trajectory.csv", "states.csv", "calibration.yaml", "residuals.csv", "events.yaml", "residual_table.csv", "run.json",
     "metrics.yaml", "trajectory.png", "position_error.png", "calibration.png", "nis.png",
 }
 #: Outputs whose NaN cells are documented (residuals of rejected/unpredicted ranges, metrics "n/a",
@@ -41,6 +41,8 @@ def calibration_table(result, dataset=None, title: str = "Calibration (value ± 
     tv = truth.time_offset if truth is not None else None
     table.add_row("time offset (ms)", f"{1000 * v:.2f} ± {1000 * s:.2f}", f"{1000 * tv:.2f}" if tv is not None else "-",
                   f"{(v - tv) / s:+.1f}" if tv is not None and s > 0 else "-")
+    if cal.get("time_offset_verdict"):
+        table.add_row("time offset verdict", str(cal["time_offset_verdict"]), "-", "-")
     for name, key, scale, unit in (("accel bias", "accel_bias", 1.0, "m/s²"), ("gyro bias", "gyro_bias", 180 / np.pi, "deg/s")):
         vals = ", ".join(f"{scale * a:.4f}±{scale * b:.4f}" for a, b in zip(cal[key], cal[key + "_sd"]))
         table.add_row(f"{name} ({unit})", vals, "-", "-")

@@ -8,6 +8,8 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+
+from uwbimu.cli.dataset_options import with_load_options
 from rich.console import Console
 from rich.table import Table
 
@@ -180,6 +182,7 @@ def delay(
 
 
 @obs_app.command("log")
+@with_load_options
 def log(
     dataset: Path = typer.Argument(..., help="dataset folder"),
     window: float = typer.Option(20.0, "--window", help="window length (s)"),
@@ -196,6 +199,7 @@ def log(
         None, "--trajectory", help="linearise about an estimator's states.csv (or its output folder) instead of the ground truth"
     ),
     force: bool = typer.Option(False, "--force", help="replace existing outputs in OUT"),
+    load_options=None,
 ) -> None:
     """Per-window posterior Cramer-Rao bound, information gained and excitation flags of a log."""
     from uwbimu.io.atomic import write_csv, write_json
@@ -216,44 +220,41 @@ def log(
     csv_path, png_path = out / "observability.csv", out / "observability.png"
     if not force and (csv_path.exists() or png_path.exists()):
         _fail(console, f"{out} already holds observability outputs; pass --force to replace them")
-    try:
-        from uwbimu.io.loader import DatasetError, load_dataset
-    except ImportError:  # pragma: no cover - loader is part of the package
-        _fail(console, "the dataset loader (uwbimu.io.loader) is not available")
-    try:
-        ds = load_dataset(dataset)
-    except (DatasetError, FileNotFoundError, ValueError) as e:
-        _fail(console, str(e))
+    from uwbimu.errors import InputError
+    from uwbimu.io.loader import load_dataset
+
+    ds = load_dataset(dataset, load_options)  # a refused dataset is an InputError (exit 1, file / line / column named)
     traj = None
     if trajectory is not None:
         try:
             traj = trajectory_from_states_csv(trajectory)
         except ValueError as e:
-            _fail(console, str(e))
+            raise InputError(str(e), hint="pass the states.csv of `uwbimu estimate` (or its output folder)") from None
     elif ds.groundtruth is None:
-        _fail(
-            console,
-            f"{dataset}: no groundtruth table; pass --trajectory (an estimator's states.csv) to linearise about",
+        raise InputError(
+            f"{dataset}: no groundtruth table; pass --trajectory (an estimator's states.csv) to linearise about"
         )
     opts = WindowOptions(
         window=window, range_sigma=range_sigma, include_imu_noise=not no_imu_noise, bound=bound,
         excited_sd_ratio=excited_ratio, lever_sd_threshold=lever_sd, td_sd_threshold=td_sd,
     )  # fmt: skip
+    from uwbimu.io.atomic import check_output_target, output_folder
+
+    names = [csv_path.name, png_path.name, "observability_meta.json"]
+    check_output_target(out, names, force=force, protect=[dataset])  # refused before any work (OutputError)
     with console.status("computing per-window information"):
         table, meta = window_observability(ds, traj, options=opts)
-    write_csv(csv_path, table)
-    write_json(out / "observability_meta.json", meta)
-    if bound == "pcrb":  # dashed lines: where the flags switch
-        lever_line = excited_ratio * opts.prior_sd["l"] if lever_sd is None else min(lever_sd, excited_ratio * opts.prior_sd["l"])
-        td_line = excited_ratio * opts.prior_sd["td"] if td_sd is None else min(td_sd, excited_ratio * opts.prior_sd["td"])
-    else:
-        lever_line, td_line = lever_sd, td_sd
-    plot_timeline(table, png_path, lever_line, td_line)
+    # outputs whole or not at all; sd columns may hold inf (--bound gramian: unbounded direction)
+    with output_folder(out, force, protect=[dataset], names=names, finite=False) as tmp:
+        write_csv(tmp / csv_path.name, table)
+        write_json(tmp / "observability_meta.json", meta)
+        plot_timeline(table, tmp / png_path.name, lever_sd, td_sd)  # dashed: absolute thresholds, if given
     if bound == "pcrb":
+        need = 1.0 / excited_ratio**2 - 1.0
         console.print(
-            "posterior Cramer-Rao bound per window from the prior sd "
+            "posterior Cramer-Rao bound at each window's end, windows chained from the prior sd "
             + ", ".join(f"{k} {v:g}" for k, v in opts.prior_sd.items())
-            + f" (SI) at each window start; excited = bound <= {excited_ratio:g} x prior"
+            + f" (SI); excited = the window adds >= {need:g} x the prior's precision"
         )
     t = Table(title=f"{dataset} - {len(table)} window(s) of {window:g} s")
     for c in ("t_start", "t_end", "min eig", "cond", "weakest", "sd lever max (m)", "sd t_d (s)", "lever", "t_d"):

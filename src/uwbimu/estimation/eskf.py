@@ -25,7 +25,9 @@ from uwbimu.estimation.filterpass import (
     REC_ACC, REC_INNOV, REC_NIS, REC_PRED, REC_STATUS, STATUS_IN_GAP, STATUS_NOT_PROCESSED, PassResult, Problem, gap_inputs,
     rotation_window_stats, run_pass,
 )
-from uwbimu.estimation.init import InitialisationError, InitialState, initialise
+from uwbimu.estimation.init import InitialisationError, InitialState, hold_time_offset, initialise
+from uwbimu.estimation.timeoffset import time_offset_verdict
+from uwbimu.models import state as S
 from uwbimu.estimation.options import EskfOptions
 from uwbimu.estimation.result import EstimationResult
 from uwbimu.io.dataset import Dataset
@@ -60,6 +62,23 @@ def flip_outputs(states: np.ndarray, covs: Optional[np.ndarray]) -> tuple[np.nda
     d[0:3] = FLIP_X
     d[3:6] = FLIP_X
     return X, covs * d[None, :, None] * d[None, None, :]
+
+
+def resolve_anchor_frame_up(ds: Dataset, opts: EskfOptions, warnings: list[str], events: list[dict]) -> str:
+    """The anchors' up direction: the options' when given, else the dataset's (``meta.anchor_frame_up``,
+    legacy ``meta.extra["anchor_frame_up"]``), else ``"+z"``.  An option that contradicts the dataset
+    is used and reported (warning + ``anchor_frame_override`` event)."""
+    from_ds = getattr(ds.meta, "anchor_frame_up", None) or (ds.meta.extra or {}).get("anchor_frame_up")
+    if from_ds not in (None, "+z", "-z"):
+        raise ValueError(f"dataset {ds.meta.name!r}: anchor_frame_up must be '+z' or '-z', got {from_ds!r}")
+    if opts.anchor_frame_up is None:
+        return from_ds or "+z"
+    if from_ds is not None and from_ds != opts.anchor_frame_up:
+        warnings.append(f"anchor_frame_up: the options' {opts.anchor_frame_up!r} overrides the dataset's {from_ds!r}")
+        t0 = float(ds.uwb["t"].iloc[0]) if len(ds.uwb) else 0.0
+        events.append({"t": t0, "kind": "anchor_frame_override", "options": opts.anchor_frame_up,
+                       "dataset": from_ds})
+    return opts.anchor_frame_up
 
 
 def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, Any]]:
@@ -113,7 +132,8 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
         if a in index:
             uwb_r[uwb_a == index[a]] -= float(b)
     anchors = ds.anchor_array(anchor_ids).astype(float)
-    if opts.anchor_frame_up == "-z":
+    frame_up = resolve_anchor_frame_up(ds, opts, warnings, events)
+    if frame_up == "-z":
         # the filter's world must have z up (gravity [0, 0, -g]): run in the anchors' frame turned 180 deg
         # about x (y -> -y, z -> -z, a proper rotation); _assemble turns the outputs back
         anchors = anchors * FLIP_X
@@ -181,6 +201,7 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
         "search_td": td_mode != "fixed" and opts.time_offset.prior is None and opts.init.search_time_offset,
     }
     info = {"warnings": warnings, "events": events, "imu_noise": noise, "range_sigma": rsig, "tag": tag,
+            "anchor_frame_up": frame_up,
             "priors": priors, "uwb_anchor_ids": uwb_anchor_ids}
     return prob, info
 
@@ -219,6 +240,8 @@ def run_eskf(
     """
     opts = options or EskfOptions()
     t_wall = time.perf_counter()
+    cpu0 = time.process_time()
+    cpu_filter = 0.0
     prob, info = build_problem(dataset, opts)
     warnings: list[str] = list(info["warnings"])
     events: list[dict[str, Any]] = list(info["events"])
@@ -237,12 +260,23 @@ def run_eskf(
     if initial is None:
         initial = initialise(prob, opts, priors, j0=0)
     events.append({"t": float(prob.uwb_t[initial.j]), "kind": "initialised", **_plain(initial.info)})
+    td_init = initial.info.get("td_init") or {}
+    if td_init.get("status") == "not identified" and opts.time_offset.mode == "estimate":
+        # hold t_d at its prior (consider mode) for the whole run, as the initialiser did
+        prob = hold_time_offset(prob)
+        warnings.append(f"time offset not identified by the initial search ({td_init.get('reason')}): held at its "
+                        f"prior {priors['td']:g} s (sd {priors['td_sd']:g} s, consider mode); set time_offset.prior "
+                        f"or record more excited motion")
+        events.append({"t": float(prob.uwb_t[initial.j]), "kind": "time_offset_held", "reason": td_init.get("reason"),
+                       "prior": float(priors["td"]), "prior_sd": float(priors["td_sd"])})
     passes: list[PassResult] = []
     st = initial
     n_reinit = 0
     prob_run = prob
     while True:
+        c0 = time.process_time()
         res = run_pass(prob_run, st.x, st.P, st.k, st.j, progress=cb)
+        cpu_filter += time.process_time() - c0
         passes.append(res)
         events += res.events
         if not res.diverged:
@@ -273,12 +307,34 @@ def run_eskf(
                         f"t={prob.uwb_t[j]:.2f} s")
         events.append({"t": float(prob.uwb_t[j]), "kind": "reinitialised", **_plain(st.info)})
     result = _assemble(dataset, prob, info, passes, opts)
+    _add_time_offset_verdict(result, prob, priors, opts, initial)
     result.warnings = warnings + result.warnings
     result.events = events + result.events
     result.runtime_s = time.perf_counter() - t_wall
+    result.extra["filter_cpu_seconds"] = cpu_filter
+    result.extra["total_cpu_seconds"] = time.process_time() - cpu0
     for w in result.warnings:
         log.warning(w)
     return result
+
+
+def _add_time_offset_verdict(result: EstimationResult, prob: Problem, priors: dict[str, Any],
+                             opts: EskfOptions, initial: InitialState) -> None:
+    """``time_offset_verdict`` (+ reason) in the calibration and as an event (see :mod:`.timeoffset`)."""
+    cal = result.calibration
+    sd_prior = priors["td_sd"]
+    if priors["search_td"] and len(opts.init.td_grid) > 1:
+        g = np.asarray(opts.init.td_grid, dtype=float)
+        sd_prior = max(sd_prior, float(g.max() - g.min()) / math.sqrt(12.0))  # uniform over the searched grid
+    init_status = (initial.info.get("td_init") or {}).get("status")
+    verdict, reason = time_offset_verdict(cal["time_offset_sd"], sd_prior, fixed=opts.time_offset.mode == "fixed",
+                                          init_status=init_status)
+    cal["time_offset_verdict"] = verdict
+    cal["time_offset_verdict_reason"] = reason
+    result.events.append({"t": float(prob.uwb_t[0]), "kind": "time_offset_verdict", "verdict": verdict,
+                          "reason": reason, "initial_search": init_status})
+    if verdict == "not identified":
+        result.warnings.append(f"time offset not identified: {reason}")
 
 
 def _unsupervised(prob: Problem) -> Problem:
@@ -318,9 +374,9 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
     t_out = t_imu - X[:, 19]
     fixed = np.zeros(19, dtype=bool)
     if opts.lever_arm.mode == "fixed":
-        fixed[15:18] = True
+        fixed[S.EPIU] = True
     if opts.time_offset.mode == "fixed":
-        fixed[18] = True
+        fixed[S.ETD] = True
     sd = np.sqrt(np.clip(D[:, :19], 0, None))
     sd[:, fixed] = np.nan
 
@@ -362,21 +418,25 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
     if processed.any() and n_rej / processed.sum() > 0.1:
         warnings.append(f"UWB: {100 * n_rej / processed.sum():.1f}% of the processed ranges rejected by the gate")
 
-    x_end = X[-1]
-    sd_end = np.sqrt(np.clip(D[-1], 0, None))
+    # final filter state (all data used), not the last output row
+    x_end = passes[-1].x
+    sd_end = np.sqrt(np.clip(np.diag(passes[-1].P), 0, None))
     noise = info["imu_noise"]
     calibration: dict[str, Any] = {
-        "lever_arm": [float(v) for v in x_end[16:19]],
-        "lever_arm_sd": [float(v) if not fixed[15] else 0.0 for v in sd_end[15:18]],
+        "lever_arm": [float(v) for v in x_end[S.PIU]],
+        "lever_arm_sd": [float(v) if not fixed[S.EPIU.start] else 0.0 for v in sd_end[S.EPIU]],
         "lever_arm_mode": opts.lever_arm.mode,
-        "time_offset": float(x_end[19]),
-        "time_offset_sd": float(sd_end[18]) if not fixed[18] else 0.0,
+        "time_offset": float(x_end[S.TD]),
+        "time_offset_sd": float(sd_end[S.ETD]) if not fixed[S.ETD] else 0.0,
         "time_offset_mode": opts.time_offset.mode,
-        "accel_bias": [float(v) for v in x_end[10:13]],
-        "accel_bias_sd": [float(v) for v in sd_end[9:12]],
-        "gyro_bias": [float(v) for v in x_end[13:16]],
-        "gyro_bias_sd": [float(v) for v in sd_end[12:15]],
+        "accel_bias": [float(v) for v in x_end[S.BA]],
+        "accel_bias_sd": [float(v) for v in sd_end[S.EBA]],
+        "gyro_bias": [float(v) for v in x_end[S.BG]],
+        "gyro_bias_sd": [float(v) for v in sd_end[S.EBG]],
     }
+    # per-tag block (the top-level lever_arm keys stay for the first/used tag)
+    calibration["tags"] = {str(info["tag"] or "tag0"): {"lever_arm": calibration["lever_arm"],
+                                                         "lever_arm_sd": calibration["lever_arm_sd"]}}
     if nb:
         calibration["anchor_bias"] = {a: float(x_end[20 + i]) for i, a in enumerate(prob.anchor_ids)}
         calibration["anchor_bias_sd"] = {a: float(sd_end[19 + i]) for i, a in enumerate(prob.anchor_ids)}
@@ -394,14 +454,14 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
     warnings += w_out
     events += e_out
 
-    if opts.anchor_frame_up == "-z":
+    if info["anchor_frame_up"] == "-z":
         X, covs = flip_outputs(X, covs)
         events.append({"t": float(prob.uwb_t[0]), "kind": "anchor_frame_flipped",
                        "note": "anchor_frame_up: -z; the filter ran in the anchors' frame turned 180 deg about x "
                        "(positions in the 'initialised' events are in that frame); outputs are in the anchors' frame"})
     cfg = opts.model_dump(mode="json")
     cfg["resolved"] = {"imu_noise": noise.model_dump(), "range_sigma": float(info["range_sigma"]),
-                       "tag": info["tag"], "gate_nis": float(prob.gate), "imu_rate_hz": 1.0 / prob.dt_nom}
+                       "tag": info["tag"], "anchor_frame_up": info["anchor_frame_up"], "gate_nis": float(prob.gate), "imu_rate_hz": 1.0 / prob.dt_nom}
     res = EstimationResult(
         t=t_out, states=X[:, :20].copy(), sd=sd, residuals=residuals, calibration=calibration,
         covariances=covs[:, :19, :19].copy() if covs is not None else None, warnings=warnings, events=events,

@@ -7,8 +7,9 @@
    ``bank_window_s``; the hypothesis with the lowest robust negative
    log-likelihood of its innovations wins.
 4. Time offset from a coarse grid (default -0.25..0.25 s by 0.05 s), scored the
-   same way with the chosen yaw; the winner starts the main run with a prior sd
-   covering the grid step.
+   same way with the chosen yaw, widened when the best point is on an edge and
+   refined by a parabola (:mod:`uwbimu.estimation.timeoffset`); a flat score is
+   reported as "not identified" and t_d stays at its prior.
 """
 
 from __future__ import annotations
@@ -21,9 +22,11 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from uwbimu.estimation import kernels as K
+from uwbimu.estimation.timeoffset import search_time_offset
 from uwbimu.estimation.filterpass import REC_NIS, REC_S, REC_STATUS, Problem, run_pass
 from uwbimu.estimation.options import EskfOptions
-from uwbimu.models.quaternion import quat_multiply, quat_to_rotmat
+from uwbimu.models import state as S
+from uwbimu.models.quaternion import quat_from_euler, quat_to_rotmat
 
 
 @dataclass
@@ -77,8 +80,21 @@ def multilaterate(prob: Problem, j0: int, window: float) -> tuple[np.ndarray, np
         sol = least_squares(resid, z0, loss="soft_l1", f_scale=0.3, max_nfev=200)
         if best is None or sol.cost < best.cost - 1e-9:
             best = sol
-    rms = float(np.sqrt(np.mean(resid(best.x) ** 2)))
-    return best.x[:3], best.x[3:], rms, int(sel.sum())
+    # gross outliers (e.g. a +100 m range spike) must not set the position prior: residuals beyond 5 sd of
+    # the inliers' robust scale (never below the range noise) are dropped and the fit repeated without them
+    res = resid(best.x)
+    sigma_r = math.sqrt(prob.r_var)
+    scale = max(1.4826 * float(np.median(np.abs(res - np.median(res)))), sigma_r)
+    inl = np.abs(res) <= 5.0 * scale
+    n_out = int((~inl).sum())
+    if n_out and inl.sum() >= 8 and len(np.unique(prob.uwb_a[sel][inl])) >= 4:
+        a, r, dt = a[inl], r[inl], dt[inl]
+        best = least_squares(resid, best.x, loss="soft_l1", f_scale=0.3, max_nfev=200)
+        res = resid(best.x)
+    elif n_out:
+        res = res[inl] if inl.any() else res
+    rms = float(np.sqrt(np.mean(res**2)))
+    return best.x[:3], best.x[3:], rms, int(len(r))
 
 
 def level_attitude(prob: Problem, k0: int, window: float) -> tuple[float, float]:
@@ -121,14 +137,6 @@ def motion_start(prob: Problem, k0: int, max_s: float, smooth_s: float = 0.1,
     return float(t[k0 + idx[0]]) if idx[0] > m else float(t[k0])
 
 
-def euler_to_quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """``q = Rz(yaw) Ry(pitch) Rx(roll)`` (body -> world), Hamilton ``[w, x, y, z]``."""
-    qz = np.array([math.cos(yaw / 2), 0, 0, math.sin(yaw / 2)])
-    qy = np.array([math.cos(pitch / 2), 0, math.sin(pitch / 2), 0])
-    qx = np.array([math.cos(roll / 2), math.sin(roll / 2), 0, 0])
-    return quat_multiply(qz, quat_multiply(qy, qx))
-
-
 @dataclass
 class Prior:
     """Everything needed to assemble ``x0``/``P0`` besides the hypothesis (yaw, t_d)."""
@@ -158,7 +166,7 @@ def assemble(prob: Problem, pr: Prior, yaw: float, yaw_sd: float, td: float, td_
     dt = prob.imu_t[k0] - td - t0_uwb  # UWB-time elapsed since the fix
     x[0:3] = pr.p + v_t0 * dt
     x[3:6] = pr.v
-    q = euler_to_quat(pr.roll, pr.pitch, yaw)
+    q = quat_from_euler(pr.roll, pr.pitch, yaw)
     x[6:10] = q
     x[10:13] = pr.ba
     x[13:16] = pr.bg
@@ -188,7 +196,8 @@ def start_index(prob: Problem, t0_uwb: float, td: float) -> int:
     return min(max(k, 0), len(prob.imu_t) - 2)
 
 
-def score_hypothesis(prob: Problem, x0, P0, k0: int, j0: int, t_from: float, t_to: float) -> float:
+def score_hypothesis(prob: Problem, x0, P0, k0: int, j0: int, t_from: float, t_to: float,
+                     return_count: bool = False):
     """Robust negative log-likelihood of the innovations of a short run (lower is better).
 
     The lever-arm rotation gate is off here: the hypotheses start before the gyro bias is known (the gate
@@ -198,13 +207,14 @@ def score_hypothesis(prob: Problem, x0, P0, k0: int, j0: int, t_from: float, t_t
     res = run_pass(prob, x0, P0, k0, j0, t_uwb_end=t_to, record=False, to_end=False)
     rec = res.rec
     if rec.shape[0] == 0:
-        return np.inf
+        return (np.inf, 0) if return_count else np.inf
     tt = prob.uwb_t[j0:j0 + rec.shape[0]]
     ok = (rec[:, REC_STATUS] == 0) & (tt >= t_from) & np.isfinite(rec[:, REC_NIS])
     if ok.sum() < 5 or not np.all(np.isfinite(res.x)):
-        return np.inf
+        return (np.inf, 0) if return_count else np.inf
     nis = np.minimum(rec[ok, REC_NIS], 50.0)
-    return float(np.mean(nis + np.log(rec[ok, REC_S])))
+    score = float(np.mean(nis + np.log(rec[ok, REC_S])))
+    return (score, int(ok.sum())) if return_count else score
 
 
 def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: int = 0,
@@ -285,12 +295,27 @@ def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: i
     else:
         yaw = 0.0
     if search_td and len(io.td_grid) > 1:
-        grid = list(io.td_grid)
-        s = run_bank([yaw], grid, yaw_sd_final, io.td_sd_after_grid)[0]
-        if np.any(np.isfinite(s)):
-            td = float(grid[int(np.argmin(s))])
-            td_sd = io.td_sd_after_grid
-        info["td_grid"] = {"grid": grid, "scores": s.tolist()}
+        def score_tds(tds):
+            out = np.full(len(tds), np.inf)
+            cnt = np.zeros(len(tds), dtype=int)
+            for b, td_h in enumerate(tds):
+                k0 = start_index(prob, t0, td_h)
+                x0, P0 = assemble(prob, pr, yaw, yaw_sd_final, td_h, io.td_sd_after_grid, k0, t0, v0)
+                try:
+                    out[b], cnt[b] = score_hypothesis(prob, x0, P0, k0, j0, t_from, t_to, return_count=True)
+                except (FloatingPointError, np.linalg.LinAlgError):
+                    pass
+            return out, cnt
+
+        found = search_time_offset(score_tds, list(io.td_grid), max_abs_s=io.td_max_abs_s)
+        info["td_grid"] = found
+        if found["status"] == "found":
+            td = float(found["td"])
+            # the bank window's data are counted again by the main run: keep the prior loose
+            td_sd = max(io.td_sd_after_grid, float(found["td_sd"]))
+        else:
+            td, td_sd = td_prior, pr_fixed["td_sd"]
+        info["td_init"] = {"status": found["status"], "reason": found["reason"]}
         if io.yaw is None and io.yaw_hypotheses > 1 and abs(td - td_prior) > 1e-12:
             # refine the yaw choice with the chosen time offset
             yaws = np.arange(io.yaw_hypotheses) * 2 * np.pi / io.yaw_hypotheses
@@ -303,8 +328,19 @@ def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: i
     k0 = start_index(prob, t0, td)
     x0, P0 = assemble(prob, pr, yaw, yaw_sd0, td, td_sd, k0, t0, v0)
     if io.refine_s > 0:
-        x0, P0, k0 = _refine(prob, pr, x0, P0, k0, j0, t0, v0, yaw_sd0, td_sd, t_to + io.refine_s, info)
+        prob_r = hold_time_offset(prob) if info.get("td_init", {}).get("status") == "not identified" else prob
+        x0, P0, k0 = _refine(prob_r, pr, x0, P0, k0, j0, t0, v0, yaw_sd0, td_sd, t_to + io.refine_s, info)
     return InitialState(x=x0, P=P0, k=k0, j=j0, info=info)
+
+
+def hold_time_offset(prob: Problem) -> Problem:
+    """The same problem with the time offset in consider mode (its uncertainty kept, never updated).
+
+    Used when the initial search could not identify t_d: the filter then holds it at its prior instead
+    of letting a weakly informed, nonlinear update drift it (ISAS-Walk: to 0.35 s)."""
+    mask = prob.gain_mask.copy()
+    mask[S.ETD] = 0.0
+    return replace(prob, gain_mask=mask)
 
 
 def _refine(prob: Problem, pr: Prior, x0, P0, k0: int, j0: int, t0: float, v0, yaw_sd: float, td_sd: float,

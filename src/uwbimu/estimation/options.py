@@ -100,7 +100,10 @@ class InitOptions(_Strict):
         default_factory=lambda: [round(-0.25 + 0.05 * i, 3) for i in range(11)],
         description="time-offset hypotheses [s] of the coarse grid search",
     )
-    td_sd_after_grid: float = Field(default=0.03, gt=0, description="t_d prior sd around the best grid point [s]")
+    td_sd_after_grid: float = Field(default=0.03, gt=0,
+                                    description="lower bound of the t_d prior sd after the grid search [s]")
+    td_max_abs_s: float = Field(default=1.0, gt=0,
+                                description="a best grid point on an edge widens the grid up to |t_d| = this [s]")
 
 
 class SupervisorOptions(_Strict):
@@ -135,9 +138,10 @@ class EskfOptions(_Strict):
     init: InitOptions = Field(default_factory=InitOptions)
     supervisor: SupervisorOptions = Field(default_factory=SupervisorOptions)
     excitation: ExcitationOptions = Field(default_factory=ExcitationOptions)
-    anchor_frame_up: Literal["+z", "-z"] = Field(
-        default="+z",
-        description="direction of gravity-up in the anchors' coordinates: '+z' (the usual z-up frame) or '-z' (a "
+    anchor_frame_up: Optional[Literal["+z", "-z"]] = Field(
+        default=None,
+        description="None: the dataset's (dataset.yaml anchor_frame_up, else '+z'); given: overrides the dataset. "
+        "Direction of gravity-up in the anchors' coordinates: '+z' (the usual z-up frame) or '-z' (a "
         "z-down frame, e.g. an RTLS frame defined upside down; the filter then runs in the anchors' frame turned "
         "180 deg about x, and every output is turned back into the anchors' frame)",
     )

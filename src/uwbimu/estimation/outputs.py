@@ -5,6 +5,7 @@
   the IMU frame; attitude sd of the body-frame error, rad);
 * ``states.csv``: every output with the full state and the 19 sd (biases,
   lever arm, time offset over time);
+* ``run.json``: ``imu_samples``, ``ranges``, ``filter_cpu_seconds``, ``total_cpu_seconds``.
 * ``calibration.yaml``: calibration values and sd, the configuration, the
   uwbimu version, the warnings;
 * ``residuals.csv``: ``t, anchor, range, predicted, innovation, nis, accepted``;
@@ -97,6 +98,23 @@ def _plain(obj: Any) -> Any:
     return obj
 
 
+def run_summary(result, dataset: Dataset) -> dict[str, Any]:
+    """Contents of ``run.json``: data sizes and CPU time of the run.
+
+    ``filter_cpu_seconds``: CPU time of the filter passes (initialisation excluded); ``total_cpu_seconds``:
+    CPU time of the whole estimator call (problem set-up, initialisation, passes, assembly); both
+    ``time.process_time`` of the estimating process [s], None when the estimator did not record them.
+    """
+    n_rng = len(dataset.uwb) + (len(dataset.tdoa) if getattr(dataset, "tdoa", None) is not None else 0)
+    x = result.extra
+    return {"estimator": result.estimator, "imu_samples": int(len(dataset.imu)), "ranges": int(n_rng),
+            "filter_cpu_seconds": _plain(x.get("filter_cpu_seconds")),
+            "total_cpu_seconds": _plain(x.get("total_cpu_seconds")),
+            "wall_seconds": _plain(result.runtime_s),
+            "imu_samples_per_filter_cpu_second": (float(len(dataset.imu) / x["filter_cpu_seconds"])
+                                                  if x.get("filter_cpu_seconds") else None)}
+
+
 def write_outputs(result, dataset: Dataset, out_dir: str | Path, plots: bool = True,
                   metrics: Optional[dict[str, Any]] = None) -> dict[str, Any]:
     """Write the files of an estimation run into ``out_dir`` (created if needed).
@@ -124,6 +142,7 @@ def write_outputs(result, dataset: Dataset, out_dir: str | Path, plots: bool = T
     }
     files.append(atomic.write_yaml(out / "calibration.yaml", calib))
     files.append(atomic.write_yaml(out / "events.yaml", _plain(result.events)))
+    files.append(atomic.write_json(out / "run.json", run_summary(result, dataset)))
     table = residual_table(result)
     files.append(atomic.write_csv(out / "residual_table.csv", table, float_format="%.6g"))
     m = metrics

@@ -54,7 +54,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from uwbimu.estimation.result import EstimationResult
 from uwbimu.models import state as S
 from uwbimu.models.imu import ICM20948
-from uwbimu.models.quaternion import quat_exp, quat_multiply, quat_normalize, quat_to_rotmat, skew
+from uwbimu.models import kernels as _physics
+from uwbimu.models.kernels import quat_exp as quat_exp_nb, quat_mul as quat_mul_nb, refresh_stale_cache
+from uwbimu.models.quaternion import quat_exp, quat_from_euler, quat_multiply, quat_normalize, quat_to_rotmat, skew
 from uwbimu.models.reference import G_WORLD, GRAVITY
 
 __all__ = [
@@ -133,38 +135,18 @@ class PointMassOptions(BaseModel):
 # Kernels (numba).  Same relations as models.reference; pinned by tests.
 # --------------------------------------------------------------------------
 @njit(cache=True)
-def _quat_mul(p, q):
-    return np.array(
-        [
-            p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3],
-            p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2],
-            p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1],
-            p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0],
-        ]
-    )
-
-
-@njit(cache=True)
-def _quat_exp(phi):
-    a = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
-    if a < 1e-8:
-        k = 0.5 - a * a / 48.0
-    else:
-        k = math.sin(0.5 * a) / a
-    return np.array([math.cos(0.5 * a), k * phi[0], k * phi[1], k * phi[2]])
-
-
-@njit(cache=True)
 def _integrate_attitude(q0, t, w, b_g):
     """Gyro integration ``q_{k+1} = q_k ⊗ Exp(dt (w_k + w_{k+1})/2 - dt b_g)``."""
     n = t.shape[0]
     out = np.empty((n, 4))
     q = q0.copy()
+    dq = np.empty(4)
     out[0] = q
     for k in range(n - 1):
         dt = t[k + 1] - t[k]
         phi = dt * (0.5 * (w[k] + w[k + 1]) - b_g)
-        q = _quat_mul(q, _quat_exp(phi))
+        quat_exp_nb(phi, dq)
+        quat_mul_nb(q.copy(), dq, q)
         q = q / math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
         out[k + 1] = q
     return out
@@ -390,13 +372,6 @@ def acceleration_error_psd(
     return np.ascontiguousarray(accel_noise_density**2 + 2.0 * tau * var)
 
 
-def _euler_to_quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    qz = quat_exp(np.array([0.0, 0.0, yaw]))
-    qy = quat_exp(np.array([0.0, pitch, 0.0]))
-    qx = quat_exp(np.array([roll, 0.0, 0.0]))
-    return quat_normalize(quat_multiply(qz, quat_multiply(qy, qx)))
-
-
 def _lever_arms(ds, opts: PointMassOptions) -> dict[str, np.ndarray]:
     arms = {}
     for tag in ds.meta.tags:
@@ -461,7 +436,7 @@ def run_pointmass(
         f = u[win, 0:3].mean(axis=0)
         roll = math.atan2(f[1], f[2])
         pitch = math.atan2(-f[0], math.hypot(f[1], f[2]))
-        q0 = _euler_to_quat(roll, pitch, 0.0)
+        q0 = quat_from_euler(roll, pitch, 0.0)
         static = bool(np.all(u[win, 3:6].std(axis=0) < opts.static_gyro_max)) and abs(np.linalg.norm(f) - GRAVITY) < 0.3
         if opts.estimate_gyro_bias:
             if static:
@@ -723,3 +698,6 @@ class PointMassEstimator:
 
     def run(self, dataset, progress: Any = None) -> EstimationResult:
         return run_pointmass(dataset, self.options, progress)
+
+
+refresh_stale_cache(globals(), [_physics])

@@ -38,6 +38,12 @@ from uwbimu.models.state import PIU, TD, P, Q, V
 SIGNIFICANCE = 6.0
 #: Once a jump is significant, its onset is the first window this many sigmas off the earlier ones.
 ONSET_SIGNIFICANCE = 3.0
+#: Largest clock drift reported [s/s]: quartz clocks drift by tens of ppm; a larger "trend" of
+#: the effective offset is model mismatch, not a clock.
+MAX_DRIFT = 1e-3
+#: A jump is kept when correcting it lowers the clipped NIS sum by more than this (a likelihood
+#: ratio for one extra parameter; 30 is about 5.5 sigma).
+NIS_DROP_MIN = 30.0
 #: Ranges per window of the regression (the window length adapts to the range rate).
 RANGES_PER_WINDOW = 120
 #: Smallest reported jump [s]: below the resolution the estimator's own t_d tracking absorbs.
@@ -145,15 +151,17 @@ def detect_clock_faults(result, dataset, significance: float = SIGNIFICANCE,
         if abs(size) > significance * s_jump and abs(size) >= MIN_JUMP_S:
             k = _onset(tau, sd, wt, ONSET_SIGNIFICANCE, k)
             region = (float(w[k - 1, 1]), float(t[min(int(w[k, 5]), len(t) - 1)]))
-            t_jump = _jump_time(t, rdot, e, td_hat, int(w[k - 1, 4]), int(w[k, 5]), m1, m2)
+            t_jump, gap = _jump_time(t, rdot, e, td_hat, int(w[k - 1, 4]), int(w[k, 5]), m1, m2)
             events.append({"kind": "clock_jump", "t": t_jump, "size": float(size), "sigma": float(s_jump),
+                           "stamp_gap": gap,
                            "t_d_before": float(m1), "t_d_after": float(m2), "region": list(region),
                            "size_from": "innovation regression"})
             return events
     if chi_line < chi_const:
         cov = np.linalg.inv((A * wt[:, None]).T @ A)
         s_rate = inflate * float(np.sqrt(cov[1, 1]))
-        if abs(coef[1]) > significance * s_rate and abs(coef[1]) * (tm[-1] - tm[0]) >= MIN_JUMP_S:
+        if (abs(coef[1]) > significance * s_rate and abs(coef[1]) * (tm[-1] - tm[0]) >= MIN_JUMP_S
+                and abs(coef[1]) <= MAX_DRIFT):
             events.append({"kind": "clock_drift", "rate": float(coef[1]), "sigma": s_rate,
                            "t0": float(tstart[0]), "t1": float(tm[-1])})
     return events
@@ -181,8 +189,8 @@ def _jump_time(t, rdot, e, td_hat, i0, i1, tau_before, tau_after) -> float:
     gaps = np.diff(tt)
     typical = float(np.median(np.diff(t)[np.diff(t) > 0])) if np.any(np.diff(t) > 0) else 0.0
     if len(gaps) and typical > 0 and gaps.max() > 5 * typical:
-        return float(tt[int(np.argmax(gaps)) + 1])
-    return _refine_jump(t, rdot, e, td_hat, i0, i1, tau_before, tau_after)
+        return float(tt[int(np.argmax(gaps)) + 1]), float(gaps.max() - typical)
+    return _refine_jump(t, rdot, e, td_hat, i0, i1, tau_before, tau_after), None
 
 
 def _refine_jump(t, rdot, e, td_hat, i0, i1, tau_before, tau_after) -> float:
@@ -229,40 +237,99 @@ def _segment(dataset, a: float, b: float):
     return ds
 
 
-def _fit_cost(result) -> float:
-    """Mean clipped NIS of the processed ranges (rejections cost the clip)."""
+def _fit_cost(result, t_from: float = -np.inf) -> tuple[float, int]:
+    """Mean clipped NIS of the processed ranges from ``t_from`` on (rejections cost the clip), and their count."""
     nis = result.residuals["nis"].to_numpy(float)
-    nis = nis[np.isfinite(nis)]
-    return float(np.mean(np.minimum(nis, 25.0))) if len(nis) else np.inf
+    nis = nis[np.isfinite(nis) & (result.residuals["t"].to_numpy(float) >= t_from)]
+    return (float(np.mean(np.minimum(nis, 25.0))), len(nis)) if len(nis) else (np.inf, 0)
 
 
-def estimate_jump_size(dataset, event: dict[str, Any], rerun: Callable, half_window: float = 12.0,
+def estimate_jump_size(dataset, event: dict[str, Any], rerun: Callable, half_window: float = 10.0,
                        max_size: float = 1.0) -> dict[str, Any]:
     """Size of a detected jump by re-running the estimator on a segment around it.
 
     The innovation regression finds *where* the offset changes, but the filter
     partly absorbs a large jump into its position, which biases the regressed size.
     Here the stamps after the jump are shifted by candidate sizes (coarse grid over
-    ``±max_size`` s, then a fine grid) and the size with the best mean clipped NIS
+    ``±max_size`` s, then a fine grid; only near the stamp gap when the jump left one)
+    and the size with the best mean clipped NIS
     of the re-run on ``[t - half_window, t + half_window]`` wins.
     """
     T = event["t"]
-    seg = _segment(dataset, T - half_window, T + half_window)
+    # The filter must have converged before the jump (initialisation takes several seconds):
+    # twice as much data before it as after, and only ranges near and after it are scored.
+    seg = _segment(dataset, T - 2 * half_window, T + half_window)
+
+    counts: list[int] = []
 
     def cost(size: float) -> float:
         try:
-            return _fit_cost(rerun(correct_clock_jumps(seg, [{"kind": "clock_jump", "t": T, "size": size}])))
+            c, n = _fit_cost(rerun(correct_clock_jumps(seg, [{"kind": "clock_jump", "t": T, "size": size}])),
+                             T - 2.0)
         except Exception:  # noqa: BLE001 - a candidate the estimator cannot run on is simply a bad fit
             return np.inf
+        counts.append(n)
+        return c
 
-    best = min(((cost(c), c) for c in np.linspace(-max_size, max_size, 41)), key=lambda x: x[0])
-    step = 2 * max_size / 40
-    fine = min(((cost(c), c) for c in best[1] + np.linspace(-step, step, 11)), key=lambda x: x[0])
-    base = cost(0.0)
+    if event.get("stamp_gap"):
+        # A forward jump of J leaves a stamp gap of about J: search near -gap only, and only
+        # when shifting by the gap fits better at all (a plain dropout does not).
+        step = 0.01
+        base = cost(0.0)
+        if not cost(-event["stamp_gap"]) < base:
+            out = dict(event)
+            out.update({"resolution": step, "cost_uncorrected": base, "nis_sum_drop": 0.0})
+            return out
+        fine = min(((cost(c), c) for c in -event["stamp_gap"] + np.arange(-6, 7) * step), key=lambda x: x[0])
+    else:
+        coarse = min(((cost(c), c) for c in np.linspace(-max_size, max_size, 11)), key=lambda x: x[0])
+        step = 2 * max_size / 10 / 10
+        fine = min(((cost(c), c) for c in coarse[1] + np.arange(-5, 6) * step), key=lambda x: x[0])
+    edge = (abs(fine[1]) >= max_size - 5 * step if not event.get("stamp_gap")
+            else abs(abs(fine[1]) - event["stamp_gap"]) >= 6 * step - 1e-12)
+    base = cost(0.0) if not event.get("stamp_gap") else base
     out = dict(event)
-    out.update({"size": float(fine[1]), "resolution": float(step / 5), "size_from": "segment re-run search",
-                "cost_uncorrected": base, "cost_corrected": fine[0]})
+    if event.get("size_from") == "innovation regression":
+        out["size_regression"] = float(event["size"])
+    out.update({"size": float(fine[1]), "resolution": float(step), "size_from": "segment re-run search",
+                "at_search_boundary": bool(edge),
+                "cost_uncorrected": base, "cost_corrected": fine[0],
+                # the clipped-NIS sum is a (robust) log-likelihood: its drop is a likelihood ratio
+                "nis_sum_drop": float((base - fine[0]) * (min(counts) if counts else 0))})
     return out
+
+
+def gap_candidates(dataset, max_candidates: int = 3, min_gap_s: float = MIN_JUMP_S) -> list[dict[str, Any]]:
+    """Forward-jump candidates: the largest gaps in the UWB stamps (a forward jump of J leaves a gap of J).
+
+    A gap is also what a dropout looks like; :func:`handle_clock_faults` keeps a candidate
+    only when shifting the stamps after it fits the data clearly better.
+    """
+    u = dataset.uwb if len(dataset.uwb) else getattr(dataset, "tdoa", None)
+    if u is None or len(u) < 10:
+        return []
+    t = np.unique(u["t"].to_numpy(float))
+    d = np.diff(t)
+    typical = float(np.median(d))
+    idx = np.flatnonzero(d > max(5 * typical, min_gap_s + typical))
+    idx = idx[np.argsort(d[idx])[::-1][:max_candidates]]
+    return [{"kind": "clock_jump", "t": float(t[i + 1]), "size": -float(d[i] - typical), "sigma": float("nan"),
+             "stamp_gap": float(d[i] - typical), "size_from": "stamp gap"} for i in sorted(idx)]
+
+
+def _credible(ev: dict[str, Any]) -> bool:
+    """Keep a jump only when the re-run evidence is clear and self-consistent.
+
+    On real logs model mismatch can make an arbitrary shift fit slightly better; such a
+    fit has no interior minimum (the best size sits on the search boundary) or contradicts
+    the sign of the innovation regression.
+    """
+    if not (ev.get("nis_sum_drop", 0.0) > NIS_DROP_MIN and abs(ev["size"]) >= MIN_JUMP_S):
+        return False
+    if ev.get("at_search_boundary"):
+        return False
+    reg = ev.get("size_regression")
+    return reg is None or np.sign(reg) == np.sign(ev["size"])
 
 
 def handle_clock_faults(result, dataset, rerun: Callable, console=None, max_rounds: int = 2):
@@ -275,6 +342,9 @@ def handle_clock_faults(result, dataset, rerun: Callable, console=None, max_roun
     for _ in range(max_rounds):
         events = detect_clock_faults(result, dataset)
         jumps = [ev for ev in events if ev["kind"] == "clock_jump"]
+        if not jumps:
+            # Small forward jumps can hide in the innovations; their stamp gap does not.
+            jumps = gap_candidates(dataset)
         for ev in events:
             if ev["kind"] == "clock_drift":
                 ev["handled"] = "reported only: the filter's t_d tracks slow drift"
@@ -282,15 +352,22 @@ def handle_clock_faults(result, dataset, rerun: Callable, console=None, max_roun
         if not jumps:
             break
         jumps = [estimate_jump_size(dataset, ev, rerun) for ev in jumps]
-        jumps = [ev for ev in jumps if ev["cost_corrected"] < 0.8 * ev["cost_uncorrected"]
-                 and abs(ev["size"]) >= MIN_JUMP_S]
+        jumps = [ev for ev in jumps if _credible(ev)]
         if not jumps:
+            break
+        corrected = correct_clock_jumps(dataset, jumps)
+        new = rerun(corrected)
+        # The whole log must fit clearly better too (a local improvement on a real log with
+        # model mismatch is not enough): same likelihood-ratio test on the full run.
+        c0, n0 = _fit_cost(result)
+        c1, n1 = _fit_cost(new)
+        if not (c0 - c1) * min(n0, n1) > NIS_DROP_MIN:
             break
         for ev in jumps:
             ev["handled"] = "UWB stamps after the jump shifted by its size; estimator re-run"
+            ev["full_log_nis_sum_drop"] = float((c0 - c1) * min(n0, n1))
         found.extend(jumps)
-        dataset = correct_clock_jumps(dataset, jumps)
-        result = rerun(dataset)
+        dataset, result = corrected, new
     for ev in found:
         if ev["kind"] == "clock_jump":
             msg = (f"UWB clock jump at t={ev['t']:.3f} s: the time offset changes by {1000 * ev['size']:+.1f} ms "

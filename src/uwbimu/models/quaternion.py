@@ -208,3 +208,11 @@ def omega_matrix(w: np.ndarray) -> np.ndarray:
     out[..., 1:, 0] = w
     out[..., 1:, 1:] = -skew(w)
     return out
+
+
+def quat_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """``q = Rz(yaw) Ry(pitch) Rx(roll)`` (body -> world, ZYX Euler angles [rad]), Hamilton ``[w, x, y, z]``."""
+    qz = np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+    qy = np.array([np.cos(pitch / 2), 0.0, np.sin(pitch / 2), 0.0])
+    qx = np.array([np.cos(roll / 2), np.sin(roll / 2), 0.0, 0.0])
+    return quat_multiply(qz, quat_multiply(qy, qx))

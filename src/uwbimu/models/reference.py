@@ -184,6 +184,11 @@ def range_measurement(x, anchor, ops: Ops = NUMPY):
     return ops.sqrt(ops.sumsq(d))
 
 
+def tdoa_measurement(x, anchor_a, anchor_b, ops: Ops = NUMPY):
+    """Noise-free TDoA ``|p_U - p_b| - |p_U - p_a|`` [m] (same clock convention as ranges)."""
+    return range_measurement(x, anchor_b, ops) - range_measurement(x, anchor_a, ops)
+
+
 def imu_time_of_range(t_uwb, t_d):
     """IMU-clock time whose motion a range stamped ``t_uwb`` (UWB clock) observes.
 

@@ -1,0 +1,142 @@
+"""Honest time-offset decisions: the initialiser's grid search and the final verdict.
+
+Grid search (:func:`search_time_offset`)
+    The bank scores are mean robust negative log-likelihoods per innovation;
+    multiplied by half the number of innovations they become differences of
+    total log-likelihood [nats], which is what the decisions use (a scale-free
+    statistic: the likelihood-ratio test, 1.92 nats = the 95 % point of
+    chi^2_1 / 2).  A minimum on the edge of the grid is never returned as
+    found: the grid is widened on that side (up to ``max_abs_s``); a flat score
+    (every point within the likelihood-ratio threshold of the best, or the
+    plausible set reaching the widened edge) is reported as "not identified"
+    and the time offset is held at its prior.  Otherwise the minimum is refined
+    by a parabola through it and its neighbours, whose curvature also gives the
+    sd of the refined value.
+
+Verdict (:func:`time_offset_verdict`)
+    From the information the data added relative to the prior,
+    ``gain = (sd_prior / sd_post)^2 - 1`` (so independent of units and of the
+    size of the offset): "identified" when the data carry at least 99 % of the
+    final information (gain >= 99, i.e. sd shrank 10x), "weakly identified"
+    when they carry at least half of it (gain >= 1), "not identified" below,
+    and always "not identified" when the initial search failed (the filter then
+    holds t_d at its prior in consider mode: no information is gained).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, Optional
+
+import numpy as np
+
+LR_THRESHOLD_NATS = 1.92  # 95 % point of chi^2_1 / 2: likelihood-ratio interval of one parameter
+
+
+def search_time_offset(score: Callable[[list[float]], tuple[np.ndarray, np.ndarray]], grid: list[float],
+                       max_abs_s: float = 1.0, max_widen: int = 4) -> dict:
+    """Grid search of the time offset with widening, flatness test and parabolic refinement.
+
+    Parameters
+    ----------
+    score : callable taking a list of t_d values [s] and returning ``(mean_nll, n)``
+        arrays: the mean robust NLL per innovation and the number of innovations.
+    grid : initial, evenly spaced hypotheses [s].
+    max_abs_s : widening stops at ``|t_d| = max_abs_s`` [s].
+    max_widen : at most this many widenings.
+
+    Returns
+    -------
+    dict with ``status`` ("found" | "not identified"), ``td`` and ``td_sd`` [s]
+    (None when not identified), ``reason``, and the evaluated ``grid`` /
+    ``scores`` / ``delta_nats`` (sorted by t_d).
+    """
+    g = sorted(float(v) for v in grid)
+    step = float(np.median(np.diff(g))) if len(g) > 1 else 0.05
+    s, n = score(g)
+    tds, means, counts = list(g), list(s), list(n)
+    reason = ""
+    for _ in range(max_widen + 1):
+        order = np.argsort(tds)
+        tds = [tds[i] for i in order]
+        means = [means[i] for i in order]
+        counts = [counts[i] for i in order]
+        m = np.asarray(means)
+        if not np.any(np.isfinite(m)):
+            return _out("not identified", None, None, "every hypothesis failed to score", tds, m, counts)
+        i_best = int(np.nanargmin(np.where(np.isfinite(m), m, np.nan)))
+        edge = i_best in (0, len(tds) - 1)
+        if not edge:
+            break
+        lo, hi = tds[0], tds[-1]
+        span = hi - lo + step
+        if i_best == 0 and lo - step >= -max_abs_s - 1e-9:
+            new = [round(lo - step * (i + 1), 6) for i in range(int(round(span / step)))]
+            new = [v for v in new if v >= -max_abs_s - 1e-9]
+        elif i_best == len(tds) - 1 and hi + step <= max_abs_s + 1e-9:
+            new = [round(hi + step * (i + 1), 6) for i in range(int(round(span / step)))]
+            new = [v for v in new if v <= max_abs_s + 1e-9]
+        else:
+            new = []
+        if not new:
+            reason = f"best score on the edge of the widest grid (|t_d| <= {max_abs_s:g} s)"
+            break
+        s2, n2 = score(new)
+        tds += new
+        means += list(s2)
+        counts += list(n2)
+    m = np.asarray(means, dtype=float)
+    cnt = np.asarray(counts, dtype=float)
+    i_best = int(np.nanargmin(np.where(np.isfinite(m), m, np.nan)))
+    n_eff = float(cnt[i_best])
+    delta = 0.5 * n_eff * (m - m[i_best])  # total NLL above the best [nats]
+    if reason:
+        return _out("not identified", None, None, reason, tds, m, counts, delta)
+    plausible = np.isfinite(delta) & (delta < LR_THRESHOLD_NATS)
+    if plausible.all():
+        return _out("not identified", None, None,
+                    f"flat score: every hypothesis within {LR_THRESHOLD_NATS} nats of the best", tds, m, counts, delta)
+    if plausible[0] or plausible[-1]:
+        return _out("not identified", None, None,
+                    "the likelihood interval reaches the edge of the widest grid", tds, m, counts, delta)
+    # parabola through the best point and its neighbours (total NLL in nats)
+    x = np.asarray(tds[i_best - 1:i_best + 2])
+    y = delta[i_best - 1:i_best + 2]
+    if not np.all(np.isfinite(y)):
+        return _out("found", tds[i_best], step, "neighbours of the best point did not score", tds, m, counts, delta)
+    a, b, _ = np.polyfit(x, y, 2)
+    if a <= 0:
+        return _out("found", tds[i_best], step, "non-convex neighbourhood; kept the grid point", tds, m, counts,
+                    delta)
+    td = float(np.clip(-b / (2 * a), x[0], x[-1]))
+    sd = float(1.0 / math.sqrt(2 * a))  # NLL = (td - td*)^2 / (2 sd^2)
+    return _out("found", td, sd, "", tds, m, counts, delta)
+
+
+def _out(status, td, sd, reason, tds, m, counts, delta=None) -> dict:
+    return {"status": status, "td": td, "td_sd": sd, "reason": reason, "grid": [float(v) for v in tds],
+            "scores": [float(v) for v in np.asarray(m, dtype=float)], "n": [int(c) for c in counts],
+            "delta_nats": None if delta is None else [float(v) for v in delta]}
+
+
+def time_offset_verdict(sd_post: float, sd_prior: float, fixed: bool = False,
+                        init_status: Optional[str] = None) -> tuple[str, str]:
+    """Verdict on the time offset from the information gained relative to the prior.
+
+    Returns ``(verdict, reason)`` with verdict ``identified | weakly identified |
+    not identified`` (``fixed`` when the time offset was not estimated).
+    """
+    if fixed:
+        return "fixed", "time offset held at its configured value"
+    if init_status == "not identified":
+        return "not identified", ("the initial grid search could not locate it; held at its prior (consider "
+                                  "mode, not updated by the data)")
+    if not (np.isfinite(sd_post) and sd_post > 0 and np.isfinite(sd_prior) and sd_prior > 0):
+        return "not identified", "no finite posterior/prior sd"
+    gain = (sd_prior / sd_post) ** 2 - 1.0
+    note = f"sd {sd_post * 1e3:.3g} ms from prior {sd_prior * 1e3:.3g} ms (information gain {gain:.3g}x the prior)"
+    if gain >= 99.0:
+        return "identified", note
+    if gain >= 1.0:
+        return "weakly identified", note
+    return "not identified", note

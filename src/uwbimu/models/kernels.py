@@ -1,0 +1,575 @@
+"""Shared numba physics primitives (one physics layer for every fast kernel).
+
+Everything that re-expresses :mod:`uwbimu.models.reference` for speed lives
+here once: rotation from a quaternion, the nominal RK4 step, the error-state
+transition and its discretisation (block form and dense form), the error
+injection ``x ⊞ dx``, and the range / TDoA measurement Jacobians.  The
+estimator (:mod:`uwbimu.estimation.kernels`), the point-mass EKF, the
+observability window and the trajectory predictor call these; tests in
+``tests/test_models_kernels.py`` and ``tests/test_eskf_jacobians.py`` pin each
+of them to the reference model by finite differences.
+
+Public API (all ``@njit``; arrays are float64, outputs written in place)
+-----------------------------------------------------------------------
+``rotmat(q, R)``                   R (3,3) from Hamilton ``q = [qw, qx, qy, qz]`` (body -> world)
+``quat_mul(p, q, out)``            Hamilton product ``out = p ⊗ q``
+``quat_exp(theta, out)``           ``Exp(theta)`` rotation vector -> quaternion
+``rk4_step(x, u0, u1, dt, out)``   nominal state (20+) over ``dt`` with linear input
+``propagate_interval(x, u0, u1, dt, dt_max, out)``  same, sub-stepped to ``dt_max``
+``phi_blocks(x, u, dt, B)``        3x3 blocks of the 19-error-state transition (see below)
+``error_transition(x, u, dt, Phi)`` dense ``Phi`` (N, N), N >= 19, second order
+``cov_step(P, x, u, dt, noise)``   ``P <- Phi P Phi^T + Q`` in place (block sparse, O(N^2))
+``inject(x, dx)``                  ``x <- x ⊞ dx`` (right attitude perturbation)
+``range_jacobian(xt, u, anchor, bias_idx, delta, h)``  predicted range, ``h`` (N,)
+``tdoa_jacobian(xt, u, anchor_a, anchor_b, bias_idx, delta, h, work)``  predicted
+                                   ``|p_U-p_b| - |p_U-p_a|``, ``h`` (N,), ``work`` (N,)
+
+Layout: nominal ``x`` = ``p v q b_a b_g p_IU t_d`` (20) followed by extra
+states; error ``dp dv dtheta db_a db_g dp_IU dt_d`` (19) then extras
+(see :mod:`uwbimu.models.state`).  Attitude error is a right perturbation
+``q = q_hat ⊗ Exp(dtheta)``.
+
+Error-state dynamics (continuous time, ``a = a_m - b_a``, ``w = w_m - b_g``)::
+
+    dp'     = dv
+    dv'     = -R [a]x dtheta - R db_a - R n_a
+    dtheta' = -[w]x dtheta - db_g - n_g
+    db_a'   = n_ba,  db_g' = n_bg,  dp_IU' = 0,  dt_d' = 0
+
+The transition matrix is its second-order series ``I + F dt + F^2 dt^2 / 2``
+(with the exact rotation ``Exp(-w dt)`` for the attitude block).
+
+numba cache across files
+------------------------
+numba's on-disk cache of a function is validated against the time stamp of
+*its own* source file only, so a cached kernel in another module that calls a
+primitive here would keep running the old machine code after this file is
+edited.  Every module that calls these primitives from cached kernels ends
+with ``refresh_stale_cache(globals(), [uwbimu.models.kernels])``: it keys the
+cache on a SHA-256 of the dependency sources (stored next to numba's index
+files) and flushes that module's cached kernels when the sources changed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import inspect
+import math
+from pathlib import Path
+
+import numpy as np
+from numba import njit
+
+GRAVITY = 9.81  # must equal uwbimu.models.reference.GRAVITY (pinned by a test)
+
+
+def refresh_stale_cache(module_globals: dict, dependencies) -> bool:
+    """Flush a module's numba disk caches when the sources it calls changed.
+
+    Parameters
+    ----------
+    module_globals : dict
+        ``globals()`` of the calling module (its ``@njit(cache=True)`` dispatchers are found there).
+    dependencies : iterable of modules
+        Modules whose numba functions the caller's kernels call.
+
+    Returns
+    -------
+    bool
+        True when caches were flushed.  Never raises on an unwritable cache
+        folder (numba then falls back to its own user-wide cache, which is
+        flushed the same way).
+    """
+    digest = hashlib.sha256()
+    for mod in dependencies:
+        digest.update(Path(inspect.getfile(mod)).read_bytes())
+    key = digest.hexdigest()
+    dispatchers = [v for v in module_globals.values()
+                   if getattr(v, "_cache", None) is not None and hasattr(v._cache, "flush")
+                   and getattr(v, "__module__", None) == module_globals.get("__name__")]
+    if not dispatchers:
+        return False
+    try:
+        cache_dir = Path(dispatchers[0]._cache.cache_path)
+        stamp = cache_dir / (module_globals["__name__"].rsplit(".", 1)[-1] + ".deps.sha256")
+        if stamp.exists() and stamp.read_text() == key:
+            return False
+        for d in dispatchers:
+            d._cache.flush()
+        cache_dir.mkdir(parents=True, exist_ok=True)
+        tmp = stamp.with_suffix(".tmp")
+        tmp.write_text(key)
+        tmp.replace(stamp)
+        return True
+    except OSError:
+        return False
+
+@njit(cache=True)
+def rotmat(q, R):
+    """Fill ``R`` (3x3) with the rotation matrix of quaternion ``q`` (w, x, y, z)."""
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    R[0, 0] = 1 - 2 * (y * y + z * z)
+    R[0, 1] = 2 * (x * y - w * z)
+    R[0, 2] = 2 * (x * z + w * y)
+    R[1, 0] = 2 * (x * y + w * z)
+    R[1, 1] = 1 - 2 * (x * x + z * z)
+    R[1, 2] = 2 * (y * z - w * x)
+    R[2, 0] = 2 * (x * z - w * y)
+    R[2, 1] = 2 * (y * z + w * x)
+    R[2, 2] = 1 - 2 * (x * x + y * y)
+
+
+@njit(cache=True)
+def _deriv(x, u, out):
+    """Derivative of the first 10 nominal components (p, v, q) — reference ``continuous_dynamics``."""
+    qw, qx, qy, qz = x[6], x[7], x[8], x[9]
+    ax = u[0] - x[10]
+    ay = u[1] - x[11]
+    az = u[2] - x[12]
+    wx = u[3] - x[13]
+    wy = u[4] - x[14]
+    wz = u[5] - x[15]
+    r00 = 1 - 2 * (qy * qy + qz * qz)
+    r01 = 2 * (qx * qy - qw * qz)
+    r02 = 2 * (qx * qz + qw * qy)
+    r10 = 2 * (qx * qy + qw * qz)
+    r11 = 1 - 2 * (qx * qx + qz * qz)
+    r12 = 2 * (qy * qz - qw * qx)
+    r20 = 2 * (qx * qz - qw * qy)
+    r21 = 2 * (qy * qz + qw * qx)
+    r22 = 1 - 2 * (qx * qx + qy * qy)
+    out[0] = x[3]
+    out[1] = x[4]
+    out[2] = x[5]
+    out[3] = r00 * ax + r01 * ay + r02 * az
+    out[4] = r10 * ax + r11 * ay + r12 * az
+    out[5] = r20 * ax + r21 * ay + r22 * az - GRAVITY
+    out[6] = 0.5 * (-qx * wx - qy * wy - qz * wz)
+    out[7] = 0.5 * (qw * wx - qz * wy + qy * wz)
+    out[8] = 0.5 * (qz * wx + qw * wy - qx * wz)
+    out[9] = 0.5 * (-qy * wx + qx * wy + qw * wz)
+
+
+@njit(cache=True)
+def _rk4_core(x, u0, um, u1, dt, out, wk):
+    """RK4 step with inputs at start/middle/end and a work array ``wk`` (6, max(10, len(x))).
+
+    ``wk[0]`` is not touched (callers may keep ``um`` there); no allocation.
+    """
+    n = x.shape[0]
+    k1 = wk[1]
+    k2 = wk[2]
+    k3 = wk[3]
+    k4 = wk[4]
+    xt = wk[5]
+    for i in range(n):
+        xt[i] = x[i]
+    _deriv(x, u0, k1)
+    for i in range(10):
+        xt[i] = x[i] + 0.5 * dt * k1[i]
+    _deriv(xt, um, k2)
+    for i in range(10):
+        xt[i] = x[i] + 0.5 * dt * k2[i]
+    _deriv(xt, um, k3)
+    for i in range(10):
+        xt[i] = x[i] + dt * k3[i]
+    _deriv(xt, u1, k4)
+    for i in range(n):
+        out[i] = x[i]
+    for i in range(10):
+        out[i] = x[i] + dt / 6.0 * (k1[i] + 2 * k2[i] + 2 * k3[i] + k4[i])
+    nq = math.sqrt(out[6] ** 2 + out[7] ** 2 + out[8] ** 2 + out[9] ** 2)
+    for i in range(6, 10):
+        out[i] /= nq
+
+
+@njit(cache=True)
+def _rk4(x, u0, u1, dt, out, wk):
+    """RK4 step with the linearly interpolated (average) mid-interval input."""
+    for i in range(6):
+        wk[0, i] = 0.5 * (u0[i] + u1[i])
+    _rk4_core(x, u0, wk[0], u1, dt, out, wk)
+
+
+@njit(cache=True)
+def rk4_step_mid(x, u0, um, u1, dt, out):
+    """Reference ``propagate(x, u0, u1, dt, um=um)``: RK4 with an explicit mid-interval input."""
+    wk = np.empty((6, max(10, x.shape[0])))
+    _rk4_core(x, u0, um, u1, dt, out, wk)
+
+
+@njit(cache=True)
+def rk4_step(x, u0, u1, dt, out):
+    """One step of the reference ``propagate`` (RK4, linearly interpolated input).
+
+    ``x`` and ``out`` are extended nominal states (only the first 10
+    components change); ``dt`` may be negative (backward integration).
+    ``out`` may be the same array as ``x``.
+    """
+    wk = np.empty((6, max(10, x.shape[0])))
+    _rk4(x, u0, u1, dt, out, wk)
+
+
+@njit(cache=True)
+def propagate_interval(x, u0, u1, dt, dt_max, out):
+    """Propagate over one IMU interval, splitting it when ``|dt| > dt_max`` (IMU gaps).
+
+    The input is interpolated linearly over the whole interval, as in the
+    reference; each sub-step is one reference RK4 step.
+    """
+    n = 1
+    if dt_max > 0 and abs(dt) > dt_max:
+        n = int(math.ceil(abs(dt) / dt_max))
+    if n == 1:
+        rk4_step(x, u0, u1, dt, out)
+        return
+    ua = np.empty(6)
+    ub = np.empty(6)
+    h = dt / n
+    for i in range(x.shape[0]):
+        out[i] = x[i]
+    for s in range(n):
+        fa = s / n
+        fb = (s + 1) / n
+        for i in range(6):
+            ua[i] = u0[i] + fa * (u1[i] - u0[i])
+            ub[i] = u0[i] + fb * (u1[i] - u0[i])
+        rk4_step(out, ua, ub, h, out)
+
+
+@njit(cache=True)
+def _mm3(A, B, C):
+    """``C = A @ B`` for 3x3 arrays (loops: no BLAS call, no allocation)."""
+    for i in range(3):
+        for j in range(3):
+            C[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+
+
+@njit(cache=True)
+def _skew3(v0, v1, v2, S):
+    S[0, 0] = 0.0
+    S[0, 1] = -v2
+    S[0, 2] = v1
+    S[1, 0] = v2
+    S[1, 1] = 0.0
+    S[1, 2] = -v0
+    S[2, 0] = -v1
+    S[2, 1] = v0
+    S[2, 2] = 0.0
+
+
+@njit(cache=True)
+def _phi_blocks(x, u, dt, B, W):
+    """:func:`phi_blocks` with a work array ``W`` (6, 3, 3)."""
+    R = W[0]
+    Ax = W[1]
+    Wx = W[2]
+    RA = W[3]
+    RAW = W[4]
+    W2 = W[5]
+    rotmat(x[6:10], R)
+    a0 = u[0] - x[10]
+    a1 = u[1] - x[11]
+    a2 = u[2] - x[12]
+    w0 = u[3] - x[13]
+    w1 = u[4] - x[14]
+    w2 = u[5] - x[15]
+    _skew3(a0, a1, a2, Ax)
+    _skew3(w0, w1, w2, Wx)
+    _mm3(R, Ax, RA)
+    _mm3(RA, Wx, RAW)
+    _mm3(Wx, Wx, W2)
+    h2 = 0.5 * dt * dt
+    for i in range(3):
+        for j in range(3):
+            B[0, i, j] = -RA[i, j] * h2
+            B[1, i, j] = -R[i, j] * h2
+            B[2, i, j] = -RA[i, j] * dt + RAW[i, j] * h2
+            B[3, i, j] = -R[i, j] * dt
+            B[4, i, j] = RA[i, j] * h2
+            B[6, i, j] = Wx[i, j] * h2
+        B[6, i, i] -= dt
+    # exact Exp(-w dt) for the attitude block (Rodrigues)
+    th = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2) * abs(dt)
+    if th < 1e-9:
+        s1 = -dt
+        s2 = h2
+    else:
+        wn = th / abs(dt)
+        s1 = -math.sin(th) / wn * (1.0 if dt > 0 else -1.0)
+        s2 = (1 - math.cos(th)) / (wn * wn)
+    for i in range(3):
+        for j in range(3):
+            B[5, i, j] = s1 * Wx[i, j] + s2 * W2[i, j]
+        B[5, i, i] += 1.0
+
+
+@njit(cache=True)
+def phi_blocks(x, u, dt, B):
+    """3x3 blocks of the error-state transition matrix over ``dt``.
+
+    ``B`` (7, 3, 3) receives ``Phi_p_th, Phi_p_ba, Phi_v_th, Phi_v_ba,
+    Phi_v_bg, Phi_th_th, Phi_th_bg``; the other blocks are ``I``, ``dt I`` or 0.
+    Evaluated at the nominal state ``x`` with the IMU input ``u`` (6,).
+    """
+    W = np.empty((6, 3, 3))
+    _phi_blocks(x, u, dt, B, W)
+
+
+@njit(cache=True)
+def _phi_vec(B, dt, X):
+    """In place ``X[0:15] <- Phi X[0:15]`` for one vector ``X`` (block-sparse Phi)."""
+    xv0, xv1, xv2 = X[3], X[4], X[5]
+    xt0, xt1, xt2 = X[6], X[7], X[8]
+    xa0, xa1, xa2 = X[9], X[10], X[11]
+    xg0, xg1, xg2 = X[12], X[13], X[14]
+    for i in range(3):
+        sp = (B[0, i, 0] * xt0 + B[0, i, 1] * xt1 + B[0, i, 2] * xt2
+              + B[1, i, 0] * xa0 + B[1, i, 1] * xa1 + B[1, i, 2] * xa2)
+        sv = (B[2, i, 0] * xt0 + B[2, i, 1] * xt1 + B[2, i, 2] * xt2
+              + B[3, i, 0] * xa0 + B[3, i, 1] * xa1 + B[3, i, 2] * xa2
+              + B[4, i, 0] * xg0 + B[4, i, 1] * xg1 + B[4, i, 2] * xg2)
+        st = (B[5, i, 0] * xt0 + B[5, i, 1] * xt1 + B[5, i, 2] * xt2
+              + B[6, i, 0] * xg0 + B[6, i, 1] * xg1 + B[6, i, 2] * xg2)
+        X[i] += dt * X[3 + i] + sp
+        X[6 + i] = st
+        X[3 + i] += sv
+
+
+@njit(cache=True)
+def _cov_step(P, x, u, dt, noise, B, W, col):
+    """:func:`cov_step` with work arrays (B (7,3,3), W (6,3,3), col (N,))."""
+    N = P.shape[0]
+    _phi_blocks(x, u, dt, B, W)
+    # left multiplication: columns
+    for c in range(N):
+        for i in range(15):
+            col[i] = P[i, c]
+        _phi_vec(B, dt, col)
+        for i in range(15):
+            P[i, c] = col[i]
+    # right multiplication: rows
+    for r in range(N):
+        for i in range(15):
+            col[i] = P[r, i]
+        _phi_vec(B, dt, col)
+        for i in range(15):
+            P[r, i] = col[i]
+    adt = abs(dt)
+    for i in range(3):
+        P[i, i] += noise[0] * adt**3 / 3.0
+        P[i, 3 + i] += noise[0] * adt**2 / 2.0
+        P[3 + i, i] += noise[0] * adt**2 / 2.0
+        P[3 + i, 3 + i] += noise[0] * adt
+        P[6 + i, 6 + i] += noise[1] * adt
+        P[9 + i, 9 + i] += noise[2] * adt
+        P[12 + i, 12 + i] += noise[3] * adt
+        P[15 + i, 15 + i] += noise[4] * adt
+    P[18, 18] += noise[5] * adt
+    if noise.shape[0] >= 8 and noise[7] > 0.0 and N > 19:
+        # per-anchor range biases as first-order Gauss-Markov processes
+        # (b' = -b / tau + w, stationary variance noise[6], 1 / tau = noise[7]):
+        # Phi_bb = exp(-|dt| / tau) I, Q_bb = var (1 - Phi_bb^2)
+        f = math.exp(-adt * noise[7])
+        for r in range(19, N):
+            for c in range(N):
+                P[r, c] *= f
+                P[c, r] *= f
+            P[r, r] += noise[6] * (1.0 - f * f)
+
+
+@njit(cache=True)
+def cov_step(P, x, u, dt, noise):
+    """``P <- Phi P Phi^T + Q`` over ``dt`` (in place, full covariance).
+
+    ``noise`` = ``[s_a^2, s_g^2, s_ba^2, s_bg^2, s_piu^2, s_td^2]``: continuous
+    densities squared (accel, gyro white noise; bias, lever-arm and time-offset
+    random walks), optionally followed by ``[var_b, 1 / tau_b]``: the per-anchor
+    range biases (error components 19..N-1) are then first-order Gauss-Markov
+    processes of stationary variance ``var_b`` and correlation time ``tau_b``
+    (``1 / tau_b = 0``: constant biases).  ``Q`` is the Van Loan expansion to the leading order of
+    each block (``pp = s_a^2 dt^3/3``, ``pv = s_a^2 dt^2/2``, ``vv = s_a^2 dt``, ...).
+    """
+    _cov_step(P, x, u, dt, noise, np.empty((7, 3, 3)), np.empty((6, 3, 3)), np.empty(P.shape[0]))
+
+
+@njit(cache=True)
+def decay_biases(x, dt, noise):
+    """Mean of Gauss-Markov range biases over ``dt``: ``b <- exp(-|dt| / tau) b`` (no-op when constant)."""
+    if noise.shape[0] >= 8 and noise[7] > 0.0 and x.shape[0] > 20:
+        f = math.exp(-abs(dt) * noise[7])
+        for i in range(20, x.shape[0]):
+            x[i] *= f
+
+
+@njit(cache=True)
+def range_jacobian(xt, u_tau, anchor, bias_idx, delta, h):
+    """Predicted range and its Jacobian ``h`` (N,) w.r.t. the error state at filter time.
+
+    ``xt``: extended nominal state at ``tau`` (IMU clock), ``u_tau`` the IMU input
+    there, ``anchor`` (3,) world position, ``bias_idx`` the error index of the
+    anchor's range bias (or -1), ``delta = t_filter - tau`` >= 0 [s].
+
+    At ``tau`` (``u`` = unit vector from antenna to anchor, ``w = w_m - b_g``)::
+
+        H_p = -u^T,  H_th = u^T R [p_IU]x,  H_pIU = -u^T R,
+        H_td = -u^T (v + R [w]x p_IU),  H_bias = 1
+
+    and the error at ``tau`` is mapped to the filter time by
+    ``dx(tau) = (I - F delta) dx(t)`` (first order), which adds
+    ``H_v = -delta H_p``, ``H_th += delta H_th [w]x`` and ``H_bg = delta H_th``.
+    Returns the predicted range [m].
+    """
+    R = np.empty((3, 3))
+    rotmat(xt[6:10], R)
+    l0, l1, l2 = xt[16], xt[17], xt[18]
+    w0 = u_tau[3] - xt[13]
+    w1 = u_tau[4] - xt[14]
+    w2 = u_tau[5] - xt[15]
+    pu = np.empty(3)
+    # w x l (body)
+    c0 = w1 * l2 - w2 * l1
+    c1 = w2 * l0 - w0 * l2
+    c2 = w0 * l1 - w1 * l0
+    vel = np.empty(3)
+    for i in range(3):
+        pu[i] = xt[i] + R[i, 0] * l0 + R[i, 1] * l1 + R[i, 2] * l2
+        vel[i] = xt[3 + i] + R[i, 0] * c0 + R[i, 1] * c1 + R[i, 2] * c2
+    d0 = anchor[0] - pu[0]
+    d1 = anchor[1] - pu[1]
+    d2 = anchor[2] - pu[2]
+    rho = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    if rho < 1e-9:
+        rho = 1e-9
+    un = np.array([d0 / rho, d1 / rho, d2 / rho])
+    for i in range(h.shape[0]):
+        h[i] = 0.0
+    uR = np.empty(3)
+    for j in range(3):
+        uR[j] = un[0] * R[0, j] + un[1] * R[1, j] + un[2] * R[2, j]
+    # u^T R [l]x
+    hth0 = uR[1] * l2 - uR[2] * l1
+    hth1 = uR[2] * l0 - uR[0] * l2
+    hth2 = uR[0] * l1 - uR[1] * l0
+    for i in range(3):
+        h[i] = -un[i]
+        h[15 + i] = -uR[i]
+    h[18] = -(un[0] * vel[0] + un[1] * vel[1] + un[2] * vel[2])
+    # time mapping tau -> filter time
+    for i in range(3):
+        h[3 + i] = delta * un[i]
+    # (H_th [w]x)_j = sum_i hth_i Wx[i, j];  row vector times skew = -(w x hth)^T ... computed explicitly
+    g0 = hth1 * w2 - hth2 * w1
+    g1 = hth2 * w0 - hth0 * w2
+    g2 = hth0 * w1 - hth1 * w0
+    h[6] = hth0 + delta * g0
+    h[7] = hth1 + delta * g1
+    h[8] = hth2 + delta * g2
+    h[12] = delta * hth0
+    h[13] = delta * hth1
+    h[14] = delta * hth2
+    bias = 0.0
+    if bias_idx >= 0:
+        h[bias_idx] = 1.0
+        bias = xt[bias_idx + 1]
+    return rho + bias
+
+
+@njit(cache=True)
+def inject(x, dx):
+    """``x <- x ⊞ dx`` for the extended state (right attitude perturbation)."""
+    for i in range(6):
+        x[i] += dx[i]
+    t0, t1, t2 = dx[6], dx[7], dx[8]
+    th = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+    if th < 1e-8:
+        k = 0.5 - th * th / 48.0
+        dw = math.cos(0.5 * th)
+    else:
+        k = math.sin(0.5 * th) / th
+        dw = math.cos(0.5 * th)
+    dq0, dq1, dq2, dq3 = dw, k * t0, k * t1, k * t2
+    pw, px, py, pz = x[6], x[7], x[8], x[9]
+    qw = pw * dq0 - px * dq1 - py * dq2 - pz * dq3
+    qx = pw * dq1 + px * dq0 + py * dq3 - pz * dq2
+    qy = pw * dq2 - px * dq3 + py * dq0 + pz * dq1
+    qz = pw * dq3 + px * dq2 - py * dq1 + pz * dq0
+    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    x[6] = qw / n
+    x[7] = qx / n
+    x[8] = qy / n
+    x[9] = qz / n
+    for i in range(9, dx.shape[0]):
+        x[i + 1] += dx[i]
+
+
+@njit(cache=True)
+def quat_mul(p, q, out):
+    """Hamilton product ``out = p ⊗ q`` ([qw, qx, qy, qz])."""
+    pw, px, py, pz = p[0], p[1], p[2], p[3]
+    qw, qx, qy, qz = q[0], q[1], q[2], q[3]
+    out[0] = pw * qw - px * qx - py * qy - pz * qz
+    out[1] = pw * qx + px * qw + py * qz - pz * qy
+    out[2] = pw * qy - px * qz + py * qw + pz * qx
+    out[3] = pw * qz + px * qy - py * qx + pz * qw
+
+
+@njit(cache=True)
+def quat_exp(theta, out):
+    """``out = Exp(theta)``: rotation vector [rad] to unit quaternion."""
+    th = math.sqrt(theta[0] ** 2 + theta[1] ** 2 + theta[2] ** 2)
+    if th < 1e-8:
+        k = 0.5 - th * th / 48.0
+    else:
+        k = math.sin(0.5 * th) / th
+    out[0] = math.cos(0.5 * th)
+    out[1] = k * theta[0]
+    out[2] = k * theta[1]
+    out[3] = k * theta[2]
+
+
+@njit(cache=True)
+def error_transition(x, u, dt, Phi):
+    """Dense error-state transition ``Phi`` (N, N), N >= 19, over ``dt`` [s].
+
+    Same blocks as :func:`phi_blocks` (second-order series, exact attitude
+    rotation); states beyond index 14 (lever arm, time offset, extras) are
+    constant (identity rows).  For callers that need the full matrix (the
+    observability window, the trajectory predictor).
+    """
+    B = np.empty((7, 3, 3))
+    phi_blocks(x, u, dt, B)
+    N = Phi.shape[0]
+    for i in range(N):
+        for j in range(N):
+            Phi[i, j] = 0.0
+        Phi[i, i] = 1.0
+    for i in range(3):
+        Phi[i, 3 + i] = dt
+        for j in range(3):
+            Phi[i, 6 + j] = B[0, i, j]
+            Phi[i, 9 + j] = B[1, i, j]
+            Phi[3 + i, 6 + j] = B[2, i, j]
+            Phi[3 + i, 9 + j] = B[3, i, j]
+            Phi[3 + i, 12 + j] = B[4, i, j]
+            Phi[6 + i, 6 + j] = B[5, i, j]
+            Phi[6 + i, 12 + j] = B[6, i, j]
+
+
+@njit(cache=True)
+def tdoa_jacobian(xt, u_tau, anchor_a, anchor_b, bias_idx, delta, h, work):
+    """Predicted TDoA ``|p_U - p_b| - |p_U - p_a|`` [m] and its Jacobian ``h`` (N,).
+
+    Difference of two :func:`range_jacobian` rows (same time mapping
+    ``delta = t_filter - tau``); ``bias_idx`` >= 0 adds a per-pair bias state
+    (error index; nominal index ``bias_idx + 1``).  ``work`` (N,) is scratch.
+    """
+    ra = range_jacobian(xt, u_tau, anchor_a, -1, delta, work)
+    rb = range_jacobian(xt, u_tau, anchor_b, -1, delta, h)
+    for i in range(h.shape[0]):
+        h[i] -= work[i]
+    pred = rb - ra
+    if bias_idx >= 0:
+        h[bias_idx] = 1.0
+        pred += xt[bias_idx + 1]
+    return pred
