@@ -119,14 +119,46 @@ def _register_rosbag(app: typer.Typer) -> None:
         run_import(lambda: imp.import_dataset(bag, dst, topics, force=force), dst=dst, src=bag, force=force)
 
 
+def _register_util(app: typer.Typer) -> None:
+    @app.command("util")
+    def util(
+        src: Path = typer.Argument(..., help="UTIL flight CSV, e.g. csv-data/const1/const1-trial1-tdoa2.csv."),
+        dst: Path = typer.Argument(..., help="Output dataset folder."),
+        anchors: Optional[Path] = typer.Option(None, "--anchors", help="anchor survey (anchor_constN.npz or "
+                                               "_survey.txt); default: survey-results/anchor_constN.* found "
+                                               "next to or above SRC."),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
+        name: Optional[str] = typer.Option(None, "--name", help="Dataset name (default from SRC)."),
+    ) -> None:
+        """Convert a UTIL (Zhao et al.) TDoA flight: TDoA, IMU (g, deg/s converted), Vicon pose, anchor survey."""
+        from uwbimu.io.importers import util as imp
+
+        run_import(lambda: imp.import_dataset(src, dst, anchors, force=force, name=name), dst=dst, src=src, force=force)
+
+
+def _register_cf_usdlog(app: typer.Typer) -> None:
+    @app.command("cf-usdlog")
+    def cf_usdlog(
+        log: Path = typer.Argument(..., help="Crazyflie uSD-card event log (binary, e.g. log00)."),
+        dst: Path = typer.Argument(..., help="Output dataset folder."),
+        anchors: Path = typer.Option(..., "--anchors", help="anchors.csv (anchor, x, y, z [, qw, qx, qy, qz]); ids "
+                                                            "as the Loco nodes' (0-7)."),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
+        ignore_crc: bool = typer.Option(False, "--ignore-crc", help="Decode a log whose CRC does not match "
+                                                                    "(e.g. cut by a power loss); recorded."),
+        name: Optional[str] = typer.Option(None, "--name", help="Dataset name (default from LOG)."),
+    ) -> None:
+        """Convert a Crazyflie uSD event log (estTDOA, estAcceleration in g, estGyroscope in deg/s) to a TDoA dataset."""
+        from uwbimu.io.importers import cf_usdlog as imp
+
+        run_import(lambda: imp.import_dataset(log, dst, anchors, force=force, ignore_crc=ignore_crc, name=name),
+                   dst=dst, src=log, force=force)
+
+
 # One line per importer.
 _register_inrol(import_app)
 _register_isas_walk(import_app)
 _register_rosbag(import_app)
-# TDoA importers (owner: tdoa helper; the commands live with the importers to keep this hook small).
-from uwbimu.io.importers.util import register_cli as _register_util  # noqa: E402
-from uwbimu.io.importers.cf_usdlog import register_cli as _register_cf_usdlog  # noqa: E402
-
 _register_util(import_app)
 _register_cf_usdlog(import_app)
 

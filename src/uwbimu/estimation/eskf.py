@@ -10,7 +10,6 @@ Public entry point: :func:`run_eskf` (dataset -> :class:`EstimationResult`).
 
 from __future__ import annotations
 
-import logging
 import math
 import time
 from typing import Any, Callable, Optional
@@ -34,8 +33,6 @@ from uwbimu.io.dataset import Dataset
 from uwbimu.models.quaternion import quat_multiply
 from uwbimu.models.reference import midpoint_inputs
 
-log = logging.getLogger("uwbimu.estimation")
-log.addHandler(logging.NullHandler())  # library: the application decides where warnings go
 
 _ROBUST = {"none": K.ROBUST_NONE, "huber": K.ROBUST_HUBER, "geman-mcclure": K.ROBUST_GM}
 
@@ -313,8 +310,8 @@ def run_eskf(
     result.runtime_s = time.perf_counter() - t_wall
     result.extra["filter_cpu_seconds"] = cpu_filter
     result.extra["total_cpu_seconds"] = time.process_time() - cpu0
-    for w in result.warnings:
-        log.warning(w)
+    # The library stays silent: warnings travel in result.warnings / result.events and the
+    # caller (the CLI, a study) decides what to show.
     return result
 
 

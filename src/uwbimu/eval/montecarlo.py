@@ -302,19 +302,13 @@ def run_metrics(result, ds, skip_initial_s: float = 0.0) -> tuple[dict, dict]:
 
 def run_chunk(task: dict) -> dict:
     """Quiet wrapper of :func:`_run_chunk`: per-run warnings are counted in the rows
-    (``n_warnings``) instead of flooding the console from every worker."""
-    import logging
+    (``n_warnings``) instead of flooding the console from every worker (the estimators
+    return their warnings; Python ``warnings`` raised inside a run are suppressed here only)."""
     import warnings
 
-    log = logging.getLogger("uwbimu")
-    level = log.level
-    log.setLevel(logging.ERROR)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            return _run_chunk(task)
-    finally:
-        log.setLevel(level)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return _run_chunk(task)
 
 
 def _run_chunk(task: dict) -> dict:

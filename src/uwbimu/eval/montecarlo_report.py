@@ -240,10 +240,7 @@ def make_plots(out: Path, df: pd.DataFrame, cfg, runs: int, traces: dict) -> lis
 
 
 def _make_plots(out: Path, df: pd.DataFrame, cfg, runs: int, traces: dict) -> list[str]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    from matplotlib.figure import Figure
+    from matplotlib.figure import Figure  # object-oriented: no pyplot, no backend switch
     from scipy import stats
 
     from uwbimu.io.atomic import save_figure

@@ -300,24 +300,3 @@ def import_dataset(log, dst, anchors, force: bool = False, ignore_crc: bool = Fa
     res = convert(log, anchors, ignore_crc=ignore_crc, name=name)
     write_import(res, dst, force=force, src=log)
     return res
-
-
-def register_cli(app) -> None:
-    """Add ``uwbimu import cf-usdlog`` to the ``import`` Typer app (hook in ``uwbimu.cli.import_cmd``)."""
-    import typer
-
-    from uwbimu.cli.import_cmd import FORCE_HELP, run_import
-
-    @app.command("cf-usdlog")
-    def cf_usdlog(
-        log: Path = typer.Argument(..., help="Crazyflie uSD-card event log (binary, e.g. log00)."),
-        dst: Path = typer.Argument(..., help="Output dataset folder."),
-        anchors: Path = typer.Option(..., "--anchors", help="anchors.csv (anchor, x, y, z [, qw, qx, qy, qz]); ids "
-                                                            "as the Loco nodes' (0-7)."),
-        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
-        ignore_crc: bool = typer.Option(False, "--ignore-crc", help="Decode a log whose CRC does not match "
-                                                                    "(e.g. cut by a power loss); recorded."),
-        name: Optional[str] = typer.Option(None, "--name", help="Dataset name (default from LOG)."),
-    ) -> None:
-        """Convert a Crazyflie uSD event log (estTDOA, estAcceleration in g, estGyroscope in deg/s) to a TDoA dataset."""
-        run_import(lambda: import_dataset(log, dst, anchors, force=force, ignore_crc=ignore_crc, name=name))

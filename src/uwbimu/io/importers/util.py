@@ -227,23 +227,3 @@ def import_dataset(csv, dst, anchors=None, force: bool = False, name: Optional[s
     res = convert(csv, anchors, name=name)
     write_import(res, dst, force=force, src=csv)
     return res
-
-
-def register_cli(app) -> None:
-    """Add ``uwbimu import util`` to the ``import`` Typer app (hook in ``uwbimu.cli.import_cmd``)."""
-    import typer
-
-    from uwbimu.cli.import_cmd import FORCE_HELP, run_import
-
-    @app.command("util")
-    def util(
-        src: Path = typer.Argument(..., help="UTIL flight CSV, e.g. csv-data/const1/const1-trial1-tdoa2.csv."),
-        dst: Path = typer.Argument(..., help="Output dataset folder."),
-        anchors: Optional[Path] = typer.Option(None, "--anchors", help="anchor survey (anchor_constN.npz or "
-                                               "_survey.txt); default: survey-results/anchor_constN.* found "
-                                               "next to or above SRC."),
-        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
-        name: Optional[str] = typer.Option(None, "--name", help="Dataset name (default from SRC)."),
-    ) -> None:
-        """Convert a UTIL (Zhao et al.) TDoA flight: TDoA, IMU (g, deg/s converted), Vicon pose, anchor survey."""
-        run_import(lambda: import_dataset(src, dst, anchors, force=force, name=name))
