@@ -33,6 +33,8 @@ import pandas as pd
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from uwbimu.optional import require
+
 CONFIG_FILE = "montecarlo_config.json"
 CHUNK_DIR = "chunks"
 FORMAT_VERSION = 1
@@ -567,6 +569,7 @@ def _run_pool(tasks: list[dict], workers: int, on_chunk: Callable[[dict], None])
 
 
 def _run_dask(tasks: list[dict], client, on_chunk: Callable[[dict], None]) -> list[str]:
+    require("distributed", "dask", "a Dask study")
     from distributed import as_completed
 
     failures: list[str] = []
@@ -626,6 +629,7 @@ def run_study(
 
     if scheduler and client is None:
         # Connect first: the cluster's size (not this machine's) sets the default chunking.
+        require("distributed", "dask", "a Dask study (--scheduler)")
         from distributed import Client
 
         try:
@@ -696,6 +700,7 @@ def run_study(
 def _with_dask(tasks, client, scheduler, dask_local, workers, on_chunk) -> list[str]:
     if client is not None:
         return _run_dask(tasks, client, on_chunk)
+    require("distributed", "dask", "a Dask study")
     from distributed import Client, LocalCluster
 
     if scheduler:

@@ -167,6 +167,9 @@ class Dataset:
 
 def _write_table(df: pd.DataFrame, path: Path) -> None:
     if path.suffix == ".parquet":
+        from uwbimu.optional import require
+
+        require("pyarrow", "parquet", f"writing {path.name}")
         df.to_parquet(path, index=False)
     else:
         df.to_csv(path, index=False)

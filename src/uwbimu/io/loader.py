@@ -35,6 +35,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from uwbimu.errors import InputError
+from uwbimu.optional import require
 from uwbimu.io import plausibility
 from uwbimu.io.dataset import (
     ANCHOR_COLUMNS,
@@ -266,6 +267,7 @@ def _read_raw(src: _Source, columns: list[str]) -> pd.DataFrame:
         except UnicodeDecodeError as exc:
             raise DatasetError(f"{src.name}: not a text CSV file ({exc})", file=src.name) from None
     else:
+        require("pyarrow", "parquet", f"reading {src.name}")
         try:
             df = pd.read_parquet(src.path)
         except Exception as exc:  # pyarrow raises many types for a broken file

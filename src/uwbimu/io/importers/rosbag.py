@@ -169,6 +169,9 @@ def _topic_error(topic: str, what: str, conns_by_topic: dict) -> RosbagImportErr
 
 # --------------------------------------------------------------------------- conversion
 def _typestore_with(mapping: RosbagMapping):
+    from uwbimu.optional import require
+
+    require("rosbags", "ros", "ROS bag import")
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     store = get_typestore(Stores.LATEST)
@@ -216,6 +219,9 @@ def convert(bag: Union[str, os.PathLike], mapping: Union[RosbagMapping, str, os.
         Missing topic (lists the bag's topics), missing field (lists the
         message's fields), wrong message type, no data, unknown anchors.
     """
+    from uwbimu.optional import require
+
+    require("rosbags", "ros", "ROS bag import")
     from rosbags.highlevel import AnyReader
 
     if not isinstance(mapping, RosbagMapping):
