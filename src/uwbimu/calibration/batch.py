@@ -6,6 +6,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Optional
 
+from math import erfc
+
 import numpy as np
 import pandas as pd
 
@@ -164,7 +166,9 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters):
         "anchor_bias_sd": {a: float(sd[offs + j]) for j, a in enumerate(pb.anchor_ids)},
         "correlations": {"names": names, "matrix": [[round(float(c), 4) for c in row] for row in corr]},
         "ranges": {"used": int(len(assoc.used)), "outside_imu_span": int(len(pb.t_range) - len(assoc.used)),
-                   "outliers": int(res["outlier"].sum()), "huber_k": pb.options.huber_k,
+                   "downweighted": int(res["outlier"].sum()),
+                   "expected_downweighted": float(len(res) * erfc(pb.options.huber_k / np.sqrt(2.0))),
+                   "outliers_3sigma": int((np.abs(res["z"]) > 3.0).sum()), "huber_k": pb.options.huber_k,
                    "range_sigma": pb.range_sigma},
         "solver": {"keyframes": int(len(pb.key_idx)), "iterations": int(iters),
                    "final_cost": float(graph.error(values))},
