@@ -131,7 +131,7 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters):
     import gtsam
 
     X, V, B, L, T, A = G._keys()
-    marg = gtsam.Marginals(graph, values)
+    marg = _marginals(pb, graph, values)
     keys = [L(0)] + ([T(0)] if td_free else []) + [A(j) for j in range(len(pb.anchor_ids))]
     names = ["lever_arm_x", "lever_arm_y", "lever_arm_z"] + (["time_offset"] if td_free else []) + \
         [f"anchor_bias_{a}" for a in pb.anchor_ids]
@@ -176,6 +176,63 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters):
     cal["time_offset_sd"] = cal["time_offset"]["sd"]
     traj = _trajectory(pb, values, marg, td)
     return cal, traj, res
+
+
+#: Tangent dimension of every variable, by the GTSAM symbol letter (see graph.py).
+_DIMS = {"x": 6, "v": 3, "b": 6, "l": 3, "t": 1, "a": 1}
+
+
+class SparseMarginals:
+    """Marginal covariances from the sparse Gauss-Newton Hessian ``J^T J`` (SciPy ``splu``).
+
+    Used when ``gtsam.Marginals`` refuses a system: GTSAM's Cholesky calls IMU-chain graphs
+    "indeterminate" whose conditioning spans ~12 decades (bias random walk against the first
+    keyframe's prior, e.g. a hover) although the Hessian is positive definite.  Same linearisation
+    (robust weights and noise models baked in by ``graph.linearize``), same covariances: pinned to
+    ``gtsam.Marginals`` by ``tests/test_calibrate_sim.py``.
+    """
+
+    def __init__(self, graph, values):
+        import gtsam
+        import scipy.sparse as sp
+        from scipy.sparse.linalg import splu
+
+        lin = graph.linearize(values)
+        ijs = lin.sparseJacobian_()
+        keys = sorted(int(k) for k in values.keys())  # sparseJacobian_ orders columns by key
+        self._cols, off = {}, 0
+        for k in keys:
+            d = _DIMS[chr(gtsam.Symbol(k).chr())]
+            self._cols[k] = np.arange(off, off + d)
+            off += d
+        rows, cols = ijs[0].astype(int) - 1, ijs[1].astype(int) - 1
+        keep = cols < off  # the last column is the right-hand side b
+        J = sp.csc_matrix((ijs[2][keep], (rows[keep], cols[keep])), shape=(int(rows.max()) + 1, off))
+        self._lu = splu((J.T @ J).tocsc())
+        self._n = off
+
+    def _block(self, keys):
+        cols = np.concatenate([self._cols[int(k)] for k in keys])
+        E = np.zeros((self._n, len(cols)))
+        E[cols, np.arange(len(cols))] = 1.0
+        return self._lu.solve(E)[cols]
+
+    def marginalCovariance(self, key):  # noqa: N802 - gtsam.Marginals' name
+        return self._block([key])
+
+    def jointMarginalCovariance(self, keys):  # noqa: N802
+        cov = self._block(list(keys))
+        return type("Joint", (), {"fullMatrix": lambda _self: cov})()
+
+
+def _marginals(pb, graph, values):
+    """``gtsam.Marginals``, or :class:`SparseMarginals` when GTSAM's Cholesky refuses the system."""
+    import gtsam
+
+    try:
+        return gtsam.Marginals(graph, values)
+    except RuntimeError:
+        return SparseMarginals(graph, values)
 
 
 def _trajectory(pb, values, marg, td: float) -> pd.DataFrame:

@@ -21,6 +21,7 @@ from uwbimu.calibration.range_factor import imu_deltas, make_gtsam_factor
 from uwbimu.models.reference import GRAVITY
 
 #: IMU noise used when neither the options nor dataset.yaml document it (consumer MEMS).
+INTEGRATION_COV = 1e-8
 DEFAULT_IMU_NOISE = {"accel_noise_density": 2e-3, "gyro_noise_density": 2e-4,
                      "accel_bias_rw": 3e-4, "gyro_bias_rw": 2e-5}
 
@@ -114,7 +115,7 @@ def _imu_factors(pb: Problem):
     params = gtsam.PreintegrationCombinedParams.MakeSharedU(GRAVITY)
     params.setAccelerometerCovariance(np.eye(3) * (infl * n["accel_noise_density"]) ** 2)
     params.setGyroscopeCovariance(np.eye(3) * (infl * n["gyro_noise_density"]) ** 2)
-    params.setIntegrationCovariance(np.eye(3) * 1e-8)
+    params.setIntegrationCovariance(np.eye(3) * INTEGRATION_COV)
     params.setBiasAccCovariance(np.eye(3) * n["accel_bias_rw"] ** 2)
     params.setBiasOmegaCovariance(np.eye(3) * n["gyro_bias_rw"] ** 2)
     del rate
