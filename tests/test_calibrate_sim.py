@@ -79,8 +79,9 @@ def test_profile_identifies_td_on_an_excited_flight(tmp_path):
 
 
 def test_profile_refuses_td_on_a_hover():
-    ds = _flight("hover", 4, 6.0)
-    res = calibrate(ds, _profile_opts())
+    ds = _flight("hover", 4, 5.0)
+    # LM creeps along the hover's unobservable directions; 10 iterations settle the profile's shape.
+    res = calibrate(ds, _profile_opts().model_copy(update={"max_iterations": 10}))
     td = res.calibration["time_offset"]
     assert res.profile.verdict != "identified"
     assert td["held_at_prior"] and td["value"] == 0.0 and td["sd"] is None
