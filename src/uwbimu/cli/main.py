@@ -72,6 +72,7 @@ from uwbimu.cli import observability as _observability; _observability.register(
 from uwbimu.cli import estimate as _estimate; _estimate.register(app)  # noqa: E402,E702
 from uwbimu.cli import montecarlo as _montecarlo; _montecarlo.register(app)  # noqa: E402,E702
 from uwbimu.cli import place as _place; _place.register(app)  # noqa: E402,E702
+from uwbimu.cli import calibrate as _calibrate; _calibrate.register(app)  # noqa: E402,E702
 
 
 #: Set to 1 to let unexpected exceptions show their traceback (for bug reports).

@@ -1,0 +1,252 @@
+"""``calibrate(dataset)``: ESKF initialisation, t_d profile, final MAP solve, marginals."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Optional
+
+from math import erfc
+
+import numpy as np
+import pandas as pd
+
+from uwbimu.calibration import graph as G
+from uwbimu.calibration.options import CalibrationOptions
+from uwbimu.calibration.profile import TdProfile, motion_advice, profile_verdict
+
+
+@dataclass
+class CalibrationResult:
+    """Output of :func:`calibrate`.
+
+    Attributes
+    ----------
+    calibration : plain dict written to ``calibration.yaml`` (value, sd, correlations, verdicts).
+    trajectory : DataFrame ``t`` (UWB clock), ``t_imu``, position, quaternion, velocity and their sd.
+    residuals : DataFrame ``t, anchor, range, predicted, residual, z, outlier`` (z = residual / sigma).
+    profile : the t_d profile, or None when disabled.
+    eskf : the initialising ESKF result.
+    """
+
+    calibration: dict[str, Any]
+    trajectory: pd.DataFrame
+    residuals: pd.DataFrame
+    profile: Optional[TdProfile]
+    eskf: Any
+    runtime_s: float = float("nan")
+    events: list[dict] = field(default_factory=list)
+
+
+def _solve(pb, imf, values, td0: float, td_fixed: Optional[float]):
+    """Solve with ranges attached about ``td0``; re-attach while free t_d moves > half a keyframe step."""
+    X, V, B, L, T, A = G._keys()
+    half = 0.5 / pb.options.keyframe_hz
+    for _ in range(pb.options.reassociate_max + 1):
+        assoc = G.associate(pb, td0)
+        graph = G.build_graph(pb, assoc, td_fixed=td_fixed, imu_factors=imf)
+        values, iters = G.optimize(graph, values, pb.options.max_iterations)
+        if td_fixed is not None:
+            break
+        td = float(values.atVector(T(0))[0])
+        if abs(td - td0) <= half:
+            break
+        td0 = td
+    return graph, values, assoc, iters
+
+
+def run_profile(pb, imf, free_values, centre: float, progress=None) -> TdProfile:
+    """Profile of t_d on the grid ``prior +/- half_width``, warm-started outward from ``centre``."""
+    po = pb.options.td_profile
+    o = pb.options
+    n = int(round(po.half_width / po.step))
+    grid = o.time_offset_prior + po.step * np.arange(-n, n + 1)
+    chi2 = np.full(len(grid), np.nan)
+    iters = np.zeros(len(grid), int)
+    start = int(np.argmin(np.abs(grid - centre)))
+    base = G.without_td(free_values)
+    done = 0
+    for direction in (range(start, len(grid)), range(start - 1, -1, -1)):
+        vals = base
+        for i in direction:
+            graph, vals, _, iters[i] = _solve(pb, imf, vals, float(grid[i]), float(grid[i]))
+            chi2[i] = 2.0 * graph.error(vals) + ((grid[i] - o.time_offset_prior) / o.time_offset_prior_sd) ** 2
+            done += 1
+            if progress is not None:
+                progress(0.2 + 0.6 * done / len(grid))
+    verdict, best, vertex, sig = profile_verdict(grid, chi2, po.confidence_chi2)
+    return TdProfile(grid=grid, chi2=chi2, iterations=iters, verdict=verdict, best=best, vertex=vertex,
+                     sigma_curvature=sig, confidence_chi2=po.confidence_chi2)
+
+
+def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, eskf_options=None,
+              progress: Optional[Callable[[float], None]] = None) -> CalibrationResult:
+    """Full-batch MAP calibration of lever arm, t_d and per-anchor range bias (see docs/calibrate.md).
+
+    Parameters
+    ----------
+    dataset : :class:`uwbimu.io.dataset.Dataset` with IMU, ranges and anchors (one tag).
+    options : graph settings; defaults when None.
+    eskf : an ESKF result to initialise from; ``run_eskf(dataset, eskf_options)`` when None.
+    progress : called with a fraction in [0, 1].
+    """
+    from uwbimu.estimation import EskfOptions, run_eskf
+
+    t_start = time.perf_counter()
+    o = options or CalibrationOptions()
+    if eskf is None:
+        eskf = run_eskf(dataset, eskf_options or EskfOptions())
+    if progress is not None:
+        progress(0.1)
+    pb = G.build_problem(dataset, eskf, o)
+    imf = G._imu_factors(pb)
+    X, V, B, L, T, A = G._keys()
+    graph, values, assoc, iters = _solve(pb, imf, G.initial_values(pb), pb.td0, None)
+    free_td = float(values.atVector(T(0))[0])
+    prof = None
+    events = []
+    td_free = True
+    if o.td_profile.enabled:
+        prof = run_profile(pb, imf, values, free_td, progress)
+        if prof.identified:
+            graph, values, assoc, iters = _solve(pb, imf, G.with_td(values, prof.vertex), prof.vertex, None)
+        else:
+            td_free = False
+            events.append({"kind": "time_offset_not_identified", "verdict": prof.verdict,
+                           "advice": motion_advice(eskf)})
+            graph, values, assoc, iters = _solve(pb, imf, G.without_td(values), o.time_offset_prior,
+                                                 o.time_offset_prior)
+    if progress is not None:
+        progress(0.9)
+    cal, traj, res = _report(pb, graph, values, assoc, td_free, prof, iters)
+    if events:
+        cal["time_offset"]["advice"] = events[0]["advice"]
+    if progress is not None:
+        progress(1.0)
+    return CalibrationResult(calibration=cal, trajectory=traj, residuals=res, profile=prof, eskf=eskf,
+                             runtime_s=time.perf_counter() - t_start, events=events)
+
+
+def _report(pb, graph, values, assoc, td_free: bool, prof, iters):
+    import gtsam
+
+    X, V, B, L, T, A = G._keys()
+    marg = _marginals(pb, graph, values)
+    keys = [L(0)] + ([T(0)] if td_free else []) + [A(j) for j in range(len(pb.anchor_ids))]
+    names = ["lever_arm_x", "lever_arm_y", "lever_arm_z"] + (["time_offset"] if td_free else []) + \
+        [f"anchor_bias_{a}" for a in pb.anchor_ids]
+    cov = marg.jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
+    sd = np.sqrt(np.diag(cov))
+    corr = cov / np.outer(sd, sd)
+    lever = values.atVector(L(0))
+    td = float(values.atVector(T(0))[0]) if td_free else pb.options.time_offset_prior
+    # Residuals of the final graph's range factors, in the order of assoc.used.
+    n_fixed = graph.size() - len(assoc.used)
+    rows = []
+    for idx, m in enumerate(assoc.used):
+        f = graph.at(n_fixed + idx)
+        e = float(f.unwhitenedError(values)[0])
+        rows.append((pb.t_range[m], pb.anchor_ids[pb.anchor_j[m]], pb.rho[m], pb.rho[m] + e, e))
+    res = pd.DataFrame(rows, columns=["t", "anchor", "range", "predicted", "residual"])
+    res["z"] = res["residual"] / pb.range_sigma
+    res["outlier"] = np.abs(res["z"]) > pb.options.huber_k
+    offs = 3 + (1 if td_free else 0)
+    bias = {a: float(values.atVector(A(j))[0]) for j, a in enumerate(pb.anchor_ids)}
+    cal = {
+        "method": "batch-map-gtsam",
+        "lever_arm": [float(x) for x in lever],
+        "lever_arm_sd": [float(x) for x in sd[:3]],
+        "time_offset": {"value": td, "sd": float(sd[3]) if td_free else None,
+                        "sd_marginal": float(sd[3]) if td_free else None,
+                        "sd_curvature": (float(prof.sigma_curvature) if prof is not None and prof.identified
+                                         else None),
+                        "verdict": (prof.verdict if prof is not None else "not_profiled"),
+                        "held_at_prior": not td_free},
+        "anchor_bias": bias,
+        "anchor_bias_sd": {a: float(sd[offs + j]) for j, a in enumerate(pb.anchor_ids)},
+        "correlations": {"names": names, "matrix": [[round(float(c), 4) for c in row] for row in corr]},
+        "ranges": {"used": int(len(assoc.used)), "outside_imu_span": int(len(pb.t_range) - len(assoc.used)),
+                   "downweighted": int(res["outlier"].sum()),
+                   "expected_downweighted": float(len(res) * erfc(pb.options.huber_k / np.sqrt(2.0))),
+                   "outliers_3sigma": int((np.abs(res["z"]) > 3.0).sum()), "huber_k": pb.options.huber_k,
+                   "range_sigma": pb.range_sigma},
+        "solver": {"keyframes": int(len(pb.key_idx)), "iterations": int(iters),
+                   "final_cost": float(graph.error(values))},
+    }
+    cal["time_offset_sd"] = cal["time_offset"]["sd"]
+    traj = _trajectory(pb, values, marg, td)
+    return cal, traj, res
+
+
+#: Tangent dimension of every variable, by the GTSAM symbol letter (see graph.py).
+_DIMS = {"x": 6, "v": 3, "b": 6, "l": 3, "t": 1, "a": 1}
+
+
+class SparseMarginals:
+    """Marginal covariances from the sparse Gauss-Newton Hessian ``J^T J`` (SciPy ``splu``).
+
+    Used when ``gtsam.Marginals`` refuses a system: GTSAM's Cholesky calls IMU-chain graphs
+    "indeterminate" whose conditioning spans ~12 decades (bias random walk against the first
+    keyframe's prior, e.g. a hover) although the Hessian is positive definite.  Same linearisation
+    (robust weights and noise models baked in by ``graph.linearize``), same covariances: pinned to
+    ``gtsam.Marginals`` by ``tests/test_calibrate_sim.py``.
+    """
+
+    def __init__(self, graph, values):
+        import gtsam
+        import scipy.sparse as sp
+        from scipy.sparse.linalg import splu
+
+        lin = graph.linearize(values)
+        ijs = lin.sparseJacobian_()
+        keys = sorted(int(k) for k in values.keys())  # sparseJacobian_ orders columns by key
+        self._cols, off = {}, 0
+        for k in keys:
+            d = _DIMS[chr(gtsam.Symbol(k).chr())]
+            self._cols[k] = np.arange(off, off + d)
+            off += d
+        rows, cols = ijs[0].astype(int) - 1, ijs[1].astype(int) - 1
+        keep = cols < off  # the last column is the right-hand side b
+        J = sp.csc_matrix((ijs[2][keep], (rows[keep], cols[keep])), shape=(int(rows.max()) + 1, off))
+        self._lu = splu((J.T @ J).tocsc())
+        self._n = off
+
+    def _block(self, keys):
+        cols = np.concatenate([self._cols[int(k)] for k in keys])
+        E = np.zeros((self._n, len(cols)))
+        E[cols, np.arange(len(cols))] = 1.0
+        return self._lu.solve(E)[cols]
+
+    def marginalCovariance(self, key):  # noqa: N802 - gtsam.Marginals' name
+        return self._block([key])
+
+    def jointMarginalCovariance(self, keys):  # noqa: N802
+        cov = self._block(list(keys))
+        return type("Joint", (), {"fullMatrix": lambda _self: cov})()
+
+
+def _marginals(pb, graph, values):
+    """``gtsam.Marginals``, or :class:`SparseMarginals` when GTSAM's Cholesky refuses the system."""
+    import gtsam
+
+    try:
+        return gtsam.Marginals(graph, values)
+    except RuntimeError:
+        return SparseMarginals(graph, values)
+
+
+def _trajectory(pb, values, marg, td: float) -> pd.DataFrame:
+    X, V, B, *_ = G._keys()
+    rows = []
+    for k, t in enumerate(pb.t_key):
+        pose = values.atPose3(X(k))
+        q = pose.rotation().toQuaternion()
+        v = values.atVector(V(k))
+        cov = marg.marginalCovariance(X(k))  # tangent [theta, p] in the body frame
+        R = pose.rotation().matrix()
+        sp = np.concatenate([np.sqrt(np.diag(cov[:3, :3])), np.sqrt(np.diag(R @ cov[3:, 3:] @ R.T))])
+        sv = np.sqrt(np.diag(marg.marginalCovariance(V(k))))
+        rows.append([t - td, t, *pose.translation(), q.w(), q.x(), q.y(), q.z(), *v, *sp[3:], *sp[:3], *sv])
+    cols = ["t", "t_imu", "px", "py", "pz", "qw", "qx", "qy", "qz", "vx", "vy", "vz",
+            "sd_px", "sd_py", "sd_pz", "sd_rx", "sd_ry", "sd_rz", "sd_vx", "sd_vy", "sd_vz"]
+    return pd.DataFrame(rows, columns=cols)

@@ -1,0 +1,235 @@
+"""Full-batch MAP calibration with GTSAM: the factor graph, its solve and its marginals.
+
+Variables (GTSAM keys): ``X(k)`` pose, ``V(k)`` velocity, ``B(k)`` IMU bias of
+keyframe ``k`` (IMU clock); ``L(0)`` lever arm p_IU (IMU frame, m); ``T(0)`` time
+offset t_d (s); ``A(j)`` constant range bias of anchor ``j`` (m).  Factors:
+``CombinedImuFactor`` between consecutive keyframes (preintegration with bias
+random walk), one robust (Huber) :mod:`uwbimu.calibration.range_factor` per
+range, priors on the first keyframe, the lever arm, t_d and the anchor biases.
+The anchors are fixed: they define the world frame (the gauge).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from uwbimu.calibration.options import CalibrationOptions
+from uwbimu.calibration.range_factor import imu_deltas, make_gtsam_factor
+from uwbimu.models.reference import GRAVITY
+
+#: IMU noise used when neither the options nor dataset.yaml document it (consumer MEMS).
+INTEGRATION_COV = 1e-8
+DEFAULT_IMU_NOISE = {"accel_noise_density": 2e-3, "gyro_noise_density": 2e-4,
+                     "accel_bias_rw": 3e-4, "gyro_bias_rw": 2e-5}
+
+
+def _keys():
+    from gtsam.symbol_shorthand import A, B, L, T, V, X
+
+    return X, V, B, L, T, A
+
+
+@dataclass
+class Problem:
+    """Everything the graph needs that does not depend on t_d."""
+
+    t_imu: np.ndarray
+    u_imu: np.ndarray
+    key_idx: np.ndarray  # IMU sample index of every keyframe
+    t_range: np.ndarray  # UWB clock
+    rho: np.ndarray
+    anchor_j: np.ndarray  # anchor index of every range
+    anchor_ids: list[str]
+    anchor_pos: np.ndarray  # (J, 3)
+    init_states: np.ndarray  # (K, 16) p, v, q, b_a, b_g at keyframes (ESKF)
+    lever0: np.ndarray
+    td0: float
+    options: CalibrationOptions
+    range_sigma: float
+    imu_noise: dict = field(default_factory=dict)
+
+    @property
+    def t_key(self) -> np.ndarray:
+        return self.t_imu[self.key_idx]
+
+
+def build_problem(dataset, eskf, options: CalibrationOptions) -> Problem:
+    """Keyframes, ranges, noise and the ESKF initial guess of one tag's log."""
+    imu = dataset.imu
+    t_imu = imu["t"].to_numpy(float)
+    u_imu = imu[["ax", "ay", "az", "wx", "wy", "wz"]].to_numpy(float)
+    rate = (len(t_imu) - 1) / (t_imu[-1] - t_imu[0])
+    step = max(1, int(round(rate / options.keyframe_hz)))
+    key_idx = np.arange(0, len(t_imu), step)
+    if key_idx[-1] != len(t_imu) - 1:
+        key_idx = np.append(key_idx, len(t_imu) - 1)
+    pos = dataset.anchor_positions()
+    ids = sorted(pos)
+    uwb = dataset.uwb
+    known = uwb["anchor"].astype(str).isin(ids).to_numpy()
+    uwb = uwb[known]
+    jmap = {a: j for j, a in enumerate(ids)}
+    t_e = eskf.t_imu if eskf.t_imu is not None else eskf.t + eskf.calibration["time_offset"]
+    tk = t_imu[key_idx]
+    st = eskf.states
+    init = np.empty((len(key_idx), 16))
+    for c in range(6):
+        init[:, c] = np.interp(tk, t_e, st[:, c])
+    near = np.clip(np.searchsorted(t_e, tk), 0, len(t_e) - 1)
+    init[:, 6:10] = st[near, 6:10]
+    init[:, 10:16] = st[near, 10:16]
+    meta_noise = dataset.meta.imu_noise
+    noise = {}
+    for name, default in DEFAULT_IMU_NOISE.items():
+        v = getattr(options, name)
+        if v is None and meta_noise is not None:
+            v = getattr(meta_noise, name, None)
+        noise[name] = float(v if v is not None else default)
+    sigma = options.range_sigma or dataset.meta.range_sigma or 0.1
+    return Problem(t_imu=t_imu, u_imu=u_imu, key_idx=key_idx, t_range=uwb["t"].to_numpy(float),
+                   rho=uwb["range"].to_numpy(float), anchor_j=np.array([jmap[a] for a in uwb["anchor"].astype(str)]),
+                   anchor_ids=ids, anchor_pos=np.array([pos[a] for a in ids]), init_states=init,
+                   lever0=np.asarray(eskf.calibration["lever_arm"], float),
+                   td0=float(eskf.calibration["time_offset"]), options=options, range_sigma=float(sigma),
+                   imu_noise=noise)
+
+
+def _pose(s):
+    import gtsam
+
+    q = s[6:10] / np.linalg.norm(s[6:10])
+    return gtsam.Pose3(gtsam.Rot3.Quaternion(q[0], q[1], q[2], q[3]), s[0:3])
+
+
+def _imu_factors(pb: Problem):
+    """One CombinedImuFactor per keyframe interval (independent of t_d)."""
+    import gtsam
+
+    X, V, B, *_ = _keys()
+    n = pb.imu_noise
+    infl = pb.options.imu_noise_inflation
+    rate = (len(pb.t_imu) - 1) / (pb.t_imu[-1] - pb.t_imu[0])
+    params = gtsam.PreintegrationCombinedParams.MakeSharedU(GRAVITY)
+    params.setAccelerometerCovariance(np.eye(3) * (infl * n["accel_noise_density"]) ** 2)
+    params.setGyroscopeCovariance(np.eye(3) * (infl * n["gyro_noise_density"]) ** 2)
+    params.setIntegrationCovariance(np.eye(3) * INTEGRATION_COV)
+    params.setBiasAccCovariance(np.eye(3) * n["accel_bias_rw"] ** 2)
+    params.setBiasOmegaCovariance(np.eye(3) * n["gyro_bias_rw"] ** 2)
+    del rate
+    factors = []
+    u = pb.u_imu
+    for k in range(len(pb.key_idx) - 1):
+        i0, i1 = pb.key_idx[k], pb.key_idx[k + 1]
+        b = pb.init_states[k, 10:16]
+        pim = gtsam.PreintegratedCombinedMeasurements(params, gtsam.imuBias.ConstantBias(b[:3], b[3:]))
+        for i in range(i0, i1):
+            mid = 0.5 * (u[i] + u[i + 1])
+            pim.integrateMeasurement(mid[:3], mid[3:], pb.t_imu[i + 1] - pb.t_imu[i])
+        factors.append(gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1), pim))
+    return factors
+
+
+@dataclass
+class Association:
+    """Ranges attached to keyframes about ``td0`` (IMU clock ``s0 = t + td0``)."""
+
+    td0: float
+    used: np.ndarray  # indices into the problem's ranges
+    key: np.ndarray
+    deltas: list
+
+
+def associate(pb: Problem, td0: float, imu_bias=None) -> Association:
+    s0 = pb.t_range + td0
+    used = np.flatnonzero((s0 >= pb.t_key[0]) & (s0 < pb.t_imu[-1]))
+    # Short deltas use the ESKF bias of the earliest keyframe (a fixed linearisation point).
+    b = pb.init_states[0, 10:16] if imu_bias is None else imu_bias
+    k, deltas = imu_deltas(pb.t_imu, pb.u_imu, b[:3], b[3:], pb.t_key, s0[used])
+    return Association(td0=td0, used=used, key=k, deltas=deltas)
+
+
+def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = None, imu_factors=None):
+    """The nonlinear factor graph; ``td_fixed`` removes ``T(0)`` (profile points)."""
+    import gtsam
+
+    X, V, B, L, T, A = _keys()
+    o = pb.options
+    g = gtsam.NonlinearFactorGraph()
+    for f in imu_factors if imu_factors is not None else _imu_factors(pb):
+        g.add(f)
+    s = pb.init_states[0]
+    g.add(gtsam.PriorFactorPose3(X(0), _pose(s), gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([0.3, 0.3, 0.3, 1.0, 1.0, 1.0]))))
+    g.add(gtsam.PriorFactorVector(V(0), s[3:6], gtsam.noiseModel.Isotropic.Sigma(3, 1.0)))
+    g.add(gtsam.PriorFactorConstantBias(B(0), gtsam.imuBias.ConstantBias(np.zeros(3), np.zeros(3)),
+                                        gtsam.noiseModel.Diagonal.Sigmas(np.array([0.2] * 3 + [0.05] * 3))))
+    g.add(gtsam.PriorFactorVector(L(0), np.asarray(o.lever_arm_prior, float),
+                                  gtsam.noiseModel.Isotropic.Sigma(3, o.lever_arm_prior_sd)))
+    if td_fixed is None:
+        g.add(gtsam.PriorFactorVector(T(0), np.array([o.time_offset_prior]),
+                                      gtsam.noiseModel.Isotropic.Sigma(1, o.time_offset_prior_sd)))
+    bias_sd = o.anchor_bias_prior_sd if o.estimate_anchor_bias else 1e-6
+    for j in range(len(pb.anchor_ids)):
+        g.add(gtsam.PriorFactorVector(A(j), np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, bias_sd)))
+    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(o.huber_k),
+                                           gtsam.noiseModel.Isotropic.Sigma(1, pb.range_sigma))
+    for m, k, d in zip(assoc.used, assoc.key, assoc.deltas):
+        j = int(pb.anchor_j[m])
+        keys = [X(k), V(k), L(0)] + ([T(0)] if td_fixed is None else []) + [A(j)]
+        g.add(make_gtsam_factor(keys, pb.anchor_pos[j], pb.rho[m], d, assoc.td0, noise, td_fixed=td_fixed))
+    return g
+
+
+def initial_values(pb: Problem, with_td: bool = True):
+    import gtsam
+
+    X, V, B, L, T, A = _keys()
+    vals = gtsam.Values()
+    for k, s in enumerate(pb.init_states):
+        vals.insert(X(k), _pose(s))
+        vals.insert(V(k), s[3:6].copy())
+        vals.insert(B(k), gtsam.imuBias.ConstantBias(s[10:13].copy(), s[13:16].copy()))
+    vals.insert(L(0), pb.lever0.copy())
+    if with_td:
+        vals.insert(T(0), np.array([pb.td0]))
+    for j in range(len(pb.anchor_ids)):
+        vals.insert(A(j), np.zeros(1))
+    return vals
+
+
+def optimize(graph, values, max_iterations: int):
+    import gtsam
+
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    params.setRelativeErrorTol(1e-6)
+    params.setAbsoluteErrorTol(1e-9)
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    result = opt.optimize()
+    return result, int(opt.iterations())
+
+
+def with_td(values, td: float):
+    """Copy of ``values`` with ``T(0) = td`` inserted or replaced."""
+    import gtsam
+
+    *_, T, _A = _keys()
+    out = gtsam.Values(values)
+    if out.exists(T(0)):
+        out.update(T(0), np.array([td]))
+    else:
+        out.insert(T(0), np.array([td]))
+    return out
+
+
+def without_td(values):
+    import gtsam
+
+    *_, T, _A = _keys()
+    out = gtsam.Values(values)
+    if out.exists(T(0)):
+        out.erase(T(0))
+    return out

@@ -1,0 +1,52 @@
+"""Options of the batch calibrator (``uwbimu calibrate --config calibrate.yaml``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class TdProfileOptions(BaseModel):
+    """Time-offset profile likelihood (see docs/calibrate.md)."""
+
+    model_config = ConfigDict(extra="forbid")
+    enabled: bool = True
+    half_width: float = Field(0.5, gt=0, le=2.0, description="grid spans t_d prior mean +/- this [s]")
+    step: float = Field(0.02, gt=0, description="grid step [s]")
+    confidence_chi2: float = Field(
+        9.0, gt=0, description="points whose profile chi2 is within this of the minimum form the confidence set "
+                               "(9 = 3 sigma for one parameter)")
+
+
+class CalibrationOptions(BaseModel):
+    """Factor-graph settings; noise defaults come from ``dataset.yaml`` when it documents them."""
+
+    model_config = ConfigDict(extra="forbid")
+    keyframe_hz: float = Field(10.0, gt=0, le=200, description="keyframe rate of the graph [Hz]")
+    range_sigma: Optional[float] = Field(None, gt=0, description="range noise sd [m]; default dataset's or 0.1")
+    huber_k: float = Field(1.345, gt=0, description="Huber threshold in sigmas (outliers: |e| > k sigma)")
+    accel_noise_density: Optional[float] = Field(None, gt=0, description="m/s^2/sqrt(Hz); default dataset's")
+    gyro_noise_density: Optional[float] = Field(None, gt=0, description="rad/s/sqrt(Hz); default dataset's")
+    accel_bias_rw: Optional[float] = Field(None, gt=0, description="m/s^3/sqrt(Hz); default dataset's")
+    gyro_bias_rw: Optional[float] = Field(None, gt=0, description="rad/s^2/sqrt(Hz); default dataset's")
+    imu_noise_inflation: float = Field(1.0, gt=0, description="multiplies the IMU noise densities")
+    lever_arm_prior: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0], min_length=3, max_length=3)
+    lever_arm_prior_sd: float = Field(0.5, gt=0, description="[m] per axis")
+    time_offset_prior: float = Field(0.0, description="t_d prior mean [s]")
+    time_offset_prior_sd: float = Field(0.5, gt=0, description="[s]")
+    anchor_bias_prior_sd: float = Field(0.3, gt=0, description="per-anchor constant range bias prior sd [m]")
+    estimate_anchor_bias: bool = True
+    max_iterations: int = Field(50, ge=1)
+    reassociate_max: int = Field(3, ge=0, description="re-attach ranges when t_d moved > half a keyframe step")
+    td_profile: TdProfileOptions = Field(default_factory=TdProfileOptions)
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "CalibrationOptions":
+        import yaml
+
+        data = yaml.safe_load(Path(path).read_text()) or {}
+        if not isinstance(data, dict):
+            raise ValueError(f"{path}: expected a mapping of calibration options")
+        return cls.model_validate(data)

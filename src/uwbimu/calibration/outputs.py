@@ -1,0 +1,47 @@
+"""Files written by ``uwbimu calibrate``: calibration.yaml, trajectory.csv, residuals.csv, td_profile.csv/png."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+#: Every file the verb may write (the output rule refuses others without --force).
+OUTPUT_FILES = ("calibration.yaml", "trajectory.csv", "residuals.csv", "td_profile.csv", "td_profile.png")
+
+
+def write_calibration(result, out_dir, plots: bool = True) -> list[Path]:
+    """Write the result's files into ``out_dir`` (an existing folder); returns the paths."""
+    out = Path(out_dir)
+    paths = [out / "calibration.yaml", out / "trajectory.csv", out / "residuals.csv"]
+    paths[0].write_text(yaml.safe_dump(result.calibration, sort_keys=False))
+    result.trajectory.to_csv(paths[1], index=False, float_format="%.9g")
+    result.residuals.to_csv(paths[2], index=False, float_format="%.9g")
+    prof = result.profile
+    if prof is not None:
+        paths.append(out / "td_profile.csv")
+        prof.frame().to_csv(paths[-1], index=False, float_format="%.9g")
+        if plots:
+            paths.append(out / "td_profile.png")
+            _plot_profile(prof, result.calibration, paths[-1])
+    return paths
+
+
+def _plot_profile(prof, cal, path: Path) -> None:
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6, 3.5))
+    ax = fig.add_subplot(1, 1, 1)
+    d = prof.chi2 - np.nanmin(prof.chi2)
+    ax.plot(1000 * prof.grid, d, "o-", ms=3)
+    ax.axhline(prof.confidence_chi2, color="gray", ls="--", lw=0.8, label=f"confidence set (Δχ² < {prof.confidence_chi2:g})")
+    td = cal["time_offset"]
+    if prof.identified:
+        ax.axvline(1000 * td["value"], color="C3", lw=1, label=f"t_d = {1000 * td['value']:.1f} ± {1000 * td['sd']:.1f} ms")
+    ax.set_xlabel("time offset t_d [ms]")
+    ax.set_ylabel("Δχ² (profile)")
+    ax.set_title(f"t_d profile: {prof.verdict}")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)

@@ -1,0 +1,174 @@
+"""The UWB range factor of the batch calibrator: residual, Jacobians, GTSAM wrapper.
+
+A range ``rho`` stamped ``t`` on the UWB clock observes the antenna at IMU time
+``s = t + t_d`` (:func:`uwbimu.models.reference.imu_time_of_range`).  The graph
+holds keyframe states at IMU stamps ``t_k``; the range is attached to the last
+keyframe ``k`` with ``t_k <= s0 = t + t_d0`` (``t_d0``: the time offset about
+which the association was made) through the IMU-propagated short delta from
+``t_k`` to ``s0`` (body frame of ``k``, gravity-free, bias fixed at the
+initial estimate) and a second-order extrapolation in ``delta = t_d - t_d0``::
+
+    R_s0 = R_k dR                p_s0 = p_k + v_k tau - g tau^2 / 2 + R_k dp
+    v_s0 = v_k - g tau + R_k dv  a_s0 = R_s0 (a_m - b_a) - g
+    R(s) = R_s0 Exp(w delta)     p(s) = p_s0 + v_s0 delta + a_s0 delta^2 / 2
+    e    = || p(s) + R(s) p_IU - p_anchor || + b_anchor - rho
+
+with ``tau = s0 - t_k`` and ``w = w_m - b_g`` at ``s0``.  The residual equals
+:func:`uwbimu.models.reference.range_measurement` of the reference-propagated
+state plus the anchor bias (pinned by ``tests/test_calibrate_factor.py``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from uwbimu.models.reference import G_WORLD
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """``[v]x`` with ``skew(a) @ b = a x b``."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix ``Exp(w)`` (Rodrigues), ``w`` in rad."""
+    th = float(np.linalg.norm(w))
+    K = skew(w)
+    if th < 1e-8:
+        return np.eye(3) + K + 0.5 * K @ K
+    return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / th**2 * K @ K
+
+
+@dataclass(frozen=True)
+class RangeDelta:
+    """IMU delta from a keyframe at ``t_k`` to the range instant ``s0`` (IMU clock).
+
+    Attributes
+    ----------
+    tau : s0 - t_k [s].
+    dR : (3, 3) rotation body(s0) -> body(t_k).
+    dv, dp : (3,) gravity-free velocity / position increments in the body frame of ``t_k`` [m/s, m].
+    acc, omega : (3,) bias-corrected specific force [m/s^2] and rate [rad/s] at ``s0`` (body).
+    """
+
+    tau: float
+    dR: np.ndarray
+    dv: np.ndarray
+    dp: np.ndarray
+    acc: np.ndarray
+    omega: np.ndarray
+
+
+def imu_deltas(t_imu: np.ndarray, u_imu: np.ndarray, b_a: np.ndarray, b_g: np.ndarray,
+               t_key: np.ndarray, s0: np.ndarray) -> tuple[np.ndarray, list[RangeDelta]]:
+    """Keyframe index and IMU delta for every instant ``s0`` (IMU clock).
+
+    Midpoint integration of the bias-corrected readings between the IMU samples,
+    a partial step to ``s0``.  ``s0`` must lie in ``[t_key[0], t_imu[-1])``.
+
+    Returns
+    -------
+    k : (M,) keyframe index of every instant.
+    deltas : list of :class:`RangeDelta`.
+    """
+    t_imu = np.asarray(t_imu, float)
+    acc = np.asarray(u_imu[:, :3], float) - b_a
+    gyr = np.asarray(u_imu[:, 3:6], float) - b_g
+    k_of = np.searchsorted(t_key, s0, side="right") - 1
+    order = np.argsort(s0, kind="stable")
+    out: list[RangeDelta | None] = [None] * len(s0)
+    key_idx = np.searchsorted(t_imu, t_key)  # keyframes lie on IMU samples
+    # Walk the IMU stream once, resetting the delta at every keyframe.
+    cur_k = -1
+    i = 0
+    dR = np.eye(3)
+    dv = np.zeros(3)
+    dp = np.zeros(3)
+    for m in order:
+        k, s = int(k_of[m]), float(s0[m])
+        if k != cur_k:
+            cur_k, i = k, int(key_idx[k])
+            dR, dv, dp = np.eye(3), np.zeros(3), np.zeros(3)
+        while i + 1 < len(t_imu) and t_imu[i + 1] <= s:
+            h = t_imu[i + 1] - t_imu[i]
+            a = 0.5 * (acc[i] + acc[i + 1])
+            w = 0.5 * (gyr[i] + gyr[i + 1])
+            R_mid = dR @ so3_exp(0.5 * h * w)
+            dp = dp + dv * h + 0.5 * (R_mid @ a) * h * h
+            dv = dv + (R_mid @ a) * h
+            dR = dR @ so3_exp(w * h)
+            i += 1
+        h = s - t_imu[i]
+        frac = h / (t_imu[i + 1] - t_imu[i]) if i + 1 < len(t_imu) else 0.0
+        a_s = acc[i] + frac * (acc[min(i + 1, len(acc) - 1)] - acc[i])
+        w_s = gyr[i] + frac * (gyr[min(i + 1, len(gyr) - 1)] - gyr[i])
+        a_mid, w_mid = 0.5 * (acc[i] + a_s), 0.5 * (gyr[i] + w_s)
+        R_mid = dR @ so3_exp(0.5 * h * w_mid)
+        out[m] = RangeDelta(tau=s - t_key[k], dR=dR @ so3_exp(w_mid * h), dv=dv + (R_mid @ a_mid) * h,
+                            dp=dp + dv * h + 0.5 * (R_mid @ a_mid) * h * h, acc=a_s, omega=w_s)
+    return k_of, out  # type: ignore[return-value]
+
+
+def range_error(R_k, p_k, v_k, lever, td, bias, anchor, rho, d: RangeDelta, td0: float,
+                jacobians: bool = False):
+    """Whitening-free residual ``e`` [m] of one range and, on request, its Jacobians.
+
+    Jacobians (rows of ``de/dx``) are with respect to the GTSAM tangents: pose
+    ``[theta, p]`` with ``R_k Exp(theta)``, ``p_k + R_k dp``; velocity, lever arm
+    (IMU frame), ``t_d`` and the anchor bias in their own coordinates.
+    """
+    delta = td - td0
+    tau = d.tau
+    R_s0 = R_k @ d.dR
+    v_s0 = v_k - G_WORLD * tau + R_k @ d.dv
+    a_s0 = R_s0 @ d.acc - G_WORLD
+    p_s0 = p_k + v_k * tau - 0.5 * G_WORLD * tau**2 + R_k @ d.dp
+    M = d.dR @ so3_exp(d.omega * delta)
+    R_s = R_k @ M
+    p_U = p_s0 + v_s0 * delta + 0.5 * a_s0 * delta**2 + R_s @ lever
+    u = p_U - anchor
+    r = float(np.linalg.norm(u))
+    e = r + bias - rho
+    if not jacobians:
+        return e
+    n = u / r
+    body = d.dp + delta * d.dv + 0.5 * delta**2 * (d.dR @ d.acc) + M @ lever
+    J_pose = np.concatenate([n @ (-R_k @ skew(body)), n @ R_k])
+    J_vel = n * (tau + delta)
+    J_lever = n @ R_s
+    J_td = float(n @ (v_s0 + a_s0 * delta + R_s @ np.cross(d.omega, lever)))
+    return e, J_pose, J_vel, J_lever, J_td
+
+
+def make_gtsam_factor(keys, anchor, rho, d: RangeDelta, td0: float, noise, td_fixed: float | None = None):
+    """A ``gtsam.CustomFactor`` on ``[pose, velocity, lever arm, (t_d), anchor bias]``.
+
+    With ``td_fixed`` the time offset is a constant (profile points) and ``keys``
+    has no t_d key.
+    """
+    import gtsam
+
+    anchor = np.asarray(anchor, float)
+    has_td = td_fixed is None
+
+    def error(this, values, H):
+        ks = this.keys()
+        pose = values.atPose3(ks[0])
+        td = values.atVector(ks[3])[0] if has_td else td_fixed
+        bias = values.atVector(ks[-1])[0]
+        res = range_error(pose.rotation().matrix(), pose.translation(), values.atVector(ks[1]),
+                          values.atVector(ks[2]), td, bias, anchor, rho, d, td0, jacobians=H is not None)
+        if H is None:
+            return np.array([res])
+        e, Jp, Jv, Jl, Jt = res
+        H[0] = Jp.reshape(1, 6)
+        H[1] = Jv.reshape(1, 3)
+        H[2] = Jl.reshape(1, 3)
+        if has_td:
+            H[3] = np.array([[Jt]])
+        H[-1] = np.ones((1, 1))
+        return np.array([e])
+
+    return gtsam.CustomFactor(noise, gtsam.KeyVector(keys), error)

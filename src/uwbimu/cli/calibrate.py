@@ -1,0 +1,81 @@
+"""``uwbimu calibrate``: full-batch MAP calibration (GTSAM) of lever arm, time offset and anchor range biases."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from uwbimu.cli.dataset_options import with_load_options
+
+
+def calibration_summary(cal: dict, truth=None) -> Table:
+    """Rich table "value ± σ" (and the truth when the dataset documents it)."""
+    t = Table(title="Batch calibration (value ± 1σ, marginal)")
+    for c in ("parameter", "estimate ± σ", "truth"):
+        t.add_column(c, justify="left" if c == "parameter" else "right")
+    for i, c in enumerate("xyz"):
+        tv = truth.lever_arm[i] if truth is not None and truth.lever_arm is not None else None
+        t.add_row(f"lever arm {c} (cm)", f"{100 * cal['lever_arm'][i]:.2f} ± {100 * cal['lever_arm_sd'][i]:.2f}",
+                  "-" if tv is None else f"{100 * tv:.2f}")
+    td = cal["time_offset"]
+    tv = truth.time_offset if truth is not None else None
+    val = (f"{1000 * td['value']:.1f} ± {1000 * td['sd']:.1f} (curvature {1000 * td['sd_curvature']:.1f})"
+           if td["sd"] is not None and td["sd_curvature"] is not None
+           else f"{1000 * td['value']:.1f} (held at prior: {td['verdict']})")
+    t.add_row("time offset (ms)", val, "-" if tv is None else f"{1000 * tv:.1f}")
+    for a, b in cal["anchor_bias"].items():
+        t.add_row(f"range bias {a} (cm)", f"{100 * b:.2f} ± {100 * cal['anchor_bias_sd'][a]:.2f}", "-")
+    return t
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("calibrate")
+    @with_load_options
+    def calibrate_cmd(
+        dataset: Path = typer.Argument(..., help="dataset folder (imu.csv, uwb.csv, anchors.csv)"),
+        out: Path = typer.Option(..., "--out", "-o", help="output folder"),
+        config: Optional[Path] = typer.Option(None, "--config", "-c", help="calibrate.yaml (see docs/calibrate.md)"),
+        eskf_config: Optional[Path] = typer.Option(None, "--eskf-config", help="options of the initialising ESKF"),
+        plots: bool = typer.Option(True, "--plots/--no-plots", help="td_profile.png"),
+        force: bool = typer.Option(False, "--force", help="write over files uwbimu did not write in the output folder"),
+        load_options=None,
+    ) -> None:
+        """Batch MAP calibration over the whole log: lever arm, time offset (profile + verdict), anchor biases."""
+        from uwbimu.calibration import CalibrationOptions, calibrate, write_calibration
+        from uwbimu.calibration.outputs import OUTPUT_FILES
+        from uwbimu.cli.dataset_options import apply_dataset_properties, estimator_options, load, \
+            print_load_warnings
+        from uwbimu.errors import EstimationError, UsageError
+        from uwbimu.estimation import InitialisationError
+        from uwbimu.io.atomic import check_output_target, output_folder
+
+        console = Console()
+        try:
+            opts = CalibrationOptions.from_yaml(config) if config is not None else CalibrationOptions()
+        except (OSError, ValueError) as exc:
+            raise UsageError(f"--config {config}: {exc}") from None
+        eskf_opts = estimator_options("eskf", eskf_config, None)
+        check_output_target(out, sorted(OUTPUT_FILES), force, protect=[dataset])
+        ds = load(dataset, load_options)
+        print_load_warnings(console, ds)
+        eskf_opts = apply_dataset_properties(eskf_opts, ds, console)
+        try:
+            with console.status("ESKF initialisation, factor graph, t_d profile"):
+                res = calibrate(ds, opts, eskf_options=eskf_opts)
+        except (InitialisationError, ValueError, RuntimeError) as exc:
+            raise EstimationError(str(exc)) from None
+        with output_folder(out, force, protect=[dataset], names=sorted(OUTPUT_FILES)) as tmp:
+            written = write_calibration(res, tmp, plots=plots)
+        cal = res.calibration
+        console.print(calibration_summary(cal, ds.meta.truth))
+        if cal["time_offset"].get("advice"):
+            console.print(f"[yellow]time offset not identified ({cal['time_offset']['verdict']}):[/] "
+                          f"{cal['time_offset']['advice']}")
+        r = cal["ranges"]
+        console.print(f"{r['used']} ranges ({r['downweighted']} down-weighted by Huber, "
+                      f"{r['expected_downweighted']:.0f} expected from Gaussian noise), {len(written)} files "
+                      f"in {out}, {res.runtime_s:.1f} s")

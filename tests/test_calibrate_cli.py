@@ -1,0 +1,45 @@
+"""``uwbimu calibrate`` end to end on a short simulated flight: files, exit codes, refusals."""
+
+from __future__ import annotations
+
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+pytest.importorskip("gtsam")
+
+from uwbimu.cli.main import app  # noqa: E402
+from uwbimu.io.dataset import write_dataset  # noqa: E402
+from uwbimu.sim import builtin_scenario, simulate  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def dataset_dir(tmp_path_factory):
+    ds = simulate(builtin_scenario("calibration-flight").model_copy(update={"duration": 8.0}))
+    return write_dataset(ds, tmp_path_factory.mktemp("cal") / "ds")
+
+
+def test_calibrate_writes_its_files(dataset_dir, tmp_path):
+    cfg = tmp_path / "calibrate.yaml"
+    cfg.write_text(yaml.safe_dump({"td_profile": {"half_width": 0.2, "step": 0.1}, "max_iterations": 10}))
+    out = tmp_path / "out"
+    r = CliRunner().invoke(app, ["calibrate", str(dataset_dir), "--out", str(out), "--config", str(cfg)])
+    assert r.exit_code == 0, r.output
+    assert {p.name for p in out.iterdir() if not p.name.startswith(".")} == {"calibration.yaml", "trajectory.csv", "residuals.csv",
+                                               "td_profile.csv", "td_profile.png"}
+    cal = yaml.safe_load((out / "calibration.yaml").read_text())
+    assert cal["time_offset"]["verdict"] in {"identified", "flat", "multi_modal", "at_grid_edge", "not_curved"}
+    assert len(cal["correlations"]["matrix"]) == len(cal["correlations"]["names"])
+
+
+def test_bad_config_is_a_usage_error(dataset_dir, tmp_path):
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text("keyframe_hz: -1\n")
+    r = CliRunner().invoke(app, ["calibrate", str(dataset_dir), "--out", str(tmp_path / "o"), "--config", str(cfg)])
+    assert r.exit_code == 2
+    assert not (tmp_path / "o").exists()
+
+
+def test_refuses_to_write_into_the_dataset(dataset_dir):
+    r = CliRunner().invoke(app, ["calibrate", str(dataset_dir), "--out", str(dataset_dir)])
+    assert r.exit_code == 4

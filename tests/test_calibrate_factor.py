@@ -1,0 +1,111 @@
+"""The batch calibrator's range factor: Jacobians vs finite differences, residual vs the reference model."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from uwbimu.calibration.range_factor import imu_deltas, make_gtsam_factor, range_error, so3_exp
+from uwbimu.models import reference as ref
+
+
+def _imu(rng, n=41, rate=200.0):
+    t = np.arange(n) / rate
+    u = np.empty((n, 6))
+    u[:, :3] = [0.3, -0.2, 9.81] + 1.5 * np.sin(2 * np.pi * np.outer(t, [1.1, 0.7, 1.3]) + rng.uniform(0, 6, 3))
+    u[:, 3:] = 0.8 * np.sin(2 * np.pi * np.outer(t, [0.9, 1.2, 0.5]) + rng.uniform(0, 6, 3))
+    return t, u
+
+
+@pytest.fixture(scope="module")
+def case():
+    rng = np.random.default_rng(7)
+    t, u = _imu(rng)
+    b_a, b_g = np.array([0.05, -0.03, 0.02]), np.array([0.01, -0.02, 0.005])
+    s0 = 0.1337
+    k, (d,) = imu_deltas(t, u, b_a, b_g, np.array([0.0]), np.array([s0]))
+    R = so3_exp(rng.normal(size=3))
+    state = dict(R_k=R, p_k=np.array([1.0, 2.0, 1.5]), v_k=np.array([0.4, -0.3, 0.2]),
+                 lever=np.array([0.12, -0.08, 0.14]), bias=0.03)
+    return dict(t=t, u=u, b_a=b_a, b_g=b_g, s0=s0, d=d, k=k, anchor=np.array([4.0, -1.0, 2.5]), **state)
+
+
+def _reference_range(c, s):
+    """Reference model: RK4 (cubic midpoint) integration of the 20-state from t_k = 0 to IMU time s."""
+    t, u = c["t"], c["u"]
+    keep = t < s
+    ts = np.append(t[keep], s)
+    us = np.vstack([u[keep], [np.interp(s, t, u[:, j]) for j in range(6)]])
+    x0 = np.zeros(20)
+    x0[0:3], x0[3:6] = c["p_k"], c["v_k"]
+    from scipy.spatial.transform import Rotation
+
+    qx, qy, qz, qw = Rotation.from_matrix(c["R_k"]).as_quat()
+    x0[6:10] = [qw, qx, qy, qz]
+    x0[10:13], x0[13:16], x0[16:19] = c["b_a"], c["b_g"], c["lever"]
+    xs = ref.integrate_imu(x0, ts, us)
+    return float(ref.range_measurement(xs[-1], c["anchor"]))
+
+
+@pytest.mark.parametrize("delta", [0.0, 0.004, -0.006])
+def test_residual_matches_reference_model(case, delta):
+    """e(t_d0 + delta) = reference range at IMU time s0 + delta, plus the anchor bias, minus rho."""
+    c = case
+    rho = 5.0
+    e = range_error(c["R_k"], c["p_k"], c["v_k"], c["lever"], 0.02 + delta, c["bias"], c["anchor"], rho, c["d"], 0.02)
+    expected = _reference_range(c, c["s0"] + delta) + c["bias"] - rho
+    # Delta extrapolation is second order: the jerk term (~|j| delta^3 / 6) stays far below 0.1 mm here.
+    assert abs(e - expected) < 1e-4
+
+
+def test_jacobians_match_finite_differences(case):
+    c = case
+    td0, td = 0.02, 0.027
+    args = (c["R_k"], c["p_k"], c["v_k"], c["lever"], td, c["bias"])
+
+    def f(R, p, v, lever, t_d, bias):
+        return range_error(R, p, v, lever, t_d, bias, c["anchor"], 5.0, c["d"], td0)
+
+    _, J_pose, J_vel, J_lever, J_td = range_error(
+        *args, c["anchor"], 5.0, c["d"], td0, jacobians=True)
+    h = 1e-6
+    num_pose = np.empty(6)
+    for i in range(6):
+        dx = np.zeros(6)
+        dx[i] = h
+        Rp, pp = c["R_k"] @ so3_exp(dx[:3]), c["p_k"] + c["R_k"] @ dx[3:]
+        dx[i] = -h
+        Rm, pm = c["R_k"] @ so3_exp(dx[:3]), c["p_k"] + c["R_k"] @ dx[3:]
+        num_pose[i] = (f(Rp, pp, *args[2:]) - f(Rm, pm, *args[2:])) / (2 * h)
+    np.testing.assert_allclose(J_pose, num_pose, atol=1e-6)
+    for J, slot in ((J_vel, 2), (J_lever, 3)):
+        num = np.empty(3)
+        for i in range(3):
+            a_p, a_m = list(args), list(args)
+            a_p[slot] = args[slot] + h * np.eye(3)[i]
+            a_m[slot] = args[slot] - h * np.eye(3)[i]
+            num[i] = (f(*a_p) - f(*a_m)) / (2 * h)
+        np.testing.assert_allclose(J, num, atol=1e-6)
+    num_td = (f(*args[:4], td + h, args[5]) - f(*args[:4], td - h, args[5])) / (2 * h)
+    assert J_td == pytest.approx(num_td, abs=1e-5)
+
+
+def test_gtsam_factor_wraps_the_residual(case):
+    """The CustomFactor returns the same residual and a linearisation with the same Jacobians."""
+    gtsam = pytest.importorskip("gtsam")
+    from gtsam.symbol_shorthand import A, L, T, V, X
+
+    c = case
+    noise = gtsam.noiseModel.Isotropic.Sigma(1, 0.1)
+    f = make_gtsam_factor([X(0), V(0), L(0), T(0), A(0)], c["anchor"], 5.0, c["d"], 0.02, noise)
+    vals = gtsam.Values()
+    vals.insert(X(0), gtsam.Pose3(gtsam.Rot3(c["R_k"]), c["p_k"]))
+    vals.insert(V(0), c["v_k"])
+    vals.insert(L(0), c["lever"])
+    vals.insert(T(0), np.array([0.027]))
+    vals.insert(A(0), np.array([c["bias"]]))
+    e, Jp, Jv, Jl, Jt = range_error(c["R_k"], c["p_k"], c["v_k"], c["lever"], 0.027, c["bias"], c["anchor"], 5.0,
+                                    c["d"], 0.02, jacobians=True)
+    assert f.unwhitenedError(vals)[0] == pytest.approx(e, abs=1e-12)
+    Ab, _b = f.linearize(vals).jacobian()
+    np.testing.assert_allclose(Ab[0] * 0.1, np.concatenate([Jp, Jv, Jl, [Jt, 1.0]]), atol=1e-9)
