@@ -477,13 +477,15 @@ def _lut_hits(d2, cd, lut, half, n_lut):  # pragma: no cover - numba
 
 
 @njit(cache=True, fastmath=True)
-def _count_links_grid_kernel(xs, ys, zs, hx, hy, hz, anchors, bores, lut, dlut, m_off, rho, counts):  # pragma: no cover
+def _grid_kernel(xs, ys, zs, hx, hy, hz, anchors, bores, lut, dlut, m_off, rho, counts, g6, want_g6):  # pragma: no cover
     # Regular grid (float32 axes xs, ys, zs with spacings hx, hy, hz).  Every direction's
     # reach lies inside the "lobe sphere" of radius rho centred m_off metres along the
     # boresight (see lobe_sphere); only cells inside it are visited: x and y ranges from
     # the sphere, the z range per (x, y) column analytically.  For a cos^2 patch this
     # visits ~1/6 of the cells of the peak-reach sphere.  The x/y parts of d^2 and of the
-    # boresight projection are hoisted out of the z loop, whose body is branch-free.
+    # boresight projection are hoisted out of the z loop.  With want_g6 every closing link
+    # also adds its unit line-of-sight outer product u u^T (packed xx, yy, zz, xy, xz, yz)
+    # to g6 (float32); without it the z loop is branch-free (the flag is loop-invariant).
     nx, ny, nz = xs.shape[0], ys.shape[0], zs.shape[0]
     x0, y0, z0 = xs[0], ys[0], zs[0]
     n_lut = lut.shape[0]
@@ -522,64 +524,19 @@ def _count_links_grid_kernel(xs, ys, zs, hx, hy, hz, anchors, bores, lut, dlut, 
                 for iz in range(iz0, iz1 + 1):
                     dz = zs[iz] - az
                     d2 = dxy2 + dz * dz
-                    c = (cxy + dz * bz) / np.sqrt(max(d2, np.float32(1e-12)))
+                    if want_g6:
+                        inv = np.float32(1.0) / np.sqrt(max(d2, np.float32(1e-12)))
+                        c = (cxy + dz * bz) * inv
+                    else:
+                        inv = np.float32(0.0)
+                        c = (cxy + dz * bz) / np.sqrt(max(d2, np.float32(1e-12)))
                     f = min(max((c + np.float32(1.0)) * half, np.float32(0.0)), fmax)
                     k = int(f)
                     t = f - np.float32(k)
-                    counts[base + iz] += np.int16(d2 <= lut[k] + t * dlut[k])
-    return counts
-
-
-@njit(cache=True, fastmath=True)
-def _geometry_grid_kernel(xs, ys, zs, hx, hy, hz, anchors, bores, lut, dlut, m_off, rho, counts, g6):  # pragma: no cover
-    # Same traversal as _count_links_grid_kernel; every closing link also adds its unit
-    # line-of-sight outer product u u^T (packed xx, yy, zz, xy, xz, yz) to g6 (float32).
-    nx, ny, nz = xs.shape[0], ys.shape[0], zs.shape[0]
-    x0, y0, z0 = xs[0], ys[0], zs[0]
-    n_lut = lut.shape[0]
-    half = np.float32(0.5 * (n_lut - 1))
-    fmax = np.float32(n_lut - 1) - np.float32(1e-3)
-    rho2 = np.float32(rho * rho)
-    for j in range(anchors.shape[0]):
-        ax = np.float32(anchors[j, 0])
-        ay = np.float32(anchors[j, 1])
-        az = np.float32(anchors[j, 2])
-        bx = np.float32(bores[j, 0])
-        by = np.float32(bores[j, 1])
-        bz = np.float32(bores[j, 2])
-        cx = ax + np.float32(m_off) * bx
-        cy = ay + np.float32(m_off) * by
-        cz = az + np.float32(m_off) * bz
-        ix0 = max(0, int(np.ceil((cx - rho - x0) / hx)))
-        ix1 = min(nx - 1, int(np.floor((cx + rho - x0) / hx)))
-        iy0 = max(0, int(np.ceil((cy - rho - y0) / hy)))
-        iy1 = min(ny - 1, int(np.floor((cy + rho - y0) / hy)))
-        for ix in range(ix0, ix1 + 1):
-            dx = xs[ix] - ax
-            ex = xs[ix] - cx
-            for iy in range(iy0, iy1 + 1):
-                ey = ys[iy] - cy
-                exy2 = ex * ex + ey * ey
-                if exy2 > rho2:
-                    continue
-                dy = ys[iy] - ay
-                dxy2 = dx * dx + dy * dy
-                cxy = dx * bx + dy * by
-                ezm = np.sqrt(rho2 - exy2)
-                iz0 = max(0, int(np.ceil((cz - ezm - z0) / hz)))
-                iz1 = min(nz - 1, int(np.floor((cz + ezm - z0) / hz)))
-                base = (ix * ny + iy) * nz
-                for iz in range(iz0, iz1 + 1):
-                    dz = zs[iz] - az
-                    d2 = dxy2 + dz * dz
-                    inv = np.float32(1.0) / np.sqrt(max(d2, np.float32(1e-12)))
-                    c = (cxy + dz * bz) * inv
-                    f = min(max((c + np.float32(1.0)) * half, np.float32(0.0)), fmax)
-                    k = int(f)
-                    t = f - np.float32(k)
-                    if d2 <= lut[k] + t * dlut[k]:
-                        i = base + iz
-                        counts[i] += 1
+                    hit = d2 <= lut[k] + t * dlut[k]
+                    i = base + iz
+                    counts[i] += np.int16(hit)
+                    if want_g6 and hit:
                         ux = dx * inv
                         uy = dy * inv
                         uz = dz * inv
@@ -592,6 +549,25 @@ def _geometry_grid_kernel(xs, ys, zs, hx, hy, hz, anchors, bores, lut, dlut, m_o
     return counts
 
 
+def _grid_inputs(axes, boresights, lut, sphere, check_uniform):
+    # Shared argument preparation of count_links_grid and geometry_grid.
+    xyz, hs = [], []
+    for ax in axes:
+        ax = np.asarray(ax, dtype=float)
+        h = float(ax[1] - ax[0]) if len(ax) > 1 else 1.0
+        if check_uniform and len(ax) > 2 and not np.allclose(np.diff(ax), h, rtol=1e-6, atol=1e-9):
+            raise ValueError("count_links_grid needs uniformly spaced axes")
+        xyz.append(np.ascontiguousarray(ax, dtype=np.float32))
+        hs.append(h)
+    b = np.asarray(boresights, dtype=np.float64)
+    b = b / np.linalg.norm(b, axis=1, keepdims=True)
+    lut = np.asarray(lut, np.float32)
+    dlut = np.append(np.diff(lut), np.float32(0.0)).astype(np.float32)
+    m, rho = lobe_sphere(lut) if sphere is None else sphere
+    n = len(xyz[0]) * len(xyz[1]) * len(xyz[2])
+    return xyz, hs, b, lut, dlut, m, rho, n
+
+
 def geometry_grid(axes, anchors, boresights, lut, sphere=None) -> tuple[np.ndarray, np.ndarray]:
     """Closing LOS links per grid cell and the summed unit-LOS outer products.
 
@@ -600,21 +576,10 @@ def geometry_grid(axes, anchors, boresights, lut, sphere=None) -> tuple[np.ndarr
     :func:`uwbimu.design.placement.pdop_from_g6`.  Same ordering and link test as
     :func:`count_links_grid`.
     """
-    xyz, hs = [], []
-    for ax in axes:
-        ax = np.asarray(ax, dtype=float)
-        h = float(ax[1] - ax[0]) if len(ax) > 1 else 1.0
-        xyz.append(np.ascontiguousarray(ax, dtype=np.float32))
-        hs.append(h)
-    b = np.asarray(boresights, dtype=np.float64)
-    b = b / np.linalg.norm(b, axis=1, keepdims=True)
-    n = len(xyz[0]) * len(xyz[1]) * len(xyz[2])
+    xyz, hs, b, lut, dlut, m, rho, n = _grid_inputs(axes, boresights, lut, sphere, check_uniform=False)
     counts = np.zeros(n, dtype=np.int16)
     g6 = np.zeros((n, 6), dtype=np.float32)
-    lut = np.asarray(lut, np.float32)
-    dlut = np.append(np.diff(lut), np.float32(0.0)).astype(np.float32)
-    m, rho = lobe_sphere(lut) if sphere is None else sphere
-    _geometry_grid_kernel(*xyz, *hs, np.asarray(anchors, np.float64), b, lut, dlut, m, rho, counts, g6)
+    _grid_kernel(*xyz, *hs, np.asarray(anchors, np.float64), b, lut, dlut, m, rho, counts, g6, True)
     return counts, g6
 
 
@@ -657,21 +622,10 @@ def count_links_grid(axes, anchors, boresights, lut, sphere=None) -> np.ndarray:
     sphere : ``(m, rho)`` from :func:`lobe_sphere` (computed when None; pass it to
         skip the ~1 ms it costs in a loop)
     """
-    xyz, hs = [], []
-    for ax in axes:
-        ax = np.asarray(ax, dtype=float)
-        h = float(ax[1] - ax[0]) if len(ax) > 1 else 1.0
-        if len(ax) > 2 and not np.allclose(np.diff(ax), h, rtol=1e-6, atol=1e-9):
-            raise ValueError("count_links_grid needs uniformly spaced axes")
-        xyz.append(np.ascontiguousarray(ax, dtype=np.float32))
-        hs.append(h)
-    b = np.asarray(boresights, dtype=np.float64)
-    b = b / np.linalg.norm(b, axis=1, keepdims=True)
-    counts = np.zeros(len(xyz[0]) * len(xyz[1]) * len(xyz[2]), dtype=np.int16)
-    lut = np.asarray(lut, np.float32)
-    dlut = np.append(np.diff(lut), np.float32(0.0)).astype(np.float32)
-    m, rho = lobe_sphere(lut) if sphere is None else sphere
-    return _count_links_grid_kernel(*xyz, *hs, np.asarray(anchors, np.float64), b, lut, dlut, m, rho, counts)
+    xyz, hs, b, lut, dlut, m, rho, n = _grid_inputs(axes, boresights, lut, sphere, check_uniform=True)
+    counts = np.zeros(n, dtype=np.int16)
+    g6 = np.zeros((1, 6), dtype=np.float32)  # unused without want_g6
+    return _grid_kernel(*xyz, *hs, np.asarray(anchors, np.float64), b, lut, dlut, m, rho, counts, g6, False)
 
 
 def count_links_fast(points_soa, anchors, boresights, lut) -> np.ndarray:
