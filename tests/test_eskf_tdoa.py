@@ -66,3 +66,25 @@ def test_tdoa_only_flight_converges(tdoa3_run):
     assert abs(cal["time_offset"] - truth.time_offset) < 3 * cal["time_offset_sd"] + MAX_AGE / 2
     assert cal["time_offset_verdict"] == "identified"
     assert np.mean(res.residuals["accepted"].to_numpy(bool)) > 0.9
+
+
+def test_ranges_and_tdoa_together_with_tdoa_spikes_rejected(tdoa3_run):
+    ds_td, _ = tdoa3_run
+    sc = builtin_scenario("crazyflie-twr").updated(duration=40.0)  # same truth seed: same flight and calibration
+    ds = simulate_full(sc).dataset
+    td = ds_td.tdoa.copy()
+    spikes = np.arange(2000, len(td), 1000)
+    td.loc[td.index[spikes], "tdoa"] += 3.0  # metres: gross outliers
+    ds.tdoa = td
+    ds.meta.extra["tdoa_sigma"] = ds_td.meta.extra["tdoa_sigma"]
+    res = run_eskf(ds, EskfOptions())
+    r = res.residuals
+    assert set(r["kind"]) == {"range", "tdoa"}
+    tdr = r[r["kind"] == "tdoa"]
+    bad = np.isin(tdr["t"].to_numpy(), td["t"].to_numpy()[spikes])
+    assert bad.sum() == len(spikes) and not tdr["accepted"].to_numpy(bool)[bad].any()
+    assert tdr["accepted"].to_numpy(bool)[~bad].mean() > 0.95
+    cal = res.calibration
+    err = np.array(cal["lever_arm"]) - np.array(ds.meta.truth.lever_arm)
+    assert np.all(np.abs(err) < 3 * np.array(cal["lever_arm_sd"]))
+    assert abs(cal["time_offset"] - ds.meta.truth.time_offset) < 3 * cal["time_offset_sd"] + MAX_AGE / 2

@@ -218,7 +218,7 @@ def _merge_tdoa(tdoa: pd.DataFrame, tag, index: dict[str, int], warnings: list[s
                 uwb_anchor_ids):
     """Merge ``ds.tdoa`` (``t, anchor_a, anchor_b, tdoa`` [+ ``tag``]) into the UWB stream in time order.
 
-    Returns ``(t, a, b, z, ids)`` with ``b = -1`` for ranges and ``ids`` ``"A>B"`` for TDoA rows; rows
+    Returns ``(t, a, b, z, ids)`` with ``b = -1`` for ranges and ``ids`` the (first) anchor's id; rows
     with an unknown anchor or a non-finite value are not used (and counted in ``warnings``)."""
     td = tdoa
     if "tag" in td.columns and tag is not None:
@@ -239,7 +239,7 @@ def _merge_tdoa(tdoa: pd.DataFrame, tag, index: dict[str, int], warnings: list[s
     b_all = np.concatenate([np.full(len(uwb_t), -1, dtype=np.int64), tb])[order]
     z_all = np.concatenate([uwb_r, z[ok]])[order]
     ids = np.concatenate([np.asarray(uwb_anchor_ids, dtype=object),
-                          np.array([f"{a}>{b}" for a, b in zip(ida[ok], idb[ok])], dtype=object)])[order]
+                          ida[ok].astype(object)])[order]
     return (np.ascontiguousarray(t_all[order]), np.ascontiguousarray(a_all), np.ascontiguousarray(b_all),
             np.ascontiguousarray(z_all), ids)
 
@@ -435,6 +435,12 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
         "nis": rec[:, REC_NIS],
         "accepted": rec[:, REC_ACC] > 0,
     })
+    if prob.uwb_b is not None:
+        # TDoA rows: "anchor" is anchor_a, "range" the measured TDoA [m]; consumers that need ranges keep
+        # the rows whose kind is "range"
+        is_td = prob.uwb_b >= 0
+        residuals["kind"] = np.where(is_td, "tdoa", "range")
+        residuals["anchor_b"] = np.where(is_td, np.array(prob.anchor_ids, dtype=object)[np.maximum(prob.uwb_b, 0)], "")
     n_gap = int((rec[:, REC_STATUS] == STATUS_IN_GAP).sum())
     n_frozen = sum(p.n_lever_frozen for p in passes)
     n_acc = int((rec[:, REC_ACC] > 0).sum())
