@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -79,3 +81,21 @@ def test_hover_time_offset_is_not_identified_and_held_at_its_prior():
     assert abs(cal["time_offset"] - ds.meta.truth.time_offset) < 3 * cal["time_offset_sd"]
     kinds = [e["kind"] for e in res.events]
     assert "time_offset_held" in kinds and "time_offset_verdict" in kinds
+
+
+def test_uwb_clock_shift_moves_time_offset_by_the_opposite_amount():
+    """Issue 11 item 6 clock-shift check on a simulated flight (INRoL figures: docs/estimator.md):
+    stamping the UWB log 100 ms late (outside the default +-0.25 s grid's centre cell, so the grid
+    must find it) moves t_d by -100 ms within 3 sd and 20 ms, with an "identified" verdict."""
+    from uwbimu.estimation import EskfOptions, run_eskf
+    from uwbimu.sim import builtin_scenario, simulate
+
+    ds = simulate(builtin_scenario("calibration-flight").model_copy(update={"duration": 30.0}))
+    opts = EskfOptions(store_covariance=False)
+    base = run_eskf(ds, opts).calibration
+    ds.uwb = ds.uwb.assign(t=ds.uwb["t"] + 0.1)
+    shifted = run_eskf(ds, opts).calibration
+    move = shifted["time_offset"] - base["time_offset"]
+    sd = math.hypot(base["time_offset_sd"], shifted["time_offset_sd"])
+    assert abs(move + 0.1) < min(3 * sd, 0.02)
+    assert base["time_offset_verdict"] == shifted["time_offset_verdict"] == "identified"

@@ -39,6 +39,8 @@ def posterior_crlb(prob: Problem, x_true: np.ndarray, P0: np.ndarray, k0: int, j
     -------
     (N, N) bound on the error covariance at the last IMU sample reached [SI units of the error state].
     """
+    if prob.uwb_b is not None and np.any(prob.uwb_b >= 0):
+        raise NotImplementedError("posterior_crlb: TDoA rows are not supported yet (ranges only)")
     n = len(prob.imu_t)
     P = np.array(P0, dtype=float, copy=True)
     N = P.shape[0]

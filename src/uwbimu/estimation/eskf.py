@@ -128,6 +128,11 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
     for a, b in kb.items():
         if a in index:
             uwb_r[uwb_a == index[a]] -= float(b)
+    uwb_b = np.full(len(uwb_t), -1, dtype=np.int64)
+    tdoa = getattr(ds, "tdoa", None)
+    if tdoa is not None and len(tdoa):
+        uwb_t, uwb_a, uwb_b, uwb_r, uwb_anchor_ids = _merge_tdoa(tdoa, tag, index, warnings, uwb_t, uwb_a, uwb_r,
+                                                                 uwb_anchor_ids)
     anchors = ds.anchor_array(anchor_ids).astype(float)
     frame_up = resolve_anchor_frame_up(ds, opts, warnings, events)
     if frame_up == "-z":
@@ -135,7 +140,7 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
         # about x (y -> -y, z -> -z, a proper rotation); _assemble turns the outputs back
         anchors = anchors * FLIP_X
     if len(uwb_t) < 8:
-        raise ValueError(f"dataset {ds.meta.name!r}: only {len(uwb_t)} usable ranges")
+        raise ValueError(f"dataset {ds.meta.name!r}: only {len(uwb_t)} usable ranges / TDoA")
 
     noise = opts.resolve_imu_noise(ds.meta.imu_noise)
     rsig = opts.range_sigma or ds.meta.range_sigma or 0.1
@@ -173,6 +178,12 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
         all_reject_run=opts.supervisor.all_reject_run, supervise=opts.supervisor.enabled,
     )
     prob.gap_idx, prob.gap_sd = gap_inputs(imu_t, imu_u, prob.dt_max)
+    if (uwb_b >= 0).any():
+        prob.uwb_b = np.ascontiguousarray(uwb_b)
+        # TDoA noise: options, else the dataset's (extra.tdoa_sigma, written by the simulator), else the
+        # difference of two independent ranges
+        tsig = opts.tdoa_sigma or (ds.meta.extra or {}).get("tdoa_sigma") or math.sqrt(2.0) * rsig
+        prob.tdoa_var = float(tsig) ** 2
     if opts.lever_arm.mode == "estimate" and opts.lever_arm.min_rotation_rate > 0:
         prob.lever_win = max(1, int(round(opts.excitation.window_s / dt_nom)))
         prob.rot_mean, prob.rot_ms = rotation_window_stats(imu_u, prob.lever_win)
@@ -201,6 +212,36 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
             "anchor_frame_up": frame_up,
             "priors": priors, "uwb_anchor_ids": uwb_anchor_ids}
     return prob, info
+
+
+def _merge_tdoa(tdoa: pd.DataFrame, tag, index: dict[str, int], warnings: list[str], uwb_t, uwb_a, uwb_r,
+                uwb_anchor_ids):
+    """Merge ``ds.tdoa`` (``t, anchor_a, anchor_b, tdoa`` [+ ``tag``]) into the UWB stream in time order.
+
+    Returns ``(t, a, b, z, ids)`` with ``b = -1`` for ranges and ``ids`` the (first) anchor's id; rows
+    with an unknown anchor or a non-finite value are not used (and counted in ``warnings``)."""
+    td = tdoa
+    if "tag" in td.columns and tag is not None:
+        td = td[td["tag"].astype(str) == str(tag)]
+    ida = td["anchor_a"].astype(str).to_numpy()
+    idb = td["anchor_b"].astype(str).to_numpy()
+    z = td["tdoa"].to_numpy(float)
+    tt = td["t"].to_numpy(float)
+    known = np.array([a in index and b in index for a, b in zip(ida, idb)], dtype=bool)
+    ok = known & np.isfinite(z) & np.isfinite(tt) & (ida != idb)
+    if (~ok).any():
+        warnings.append(f"TDoA: {int((~ok).sum())} rows with unknown / equal anchors or non-finite values not used")
+    ta = np.array([index[a] for a in ida[ok]], dtype=np.int64)
+    tb = np.array([index[b] for b in idb[ok]], dtype=np.int64)
+    t_all = np.concatenate([uwb_t, tt[ok]])
+    order = np.argsort(t_all, kind="stable")
+    a_all = np.concatenate([uwb_a, ta])[order]
+    b_all = np.concatenate([np.full(len(uwb_t), -1, dtype=np.int64), tb])[order]
+    z_all = np.concatenate([uwb_r, z[ok]])[order]
+    ids = np.concatenate([np.asarray(uwb_anchor_ids, dtype=object),
+                          ida[ok].astype(object)])[order]
+    return (np.ascontiguousarray(t_all[order]), np.ascontiguousarray(a_all), np.ascontiguousarray(b_all),
+            np.ascontiguousarray(z_all), ids)
 
 
 def _reinit(prob: Problem, opts: EskfOptions, priors: dict[str, Any], j: int, last: PassResult) -> InitialState:
@@ -394,6 +435,12 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
         "nis": rec[:, REC_NIS],
         "accepted": rec[:, REC_ACC] > 0,
     })
+    if prob.uwb_b is not None:
+        # TDoA rows: "anchor" is anchor_a, "range" the measured TDoA [m]; consumers that need ranges keep
+        # the rows whose kind is "range"
+        is_td = prob.uwb_b >= 0
+        residuals["kind"] = np.where(is_td, "tdoa", "range")
+        residuals["anchor_b"] = np.where(is_td, np.array(prob.anchor_ids, dtype=object)[np.maximum(prob.uwb_b, 0)], "")
     n_gap = int((rec[:, REC_STATUS] == STATUS_IN_GAP).sum())
     n_frozen = sum(p.n_lever_frozen for p in passes)
     n_acc = int((rec[:, REC_ACC] > 0).sum())

@@ -91,6 +91,11 @@ class Problem:
     # unknown input there (accelerometer [m/s^2], gyro [rad/s]); see gap_inflation
     gap_idx: Optional[np.ndarray] = None
     gap_sd: Optional[np.ndarray] = None  # (G, 2)
+    # TDoA rows merged into the UWB stream (time order): uwb_b[j] >= 0 makes row j the TDoA
+    # uwb_r[j] = |p_U - p_b| - |p_U - p_a| [m] with a = uwb_a[j], b = uwb_b[j], variance tdoa_var [m^2];
+    # None (or -1 everywhere): every row is a range
+    uwb_b: Optional[np.ndarray] = None
+    tdoa_var: float = 0.0
 
     @property
     def n_err(self) -> int:
@@ -291,11 +296,19 @@ def run_pass(
         # uncorrected bias would otherwise pass for rotation)
         frozen = gate_lever and (prob.rotation_rms(k, x[13:16]) - math.sqrt(max(P[12, 12] + P[13, 13] + P[14, 14], 0.0))
                                  < prob.lever_min_rate)
-        K.range_update(
-            x, P, imu_t, imu_u, prob.imu_um, k, tau, prob.anchors[a], prob.bias_idx[a], prob.uwb_r[j], prob.r_var,
-            prob.gate, force, prob.robust_kind, prob.robust_c, mask_frozen if frozen else prob.gain_mask,
-            prob.dt_max, o,
-        )
+        b = -1 if prob.uwb_b is None else int(prob.uwb_b[j])
+        mask = mask_frozen if frozen else prob.gain_mask
+        if b < 0:
+            K.range_update(
+                x, P, imu_t, imu_u, prob.imu_um, k, tau, prob.anchors[a], prob.bias_idx[a], prob.uwb_r[j],
+                prob.r_var, prob.gate, force, prob.robust_kind, prob.robust_c, mask, prob.dt_max, o,
+            )
+        else:
+            # a per-anchor range bias cancels into the pair's difference: b_b - b_a is not modelled here
+            K.tdoa_update(
+                x, P, imu_t, imu_u, prob.imu_um, k, tau, prob.anchors[a], prob.anchors[b], -1, prob.uwb_r[j],
+                prob.tdoa_var, prob.gate, force, prob.robust_kind, prob.robust_c, mask, prob.dt_max, o,
+            )
         rec[i] = o
         if o[REC_ACC] > 0:
             n_frozen += int(frozen)

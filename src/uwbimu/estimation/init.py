@@ -54,15 +54,22 @@ def multilaterate(prob: Problem, j0: int, window: float) -> tuple[np.ndarray, np
     """
     t = prob.uwb_t
     t0 = t[j0]
+    ub = prob.uwb_b if prob.uwb_b is not None else np.full(len(t), -1, dtype=np.int64)
     for grow in (1, 2, 4, 8):
         sel = (t >= t0) & (t <= t0 + window * grow)
-        if len(np.unique(prob.uwb_a[sel])) >= 4 and sel.sum() >= 8:
+        heard = np.union1d(prob.uwb_a[sel], ub[sel][ub[sel] >= 0])
+        if len(heard) >= 4 and sel.sum() >= 8:
             break
     else:
         raise InitialisationError(
             f"cannot initialise at t={t0:.3f} s: fewer than 4 anchors / 8 ranges within {8 * window:.1f} s"
         )
     a = prob.anchors[prob.uwb_a[sel]]
+    bsel = ub[sel]
+    is_td = bsel >= 0
+    # TDoA rows: z = |p - b| - |p - a|; range rows use b = a and a zero-distance first term below
+    b = prob.anchors[np.where(is_td, bsel, prob.uwb_a[sel])]
+    sign = np.where(is_td, 1.0, 0.0)
     r = prob.uwb_r[sel]
     dt = t[sel] - t0
     centre = prob.anchors.mean(axis=0)
@@ -70,7 +77,9 @@ def multilaterate(prob: Problem, j0: int, window: float) -> tuple[np.ndarray, np
 
     def resid(z):
         p = z[:3][None, :] + z[3:][None, :] * dt[:, None]
-        return np.linalg.norm(a - p, axis=1) - r
+        # range: |a - p| - r; TDoA: |p - b| - |p - a| - z  (sign selects the second term)
+        ra = np.linalg.norm(a - p, axis=1)
+        return sign * np.linalg.norm(b - p, axis=1) + (1.0 - 2.0 * sign) * ra - r
 
     best = None
     # two starting points, above and below the anchors' centre: with near-planar
@@ -83,12 +92,12 @@ def multilaterate(prob: Problem, j0: int, window: float) -> tuple[np.ndarray, np
     # gross outliers (e.g. a +100 m range spike) must not set the position prior: residuals beyond 5 sd of
     # the inliers' robust scale (never below the range noise) are dropped and the fit repeated without them
     res = resid(best.x)
-    sigma_r = math.sqrt(prob.r_var)
+    sigma_r = math.sqrt(max(prob.r_var, prob.tdoa_var if is_td.any() else 0.0))
     scale = max(1.4826 * float(np.median(np.abs(res - np.median(res)))), sigma_r)
     inl = np.abs(res) <= 5.0 * scale
     n_out = int((~inl).sum())
-    if n_out and inl.sum() >= 8 and len(np.unique(prob.uwb_a[sel][inl])) >= 4:
-        a, r, dt = a[inl], r[inl], dt[inl]
+    if n_out and inl.sum() >= 8 and len(np.union1d(prob.uwb_a[sel][inl], bsel[inl & is_td])) >= 4:
+        a, b, sign, r, dt = a[inl], b[inl], sign[inl], r[inl], dt[inl]
         best = least_squares(resid, best.x, loss="soft_l1", f_scale=0.3, max_nfev=200)
         res = resid(best.x)
     elif n_out:

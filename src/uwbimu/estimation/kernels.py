@@ -227,18 +227,57 @@ def range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor, bias_idx, z, r_var,
     st = state_at(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau)
     out[5] = st
     if st != UPD_OK:
-        out[0] = np.nan
-        out[1] = np.nan
-        out[2] = np.nan
-        out[3] = 0.0
-        out[4] = 0.0
-        out[6] = np.nan
+        _not_processed(out)
         return
     h = np.empty(N)
     delta = imu_t[k] - tau
     if delta < 0:
         delta = 0.0
     pred = range_jacobian(xt, u_tau, anchor, bias_idx, delta, h)
+    scalar_update(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, gain_mask, out)
+
+
+@njit(cache=True)
+def tdoa_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor_a, anchor_b, bias_idx, z, r_var, gate, force,
+                robust_kind, robust_c, gain_mask, dt_max, out):
+    """Process one TDoA ``z = |p_U - p_b| - |p_U - p_a|`` [m] as :func:`range_update` does a range.
+
+    Prediction and Jacobian from :func:`tdoa_jacobian` (pinned to ``reference.tdoa_measurement``);
+    ``r_var`` is the TDoA variance [m^2]; ``bias_idx`` an optional per-pair bias state (or -1).
+    """
+    N = P.shape[0]
+    xt = np.empty_like(x)
+    u_tau = np.empty(6)
+    st = state_at(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau)
+    out[5] = st
+    if st != UPD_OK:
+        _not_processed(out)
+        return
+    h = np.empty(N)
+    work = np.empty(N)
+    delta = imu_t[k] - tau
+    if delta < 0:
+        delta = 0.0
+    pred = tdoa_jacobian(xt, u_tau, anchor_a, anchor_b, bias_idx, delta, h, work)
+    scalar_update(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, gain_mask, out)
+
+
+@njit(cache=True)
+def _not_processed(out):
+    out[0] = np.nan
+    out[1] = np.nan
+    out[2] = np.nan
+    out[3] = 0.0
+    out[4] = 0.0
+    out[6] = np.nan
+
+
+@njit(cache=True)
+def scalar_update(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, gain_mask, out):
+    """Gate, robust re-weighting and Joseph update of ``x``, ``P`` (in place) for one scalar measurement
+    ``z`` with prediction ``pred`` and Jacobian ``h`` (N,); fills ``out[0:5]`` and ``out[6]`` (see
+    :func:`range_update`)."""
+    N = P.shape[0]
     r = z - pred
     Ph = np.zeros(N)
     for i in range(N):

@@ -129,6 +129,8 @@ class EskfOptions(_Strict):
     )
     imu_noise_scale: float = Field(default=1.0, gt=0, description="multiplies every IMU density (tuning)")
     range_sigma: Optional[float] = Field(default=None, gt=0, description="[m]; None: the dataset's, else 0.1")
+    tdoa_sigma: Optional[float] = Field(
+        default=None, gt=0, description="TDoA noise sd [m]; None: the dataset's extra.tdoa_sigma, else sqrt(2) range_sigma")
     accel_bias_sd: Optional[float] = Field(default=None, gt=0, description="initial sd [m/s^2]; None: from the IMU noise")
     gyro_bias_sd: Optional[float] = Field(default=None, gt=0, description="initial sd [rad/s]; None: from the IMU noise")
     lever_arm: LeverArmOptions = Field(default_factory=LeverArmOptions)

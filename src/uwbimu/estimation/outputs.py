@@ -8,7 +8,7 @@
 * ``run.json``: ``imu_samples``, ``ranges``, ``filter_cpu_seconds``, ``total_cpu_seconds``.
 * ``calibration.yaml``: calibration values and sd, the configuration, the
   uwbimu version, the warnings;
-* ``residuals.csv``: ``t, anchor, range, predicted, innovation, nis, accepted``;
+* ``residuals.csv``: ``t, anchor, range, predicted, innovation, nis, accepted`` (+ ``kind, anchor_b`` with TDoA);
 * ``events.yaml``: the machine-readable event log;
 * with ground truth: ``metrics.yaml`` and PNG plots (trajectory, position
   errors with +/-3 sigma, lever arm and time offset with +/-3 sigma bands,
@@ -129,7 +129,9 @@ def write_outputs(result, dataset: Dataset, out_dir: str | Path, plots: bool = T
     fmt = "%.9g"
     files.append(atomic.write_csv(out / "trajectory.csv", trajectory_frame(result), float_format=fmt))
     files.append(atomic.write_csv(out / "states.csv", states_frame(result), float_format=fmt))
-    res = result.residuals.reindex(columns=RESIDUAL_COLUMNS)
+    # TDoA runs add ``kind`` (range | tdoa) and ``anchor_b``; range-only outputs keep the historical columns
+    extra_cols = [c for c in ("kind", "anchor_b") if c in result.residuals.columns]
+    res = result.residuals.reindex(columns=list(RESIDUAL_COLUMNS) + extra_cols)
     files.append(atomic.write_csv(out / "residuals.csv", res, float_format=fmt))
     calib = {
         **_plain(result.calibration),

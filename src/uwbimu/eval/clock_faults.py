@@ -109,6 +109,8 @@ def detect_clock_faults(result, dataset, significance: float = SIGNIFICANCE,
     effective time offset is constant within the noise.
     """
     res = result.residuals
+    if res is not None and "kind" in res.columns:
+        res = res[res["kind"] == "range"]  # TDoA rows are not ranges (one-line hook, core)
     if res is None or len(res) < 4 * ranges_per_window or "innovation" not in res.columns:
         return []
     res = res[np.isfinite(res["innovation"].to_numpy())]
