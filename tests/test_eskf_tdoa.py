@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 
@@ -88,3 +90,25 @@ def test_ranges_and_tdoa_together_with_tdoa_spikes_rejected(tdoa3_run):
     err = np.array(cal["lever_arm"]) - np.array(ds.meta.truth.lever_arm)
     assert np.all(np.abs(err) < 3 * np.array(cal["lever_arm_sd"]))
     assert abs(cal["time_offset"] - ds.meta.truth.time_offset) < 3 * cal["time_offset_sd"] + MAX_AGE / 2
+
+
+def test_tdoa_with_anchor_bias_states_recovers_a_bias_difference(tdoa3_run):
+    """Anchor "3" ranges 0.2 m long: its TDoA rows carry +0.2 m as anchor_b and -0.2 m as anchor_a; with
+    anchor-bias states the filter sees b_b - b_a and recovers the bias relative to the others."""
+    ds, _ = tdoa3_run
+    td = ds.tdoa.copy()
+    td["tdoa"] += 0.2 * (td["anchor_b"].astype(str) == "3") - 0.2 * (td["anchor_a"].astype(str) == "3")
+    ds2 = copy.copy(ds)
+    ds2.tdoa = td
+    opts = EskfOptions.model_validate({"anchor_bias": {"mode": "estimate", "prior_sd": 0.3}})
+    res = run_eskf(ds2, opts)
+    cal = res.calibration
+    ids = [str(a) for a in ds.anchors["anchor"]]
+    b = np.array([cal["anchor_bias"][i] for i in ids])
+    sd = np.array([cal["anchor_bias_sd"][i] for i in ids])
+    i3 = ids.index("3")
+    rel = b[i3] - np.mean(np.delete(b, i3))  # only differences are observable from TDoA
+    print(f"bias of anchor 3 relative to the others {rel:.4f} m, sd {sd[i3]:.4f} m")
+    assert abs(rel - 0.2) < 0.05 and abs(rel - 0.2) < 3 * sd[i3] + 0.02
+    err = np.array(cal["lever_arm"]) - np.array(ds.meta.truth.lever_arm)
+    assert np.all(np.abs(err) < 3 * np.array(cal["lever_arm_sd"]))

@@ -132,7 +132,7 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
     tdoa = getattr(ds, "tdoa", None)
     if tdoa is not None and len(tdoa):
         uwb_t, uwb_a, uwb_b, uwb_r, uwb_anchor_ids = _merge_tdoa(tdoa, tag, index, warnings, uwb_t, uwb_a, uwb_r,
-                                                                 uwb_anchor_ids)
+                                                                 uwb_anchor_ids, kb)
     anchors = ds.anchor_array(anchor_ids).astype(float)
     frame_up = resolve_anchor_frame_up(ds, opts, warnings, events)
     if frame_up == "-z":
@@ -215,17 +215,19 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
 
 
 def _merge_tdoa(tdoa: pd.DataFrame, tag, index: dict[str, int], warnings: list[str], uwb_t, uwb_a, uwb_r,
-                uwb_anchor_ids):
+                uwb_anchor_ids, known_bias: dict[str, float]):
     """Merge ``ds.tdoa`` (``t, anchor_a, anchor_b, tdoa`` [+ ``tag``]) into the UWB stream in time order.
 
     Returns ``(t, a, b, z, ids)`` with ``b = -1`` for ranges and ``ids`` the (first) anchor's id; rows
-    with an unknown anchor or a non-finite value are not used (and counted in ``warnings``)."""
+    with an unknown anchor or a non-finite value are not used (and counted in ``warnings``).  Known anchor
+    range biases (``dataset.yaml`` ``known_anchor_bias``) are removed as ``b_b - b_a``."""
     td = tdoa
     if "tag" in td.columns and tag is not None:
         td = td[td["tag"].astype(str) == str(tag)]
     ida = td["anchor_a"].astype(str).to_numpy()
     idb = td["anchor_b"].astype(str).to_numpy()
-    z = td["tdoa"].to_numpy(float)
+    kb = {str(k): float(v) for k, v in known_bias.items()}
+    z = td["tdoa"].to_numpy(float) - np.array([kb.get(b, 0.0) - kb.get(a, 0.0) for a, b in zip(ida, idb)])
     tt = td["t"].to_numpy(float)
     known = np.array([a in index and b in index for a, b in zip(ida, idb)], dtype=bool)
     ok = known & np.isfinite(z) & np.isfinite(tt) & (ida != idb)

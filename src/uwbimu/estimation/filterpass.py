@@ -304,9 +304,10 @@ def run_pass(
                 prob.r_var, prob.gate, force, prob.robust_kind, prob.robust_c, mask, prob.dt_max, o,
             )
         else:
-            # a per-anchor range bias cancels into the pair's difference: b_b - b_a is not modelled here
+            # per-anchor bias states (anchor_bias mode estimate): the TDoA sees their difference b_b - b_a
             K.tdoa_update(
-                x, P, imu_t, imu_u, prob.imu_um, k, tau, prob.anchors[a], prob.anchors[b], -1, prob.uwb_r[j],
+                x, P, imu_t, imu_u, prob.imu_um, k, tau, prob.anchors[a], prob.anchors[b], prob.bias_idx[a],
+                prob.bias_idx[b], prob.uwb_r[j],
                 prob.tdoa_var, prob.gate, force, prob.robust_kind, prob.robust_c, mask, prob.dt_max, o,
             )
         rec[i] = o

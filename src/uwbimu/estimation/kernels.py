@@ -238,12 +238,13 @@ def range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor, bias_idx, z, r_var,
 
 
 @njit(cache=True)
-def tdoa_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor_a, anchor_b, bias_idx, z, r_var, gate, force,
+def tdoa_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor_a, anchor_b, bias_a, bias_b, z, r_var, gate, force,
                 robust_kind, robust_c, gain_mask, dt_max, out):
     """Process one TDoA ``z = |p_U - p_b| - |p_U - p_a|`` [m] as :func:`range_update` does a range.
 
     Prediction and Jacobian from :func:`tdoa_jacobian` (pinned to ``reference.tdoa_measurement``);
-    ``r_var`` is the TDoA variance [m^2]; ``bias_idx`` an optional per-pair bias state (or -1).
+    ``r_var`` is the TDoA variance [m^2]; ``bias_a``, ``bias_b`` the error indices of the two anchors'
+    range-bias states (or -1): the TDoA then carries ``b_b - b_a``.
     """
     N = P.shape[0]
     xt = np.empty_like(x)
@@ -258,7 +259,13 @@ def tdoa_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor_a, anchor_b, bias_idx
     delta = imu_t[k] - tau
     if delta < 0:
         delta = 0.0
-    pred = tdoa_jacobian(xt, u_tau, anchor_a, anchor_b, bias_idx, delta, h, work)
+    pred = tdoa_jacobian(xt, u_tau, anchor_a, anchor_b, -1, delta, h, work)
+    if bias_b >= 0:
+        h[bias_b] += 1.0
+        pred += xt[bias_b + 1]
+    if bias_a >= 0:
+        h[bias_a] -= 1.0
+        pred -= xt[bias_a + 1]
     scalar_update(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, gain_mask, out)
 
 
