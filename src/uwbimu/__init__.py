@@ -34,6 +34,8 @@ _EXPORTS = {
     "EskfOptions": "uwbimu.estimation.options:EskfOptions",
     "run_eskf": "uwbimu.estimation.eskf:run_eskf",
     "write_estimate": "uwbimu.estimation.outputs:write_outputs",
+    "CalibrationOptions": "uwbimu.calibration:CalibrationOptions",
+    "calibrate": "uwbimu.calibration:calibrate",
     # analysis
     "ObservabilityConfig": "uwbimu.observability.config:ObservabilityConfig",
     "structural_verdict": "uwbimu.observability.structural:structural_verdict",
