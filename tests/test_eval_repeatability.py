@@ -87,13 +87,14 @@ def test_repeatability_cli_with_stub_estimator(tmp_path, monkeypatch):
 
     from typer.testing import CliRunner
 
-    import uwbimu.estimation as est
+    from uwbimu.estimation import EskfOptions, registry
     from uwbimu.cli.main import app
     from uwbimu.io.importers.isas_walk import import_dataset
 
     import_dataset(Path(__file__).parent / "data" / "isas_walk_excerpt", tmp_path / "ds")
     stub = StubEstimator(0.01, 0.01, seed=4)
-    monkeypatch.setattr(est, "run_eskf", lambda ds, opts=None: stub(ds))
+    monkeypatch.setitem(registry._REGISTRY, "eskf",
+                        registry.EstimatorEntry("eskf", lambda ds, opts, progress: stub(ds), EskfOptions, "stub"))
     r = CliRunner().invoke(app, ["repeatability", str(tmp_path / "ds"), "--out", str(tmp_path / "out"), "--windows", "3"])
     assert r.exit_code == 0, r.output
     rep = json.loads((tmp_path / "out" / "repeatability.json").read_text())

@@ -68,8 +68,9 @@ def run_with_progress(dataset, options, console: Console):
     """Run the ESKF with a rich progress bar."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from uwbimu.estimation import run_eskf
+    from uwbimu.eval.estimators import get_estimator
 
+    run_eskf = get_estimator("eskf").run
     with Progress(TextColumn("[bold]ESKF"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
                   TimeElapsedColumn(), console=console, transient=True) as prog:
         task = prog.add_task("eskf", total=1.0)
@@ -101,8 +102,11 @@ def register(app: typer.Typer) -> None:
         from uwbimu.io.atomic import check_output_target, output_folder
 
         console = Console()
-        if estimator not in ("eskf", "pointmass"):
+        from uwbimu.eval.estimators import get_estimator
+
+        if estimator not in ("eskf", "pointmass"):  # batch has its own verb (uwbimu calibrate)
             raise UsageError(f"--estimator must be 'eskf' or 'pointmass', got {estimator!r}")
+        entry = get_estimator(estimator)
         opts = estimator_options(estimator, config, preset)
         check_output_target(out, sorted(OUTPUT_FILES), force, protect=[dataset])
         ds = load(dataset, load_options)
@@ -110,10 +114,8 @@ def register(app: typer.Typer) -> None:
         opts = apply_dataset_properties(opts, ds, console)
         try:
             if estimator == "pointmass":
-                from uwbimu.estimation.pointmass import run_pointmass
-
-                with console.status("6-state point-mass EKF"):
-                    res = run_pointmass(ds, opts)
+                with console.status(entry.description):
+                    res = entry.run(ds, opts, None)
             else:
                 res = run_with_progress(ds, opts, console)
                 if clock_faults:

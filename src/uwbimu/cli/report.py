@@ -74,11 +74,9 @@ def register(app: typer.Typer) -> None:
         ds = load(dataset, load_options)
         print_load_warnings(console, ds)
         opts = apply_dataset_properties(opts, ds, console)
-        from uwbimu.estimation import run_eskf
-
         with Progress(console=console) as prog:
             task = prog.add_task("calibrating windows", total=windows)
-            rep = repeatability(ds, windows, lambda w: run_eskf(w, opts), level=level,
+            rep = repeatability(ds, windows, "eskf", options=opts, level=level,
                                 progress=lambda d, n: prog.update(task, completed=d))
         rep["dataset"] = str(dataset)
         with output_folder(out, force, protect=[dataset], names=["repeatability.json"], finite=False) as tmp:

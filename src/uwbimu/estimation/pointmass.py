@@ -62,7 +62,6 @@ from uwbimu.models.reference import G_WORLD, GRAVITY
 __all__ = [
     "PointMassOptions",
     "run_pointmass",
-    "PointMassEstimator",
     "range_and_jacobian",
     "predict_step",
     "integrate_attitude",
@@ -686,18 +685,6 @@ def run_pointmass(
             "filter_position_sd_end": np.sqrt(np.maximum(np.diagonal(Pd[-1])[0:3], 0.0)).tolist(),
         },
     )
-
-
-class PointMassEstimator:
-    """:class:`uwbimu.estimation.result.Estimator` wrapper of :func:`run_pointmass`."""
-
-    name = "pointmass"
-
-    def __init__(self, options: PointMassOptions | dict | None = None):
-        self.options = options
-
-    def run(self, dataset, progress: Any = None) -> EstimationResult:
-        return run_pointmass(dataset, self.options, progress)
 
 
 refresh_stale_cache(globals(), [_physics])

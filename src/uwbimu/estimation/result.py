@@ -2,13 +2,14 @@
 
 Both the 19-state ESKF and the 6-state point-mass EKF fill an
 :class:`EstimationResult`; writers, metrics, reports and the Monte Carlo
-runner only ever see this type.
+runner only ever see this type.  Estimators are looked up by name in
+:mod:`uwbimu.estimation.registry`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Optional, Protocol
+from typing import Any, Optional
 
 import numpy as np
 import pandas as pd
@@ -55,11 +56,3 @@ class EstimationResult:
     t_imu: Optional[np.ndarray] = None
     extra: dict[str, Any] = field(default_factory=dict)
 
-
-class Estimator(Protocol):
-    """Anything that turns a dataset into an :class:`EstimationResult`."""
-
-    name: str
-
-    def run(self, dataset, progress: Any = None) -> EstimationResult:  # pragma: no cover - protocol
-        ...

@@ -220,20 +220,18 @@ def _estimate(entry: dict, ds, seed_init: int):
     opts = copy.deepcopy(entry["options"])
     p0, sd = _surveyed_start(entry, ds, seed_init)
     if entry["kind"] == "pointmass":
-        from uwbimu.estimation.pointmass import run_pointmass
-
         if p0 is not None:
             opts.setdefault("initial_position", p0.tolist())
             opts.setdefault("initial_position_sd", sd)
         opts.setdefault("full_covariance", True)
-        return run_pointmass(ds, opts)
-    if p0 is not None:
+    if p0 is not None and entry["kind"] == "eskf":
         from uwbimu.eval.montecarlo_eskf import run_eskf_from_fix
 
         return run_eskf_from_fix(ds, opts, p0, sd)
-    from uwbimu.estimation import EskfOptions, run_eskf
+    from uwbimu.eval.estimators import get_estimator
 
-    return run_eskf(ds, EskfOptions.model_validate(opts))
+    est = get_estimator(entry["kind"])
+    return est.run(ds, est.options(opts), None)
 
 
 def _truth_at(ds, t: np.ndarray) -> np.ndarray:

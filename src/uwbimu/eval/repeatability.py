@@ -12,7 +12,7 @@ reports for each window.  For each parameter we compute
   that really changes between windows; a chi2 in the lower 1 % tail means
   the sigmas are conservative.
 
-The estimator is any callable ``dataset -> result`` where ``result`` has a
+The estimator is a name of the estimator registry or any callable ``dataset -> result`` where ``result`` has a
 ``calibration`` dict (an :class:`~uwbimu.estimation.result.EstimationResult`)
 or is that dict, with keys ``lever_arm``, ``lever_arm_sd``, ``time_offset``,
 ``time_offset_sd``; the CLI uses :func:`uwbimu.estimation.run_eskf`.
@@ -20,7 +20,7 @@ or is that dict, with keys ``lever_arm``, ``lever_arm_sd``, ``time_offset``,
 
 from __future__ import annotations
 
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Optional, Union
 
 import numpy as np
 from scipy.stats import chi2 as _chi2
@@ -139,10 +139,11 @@ def consistency(values: np.ndarray, sds: np.ndarray, level: float = 0.01) -> dic
 def repeatability(
     ds: Dataset,
     k: int,
-    estimator: Callable[[Dataset], Any],
+    estimator: Union[str, Callable[[Dataset], Any]] = "eskf",
     level: float = 0.01,
     progress: Optional[Callable[[int, int], None]] = None,
     t_range: Optional[tuple[float, float]] = None,
+    options: Any = None,
 ) -> dict:
     """Calibrate each of ``k`` windows with ``estimator`` and test the spread.
 
@@ -150,7 +151,9 @@ def repeatability(
     ----------
     ds : the log.
     k : number of windows.
-    estimator : callable ``Dataset -> EstimationResult`` (or calibration dict).
+    estimator : a name of the estimator registry (:mod:`uwbimu.eval.estimators`: ``eskf``,
+        ``pointmass``, ``batch``), run with ``options``; or any callable
+        ``Dataset -> EstimationResult`` (or calibration dict).
     level : significance level of the consistency test.
     progress : optional callback ``(done, total)``.
 
@@ -161,6 +164,14 @@ def repeatability(
     (per parameter: :func:`consistency` + ``truth``/``mean_error`` when the
     dataset's truth is known), ``n_failed``.
     """
+    if isinstance(estimator, str):
+        from uwbimu.eval.estimators import get_estimator
+
+        entry = get_estimator(estimator)
+        opts = entry.options(options)
+        estimator = lambda w: entry.run(w, opts, None)  # noqa: E731
+    elif options is not None:
+        raise ValueError("options apply to a registry name, not to an estimator callable")
     wins = split_windows(ds, k, t_range=t_range)
     records = []
     for i, w in enumerate(wins):
