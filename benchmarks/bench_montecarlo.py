@@ -49,7 +49,7 @@ def main() -> None:
 
     import pandas as pd
 
-    from uwbimu.eval import montecarlo as mc
+    from uwbimu import studies as mc
 
     if args.child:
         _child(args)
@@ -127,7 +127,7 @@ def _measure_in_subprocess(args, backend: str, out: Path) -> dict:
 
 def _child(args) -> None:
     """One measurement: the whole study on one backend; prints a JSON line."""
-    from uwbimu.eval import montecarlo as mc
+    from uwbimu import studies as mc
 
     cfg = _config(mc, args)
     out = Path(args.child_out)

@@ -16,7 +16,7 @@ LAYER = {
     "errors": 0, "optional": 0, "models": 0,
     "io": 1,
     "sim": 2, "estimation": 2, "observability": 2,
-    "calibration": 3, "design": 3, "eval": 3,
+    "calibration": 3, "design": 3, "eval": 3, "studies": 3,
     "cli": 4,
 }
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from uwbimu.eval.montecarlo_crlb import _recursion, inside_hull_fraction
+from uwbimu.studies.crlb import _recursion, inside_hull_fraction
 
 
 def test_shared_packet_updates_equal_batch_fisher_information():

@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pandas as pd
 
-from uwbimu.eval.montecarlo import ROW_COLUMNS, config_from_dict, run_study
-from uwbimu.eval.montecarlo_report import summarize
+from uwbimu.studies import ROW_COLUMNS, config_from_dict, run_study
+from uwbimu.studies.report import summarize
 
 
 def _cfg(**extra):
@@ -66,8 +66,8 @@ def test_study_reports_every_quantity_against_its_bound(tmp_path):
 def test_tdoa_vs_twr_study_cells_are_inside_and_outside_the_hull():
     from pathlib import Path
 
-    from uwbimu.eval.montecarlo import load_config, resolved_study
-    from uwbimu.eval.montecarlo_crlb import inside_hull_fraction
+    from uwbimu.studies import load_config, resolved_study
+    from uwbimu.studies.crlb import inside_hull_fraction
     from uwbimu.sim import Scenario
 
     cfg = load_config(Path(__file__).parents[1] / "examples" / "montecarlo" / "tdoa_vs_twr.yaml")

@@ -11,8 +11,8 @@ import yaml
 from typer.testing import CliRunner
 
 from uwbimu.estimation.result import EstimationResult
-from uwbimu.eval import montecarlo as mc
-from uwbimu.eval.montecarlo_examples import example_config
+from uwbimu import studies as mc
+from uwbimu.studies.examples import example_config
 from uwbimu.io.dataset import Dataset, DatasetMeta
 
 REPO = Path(__file__).resolve().parents[1]
@@ -101,7 +101,7 @@ def test_dask_localcluster_gives_bit_identical_results_even_when_a_worker_dies(p
         # chunks of one run (chunking does not change results) so that tasks are in flight when it dies
         # through the scheduler address, as `--scheduler ADDRESS` does (its own client)
         with pytest.MonkeyPatch.context() as mp:
-            mp.setattr(mc.os, "cpu_count", lambda: 7)  # this machine's size must not matter with a scheduler
+            mp.setattr(os, "cpu_count", lambda: 7)  # this machine's size must not matter with a scheduler
             summary = mc.run_study(_cfg(chunk_size=1), tmp_path / "dask", scheduler=cluster.scheduler_address,
                                    plots=False, progress=kill_a_worker_after_first_chunk)
     assert killed and summary["execution"]["backend"] == "dask"

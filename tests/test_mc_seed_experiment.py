@@ -4,8 +4,8 @@ worse height than three anchors at different heights, for both estimators."""
 import numpy as np
 import pandas as pd
 
-from uwbimu.eval import montecarlo as mc
-from uwbimu.eval.montecarlo_examples import example_config
+from uwbimu import studies as mc
+from uwbimu.studies.examples import example_config
 
 
 def test_horizontal_anchor_plane_degrades_height_for_both_estimators(tmp_path):

@@ -46,7 +46,7 @@ _EXPORTS = {
     "place": "uwbimu.design.run:run_placement",
     "design_calibration": "uwbimu.design.trajectory.calibration:design_calibration",
     # studies and evaluation
-    "run_study": "uwbimu.eval.montecarlo:run_study",
+    "run_study": "uwbimu.studies.runner:run_study",
     "evaluate": "uwbimu.eval.evaluate:evaluate_output",
     "repeatability": "uwbimu.eval.repeatability:repeatability",
     "report": "uwbimu.eval.report:write_report",

@@ -87,8 +87,8 @@ def register(app: typer.Typer) -> None:
         """Monte Carlo study: scenarios x seeds x estimators -> montecarlo.csv, summary.json, plots."""
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-        from uwbimu.eval.montecarlo import MonteCarloError, config_from_dict, load_config, run_study
-        from uwbimu.eval.montecarlo_examples import EXAMPLES, example_config
+        from uwbimu.studies import MonteCarloError, config_from_dict, load_config, run_study
+        from uwbimu.studies.examples import EXAMPLES, example_config
 
         console = Console()
         if not console.is_terminal:  # a log file: do not squeeze the table's numbers into 80 columns

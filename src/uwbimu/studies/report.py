@@ -1,6 +1,6 @@
 """Monte Carlo outputs: merged table, per-cell aggregates and plots.
 
-Reads the chunk files of a study folder (see :mod:`uwbimu.eval.montecarlo`) and
+Reads the chunk files of a study folder (see :mod:`uwbimu.studies.store`) and
 writes ``montecarlo.csv``, ``summary.json`` and the figures:
 
 * ``rmse_distribution.png`` — per-axis position RMSE of every run, box plots
@@ -27,7 +27,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from uwbimu.eval.montecarlo import ROW_COLUMNS, chunk_files, read_done
+from uwbimu.studies.config import ROW_COLUMNS
+from uwbimu.studies.store import chunk_files, read_done
 
 AXES = ("x", "y", "z")
 
@@ -65,7 +66,7 @@ def summarize(df: pd.DataFrame, cfg, runs: int, traces: dict | None = None, boun
     Every estimated quantity is reported per cell: position RMSE per axis, lever-arm error per
     axis and time-offset error (``*_rms_all_runs``: RMS over runs), with ``runs_diverged`` and the
     fewest runs still alive (``runs_alive_min``; bands are over those).  ``bounds`` (scenario ->
-    :func:`uwbimu.eval.montecarlo_crlb.scenario_bound`) adds ``crlb`` and ``ratio_to_crlb``.
+    :func:`uwbimu.studies.crlb.scenario_bound`) adds ``crlb`` and ``ratio_to_crlb``.
     """
     from scipy import stats
 
@@ -184,8 +185,8 @@ def study_bounds(out: Path, cfg) -> dict:
     """Posterior CRLB of every scenario (run 0's seeds), cached in ``OUT/crlb.json``."""
     import json
 
-    from uwbimu.eval.montecarlo import resolved_study, run_seeds
-    from uwbimu.eval.montecarlo_crlb import scenario_bound
+    from uwbimu.studies.config import resolved_study, run_seeds
+    from uwbimu.studies.crlb import scenario_bound
     from uwbimu.io.atomic import write_json
 
     study = resolved_study(cfg)

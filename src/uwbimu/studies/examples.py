@@ -14,7 +14,7 @@ analysis says the height is not observable from the ranges alone.  With three
 anchors the multilateration fix is ambiguous (mirror solution), so both
 estimators start from a surveyed take-off point (true position + N(0, 0.1^2)
 per axis, from the run's init seed) and the ESKF from the known take-off
-heading ``init.yaw = 0``; see :mod:`uwbimu.eval.montecarlo_eskf`.  The
+heading ``init.yaw = 0``; see :mod:`uwbimu.studies.eskf_fix`.  The
 point-mass EKF is told the (zero) lever arm and an exact time offset
 (``time_offset_sd: 0``): both are known in this experiment, so no consider
 terms inflate its covariance.
