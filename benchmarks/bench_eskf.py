@@ -223,7 +223,7 @@ def _multilateration_rmse(ds, window: float = 0.25) -> float:
     neglected) against ground truth: the model-free baseline of the real-data figures."""
     from scipy.optimize import least_squares
 
-    from uwbimu.estimation.metrics import truth_at
+    from uwbimu.metrics.filter import truth_at
 
     u = ds.uwb.sort_values("t")
     A = ds.anchor_positions()
@@ -288,7 +288,7 @@ def inrol_study(inrol: str, sweep: bool = False) -> None:
     from pathlib import Path
 
     from uwbimu.estimation import EskfOptions, compute_metrics, run_eskf
-    from uwbimu.estimation.metrics import truth_at
+    from uwbimu.metrics.filter import truth_at
     from uwbimu.io.loader import load_dataset
 
     print(f"== real data: INRoL ({inrol}) ==")

@@ -76,7 +76,7 @@ def _fmt_vec(v, sd=None, scale=100.0):
 def run_sequence(name, verb, src, align, work: Path, windows: int, baseline: bool, config=None) -> dict:
     from uwbimu.eval.baseline import multilaterate
     from uwbimu.eval.evaluate import evaluate_output
-    from uwbimu.eval.metrics import evaluate_trajectory
+    from uwbimu.metrics.trajectory import evaluate_trajectory
     from uwbimu.eval.report import write_report
     from uwbimu.io.loader import load_dataset
 

@@ -122,7 +122,7 @@ def test_write_outputs_without_ground_truth(tmp_path, short_ds):
 def test_metrics_and_outputs_for_a_result_without_attitude(tmp_path, short_ds):
     """compute_metrics / write_outputs accept any EstimationResult, e.g. a position-only estimator."""
     from uwbimu.estimation import EstimationResult
-    from uwbimu.estimation.metrics import truth_at
+    from uwbimu.metrics.filter import truth_at
 
     gt = short_ds.groundtruth
     t = gt["t"].to_numpy()[::20]
@@ -171,7 +171,7 @@ def test_real_data_preset_gauss_markov_biases_stay_honest():
 def test_truth_velocity_without_velocity_columns_ignores_stamp_jitter(short_ds):
     """Ground truth without vx/vy/vz (e.g. motion capture): the truth velocity is a central
     difference over +/-0.05 s, so sub-millisecond stamp jitter does not blow it up."""
-    from uwbimu.estimation.metrics import truth_at
+    from uwbimu.metrics.filter import truth_at
 
     gt = short_ds.groundtruth.copy()
     rng = np.random.default_rng(3)

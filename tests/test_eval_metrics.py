@@ -10,8 +10,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
-from uwbimu.eval.align import align_trajectories
-from uwbimu.eval.metrics import (
+from uwbimu.metrics.align import align_trajectories
+from uwbimu.metrics.trajectory import (
     associate,
     detect_attitude_glitches,
     detect_glitches,
@@ -169,7 +169,7 @@ def test_attitude_not_compared_when_body_frames_differ(tmp_path):
     import yaml
 
     from uwbimu.cli.main import app
-    from uwbimu.eval.metrics import ATTITUDE_NA
+    from uwbimu.metrics.trajectory import ATTITUDE_NA
 
     t = np.arange(0, 30, 0.01)
     p, q = _truth(t)

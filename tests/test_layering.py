@@ -15,7 +15,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "uwbimu"
 LAYER = {
     "errors": 0, "optional": 0, "models": 0,
     "io": 1,
-    "sim": 2, "estimation": 2, "observability": 2,
+    "sim": 2, "estimation": 2, "observability": 2, "metrics": 2,
     "calibration": 3, "design": 3, "eval": 3, "studies": 3,
     "cli": 4,
 }

@@ -150,7 +150,8 @@ def estimate_and_print(dataset, console: Console, out: Optional[Path] = None, op
 
     For other verbs (``uwbimu demo``); writes the outputs to ``out`` when given.  Returns the result.
     """
-    from uwbimu.estimation import EskfOptions, compute_metrics, write_outputs
+    from uwbimu.estimation import EskfOptions, write_outputs
+    from uwbimu.metrics import compute_metrics
 
     res = run_with_progress(dataset, options or EskfOptions(), console)
     if out is not None:

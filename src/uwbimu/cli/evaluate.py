@@ -41,7 +41,7 @@ def register(app: typer.Typer) -> None:
         """Score OUT/trajectory.csv against ground truth (ATE after alignment, RPE); writes OUT/evaluation.json."""
         from rich.console import Console
 
-        from uwbimu.eval.align import ALIGN_MODES
+        from uwbimu.metrics.align import ALIGN_MODES
         from uwbimu.eval.evaluate import evaluate_output
         from uwbimu.eval.files import EvalInputError
 

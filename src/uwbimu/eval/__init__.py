@@ -1,4 +1,4 @@
-"""Evaluation of estimator outputs: alignment, ATE/RPE, repeatability, the HTML report.
+"""Evaluation of estimator outputs: alignment, ATE/RPE (from :mod:`uwbimu.metrics`), repeatability, the HTML report.
 
 Public API::
 
@@ -8,9 +8,9 @@ Public API::
 See ``docs/real_data.md`` and ``docs/report.md``.
 """
 
-from uwbimu.eval.align import Alignment, align_trajectories  # noqa: F401
+from uwbimu.metrics.align import Alignment, align_trajectories  # noqa: F401
 from uwbimu.eval.evaluate import evaluate_output  # noqa: F401
-from uwbimu.eval.metrics import associate, detect_glitches, evaluate_trajectory, relative_pose_error  # noqa: F401
+from uwbimu.metrics.trajectory import associate, detect_glitches, evaluate_trajectory, relative_pose_error  # noqa: F401
 from uwbimu.eval.repeatability import consistency, repeatability, split_windows  # noqa: F401
 from uwbimu.eval.report import render_report, write_report  # noqa: F401
 

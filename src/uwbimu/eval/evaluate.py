@@ -1,7 +1,7 @@
 """Evaluate an estimator output folder against ground truth and write the results.
 
 ``evaluate_output(OUT, groundtruth)`` reads ``OUT/trajectory.csv``, scores it
-(:func:`uwbimu.eval.metrics.evaluate_trajectory`) and writes, atomically:
+(:func:`uwbimu.metrics.trajectory.evaluate_trajectory`) and writes, atomically:
 
 * ``OUT/evaluation.json``        summary (ATE, RPE, alignment, association counts)
 * ``OUT/evaluation_errors.csv``  per-sample ``t, px_gt.., px_est.., ex, ey, ez, e, rot_err_deg``
@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 
 from uwbimu.eval.files import load_groundtruth, load_trajectory
-from uwbimu.eval.metrics import Evaluation, evaluate_trajectory
+from uwbimu.metrics.trajectory import Evaluation, evaluate_trajectory
 from uwbimu.io.atomic import save_figure, write_csv, write_json
 
 

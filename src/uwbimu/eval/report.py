@@ -166,7 +166,7 @@ class ReportInputs:
 
     def _evaluate_in_memory(self) -> None:
         from uwbimu.eval.evaluate import evaluation_table
-        from uwbimu.eval.metrics import evaluate_trajectory
+        from uwbimu.metrics.trajectory import evaluate_trajectory
 
         extra = self.dataset.meta.extra or {}
         align = str(extra.get("groundtruth_align", "none"))

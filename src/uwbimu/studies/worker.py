@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import copy
 import time
-from typing import Any
 
 import numpy as np
 
+from uwbimu.metrics.filter import _truth_at, run_metrics  # noqa: F401 (run_metrics: public here too)
 from uwbimu.studies.config import run_seeds
 
 # --------------------------------------------------------------------------
@@ -41,72 +41,6 @@ def _estimate(entry: dict, ds, seed_init: int):
 
     est = get_estimator(entry["kind"])
     return est.run(ds, est.options(opts), None)
-
-
-def _truth_at(ds, t: np.ndarray) -> np.ndarray:
-    gt = ds.groundtruth
-    tg = gt["t"].to_numpy(float)
-    return np.column_stack([np.interp(t, tg, gt[c].to_numpy(float)) for c in ("px", "py", "pz")])
-
-
-def run_metrics(result, ds, skip_initial_s: float = 0.0) -> tuple[dict, dict]:
-    """Position RMSE per axis, NEES, calibration errors of one estimate.
-
-    Returns ``(row fields, trace)``; the trace holds the result stamps ``t``,
-    position errors ``err`` (K, 3), sds ``sd`` (K, 3) and NEES ``nees`` (K,).
-    NEES uses the full 3x3 position covariance when the result has covariances,
-    else the diagonal (``nees_kind`` says which).
-    """
-    t = np.asarray(result.t, float)
-    gt_t = ds.groundtruth["t"].to_numpy(float)
-    keep = (t >= gt_t[0]) & (t <= gt_t[-1])
-    t = t[keep]
-    p = np.asarray(result.states, float)[keep, 0:3]
-    err = p - _truth_at(ds, t)
-    sd = np.asarray(result.sd, float)[keep, 0:3]
-    cov = None
-    if result.covariances is not None:
-        c = np.asarray(result.covariances)[keep][:, 0:3, 0:3]
-        if np.all(np.isfinite(c)):
-            cov = c
-    if cov is not None:
-        nees = np.einsum("ni,ni->n", err, np.linalg.solve(cov, err[..., None])[..., 0])
-        kind = "full"
-    else:
-        nees = np.sum((err / sd) ** 2, axis=1)
-        kind = "diag"
-    m = t >= (t[0] + skip_initial_s) if len(t) else keep[keep]
-    e = err[m]
-    row: dict[str, Any] = {"n_samples": int(m.sum()), "nees_kind": kind}
-    if len(e):
-        rmse = np.sqrt(np.mean(e**2, axis=0))
-        row.update(rmse_x=rmse[0], rmse_y=rmse[1], rmse_z=rmse[2], rmse_3d=float(np.sqrt(np.sum(rmse**2))))
-        row.update(final_err_x=e[-1, 0], final_err_y=e[-1, 1], final_err_z=e[-1, 2])
-        row["max_err_3d"] = float(np.max(np.linalg.norm(e, axis=1)))
-        row["nees_pos_mean"] = float(np.mean(nees[m]))
-    truth = ds.meta.truth
-    cal = result.calibration or {}
-    la_sd = np.asarray(cal.get("lever_arm_sd", [np.nan] * 3), float)
-    # A calibration the estimator keeps fixed (sd NaN or 0) has no estimation error to report.
-    if truth is not None and truth.lever_arm is not None and np.all(np.isfinite(la_sd)) and np.any(la_sd > 0):
-        d = np.asarray(cal["lever_arm"], float) - np.asarray(truth.lever_arm, float)
-        row.update(lever_arm_err=float(np.linalg.norm(d)), lever_arm_err_x=d[0], lever_arm_err_y=d[1],
-                   lever_arm_err_z=d[2])
-    td_sd = cal.get("time_offset_sd", np.nan)
-    if truth is not None and truth.time_offset is not None and td_sd is not None and np.isfinite(td_sd) and td_sd > 0:
-        row["time_offset_err"] = float(cal["time_offset"] - truth.time_offset)
-    res = result.residuals
-    if res is not None and len(res) and "accepted" in res:
-        row["ranges_accepted"] = float(np.mean(res["accepted"].to_numpy(bool)))
-    row["n_warnings"] = len(result.warnings or [])
-    # An estimator that stops (e.g. the ESKF after a divergence it cannot recover from) has
-    # metrics over a shorter span only: say how much of the flight the estimate covers.
-    fin = np.all(np.isfinite(p), axis=1)
-    span = float(gt_t[-1] - gt_t[0])
-    row["coverage"] = float((t[fin][-1] - t[fin][0]) / span) if fin.sum() > 1 and span > 0 else 0.0
-    div_t = [float(ev["t"]) for ev in (result.events or []) if ev.get("kind") == "divergence" and "t" in ev]
-    row["divergences"] = sum(1 for ev in (result.events or []) if ev.get("kind") == "divergence")
-    return row, {"t": t, "err": err, "sd": sd, "nees": nees, "divergence_t": np.asarray(div_t, float)}
 
 
 def run_chunk(task: dict) -> dict:

@@ -13,7 +13,7 @@ Pipeline (:func:`evaluate_trajectory`):
    the estimate stamps (both on the UWB clock).  Estimate samples outside the
    ground-truth span or inside a ground-truth gap longer than ``max_gap`` are
    not scored (counted).
-3. **Alignment** (:mod:`uwbimu.eval.align`), then
+3. **Alignment** (:mod:`uwbimu.metrics.align`), then
 4. **ATE** (position and attitude) and **RPE** over travelled distances.
 
 Conventions: positions in m, angles reported in degrees, quaternions
@@ -28,7 +28,7 @@ from typing import Optional, Sequence
 import numpy as np
 import pandas as pd
 
-from uwbimu.eval.align import Alignment, align_trajectories
+from uwbimu.metrics.align import Alignment, align_trajectories
 from uwbimu.models.quaternion import (
     quat_conjugate,
     quat_log,
@@ -393,7 +393,7 @@ def evaluate_trajectory(
     traj : estimator ``trajectory.csv`` as a DataFrame (``t, px, py, pz`` and
         optionally ``qw, qx, qy, qz``).
     gt : ground truth (``t, px, py, pz`` and optionally ``qw..qz``), same clock.
-    align : ``none | position | se3`` (see :mod:`uwbimu.eval.align`).
+    align : ``none | position | se3`` (see :mod:`uwbimu.metrics.align`).
     distances : RPE path lengths [m].
     max_gap : longest ground-truth gap bridged by interpolation [s].
     skip_initial : ignore estimate samples in the first ``skip_initial`` seconds
