@@ -118,18 +118,23 @@ def level_attitude(prob: Problem, k0: int, window: float) -> tuple[float, float]
 
 
 def motion_start(prob: Problem, k0: int, max_s: float, smooth_s: float = 0.1,
-                 rate_thr: float = 0.15, acc_thr: float = 0.4) -> float:
+                 rate_thr: float = 0.15, acc_thr: float = 0.4, undecided_nan: bool = False) -> float:
     """IMU time at which the vehicle starts moving, searching ``max_s`` seconds from sample ``k0``.
 
     Motion is a (0.1 s moving-average) body rate or specific-force magnitude
     departing from the values of the first 0.3 s by more than ``rate_thr``
     [rad/s] or ``acc_thr`` [m/s^2].  Returns ``imu_t[k0]`` when moving from the
-    start and ``inf`` when no motion is found.
+    start and ``inf`` when no motion is found.  Only data up to the first moving sample (plus the
+    averaging half-window) decide the answer; with ``undecided_nan`` a search the data do not yet
+    cover (no motion so far, window not complete) returns NaN (the streaming filter waits).
     """
     t = prob.imu_t
     k1 = int(np.searchsorted(t, t[k0] + max_s))
+    # data that end before the search window does (a stream still arriving, or the end of the log): the
+    # moving averages of the last samples are not final, and motion not found yet may still come
+    truncated = k1 >= len(t) and t[-1] < t[k0] + max_s
     if k1 - k0 < 10:
-        return float(t[k0])
+        return float("nan") if truncated and undecided_nan else float(t[k0])
     u = prob.imu_u[k0:k1]
     n = max(1, int(round(smooth_s / prob.dt_nom)))
     ker = np.ones(n) / n
@@ -140,9 +145,11 @@ def motion_start(prob: Problem, k0: int, max_s: float, smooth_s: float = 0.1,
     a0 = a[n:m].mean() if m > n else a[0]
     moving = (np.linalg.norm(w - w0, axis=1) > rate_thr) | (np.abs(a - a0) > acc_thr)
     moving[: n] = False  # edge effect of the moving average
+    if truncated:
+        moving[max(len(moving) - n, 0):] = False
     idx = np.flatnonzero(moving)
     if len(idx) == 0:
-        return float("inf")
+        return float("nan") if truncated and undecided_nan else float("inf")
     return float(t[k0 + idx[0]]) if idx[0] > m else float(t[k0])
 
 
@@ -290,6 +297,11 @@ def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: i
         return scores
 
     search_td = pr_fixed["search_td"] and td_known is None
+    if search_td and not np.isfinite(t_move):
+        # no motion, no time-offset information: scoring the grid on a standing vehicle would pick noise
+        search_td = False
+        info["td_init"] = {"status": "not identified",
+                           "reason": f"no motion within {io.max_wait_s:g} s of the start (t_d not observable there)"}
     td = td_prior
     td_sd = pr_fixed["td_sd"]
     if io.yaw is not None:
@@ -340,6 +352,33 @@ def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: i
         prob_r = hold_time_offset(prob) if info.get("td_init", {}).get("status") == "not identified" else prob
         x0, P0, k0 = _refine(prob_r, pr, x0, P0, k0, j0, t0, v0, yaw_sd0, td_sd, t_to + io.refine_s, info)
     return InitialState(x=x0, P=P0, k=k0, j=j0, info=info)
+
+
+def data_needed(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: int) -> Optional[tuple[float, float]]:
+    """How far the data must reach before :func:`initialise` at range ``j0`` gives its final answer.
+
+    Returns ``(t_uwb, t_imu)``: every range stamped up to ``t_uwb`` (UWB clock) and the IMU up to
+    ``t_imu`` (IMU clock) must be in ``prob``; ``None`` while the start of motion is still undecided.
+    :func:`initialise` reads no data beyond these (the fix window, the level window, the motion
+    search, the hypothesis bank and the bootstrap pass, for any time offset the grid may reach), so a
+    streaming filter that waits for them initialises exactly as the batch does.
+    """
+    io = opts.init
+    t0 = float(prob.uwb_t[j0])
+    td_prior = pr_fixed["td"]
+    k_lvl = start_index(prob, t0, td_prior)
+    t_move = motion_start(prob, k_lvl, io.max_wait_s, undecided_nan=True)
+    if math.isnan(t_move):
+        return None
+    if np.isfinite(t_move):
+        t_to = max(t0 + io.bank_window_s, t_move - td_prior + 0.75 * io.bank_window_s)
+    else:
+        t_to = t0 + io.bank_window_s
+    t_end = t_to + io.refine_s
+    t_uwb = max(t_end, t0 + 8.0 * io.window_s)
+    td_reach = max(io.td_max_abs_s, abs(td_prior)) if pr_fixed["search_td"] else abs(td_prior)
+    t_imu = max(t_uwb + td_reach, float(prob.imu_t[k_lvl]) + io.max_wait_s if not np.isfinite(t_move) else 0.0)
+    return t_uwb, t_imu + prob.max_lookback
 
 
 def hold_time_offset(prob: Problem) -> Problem:
