@@ -319,14 +319,15 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
     t_imu, X, D = t_imu[keep], X[keep], D[keep]
     if covs is not None:
         covs = covs[keep]
-    nb = X.shape[1] - 20
-    t_out = t_imu - X[:, 19]
+    L = prob.state_layout()
+    nb = L.n_anchor_bias
+    t_out = t_imu - X[:, S.TD]
     fixed = np.zeros(19, dtype=bool)
     if opts.lever_arm.mode == "fixed":
         fixed[S.EPIU] = True
     if opts.time_offset.mode == "fixed":
         fixed[S.ETD] = True
-    sd = np.sqrt(np.clip(D[:, :19], 0, None))
+    sd = np.sqrt(np.clip(D[:, :S.ERROR_DIM], 0, None))
     sd[:, fixed] = np.nan
 
     # per-range records
@@ -393,8 +394,9 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
     calibration["tags"] = {str(info["tag"] or "tag0"): {"lever_arm": calibration["lever_arm"],
                                                          "lever_arm_sd": calibration["lever_arm_sd"]}}
     if nb:
-        calibration["anchor_bias"] = {a: float(x_end[20 + i]) for i, a in enumerate(prob.anchor_ids)}
-        calibration["anchor_bias_sd"] = {a: float(sd_end[19 + i]) for i, a in enumerate(prob.anchor_ids)}
+        xb, sb = x_end[L.nom("anchor_bias")], sd_end[L.err("anchor_bias")]
+        calibration["anchor_bias"] = {a: float(xb[i]) for i, a in enumerate(prob.anchor_ids)}
+        calibration["anchor_bias_sd"] = {a: float(sb[i]) for i, a in enumerate(prob.anchor_ids)}
         calibration["anchor_bias_mode"] = opts.anchor_bias.mode
         if opts.anchor_bias.correlation_time:
             # Gauss-Markov biases vary in time: the values above are the last ones (whole series in
@@ -418,11 +420,11 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
     cfg["resolved"] = {"imu_noise": noise.model_dump(), "range_sigma": float(info["range_sigma"]),
                        "tag": info["tag"], "anchor_frame_up": info["anchor_frame_up"], "gate_nis": float(prob.gate), "imu_rate_hz": 1.0 / prob.dt_nom}
     res = EstimationResult(
-        t=t_out, states=X[:, :20].copy(), sd=sd, residuals=residuals, calibration=calibration,
-        covariances=covs[:, :19, :19].copy() if covs is not None else None, warnings=warnings, events=events,
+        t=t_out, states=X[:, :S.NOMINAL_DIM].copy(), sd=sd, residuals=residuals, calibration=calibration,
+        covariances=covs[:, :S.ERROR_DIM, :S.ERROR_DIM].copy() if covs is not None else None, warnings=warnings, events=events,
         estimator="eskf", config=cfg, t_imu=t_imu,
     )
     if nb:
-        res.extra["anchor_bias_states"] = X[:, 20:].copy()
+        res.extra["anchor_bias_states"] = X[:, L.nom("anchor_bias")].copy()
         res.extra["anchor_ids"] = list(prob.anchor_ids)
     return res

@@ -32,6 +32,8 @@ from typing import Any, Callable, Optional
 import numpy as np
 
 from uwbimu.estimation import kernels as K
+from uwbimu.models.measurements import vector_update
+from uwbimu.models.state import StateLayout
 
 # columns of the per-range output record
 REC_PRED, REC_INNOV, REC_NIS, REC_ACC, REC_W, REC_STATUS, REC_S = range(7)
@@ -99,6 +101,14 @@ class Problem:
     # the filter does not propagate beyond this IMU time (a streaming filter: the newest samples wait
     # for the next one that the cubic mid-interval input needs)
     t_limit: float = np.inf
+    # measurements through the Python model protocol (height, zero velocity, user models): row j with
+    # uwb_b[j] <= -2 is models[-uwb_b[j] - 2] = (model, z); uwb_a[j] = -1
+    models: dict = field(default_factory=dict)
+    layout: Optional[StateLayout] = None
+    height_sd0: float = 0.0  # prior sd of the altimeter bias state (when the layout has one) [m]
+
+    def state_layout(self) -> StateLayout:
+        return self.layout if self.layout is not None else StateLayout.for_dims(self.gain_mask.shape[0])
 
     @property
     def n_err(self) -> int:
@@ -237,7 +247,7 @@ class PassState:
     @classmethod
     def start(cls, prob: "Problem", x0: np.ndarray, P0: np.ndarray, k0: int, j0: int) -> "PassState":
         return cls(x=np.array(x0, dtype=float), P=np.array(P0, dtype=float), k=int(k0), j=int(j0), j0=int(j0),
-                   next_out=float(prob.imu_t[int(k0)]), consec=np.zeros(len(prob.anchor_ids), dtype=np.int64))
+                   next_out=float(prob.imu_t[int(k0)]), consec=np.zeros(len(prob.anchor_ids) + 1, dtype=np.int64))
 
     def result(self, rec: np.ndarray, N: int) -> "PassResult":
         """The pass so far as a :class:`PassResult` (``rec`` indexed by absolute range index)."""
@@ -333,7 +343,10 @@ def advance(
         tj = prob.uwb_t[j]
         if tj > t_uwb_end:
             break
-        tau = tj + x[19]
+        b = -1 if prob.uwb_b is None else int(prob.uwb_b[j])
+        model = prob.models[-b - 2][0] if b <= -2 else None
+        # a UWB-clock stamp sees the IMU-clock state t_d later
+        tau = tj + x[19] if model is None or model.clock == "uwb" else tj
         if tau > t_last:
             break
         if record:
@@ -359,15 +372,18 @@ def advance(
             j += 1
             continue
         a = prob.uwb_a[j]
+        if a < 0:
+            a = consec.shape[0] - 1  # the gate counter of the model measurements
         force = consec[a] >= prob.reopen_after
         # no rotation, no lever-arm information: Schmidt (consider) update for the lever arm only
         # (the rate must stand out from the gyro-bias uncertainty: before the bias has converged an
         # uncorrected bias would otherwise pass for rotation)
         frozen = gate_lever and (prob.rotation_rms(k, x[13:16]) - math.sqrt(max(P[12, 12] + P[13, 13] + P[14, 14], 0.0))
                                  < prob.lever_min_rate)
-        b = -1 if prob.uwb_b is None else int(prob.uwb_b[j])
         mask = mask_frozen if frozen else prob.gain_mask
-        if b < 0:
+        if model is not None:
+            _model_update(prob, x, P, k, tau, model, prob.models[-b - 2][1], force, mask, o)
+        elif b < 0:
             K.range_update(
                 x, P, imu_t, prob.imu_u, prob.imu_um, k, tau, prob.anchors[a], prob.bias_idx[a], prob.uwb_r[j],
                 prob.r_var, prob.gate, force, prob.robust_kind, prob.robust_c, mask, prob.dt_max, o,
@@ -384,7 +400,8 @@ def advance(
             st.n_frozen += int(frozen)
             if force:
                 # a reopened gate does not prove the filter healthy: keep counting towards divergence
-                st.events.append({"t": float(tj), "kind": "gate_reopened", "anchor": prob.anchor_ids[a],
+                st.events.append({"t": float(tj), "kind": "gate_reopened",
+                                  "anchor": prob.anchor_ids[a] if a < len(prob.anchor_ids) else model.name,
                                   "after_rejections": int(consec[a])})
                 st.all_rej += 1
             else:
@@ -407,3 +424,38 @@ def advance(
                 break
     if progress is not None:
         progress(st.k)
+
+
+def _model_update(prob: Problem, x: np.ndarray, P: np.ndarray, k: int, tau: float, model, z: np.ndarray,
+                  force: bool, mask: np.ndarray, o: np.ndarray) -> None:
+    """One measurement through the Python model protocol (:mod:`uwbimu.models.measurements`).
+
+    The model is evaluated at ``tau`` (state integrated back from the filter's sample ``k``, as for a
+    range) and its Jacobian applied at the filter time: ``tau`` lies within one IMU period of it, the
+    first-order time mapping the range kernel applies is neglected here (an error of order dt_imu)."""
+    xt = np.empty_like(x)
+    u_tau = np.empty(6)
+    st = K.state_at(x, prob.imu_t, prob.imu_u, prob.imu_um, k, tau, prob.dt_max, xt, u_tau)
+    o[5] = st
+    if st != K.UPD_OK:
+        o[0:5] = (np.nan, np.nan, np.nan, 0.0, 0.0)
+        o[6] = np.nan
+        return
+    L = prob.state_layout()
+    pred = np.atleast_1d(model.evaluate(xt, u_tau))
+    H = np.atleast_2d(model.jacobian(xt, u_tau, L))
+    r = np.atleast_1d(z) - pred
+    gate_p = 1.0 if prob.gate <= 0 else _gate_probability(prob.gate)
+    res = vector_update(x, P, H, r, np.atleast_2d(model.covariance()), gate_p, force,
+                        prob.robust_c if prob.robust_kind != K.ROBUST_NONE else 0.0, mask, K.inject)
+    o[0], o[1], o[2] = pred[0], r[0], res["nis"]
+    o[3] = 1.0 if res["accepted"] else 0.0
+    o[4] = res["weight"]
+    o[6] = res["S"]
+
+
+def _gate_probability(gate_nis_1dof: float) -> float:
+    """The acceptance probability behind a one-degree-of-freedom NIS threshold (same for any dim)."""
+    from scipy.stats import chi2
+
+    return float(chi2.cdf(gate_nis_1dof, 1))

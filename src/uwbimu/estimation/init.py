@@ -177,8 +177,8 @@ class Prior:
 def assemble(prob: Problem, pr: Prior, yaw: float, yaw_sd: float, td: float, td_sd: float, k0: int,
              t0_uwb: float, v_t0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Extended nominal state and covariance for one (yaw, t_d) hypothesis at IMU sample ``k0``."""
-    nb = prob.n_err - 19
-    x = np.zeros(20 + nb)
+    L = prob.state_layout()
+    x = np.zeros(L.n_nom)
     dt = prob.imu_t[k0] - td - t0_uwb  # UWB-time elapsed since the fix
     x[0:3] = pr.p + v_t0 * dt
     x[3:6] = pr.v
@@ -188,8 +188,8 @@ def assemble(prob: Problem, pr: Prior, yaw: float, yaw_sd: float, td: float, td_
     x[13:16] = pr.bg
     x[16:19] = pr.lever
     x[19] = td
-    x[20:] = pr.anchor_bias
-    P = np.zeros((19 + nb, 19 + nb))
+    x[L.nom("anchor_bias")] = pr.anchor_bias
+    P = np.zeros((L.n_err, L.n_err))
     P[0:3, 0:3] = np.eye(3) * pr.sd_p**2
     P[3:6, 3:6] = np.eye(3) * pr.sd_v**2
     # roll/pitch/yaw uncertainty is about world axes; the error state is a body
@@ -201,8 +201,10 @@ def assemble(prob: Problem, pr: Prior, yaw: float, yaw_sd: float, td: float, td_
     P[12:15, 12:15] = np.eye(3) * pr.sd_bg**2
     P[15:18, 15:18] = np.diag(pr.sd_lever**2)
     P[18, 18] = td_sd**2
-    if nb:
-        P[19:, 19:] = np.eye(nb) * pr.sd_bias**2
+    ab = L.err("anchor_bias")
+    P[ab, ab] = np.eye(L.n_anchor_bias) * pr.sd_bias**2
+    hb = L.err("height_bias")
+    P[hb, hb] = np.eye(L.n_height_bias) * prob.height_sd0**2
     return x, P
 
 
@@ -421,7 +423,7 @@ def _refine(prob: Problem, pr: Prior, x0, P0, k0: int, j0: int, t0: float, v0, y
     pr2.ba = x[10:13].copy()
     pr2.bg = x[13:16].copy()
     pr2.lever = x[16:19].copy()
-    pr2.anchor_bias = x[20:].copy()
+    pr2.anchor_bias = x[prob.state_layout().nom("anchor_bias")].copy()
     pr2.roll = math.atan2(2 * (q[0] * q[1] + q[2] * q[3]), 1 - 2 * (q[1] ** 2 + q[2] ** 2))
     pr2.pitch = math.asin(max(-1.0, min(1.0, 2 * (q[0] * q[2] - q[3] * q[1]))))
     x1, P1 = assemble(prob, pr2, yaw, yaw_sd, td, td_sd, k_new, t0, v0)

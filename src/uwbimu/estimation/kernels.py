@@ -328,4 +328,58 @@ def scalar_update(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, g
     out[4] = w
 
 
+@njit(cache=True)
+def midpoints_into(t, u, i0, i1, out):
+    """Cubic mid-interval inputs of intervals ``i0 .. i1-1`` into ``out[i0:i1]``, as
+    ``reference.midpoint_inputs(t, u)`` computes them on the samples given (four nodes around each
+    interval, one-sided at the ends; linear with fewer than four samples).  The streaming filter
+    calls it as samples arrive; an interval ``<= len(t) - 3`` never changes afterwards."""
+    n = t.shape[0]
+    for k in range(i0, i1):
+        if n < 4:
+            for c in range(6):
+                out[k, c] = 0.5 * (u[k, c] + u[k + 1, c])
+            continue
+        f = k - 1
+        if f < 0:
+            f = 0
+        if f > n - 4:
+            f = n - 4
+        tm = 0.5 * (t[k] + t[k + 1])
+        for c in range(6):
+            out[k, c] = 0.0
+        for j in range(4):
+            w = 1.0
+            for m in range(4):
+                if m != j:
+                    w *= (tm - t[f + m]) / (t[f + j] - t[f + m])
+            for c in range(6):
+                out[k, c] += w * u[f + j, c]
+
+
+@njit(cache=True)
+def rotation_stats_into(u, k0, n, win, off, cs, cs2, rot_mean, rot_ms):
+    """Trailing-window gyro statistics of samples ``k0 .. n-1`` (see ``filterpass.rotation_window_stats``).
+
+    ``cs`` (n+1, 3) / ``cs2`` (n+1,) hold the running sums of the gyro and of its squared norm
+    (``cs[0] = 0`` at the start of the log; ``off`` samples were trimmed from the front, so buffer index
+    ``i`` is sample ``i + off``); entries ``k0 + 1 .. n`` are filled, and ``rot_mean[k]``, ``rot_ms[k]``
+    for the new samples."""
+    for k in range(k0, n):
+        w0, w1, w2 = u[k, 3], u[k, 4], u[k, 5]
+        cs[k + 1, 0] = cs[k, 0] + w0
+        cs[k + 1, 1] = cs[k, 1] + w1
+        cs[k + 1, 2] = cs[k, 2] + w2
+        cs2[k + 1] = cs2[k] + (w0 * w0 + w1 * w1 + w2 * w2)
+        i1 = k + 1 + off
+        i0 = i1 - win
+        if i0 < 0:
+            i0 = 0
+        cnt = float(i1 - i0)
+        b0 = i0 - off
+        for c in range(3):
+            rot_mean[k, c] = (cs[k + 1, c] - cs[b0, c]) / cnt
+        rot_ms[k] = (cs2[k + 1] - cs2[b0]) / cnt
+
+
 refresh_stale_cache(globals(), [_physics])

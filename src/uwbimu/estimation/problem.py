@@ -3,9 +3,8 @@
 :func:`make_settings` turns :class:`EskfOptions` plus the anchors and the sensor noise into a
 :class:`~uwbimu.estimation.filterpass.Problem` without data (gate, noise array, masks, hull, ...) and
 the calibration priors; :func:`set_imu_timing` fixes the nominal IMU period and what depends on it;
-:func:`midpoints_range` computes the cubic mid-interval inputs of a range of intervals exactly as
-:func:`uwbimu.models.reference.midpoint_inputs` does for the whole log, so that a stream computed
-piece by piece is bit-identical to the batch.
+the streaming filter computes the cubic mid-interval inputs piece by piece
+(``kernels.midpoints_into``, pinned to :func:`uwbimu.models.reference.midpoint_inputs`).
 
 Everything here is causal: the nominal IMU period is the median of the first
 :data:`NOMINAL_PERIOD_SAMPLES` periods, so the streaming filter and the batch agree on it.
@@ -23,7 +22,6 @@ from uwbimu.estimation import kernels as K
 from uwbimu.estimation.filterpass import Problem
 from uwbimu.estimation.options import EskfOptions
 from uwbimu.models.imu import ImuNoise
-from uwbimu.models.reference import midpoint_inputs
 from uwbimu.models import state as S
 
 #: IMU periods whose median is the nominal period (the first ones: known early by a streaming filter)
@@ -59,14 +57,15 @@ def make_settings(
     anchors = np.ascontiguousarray(np.asarray(anchors, dtype=float).reshape(-1, 3))
     M = len(anchor_ids)
     nb = M if opts.anchor_bias.mode != "fixed" else 0
-    N = S.ERROR_DIM + nb
+    layout = S.StateLayout(nb, 1 if opts.height.bias == "estimate" else 0)
+    N = layout.n_err
     mask = np.ones(N)
     if opts.lever_arm.mode != "estimate":
         mask[S.EPIU] = 0.0
     if opts.time_offset.mode != "estimate":
         mask[S.ETD] = 0.0
     if nb and opts.anchor_bias.mode != "estimate":
-        mask[S.ERROR_DIM:] = 0.0
+        mask[layout.err("anchor_bias")] = 0.0
     bias_idx = np.full(M, -1, dtype=np.int64)
     if nb:
         bias_idx[:] = S.ERROR_DIM + np.arange(M)
@@ -78,8 +77,7 @@ def make_settings(
         anchors=anchors,
         noise=np.array([noise.accel_noise_density**2, noise.gyro_noise_density**2, noise.accel_bias_rw**2,
                         noise.gyro_bias_rw**2, opts.lever_arm.random_walk**2, opts.time_offset.random_walk**2]
-                       + ([opts.anchor_bias.prior_sd**2, 1.0 / opts.anchor_bias.correlation_time]
-                          if nb and opts.anchor_bias.correlation_time else [])),
+                       + _extra_noise(opts, nb, layout.n_height_bias)),
         r_var=float(range_sigma**2), bias_idx=bias_idx, gain_mask=mask, dt_nom=float("nan"),
         dt_max=float("nan"), gate=gate, robust_kind=_ROBUST[opts.gating.robust],
         robust_c=opts.gating.robust_c, reopen_after=opts.gating.reopen_after, cov_every=opts.cov_every,
@@ -89,6 +87,8 @@ def make_settings(
         max_pos_var=opts.supervisor.max_position_sd**2,
         all_reject_run=opts.supervisor.all_reject_run, supervise=opts.supervisor.enabled,
     )
+    prob.layout = layout
+    prob.height_sd0 = opts.height.bias_prior_sd if layout.n_height_bias else 0.0
     tsig = tdoa_sigma or math.sqrt(2.0) * range_sigma
     prob.tdoa_var = float(tsig) ** 2
     sd_ba = opts.accel_bias_sd or (noise.accel_bias_sigma0 if noise.accel_bias_sigma0 > 0 else 0.1)
@@ -107,6 +107,15 @@ def make_settings(
     return prob, priors
 
 
+def _extra_noise(opts: EskfOptions, nb: int, nh: int) -> list[float]:
+    """Noise entries after the six densities (see ``models.kernels.cov_step``)."""
+    gm = [opts.anchor_bias.prior_sd**2, 1.0 / opts.anchor_bias.correlation_time] \
+        if nb and opts.anchor_bias.correlation_time else [0.0, 0.0]
+    if nh:
+        return gm + [float(nb), opts.height.bias_random_walk**2]
+    return gm if nb and opts.anchor_bias.correlation_time else []
+
+
 def set_imu_timing(prob: Problem, opts: EskfOptions, dt_nom: float) -> None:
     """Fix the nominal IMU period and what depends on it (gap threshold, rotation-gate window)."""
     prob.dt_nom = float(dt_nom)
@@ -114,15 +123,3 @@ def set_imu_timing(prob: Problem, opts: EskfOptions, dt_nom: float) -> None:
     if opts.lever_arm.mode == "estimate" and opts.lever_arm.min_rotation_rate > 0:
         prob.lever_win = max(1, int(round(opts.excitation.window_s / prob.dt_nom)))
         prob.lever_min_rate = float(opts.lever_arm.min_rotation_rate)
-
-
-def midpoints_range(t: np.ndarray, u: np.ndarray, i0: int, i1: int) -> np.ndarray:
-    """Mid-interval inputs of intervals ``i0 .. i1-1`` of the samples ``t``, ``u`` given so far.
-
-    Identical to ``midpoint_inputs(t, u)[i0:i1]`` on the same samples; only the four samples around each
-    interval are read, so intervals ``<= n - 3`` (centred cubic) never change when samples are appended.
-    """
-    n = len(t)
-    b = min(n, i1 + 2)
-    a = max(0, min(i0 - 1, b - 4))
-    return midpoint_inputs(t[a:b], u[a:b])[i0 - a:i1 - a]

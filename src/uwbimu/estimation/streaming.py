@@ -35,14 +35,16 @@ from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
 
+from uwbimu.estimation import kernels as K
 from uwbimu.estimation.filterpass import (
     REC_ACC, REC_STATUS, STATUS_NOT_PROCESSED, PassResult, PassState, Problem, advance,
 )
 from uwbimu.estimation.init import InitialisationError, InitialState, data_needed, hold_time_offset, initialise
 from uwbimu.estimation.options import EskfOptions
-from uwbimu.estimation.problem import NOMINAL_PERIOD_SAMPLES, make_settings, midpoints_range, nominal_period, set_imu_timing
+from uwbimu.estimation.problem import NOMINAL_PERIOD_SAMPLES, make_settings, nominal_period, set_imu_timing
 from uwbimu.models import state as S
 from uwbimu.models.imu import ImuNoise
+from uwbimu.models.measurements import HeightModel, MeasurementModel, ZeroVelocityModel
 from uwbimu.models.quaternion import quat_multiply
 
 #: rotation of 180 deg about x (its own inverse): anchors' z-down frame <-> the filter's z-up world
@@ -68,6 +70,11 @@ class _Buffer:
             self.a = b
         self.a[self.n:self.n + m] = v
         self.n += m
+
+    def reserve(self, n: int) -> None:
+        """Make the length ``n`` (new entries filled), keeping capacity for more."""
+        if n > self.n:
+            self.extend(np.full((n - self.n,) + self.shape_tail, self.fill, dtype=self.a.dtype))
 
     def view(self, n: Optional[int] = None) -> np.ndarray:
         return self.a[: self.n if n is None else n]
@@ -106,6 +113,13 @@ class EskfState:
     lever_arm_sd: np.ndarray
     time_offset_sd: float
     covariance: np.ndarray
+    layout: S.StateLayout
+    height_bias: Optional[float] = None
+    height_bias_sd: Optional[float] = None
+
+    def cov(self, a: str, b: Optional[str] = None) -> np.ndarray:
+        """Covariance block by name (``"p"``, ``"theta"``, ``"lever"``, ``"t_d"``, ``"anchor_bias"``, ...)."""
+        return self.layout.cov(self.covariance, a, b)
 
 
 class Eskf:
@@ -169,6 +183,7 @@ class Eskf:
         rsig = range_sigma or opts.range_sigma or 0.1
         tsig = tdoa_sigma or opts.tdoa_sigma
         self._prob, self.priors = make_settings(opts, self.anchor_ids, pos, noise, rsig, tsig, lever)
+        self._n_models = 0
         self.imu_noise, self.range_sigma = noise, rsig
         self._known_bias = {str(k): float(v) for k, v in (known_anchor_bias or {}).items()}
         self.record = bool(record)
@@ -183,6 +198,7 @@ class Eskf:
         self._rot_mean = _Buffer(3)
         self._rot_ms = _Buffer(None)
         self._gaps: list[int] = []
+        self._gap_arrays = None
         self._gaps_done = 0  # samples (buffer index) whose preceding interval was checked for a gap
         self._gap_sd: list[tuple[float, float]] = []
         self._imu_off = 0
@@ -242,6 +258,7 @@ class Eskf:
         settings.rot_mean = settings.rot_ms = settings.gap_idx = settings.gap_sd = None
         settings.lever_win, settings.lever_min_rate = 0, 0.0
         settings.t_limit = np.inf
+        settings.models = {}
         f._prob = settings
         f.priors = priors
         f._initial_given = initial
@@ -329,6 +346,46 @@ class Eskf:
             [self._known_bias.get(y, 0.0) - self._known_bias.get(x, 0.0) for x, y in zip(ia, ib)])
         self._add(t, a, np.maximum(b, 0), z, tags)
 
+    def push_height(self, t: float, height: float, sigma: Optional[float] = None) -> None:
+        """One altimeter reading: the IMU origin's z coordinate [m] in the anchors' frame, stamped ``t``
+        [s, IMU clock]; ``sigma`` [m] defaults to ``options.height.sigma``.  With
+        ``options.height.bias = "estimate"`` an altimeter bias is estimated along."""
+        sig = self.options.height.sigma if sigma is None else float(sigma)
+        z = float(height) * (-1.0 if self._flip else 1.0)
+        self.push(t, HeightModel(sig, self._prob.state_layout()), np.array([z]))
+
+    def push_zero_velocity(self, t: float, sigma: float = 0.01) -> None:
+        """The platform stands still at ``t`` [s, IMU clock] (e.g. a detected stance phase or a landed
+        drone): a zero-velocity pseudo-measurement with sd ``sigma`` [m/s] per axis."""
+        self.push(t, ZeroVelocityModel(sigma), np.zeros(3))
+
+    def push(self, t: float, model: MeasurementModel, z: Sequence[float]) -> None:
+        """Any measurement through the model protocol (:mod:`uwbimu.models.measurements`): ``model``
+        predicts ``z`` from the state at ``t`` (its own clock, ``model.clock``); processed in order
+        with the ranges, with the same gate (chi-square at the options' probability) and robust loss.
+        The model works in the filter's world frame (z up; ``anchor_frame_up: -z`` turns y and z)."""
+        z = np.atleast_1d(np.asarray(z, dtype=float))
+        if len(z) != model.dim:
+            raise ValueError(f"push: {model.name} has dim {model.dim}, got {len(z)} values")
+        if not (np.isfinite(t) and np.all(np.isfinite(z))):
+            self._dropped["not_finite"] += 1
+            return
+        i = self._n_models
+        self._n_models += 1
+        self._prob.models[i] = (model, z)
+        self._mt.extend(np.array([float(t)]))
+        self._ma.extend(np.array([-1], dtype=np.int64))
+        self._mb.extend(np.array([-2 - i], dtype=np.int64))
+        self._mr.extend(z[:1])
+        rec = np.full((1, 7), np.nan)
+        rec[:, REC_STATUS] = STATUS_NOT_PROCESSED
+        rec[:, REC_ACC] = 0.0
+        self._rec.extend(rec)
+        if model.clock == "uwb":
+            self._watermark = max(self._watermark, float(t))
+        self._sync()
+        self._step()
+
     def finish(self, progress=None) -> None:
         """End of the data: process everything still waiting (the last IMU intervals included).
 
@@ -337,7 +394,8 @@ class Eskf:
         self._progress = progress
         n = self._t.n
         if n >= 2 and self._um_done < n - 1:
-            self._um.a[self._um_done:n - 1] = midpoints_range(self._t.view(), self._u.view(), self._um_done, n - 1)
+            self._um.reserve(n - 1)
+            K.midpoints_into(self._t.view(), self._u.view(), self._um_done, n - 1, self._um.a)
             self._um_done = n - 1
         self._step()
         if self._mode == "run" and self._st is not None:
@@ -371,15 +429,18 @@ class Eskf:
             d = np.ones(P.shape[0])
             d[0:6] = np.concatenate([_FLIP, _FLIP])
             Pc = P * d[:, None] * d[None, :]
-        nb = x.shape[0] - S.NOMINAL_DIM
+        L = self._prob.state_layout()
+        nb = L.n_anchor_bias
         return EskfState(
             t=t_imu - float(x[S.TD]), t_imu=t_imu, position=p, velocity=v, quaternion=q,
             accel_bias=x[S.BA].copy(), gyro_bias=x[S.BG].copy(), lever_arm=x[S.PIU].copy(),
             time_offset=float(x[S.TD]),
-            anchor_bias={a: float(x[S.NOMINAL_DIM + i]) for i, a in enumerate(self.anchor_ids)} if nb else {},
+            anchor_bias={a: float(v) for a, v in zip(self.anchor_ids, x[L.nom("anchor_bias")])} if nb else {},
             position_sd=sd[S.EP].copy(), velocity_sd=sd[S.EV].copy(), attitude_sd=sd[S.ETH].copy(),
             accel_bias_sd=sd[S.EBA].copy(), gyro_bias_sd=sd[S.EBG].copy(), lever_arm_sd=sd[S.EPIU].copy(),
-            time_offset_sd=float(sd[S.ETD]), covariance=Pc,
+            time_offset_sd=float(sd[S.ETD]), covariance=Pc, layout=L,
+            height_bias=float(x[L.nom("height_bias")][0]) if L.n_height_bias else None,
+            height_bias_sd=float(sd[L.err("height_bias")][0]) if L.n_height_bias else None,
         )
 
     def events(self) -> list[dict[str, Any]]:
@@ -444,10 +505,10 @@ class Eskf:
         """Mid-interval inputs that became final, gaps and rotation-gate statistics of new samples."""
         n = self._t.n
         t, u = self._t.view(), self._u.view()
-        self._um.extend(np.zeros((n - 1 - self._um.n, 6)) if n - 1 > self._um.n else np.zeros((0, 6)))
+        self._um.reserve(n - 1)
         hi = n - 2 if n >= 4 else 0  # intervals < n - 2 have their four centred samples
         if hi > self._um_done:
-            self._um.a[self._um_done:hi] = midpoints_range(t, u, self._um_done, hi)
+            K.midpoints_into(t, u, self._um_done, hi, self._um.a)
             self._um_done = hi
         if math.isnan(self._prob.dt_nom):
             if n + self._imu_off > NOMINAL_PERIOD_SAMPLES:
@@ -467,7 +528,11 @@ class Eskf:
         dt_max = self._prob.dt_max
         g0 = max(self._gaps_done - 1, 0)
         self._gaps_done = n
-        for g in np.flatnonzero(np.diff(t[g0:]) > dt_max) + g0:
+        if n - g0 == 2:  # one new sample (the usual streaming call): a scalar test
+            new_gaps = [g0] if t[g0 + 1] - t[g0] > dt_max else []
+        else:
+            new_gaps = (np.flatnonzero(np.diff(t[g0:]) > dt_max) + g0).tolist()
+        for g in new_gaps:
             lo = int(np.searchsorted(t, t[g] - 1.0))
             seg = u[lo:g + 2]
             sd = (float(np.max(np.std(seg[:, 0:3], axis=0))), float(np.max(np.std(seg[:, 3:6], axis=0)))) \
@@ -475,27 +540,17 @@ class Eskf:
             if not self._gaps or g > self._gaps[-1]:
                 self._gaps.append(int(g))
                 self._gap_sd.append(sd)
+                self._gap_arrays = None
         if self._prob.lever_min_rate > 0:
-            w = u[:, 3:6]
             if self._cs.n == 0:
                 self._cs.extend(np.zeros((1, 3)))
                 self._cs2.extend(np.zeros(1))
             k0 = self._cs.n - 1  # samples already summed
             if n > k0:
-                cs = np.cumsum(np.vstack([self._cs.a[self._cs.n - 1:self._cs.n], w[k0:n]]), axis=0)[1:]
-                cs2 = np.cumsum(np.concatenate([self._cs2.a[self._cs2.n - 1:self._cs2.n],
-                                                np.sum(w[k0:n] * w[k0:n], axis=1)]))[1:]
-                self._cs.extend(cs)
-                self._cs2.extend(cs2)
-                i1 = np.arange(k0 + 1, n + 1) + self._imu_off
-                i0 = np.maximum(0, i1 - max(int(self._prob.lever_win), 1))
-                cnt = (i1 - i0).astype(float)
-                b0, b1 = i0 - self._imu_off, i1 - self._imu_off
-                if np.any(b0 < 0):
-                    raise RuntimeError("rotation window reaches before the trimmed buffer")
-                CS, CS2 = self._cs.view(), self._cs2.view()
-                self._rot_mean.extend((CS[b1] - CS[b0]) / cnt[:, None])
-                self._rot_ms.extend((CS2[b1] - CS2[b0]) / cnt)
+                for b, m in ((self._cs, n + 1), (self._cs2, n + 1), (self._rot_mean, n), (self._rot_ms, n)):
+                    b.reserve(m)
+                K.rotation_stats_into(u, k0, n, max(int(self._prob.lever_win), 1), self._imu_off, self._cs.a,
+                                      self._cs2.a, self._rot_mean.a, self._rot_ms.a)
 
     def _sync(self) -> None:
         """Point the :class:`Problem` at the buffers."""
@@ -513,8 +568,10 @@ class Eskf:
         p.uwb_b = self._mb.view()
         p.uwb_r = self._mr.view()
         if not math.isnan(p.dt_nom):
-            p.gap_idx = np.array(self._gaps, dtype=np.int64)
-            p.gap_sd = np.array(self._gap_sd, dtype=float).reshape(-1, 2)
+            if self._gap_arrays is None:
+                self._gap_arrays = (np.array(self._gaps, dtype=np.int64),
+                                    np.array(self._gap_sd, dtype=float).reshape(-1, 2))
+            p.gap_idx, p.gap_sd = self._gap_arrays
             if p.lever_min_rate > 0:
                 p.rot_mean = self._rot_mean.view()
                 p.rot_ms = self._rot_ms.view()
@@ -670,7 +727,11 @@ class Eskf:
             keep = g >= 0
             self._gaps = g[keep].tolist()
             self._gap_sd = [s for s, k in zip(self._gap_sd, keep) if k]
+            self._gap_arrays = None
         if jd >= 4096:
+            for bi in self._mb.a[:jd]:
+                if bi <= -2:
+                    self._prob.models.pop(int(-bi - 2), None)
             for b in (self._mt, self._ma, self._mb, self._mr, self._rec):
                 b.drop_front(jd)
             self._m_off += jd

@@ -366,16 +366,29 @@ def _cov_step(P, x, u, dt, noise, B, W, col):
         P[12 + i, 12 + i] += noise[3] * adt
         P[15 + i, 15 + i] += noise[4] * adt
     P[18, 18] += noise[5] * adt
-    if noise.shape[0] >= 8 and noise[7] > 0.0 and N > 19:
+    n_gm = _n_gauss_markov(noise, N)
+    if noise.shape[0] >= 8 and noise[7] > 0.0 and n_gm > 0:
         # per-anchor range biases as first-order Gauss-Markov processes
         # (b' = -b / tau + w, stationary variance noise[6], 1 / tau = noise[7]):
         # Phi_bb = exp(-|dt| / tau) I, Q_bb = var (1 - Phi_bb^2)
         f = math.exp(-adt * noise[7])
-        for r in range(19, N):
+        for r in range(19, 19 + n_gm):
             for c in range(N):
                 P[r, c] *= f
                 P[c, r] *= f
             P[r, r] += noise[6] * (1.0 - f * f)
+    if noise.shape[0] >= 10:
+        # further additive states after the anchor biases (e.g. an altimeter bias): random walks
+        for r in range(19 + int(noise[8]), N):
+            P[r, r] += noise[9] * adt
+
+
+@njit(cache=True)
+def _n_gauss_markov(noise, N):
+    """Number of anchor-bias states (error indices 19 ..): ``noise[8]`` when given, else all extras."""
+    if noise.shape[0] >= 9:
+        return int(noise[8])
+    return N - 19
 
 
 @njit(cache=True)
@@ -387,7 +400,9 @@ def cov_step(P, x, u, dt, noise):
     random walks), optionally followed by ``[var_b, 1 / tau_b]``: the per-anchor
     range biases (error components 19..N-1) are then first-order Gauss-Markov
     processes of stationary variance ``var_b`` and correlation time ``tau_b``
-    (``1 / tau_b = 0``: constant biases).  ``Q`` is the Van Loan expansion to the leading order of
+    (``1 / tau_b = 0``: constant biases), optionally followed by ``[n_b, s_x^2]``: only the first ``n_b``
+    extra states are anchor biases, the rest (e.g. an altimeter bias) random walks of density ``s_x``.
+    ``Q`` is the Van Loan expansion to the leading order of
     each block (``pp = s_a^2 dt^3/3``, ``pv = s_a^2 dt^2/2``, ``vv = s_a^2 dt``, ...).
     """
     _cov_step(P, x, u, dt, noise, np.empty((7, 3, 3)), np.empty((6, 3, 3)), np.empty(P.shape[0]))
@@ -396,9 +411,10 @@ def cov_step(P, x, u, dt, noise):
 @njit(cache=True)
 def decay_biases(x, dt, noise):
     """Mean of Gauss-Markov range biases over ``dt``: ``b <- exp(-|dt| / tau) b`` (no-op when constant)."""
-    if noise.shape[0] >= 8 and noise[7] > 0.0 and x.shape[0] > 20:
+    n_gm = _n_gauss_markov(noise, x.shape[0] - 1)
+    if noise.shape[0] >= 8 and noise[7] > 0.0 and n_gm > 0:
         f = math.exp(-abs(dt) * noise[7])
-        for i in range(20, x.shape[0]):
+        for i in range(20, 20 + n_gm):
             x[i] *= f
 
 
