@@ -98,17 +98,26 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
         raise ValueError(f"dataset {ds.meta.name!r}: only {len(imu_t)} IMU samples")
     uwb = ds.uwb
     tag = opts.tag
+    tag_names: list[str] = []
     if "tag" in uwb.columns:
         tags = list(pd.unique(uwb["tag"].astype(str)))
-        if tag is None:
-            tag = tags[0]
-        if tag not in tags:
+        if tag is not None and tag not in tags:
             raise ValueError(f"tag {tag!r} not in the UWB log (tags: {tags})")
-        if len(tags) > 1:
-            n_other = int((uwb["tag"].astype(str) != tag).sum())
-            warnings.append(f"UWB: {len(tags)} tags in the log; using {tag!r}, {n_other} ranges of other tags not used")
-        uwb = uwb[uwb["tag"].astype(str) == tag]
+        if tag is None and len(tags) > 1:
+            # several tags, one filter: one lever arm each (dataset.yaml's order first)
+            meta_order = [tm.name for tm in ds.meta.tags if tm.name in tags]
+            tag_names = meta_order + [t_ for t_ in tags if t_ not in meta_order]
+            tag = tag_names[0]
+        else:
+            tag = tag or tags[0]
+            if len(tags) > 1:
+                n_other = int((uwb["tag"].astype(str) != tag).sum())
+                warnings.append(f"UWB: {len(tags)} tags in the log; using {tag!r} (options.tag), {n_other} ranges "
+                                f"of other tags not used")
+            uwb = uwb[uwb["tag"].astype(str) == tag]
     uwb = uwb.sort_values("t", kind="stable")
+    tag_of_row = (uwb["tag"].astype(str).map({n: i for i, n in enumerate(tag_names)}).to_numpy(np.int64)
+                  if tag_names else None)
     anchor_ids = [str(a) for a in ds.anchors["anchor"]]
     index = {a: i for i, a in enumerate(anchor_ids)}
     aid = uwb["anchor"].astype(str).to_numpy()
@@ -125,6 +134,7 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
     uwb_a = np.ascontiguousarray(np.array([index[a] for a in aid[sel]], dtype=np.int64))
     uwb_r = np.ascontiguousarray(rng[sel])
     uwb_anchor_ids = aid[sel]
+    uwb_tag = tag_of_row[sel] if tag_of_row is not None else np.zeros(len(uwb_t), dtype=np.int64)
     kb = ds.meta.known_anchor_bias or {}
     for a, b in kb.items():
         if a in index:
@@ -132,8 +142,8 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
     uwb_b = np.full(len(uwb_t), -1, dtype=np.int64)
     tdoa = getattr(ds, "tdoa", None)
     if tdoa is not None and len(tdoa):
-        uwb_t, uwb_a, uwb_b, uwb_r, uwb_anchor_ids = _merge_tdoa(tdoa, tag, index, warnings, uwb_t, uwb_a, uwb_r,
-                                                                 uwb_anchor_ids, kb)
+        uwb_t, uwb_a, uwb_b, uwb_r, uwb_anchor_ids, uwb_tag = _merge_tdoa(
+            tdoa, tag, index, warnings, uwb_t, uwb_a, uwb_r, uwb_anchor_ids, kb, uwb_tag, tag_names)
     anchors = ds.anchor_array(anchor_ids).astype(float)
     frame_up = resolve_anchor_frame_up(ds, opts, warnings, events)
     if frame_up == "-z":
@@ -148,7 +158,13 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
     # TDoA noise: options, else the dataset's (extra.tdoa_sigma, written by the simulator), else the
     # difference of two independent ranges
     tsig = opts.tdoa_sigma or (ds.meta.extra or {}).get("tdoa_sigma")
-    prob, priors = make_settings(opts, anchor_ids, anchors, noise, rsig, tsig, dataset_lever_prior(ds, opts, tag))
+    if tag_names:
+        levers = [dataset_lever_prior(ds, opts, n) for n in tag_names]
+    else:
+        levers = dataset_lever_prior(ds, opts, tag)
+    prob, priors = make_settings(opts, anchor_ids, anchors, noise, rsig, tsig, levers, tag_names or None)
+    if tag_names:
+        prob.uwb_tag = np.ascontiguousarray(uwb_tag)
     prob.imu_t, prob.imu_u = imu_t, imu_u
     prob.imu_um = np.ascontiguousarray(midpoint_inputs(imu_t, imu_u))
     prob.uwb_t, prob.uwb_a, prob.uwb_r = uwb_t, uwb_a, uwb_r
@@ -159,6 +175,7 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
     if prob.lever_min_rate > 0:
         prob.rot_mean, prob.rot_ms = rotation_window_stats(imu_u, prob.lever_win)
     info = {"warnings": warnings, "events": events, "imu_noise": noise, "range_sigma": rsig, "tag": tag,
+            "tags": tag_names or [tag],
             "anchor_frame_up": frame_up,
             "priors": priors, "uwb_anchor_ids": uwb_anchor_ids}
     return prob, info
@@ -176,14 +193,16 @@ def dataset_lever_prior(ds: Dataset, opts: EskfOptions, tag: Optional[str]) -> l
 
 
 def _merge_tdoa(tdoa: pd.DataFrame, tag, index: dict[str, int], warnings: list[str], uwb_t, uwb_a, uwb_r,
-                uwb_anchor_ids, known_bias: dict[str, float]):
+                uwb_anchor_ids, known_bias: dict[str, float], uwb_tag=None, tag_names=()):
     """Merge ``ds.tdoa`` (``t, anchor_a, anchor_b, tdoa`` [+ ``tag``]) into the UWB stream in time order.
 
     Returns ``(t, a, b, z, ids)`` with ``b = -1`` for ranges and ``ids`` the (first) anchor's id; rows
     with an unknown anchor or a non-finite value are not used (and counted in ``warnings``).  Known anchor
     range biases (``dataset.yaml`` ``known_anchor_bias``) are removed as ``b_b - b_a``."""
     td = tdoa
-    if "tag" in td.columns and tag is not None:
+    if "tag" in td.columns and tag_names:
+        td = td[td["tag"].astype(str).isin(list(tag_names))]
+    elif "tag" in td.columns and tag is not None:
         td = td[td["tag"].astype(str) == str(tag)]
     ida = td["anchor_a"].astype(str).to_numpy()
     idb = td["anchor_b"].astype(str).to_numpy()
@@ -203,8 +222,15 @@ def _merge_tdoa(tdoa: pd.DataFrame, tag, index: dict[str, int], warnings: list[s
     z_all = np.concatenate([uwb_r, z[ok]])[order]
     ids = np.concatenate([np.asarray(uwb_anchor_ids, dtype=object),
                           ida[ok].astype(object)])[order]
+    if uwb_tag is None:
+        uwb_tag = np.zeros(len(uwb_t), dtype=np.int64)
+    if "tag" in td.columns and tag_names:
+        ttag = td["tag"].astype(str).map({n: i for i, n in enumerate(tag_names)}).to_numpy(np.int64)[ok]
+    else:
+        ttag = np.zeros(int(ok.sum()), dtype=np.int64)
+    tag_all = np.concatenate([np.asarray(uwb_tag, dtype=np.int64), ttag])[order]
     return (np.ascontiguousarray(t_all[order]), np.ascontiguousarray(a_all), np.ascontiguousarray(b_all),
-            np.ascontiguousarray(z_all), ids)
+            np.ascontiguousarray(z_all), ids, np.ascontiguousarray(tag_all))
 
 
 def run_eskf(
@@ -251,7 +277,8 @@ def run_eskf(
     f = Eskf.from_problem(prob, priors, opts, record=True, initial=initial)
     c0 = time.process_time()
     f.feed(prob.imu_t, prob.imu_u, prob.uwb_t, prob.uwb_a,
-           prob.uwb_b if prob.uwb_b is not None else np.full(len(prob.uwb_t), -1, dtype=np.int64), prob.uwb_r)
+           prob.uwb_b if prob.uwb_b is not None else np.full(len(prob.uwb_t), -1, dtype=np.int64), prob.uwb_r,
+           prob.uwb_tag)
     f.finish(progress=cb)
     cpu_filter = time.process_time() - c0
     if f.initial is None:
@@ -353,6 +380,8 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
         is_td = prob.uwb_b >= 0
         residuals["kind"] = np.where(is_td, "tdoa", "range")
         residuals["anchor_b"] = np.where(is_td, np.array(prob.anchor_ids, dtype=object)[np.maximum(prob.uwb_b, 0)], "")
+    if prob.tag_names and prob.uwb_tag is not None:
+        residuals["tag"] = np.array(prob.tag_names, dtype=object)[prob.uwb_tag]
     n_gap = int((rec[:, REC_STATUS] == STATUS_IN_GAP).sum())
     n_frozen = sum(p.n_lever_frozen for p in passes)
     n_acc = int((rec[:, REC_ACC] > 0).sum())
@@ -393,6 +422,10 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
     # per-tag block (the top-level lever_arm keys stay for the first/used tag)
     calibration["tags"] = {str(info["tag"] or "tag0"): {"lever_arm": calibration["lever_arm"],
                                                          "lever_arm_sd": calibration["lever_arm_sd"]}}
+    for i, name in enumerate(prob.tag_names[1:], start=1):
+        calibration["tags"][str(name)] = {
+            "lever_arm": [float(v) for v in x_end[L.lever_nom(i)]],
+            "lever_arm_sd": [float(v) if not fixed[S.EPIU.start] else 0.0 for v in sd_end[L.lever_err(i)]]}
     if nb:
         xb, sb = x_end[L.nom("anchor_bias")], sd_end[L.err("anchor_bias")]
         calibration["anchor_bias"] = {a: float(xb[i]) for i, a in enumerate(prob.anchor_ids)}

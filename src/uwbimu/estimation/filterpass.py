@@ -34,6 +34,7 @@ import numpy as np
 from uwbimu.estimation import kernels as K
 from uwbimu.models.measurements import vector_update
 from uwbimu.models.state import StateLayout
+from uwbimu.models import state as S
 
 # columns of the per-range output record
 REC_PRED, REC_INNOV, REC_NIS, REC_ACC, REC_W, REC_STATUS, REC_S = range(7)
@@ -105,6 +106,11 @@ class Problem:
     # uwb_b[j] <= -2 is models[-uwb_b[j] - 2] = (model, z); uwb_a[j] = -1
     models: dict = field(default_factory=dict)
     layout: Optional[StateLayout] = None
+    # several tags: tag number of each row (None: all the first tag), the error index of each tag's
+    # lever block and the tags' names
+    uwb_tag: Optional[np.ndarray] = None
+    tag_lever_err: Optional[np.ndarray] = None
+    tag_names: list = field(default_factory=list)
     height_sd0: float = 0.0  # prior sd of the altimeter bias state (when the layout has one) [m]
 
     def state_layout(self) -> StateLayout:
@@ -325,9 +331,12 @@ def advance(
     ws = np.zeros(1)
     m = prob.uwb_t.shape[0]
     o = np.empty(7)
-    gate_lever = prob.lever_min_rate > 0 and prob.rot_ms is not None and prob.gain_mask[15] > 0
+    gate_lever = prob.lever_min_rate > 0 and prob.rot_ms is not None and prob.gain_mask[S.EPIU.start] > 0
     mask_frozen = prob.gain_mask.copy()
-    mask_frozen[15:18] = 0.0
+    mask_frozen[S.EPIU] = 0.0
+    if prob.layout is not None:
+        mask_frozen[prob.layout.err("extra_levers")] = 0.0
+    multi = prob.uwb_tag is not None and prob.tag_lever_err is not None and len(prob.tag_lever_err) > 1
     consec = st.consec
 
     def _record():
@@ -346,7 +355,7 @@ def advance(
         b = -1 if prob.uwb_b is None else int(prob.uwb_b[j])
         model = prob.models[-b - 2][0] if b <= -2 else None
         # a UWB-clock stamp sees the IMU-clock state t_d later
-        tau = tj + x[19] if model is None or model.clock == "uwb" else tj
+        tau = tj + x[S.TD] if model is None or model.clock == "uwb" else tj
         if tau > t_last:
             break
         if record:
@@ -378,22 +387,23 @@ def advance(
         # no rotation, no lever-arm information: Schmidt (consider) update for the lever arm only
         # (the rate must stand out from the gyro-bias uncertainty: before the bias has converged an
         # uncorrected bias would otherwise pass for rotation)
-        frozen = gate_lever and (prob.rotation_rms(k, x[13:16]) - math.sqrt(max(P[12, 12] + P[13, 13] + P[14, 14], 0.0))
+        frozen = gate_lever and (prob.rotation_rms(k, x[S.BG]) - math.sqrt(max(np.trace(P[S.EBG, S.EBG]), 0.0))
                                  < prob.lever_min_rate)
         mask = mask_frozen if frozen else prob.gain_mask
+        lev = int(prob.tag_lever_err[prob.uwb_tag[j]]) if multi else 15
         if model is not None:
             _model_update(prob, x, P, k, tau, model, prob.models[-b - 2][1], force, mask, o)
         elif b < 0:
             K.range_update(
                 x, P, imu_t, prob.imu_u, prob.imu_um, k, tau, prob.anchors[a], prob.bias_idx[a], prob.uwb_r[j],
-                prob.r_var, prob.gate, force, prob.robust_kind, prob.robust_c, mask, prob.dt_max, o,
+                prob.r_var, prob.gate, force, prob.robust_kind, prob.robust_c, mask, prob.dt_max, o, lev,
             )
         else:
             # per-anchor bias states (anchor_bias mode estimate): the TDoA sees their difference b_b - b_a
             K.tdoa_update(
                 x, P, imu_t, prob.imu_u, prob.imu_um, k, tau, prob.anchors[a], prob.anchors[b], prob.bias_idx[a],
                 prob.bias_idx[b], prob.uwb_r[j],
-                prob.tdoa_var, prob.gate, force, prob.robust_kind, prob.robust_c, mask, prob.dt_max, o,
+                prob.tdoa_var, prob.gate, force, prob.robust_kind, prob.robust_c, mask, prob.dt_max, o, lev,
             )
         rec[j] = o
         if o[REC_ACC] > 0:

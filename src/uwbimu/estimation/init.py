@@ -172,6 +172,7 @@ class Prior:
     sd_bg: float
     sd_lever: np.ndarray  # (3,) zero when fixed
     sd_bias: float  # zero when fixed
+    extra_levers: Optional[np.ndarray] = None  # (T-1, 3) lever arms of tags 2.. (several tags)
 
 
 def assemble(prob: Problem, pr: Prior, yaw: float, yaw_sd: float, td: float, td_sd: float, k0: int,
@@ -183,13 +184,17 @@ def assemble(prob: Problem, pr: Prior, yaw: float, yaw_sd: float, td: float, td_
     x[0:3] = pr.p + v_t0 * dt
     x[3:6] = pr.v
     q = quat_from_euler(pr.roll, pr.pitch, yaw)
-    x[6:10] = q
-    x[10:13] = pr.ba
-    x[13:16] = pr.bg
-    x[16:19] = pr.lever
-    x[19] = td
+    x[S.Q] = q
+    x[S.BA] = pr.ba
+    x[S.BG] = pr.bg
+    x[S.PIU] = pr.lever
+    x[S.TD] = td
     x[L.nom("anchor_bias")] = pr.anchor_bias
     P = np.zeros((L.n_err, L.n_err))
+    if L.n_tags > 1:
+        x[L.nom("extra_levers")] = np.asarray(pr.extra_levers, dtype=float).reshape(-1)
+        el = L.err("extra_levers")
+        P[el, el] = np.diag(np.tile(pr.sd_lever**2, L.n_tags - 1))
     P[0:3, 0:3] = np.eye(3) * pr.sd_p**2
     P[3:6, 3:6] = np.eye(3) * pr.sd_v**2
     # roll/pitch/yaw uncertainty is about world axes; the error state is a body
@@ -254,6 +259,7 @@ def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: i
         anchor_bias=pr_fixed["anchor_bias"], sd_p=max(io.position_sd, 2 * rms), sd_v=io.velocity_sd,
         sd_rp=math.radians(io.roll_pitch_sd_deg), sd_ba=pr_fixed["sd_ba"], sd_bg=pr_fixed["sd_bg"],
         sd_lever=pr_fixed["sd_lever"], sd_bias=pr_fixed["sd_bias"],
+        extra_levers=np.asarray(pr_fixed.get("tag_levers", np.zeros((1, 3))), dtype=float)[1:],
     )
     info: dict[str, Any] = {"t0": t0, "fix_position": p0.tolist(), "fix_velocity": v0.tolist(),
                             "fix_rms": rms, "fix_ranges": nfix, "roll": roll, "pitch": pitch}
@@ -406,10 +412,10 @@ def _refine(prob: Problem, pr: Prior, x0, P0, k0: int, j0: int, t0: float, v0, y
     """
     res = run_pass(prob, x0, P0, k0, j0, t_uwb_end=t_end, record=False, to_end=False)
     x = res.x
-    if res.diverged or not np.all(np.isfinite(x)) or abs(x[19] - x0[19]) > 3 * max(td_sd, 1e-9) + 1e-9:
+    if res.diverged or not np.all(np.isfinite(x)) or abs(x[S.TD] - x0[S.TD]) > 3 * max(td_sd, 1e-9) + 1e-9:
         info["refine"] = "skipped (first pass unreliable)"
         return x0, P0, k0
-    td = float(x[19])
+    td = float(x[S.TD])
     k_new = start_index(prob, t0, td)
     xt = np.empty_like(x)
     ut = np.empty(6)
@@ -417,15 +423,17 @@ def _refine(prob: Problem, pr: Prior, x0, P0, k0: int, j0: int, t0: float, v0, y
     if st != K.UPD_OK:
         info["refine"] = "skipped (start not reachable)"
         return x0, P0, k0
-    q = xt[6:10] / np.linalg.norm(xt[6:10])
+    q = xt[S.Q] / np.linalg.norm(xt[S.Q])
     yaw = math.atan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2))
     pr2 = Prior(**{**pr.__dict__})
-    pr2.ba = x[10:13].copy()
-    pr2.bg = x[13:16].copy()
-    pr2.lever = x[16:19].copy()
-    pr2.anchor_bias = x[prob.state_layout().nom("anchor_bias")].copy()
+    pr2.ba = x[S.BA].copy()
+    pr2.bg = x[S.BG].copy()
+    pr2.lever = x[S.PIU].copy()
+    L = prob.state_layout()
+    pr2.anchor_bias = x[L.nom("anchor_bias")].copy()
+    pr2.extra_levers = x[L.nom("extra_levers")].reshape(-1, 3).copy()
     pr2.roll = math.atan2(2 * (q[0] * q[1] + q[2] * q[3]), 1 - 2 * (q[1] ** 2 + q[2] ** 2))
     pr2.pitch = math.asin(max(-1.0, min(1.0, 2 * (q[0] * q[2] - q[3] * q[1]))))
     x1, P1 = assemble(prob, pr2, yaw, yaw_sd, td, td_sd, k_new, t0, v0)
-    info["refine"] = {"t_end": float(t_end), "yaw": yaw, "td": td, "lever": x[16:19].tolist()}
+    info["refine"] = {"t_end": float(t_end), "yaw": yaw, "td": td, "lever": x[S.PIU].tolist()}
     return x1, P1, k_new

@@ -209,8 +209,26 @@ def robust_weight(e, kind, c):
 
 
 @njit(cache=True)
+def _other_tag(xt, lever_err):
+    """``xt`` with the lever arm of the tag whose lever block starts at error index ``lever_err`` in the
+    first tag's place (nominal 16:19), so the one-tag Jacobians apply; see :func:`_move_lever_rows`."""
+    x2 = xt.copy()
+    for i in range(3):
+        x2[16 + i] = xt[lever_err + 1 + i]
+    return x2
+
+
+@njit(cache=True)
+def _move_lever_rows(h, lever_err):
+    """Move the lever-arm columns of ``h`` (15:18) to the tag's block ``lever_err .. lever_err + 2``."""
+    for i in range(3):
+        h[lever_err + i] += h[15 + i]
+        h[15 + i] = 0.0
+
+
+@njit(cache=True)
 def range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor, bias_idx, z, r_var, gate, force,
-                 robust_kind, robust_c, gain_mask, dt_max, out):
+                 robust_kind, robust_c, gain_mask, dt_max, out, lever_err=15):
     """Process one range: predict at IMU time ``tau``, gate, re-weight, Joseph update.
 
     ``x``, ``P`` belong to IMU time ``imu_t[k] >= tau`` and are updated in
@@ -219,7 +237,8 @@ def range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor, bias_idx, z, r_var,
     zeroed, and the Joseph form keeps ``P`` correct for that sub-optimal gain.
     ``gate`` is the NIS threshold (<= 0: no gate); ``force`` accepts regardless.
     ``out`` (7,) receives ``predicted, innovation, nis, accepted, weight, status, S``
-    (``S`` the innovation variance before robust re-weighting).
+    (``S`` the innovation variance before robust re-weighting).  ``lever_err``: error index of the
+    measuring tag's lever-arm block (15: the first tag).
     """
     N = P.shape[0]
     xt = np.empty_like(x)
@@ -233,13 +252,17 @@ def range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor, bias_idx, z, r_var,
     delta = imu_t[k] - tau
     if delta < 0:
         delta = 0.0
-    pred = range_jacobian(xt, u_tau, anchor, bias_idx, delta, h)
+    if lever_err != 15:
+        pred = range_jacobian(_other_tag(xt, lever_err), u_tau, anchor, bias_idx, delta, h)
+        _move_lever_rows(h, lever_err)
+    else:
+        pred = range_jacobian(xt, u_tau, anchor, bias_idx, delta, h)
     scalar_update(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, gain_mask, out)
 
 
 @njit(cache=True)
 def tdoa_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor_a, anchor_b, bias_a, bias_b, z, r_var, gate, force,
-                robust_kind, robust_c, gain_mask, dt_max, out):
+                robust_kind, robust_c, gain_mask, dt_max, out, lever_err=15):
     """Process one TDoA ``z = |p_U - p_b| - |p_U - p_a|`` [m] as :func:`range_update` does a range.
 
     Prediction and Jacobian from :func:`tdoa_jacobian` (pinned to ``reference.tdoa_measurement``);
@@ -259,7 +282,11 @@ def tdoa_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor_a, anchor_b, bias_a, 
     delta = imu_t[k] - tau
     if delta < 0:
         delta = 0.0
-    pred = tdoa_jacobian(xt, u_tau, anchor_a, anchor_b, -1, delta, h, work)
+    if lever_err != 15:
+        pred = tdoa_jacobian(_other_tag(xt, lever_err), u_tau, anchor_a, anchor_b, -1, delta, h, work)
+        _move_lever_rows(h, lever_err)
+    else:
+        pred = tdoa_jacobian(xt, u_tau, anchor_a, anchor_b, -1, delta, h, work)
     if bias_b >= 0:
         h[bias_b] += 1.0
         pred += xt[bias_b + 1]

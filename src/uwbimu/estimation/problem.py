@@ -43,7 +43,8 @@ def make_settings(
     noise: ImuNoise,
     range_sigma: float,
     tdoa_sigma: Optional[float],
-    lever_prior: Sequence[float],
+    lever_prior: Sequence,
+    tag_names: Optional[Sequence[str]] = None,
 ) -> tuple[Problem, dict[str, Any]]:
     """A :class:`Problem` with the resolved settings and no data, and the calibration priors.
 
@@ -52,16 +53,24 @@ def make_settings(
     anchors : (M, 3) anchor positions in the filter's (z-up) world frame [m].
     noise : IMU noise densities (already scaled by the options).
     range_sigma, tdoa_sigma : measurement noise sd [m] (``tdoa_sigma`` None: ``sqrt(2) range_sigma``).
-    lever_prior : (3,) prior lever arm [m], IMU frame.
+    lever_prior : (3,) prior lever arm [m], IMU frame, or ``(T, 3)``: one per tag of ``tag_names``.
+    tag_names : the tags whose lever arms are estimated (one filter, one lever arm each); None: one tag.
     """
     anchors = np.ascontiguousarray(np.asarray(anchors, dtype=float).reshape(-1, 3))
     M = len(anchor_ids)
     nb = M if opts.anchor_bias.mode != "fixed" else 0
-    layout = S.StateLayout(nb, 1 if opts.height.bias == "estimate" else 0)
+    levers = np.array(lever_prior, dtype=float).reshape(-1, 3)
+    n_tags = max(len(tag_names) if tag_names else 1, 1)
+    if len(levers) == 1 and n_tags > 1:
+        levers = np.repeat(levers, n_tags, axis=0)
+    if len(levers) != n_tags:
+        raise ValueError(f"make_settings: {len(levers)} lever-arm priors for {n_tags} tags")
+    layout = S.StateLayout(nb, 1 if opts.height.bias == "estimate" else 0, n_tags)
     N = layout.n_err
     mask = np.ones(N)
     if opts.lever_arm.mode != "estimate":
         mask[S.EPIU] = 0.0
+        mask[layout.err("extra_levers")] = 0.0
     if opts.time_offset.mode != "estimate":
         mask[S.ETD] = 0.0
     if nb and opts.anchor_bias.mode != "estimate":
@@ -77,7 +86,7 @@ def make_settings(
         anchors=anchors,
         noise=np.array([noise.accel_noise_density**2, noise.gyro_noise_density**2, noise.accel_bias_rw**2,
                         noise.gyro_bias_rw**2, opts.lever_arm.random_walk**2, opts.time_offset.random_walk**2]
-                       + _extra_noise(opts, nb, layout.n_height_bias)),
+                       + _extra_noise(opts, nb, layout.n_height_bias, n_tags - 1)),
         r_var=float(range_sigma**2), bias_idx=bias_idx, gain_mask=mask, dt_nom=float("nan"),
         dt_max=float("nan"), gate=gate, robust_kind=_ROBUST[opts.gating.robust],
         robust_c=opts.gating.robust_c, reopen_after=opts.gating.reopen_after, cov_every=opts.cov_every,
@@ -88,6 +97,8 @@ def make_settings(
         all_reject_run=opts.supervisor.all_reject_run, supervise=opts.supervisor.enabled,
     )
     prob.layout = layout
+    prob.tag_names = list(tag_names) if tag_names else []
+    prob.tag_lever_err = np.array([layout.lever_err(i).start for i in range(n_tags)], dtype=np.int64)
     prob.height_sd0 = opts.height.bias_prior_sd if layout.n_height_bias else 0.0
     tsig = tdoa_sigma or math.sqrt(2.0) * range_sigma
     prob.tdoa_var = float(tsig) ** 2
@@ -95,7 +106,8 @@ def make_settings(
     sd_bg = opts.gyro_bias_sd or (noise.gyro_bias_sigma0 if noise.gyro_bias_sigma0 > 0 else math.radians(1.0))
     td_mode = opts.time_offset.mode
     priors = {
-        "lever": np.array(lever_prior, dtype=float),
+        "lever": levers[0].copy(),
+        "tag_levers": levers,
         "sd_lever": np.zeros(3) if opts.lever_arm.mode == "fixed" else np.full(3, opts.lever_arm.prior_sd),
         "anchor_bias": np.zeros(nb),
         "sd_bias": opts.anchor_bias.prior_sd if nb else 0.0,
@@ -107,12 +119,12 @@ def make_settings(
     return prob, priors
 
 
-def _extra_noise(opts: EskfOptions, nb: int, nh: int) -> list[float]:
+def _extra_noise(opts: EskfOptions, nb: int, nh: int, n_lev: int = 0) -> list[float]:
     """Noise entries after the six densities (see ``models.kernels.cov_step``)."""
     gm = [opts.anchor_bias.prior_sd**2, 1.0 / opts.anchor_bias.correlation_time] \
         if nb and opts.anchor_bias.correlation_time else [0.0, 0.0]
-    if nh:
-        return gm + [float(nb), opts.height.bias_random_walk**2]
+    if nh or n_lev:
+        return gm + [float(nb), opts.height.bias_random_walk**2, 3.0 * n_lev]
     return gm if nb and opts.anchor_bias.correlation_time else []
 
 

@@ -114,6 +114,7 @@ class EskfState:
     time_offset_sd: float
     covariance: np.ndarray
     layout: S.StateLayout
+    tags: dict = None  # several tags: name -> (lever arm (3,), sd (3,)); the first is also lever_arm
     height_bias: Optional[float] = None
     height_bias_sd: Optional[float] = None
 
@@ -173,16 +174,25 @@ class Eskf:
         self._index = {a: i for i, a in enumerate(self.anchor_ids)}
         tags = dict(tags or {})
         self.tag = opts.tag if opts.tag is not None else (next(iter(tags)) if tags else None)
-        lever = opts.lever_arm.prior
-        if lever is None:
-            lever = [0.0, 0.0, 0.0]
-        elif lever == "dataset":
-            nominal = tags.get(self.tag) if self.tag is not None else None
-            lever = list(nominal) if nominal is not None else [0.0, 0.0, 0.0]
+        # several tags and no options.tag: one filter, one lever arm per tag
+        self.tag_names = [str(t_) for t_ in tags] if opts.tag is None and len(tags) > 1 else []
+        self._tag_index = {n: i for i, n in enumerate(self.tag_names)}
+
+        def prior(name):
+            lv = opts.lever_arm.prior
+            if lv is None:
+                return [0.0, 0.0, 0.0]
+            if lv == "dataset":
+                nominal = tags.get(name) if name is not None else None
+                return list(nominal) if nominal is not None else [0.0, 0.0, 0.0]
+            return list(lv)
+
+        lever = [prior(n) for n in self.tag_names] if self.tag_names else prior(self.tag)
         noise = imu_noise if imu_noise is not None else opts.resolve_imu_noise(None)
         rsig = range_sigma or opts.range_sigma or 0.1
         tsig = tdoa_sigma or opts.tdoa_sigma
-        self._prob, self.priors = make_settings(opts, self.anchor_ids, pos, noise, rsig, tsig, lever)
+        self._prob, self.priors = make_settings(opts, self.anchor_ids, pos, noise, rsig, tsig, lever,
+                                                self.tag_names or None)
         self._n_models = 0
         self.imu_noise, self.range_sigma = noise, rsig
         self._known_bias = {str(k): float(v) for k, v in (known_anchor_bias or {}).items()}
@@ -207,6 +217,7 @@ class Eskf:
         self._ma = _Buffer(None, dtype=np.int64)
         self._mb = _Buffer(None, dtype=np.int64)
         self._mr = _Buffer(None)
+        self._mtag = _Buffer(None, dtype=np.int64)
         self._rec = _Buffer(7, fill=np.nan)
         self._m_off = 0
         self._watermark = -np.inf  # newest measurement stamp seen [UWB clock]
@@ -252,7 +263,7 @@ class Eskf:
         :meth:`feed`.  ``initial`` bypasses the initialiser (consistency tests)."""
         f = cls.__new__(cls)
         cls.__init__(f, options, anchors={a: prob.anchors[i] for i, a in enumerate(prob.anchor_ids)},
-                     record=record)
+                     tags={n: None for n in prob.tag_names} or None, record=record)
         settings = Problem(**{**prob.__dict__})
         settings.dt_nom = settings.dt_max = float("nan")
         settings.rot_mean = settings.rot_ms = settings.gap_idx = settings.gap_sd = None
@@ -266,12 +277,13 @@ class Eskf:
         return f
 
     def feed(self, imu_t: np.ndarray, imu_u: np.ndarray, meas_t: np.ndarray, meas_a: np.ndarray,
-             meas_b: np.ndarray, meas_z: np.ndarray) -> None:
+             meas_b: np.ndarray, meas_z: np.ndarray, meas_tag: Optional[np.ndarray] = None) -> None:
         """Push IMU samples ``(n,)``, ``(n, 6)`` and measurements by anchor index (``meas_b >= 0``: TDoA
         to anchor ``meas_b``, else a range) in one go (arrays as in a :class:`Problem`)."""
         if len(meas_t):
             self._add(np.asarray(meas_t, float), np.asarray(meas_a, np.int64), np.asarray(meas_b, np.int64),
-                      np.asarray(meas_z, float), None)
+                      np.asarray(meas_z, float), None,
+                      None if meas_tag is None else np.asarray(meas_tag, np.int64))
         if len(imu_t):
             imu_u = np.asarray(imu_u, float)
             self.push_imu_chunk(imu_t, imu_u[:, :3], imu_u[:, 3:])
@@ -376,6 +388,7 @@ class Eskf:
         self._mt.extend(np.array([float(t)]))
         self._ma.extend(np.array([-1], dtype=np.int64))
         self._mb.extend(np.array([-2 - i], dtype=np.int64))
+        self._mtag.extend(np.zeros(1, dtype=np.int64))
         self._mr.extend(z[:1])
         rec = np.full((1, 7), np.nan)
         rec[:, REC_STATUS] = STATUS_NOT_PROCESSED
@@ -439,6 +452,7 @@ class Eskf:
             position_sd=sd[S.EP].copy(), velocity_sd=sd[S.EV].copy(), attitude_sd=sd[S.ETH].copy(),
             accel_bias_sd=sd[S.EBA].copy(), gyro_bias_sd=sd[S.EBG].copy(), lever_arm_sd=sd[S.EPIU].copy(),
             time_offset_sd=float(sd[S.ETD]), covariance=Pc, layout=L,
+            tags={n: (x[L.lever_nom(i)].copy(), sd[L.lever_err(i)].copy()) for i, n in enumerate(self.tag_names)},
             height_bias=float(x[L.nom("height_bias")][0]) if L.n_height_bias else None,
             height_bias_sd=float(sd[L.err("height_bias")][0]) if L.n_height_bias else None,
         )
@@ -476,19 +490,27 @@ class Eskf:
         t = float(self._mt.a[self._mt.n - 1]) if self._mt.n else 0.0
         self._events.append({"t": t, "kind": kind, **fields})
 
-    def _add(self, t, a, b, z, tags) -> None:
+    def _add(self, t, a, b, z, tags, tag_idx=None) -> None:
         ok = a >= 0
         self._dropped["unknown_anchor"] += int((~ok).sum())
         fin = np.isfinite(t) & np.isfinite(z)
         self._dropped["not_finite"] += int((ok & ~fin).sum())
         ok &= fin
-        if tags is not None and self.tag is not None:
-            mine = np.array([tg is None or str(tg) == str(self.tag) for tg in tags], dtype=bool)
-            self._dropped["other_tag"] += int((ok & ~mine).sum())
-            ok &= mine
+        if tag_idx is None:
+            tag_idx = np.zeros(len(t), dtype=np.int64)
+            if tags is not None and self.tag_names:
+                tag_idx = np.array([self._tag_index.get(str(tg), -1) if tg is not None else 0 for tg in tags],
+                                   dtype=np.int64)
+                self._dropped["other_tag"] += int((ok & (tag_idx < 0)).sum())
+                ok &= tag_idx >= 0
+            elif tags is not None and self.tag is not None:
+                mine = np.array([tg is None or str(tg) == str(self.tag) for tg in tags], dtype=bool)
+                self._dropped["other_tag"] += int((ok & ~mine).sum())
+                ok &= mine
         if not ok.any():
             return
-        t, a, b, z = t[ok], a[ok], b[ok], z[ok]
+        t, a, b, z, tag_idx = t[ok], a[ok], b[ok], z[ok], tag_idx[ok]
+        self._mtag.extend(tag_idx)
         self._mt.extend(t)
         self._ma.extend(a)
         self._mb.extend(b)
@@ -567,6 +589,8 @@ class Eskf:
         p.uwb_a = self._ma.view()
         p.uwb_b = self._mb.view()
         p.uwb_r = self._mr.view()
+        if p.tag_lever_err is not None and len(p.tag_lever_err) > 1:
+            p.uwb_tag = self._mtag.view()
         if not math.isnan(p.dt_nom):
             if self._gap_arrays is None:
                 self._gap_arrays = (np.array(self._gaps, dtype=np.int64),
@@ -732,7 +756,7 @@ class Eskf:
             for bi in self._mb.a[:jd]:
                 if bi <= -2:
                     self._prob.models.pop(int(-bi - 2), None)
-            for b in (self._mt, self._ma, self._mb, self._mr, self._rec):
+            for b in (self._mt, self._ma, self._mb, self._mr, self._mtag, self._rec):
                 b.drop_front(jd)
             self._m_off += jd
             st.j -= jd

@@ -378,8 +378,13 @@ def _cov_step(P, x, u, dt, noise, B, W, col):
                 P[c, r] *= f
             P[r, r] += noise[6] * (1.0 - f * f)
     if noise.shape[0] >= 10:
-        # further additive states after the anchor biases (e.g. an altimeter bias): random walks
-        for r in range(19 + int(noise[8]), N):
+        # further additive states after the anchor biases: the lever arms of further tags (``noise[10]``
+        # of them, random walks like the first lever arm), then an altimeter bias (random walk noise[9])
+        n_lev = int(noise[10]) if noise.shape[0] >= 11 else 0
+        r0 = 19 + int(noise[8])
+        for r in range(r0, r0 + n_lev):
+            P[r, r] += noise[4] * adt
+        for r in range(r0 + n_lev, N):
             P[r, r] += noise[9] * adt
 
 

@@ -130,9 +130,10 @@ class StateLayout:
     """Named blocks of the extended filter state, so that no code needs a literal index.
 
     The extended nominal state is the 20 numbers above followed by ``n_anchor_bias`` per-anchor range
-    biases [m] and ``n_height_bias`` (0 or 1) altimeter biases [m]; the error state is the 19
-    above followed by the same additive components.  Blocks: ``p, v, q`` (nominal) / ``theta``
-    (error), ``b_a, b_g, lever, t_d, anchor_bias, height_bias``.  ``err(name)`` and ``nom(name)``
+    biases [m], the lever arms of tags 2..``n_tags`` [m] (``extra_levers``; the first tag's is ``lever``)
+    and ``n_height_bias`` (0 or 1) altimeter biases [m]; the error state is the 19 above followed by the
+    same additive components.  Blocks: ``p, v, q`` (nominal) / ``theta`` (error), ``b_a, b_g, lever,
+    t_d, anchor_bias, extra_levers, height_bias``; ``lever_err(i)`` / ``lever_nom(i)`` per tag.  ``err(name)`` and ``nom(name)``
     give slices, ``cov(P, a, b)`` a covariance block (as OpenVINS addresses its covariance by the
     variable's id).
 
@@ -145,15 +146,18 @@ class StateLayout:
                  "t_d": slice(ETD, ETD + 1)}
     _BASE_NOM = {"p": P, "v": V, "q": Q, "b_a": BA, "b_g": BG, "lever": PIU, "t_d": slice(TD, TD + 1)}
 
-    def __init__(self, n_anchor_bias: int = 0, n_height_bias: int = 0):
-        if n_anchor_bias < 0 or n_height_bias not in (0, 1):
-            raise ValueError("StateLayout: n_anchor_bias >= 0 and n_height_bias in (0, 1)")
+    def __init__(self, n_anchor_bias: int = 0, n_height_bias: int = 0, n_tags: int = 1):
+        if n_anchor_bias < 0 or n_height_bias not in (0, 1) or n_tags < 1:
+            raise ValueError("StateLayout: n_anchor_bias >= 0, n_height_bias in (0, 1), n_tags >= 1")
         self.n_anchor_bias = int(n_anchor_bias)
         self.n_height_bias = int(n_height_bias)
+        self.n_tags = int(n_tags)
         self._err = dict(self._BASE_ERR)
         self._nom = dict(self._BASE_NOM)
         e, n = ERROR_DIM, NOMINAL_DIM
-        for name, size in (("anchor_bias", self.n_anchor_bias), ("height_bias", self.n_height_bias)):
+        # order of the extras: anchor biases, the lever arms of tags 2.., the altimeter bias
+        for name, size in (("anchor_bias", self.n_anchor_bias), ("extra_levers", 3 * (self.n_tags - 1)),
+                           ("height_bias", self.n_height_bias)):
             self._err[name] = slice(e, e + size)
             self._nom[name] = slice(n, n + size)
             e += size
@@ -161,9 +165,23 @@ class StateLayout:
         self.n_err = e
         self.n_nom = n
 
+    def lever_err(self, tag: int) -> slice:
+        """Error-state slice of the lever arm of tag number ``tag`` (0: the first, block ``lever``)."""
+        if tag == 0:
+            return self._err["lever"]
+        s0 = self._err["extra_levers"].start + 3 * (tag - 1)
+        return slice(s0, s0 + 3)
+
+    def lever_nom(self, tag: int) -> slice:
+        """Nominal-state slice of the lever arm of tag number ``tag``."""
+        if tag == 0:
+            return self._nom["lever"]
+        s0 = self._nom["extra_levers"].start + 3 * (tag - 1)
+        return slice(s0, s0 + 3)
+
     @classmethod
     def for_dims(cls, n_err: int, n_anchor_bias: Optional[int] = None) -> "StateLayout":
-        """The layout of an error state of size ``n_err`` (extras are anchor biases unless told)."""
+        """The layout of a one-tag error state of size ``n_err`` (extras are anchor biases unless told)."""
         nb = n_err - ERROR_DIM if n_anchor_bias is None else n_anchor_bias
         return cls(nb, n_err - ERROR_DIM - nb)
 
