@@ -261,19 +261,21 @@ def _skew3(v0, v1, v2, S):
 @njit(cache=True)
 def _phi_blocks(x, u, dt, B, W):
     """:func:`phi_blocks` with a work array ``W`` (6, 3, 3)."""
-    R = W[0]
+    rotmat(x[6:10], W[0])
+    _phi_blocks_R(W[0], u[0] - x[10], u[1] - x[11], u[2] - x[12], u[3] - x[13], u[4] - x[14], u[5] - x[15],
+                  dt, B, W)
+
+
+@njit(cache=True)
+def _phi_blocks_R(R, a0, a1, a2, w0, w1, w2, dt, B, W):
+    """:func:`phi_blocks` from the attitude matrix ``R`` and the bias-corrected specific force ``a`` and
+    body rate ``w`` (what :mod:`uwbimu.observability.window` has along a trajectory); ``W[1:6]`` is
+    work space (``W[0]`` is left alone: it may hold ``R``)."""
     Ax = W[1]
     Wx = W[2]
     RA = W[3]
     RAW = W[4]
     W2 = W[5]
-    rotmat(x[6:10], R)
-    a0 = u[0] - x[10]
-    a1 = u[1] - x[11]
-    a2 = u[2] - x[12]
-    w0 = u[3] - x[13]
-    w1 = u[4] - x[14]
-    w2 = u[5] - x[15]
     _skew3(a0, a1, a2, Ax)
     _skew3(w0, w1, w2, Wx)
     _mm3(R, Ax, RA)
@@ -319,7 +321,6 @@ def phi_blocks(x, u, dt, B):
 @njit(cache=True)
 def _phi_vec(B, dt, X):
     """In place ``X[0:15] <- Phi X[0:15]`` for one vector ``X`` (block-sparse Phi)."""
-    xv0, xv1, xv2 = X[3], X[4], X[5]
     xt0, xt1, xt2 = X[6], X[7], X[8]
     xa0, xa1, xa2 = X[9], X[10], X[11]
     xg0, xg1, xg2 = X[12], X[13], X[14]
