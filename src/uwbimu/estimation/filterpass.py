@@ -338,6 +338,10 @@ def advance(
         mask_frozen[prob.layout.err("extra_levers")] = 0.0
     multi = prob.uwb_tag is not None and prob.tag_lever_err is not None and len(prob.tag_lever_err) > 1
     consec = st.consec
+    # locals for the per-range loop (attribute lookups cost as much as the kernels' calls here)
+    uwb_t, uwb_a, uwb_b, uwb_r = prob.uwb_t, prob.uwb_a, prob.uwb_b, prob.uwb_r
+    imu_u, imu_um, anchors, bias_idx = prob.imu_u, prob.imu_um, prob.anchors, prob.bias_idx
+    i_td, i_bg = S.TD, S.EBG.start
 
     def _record():
         st.out_t.append(imu_t[st.k])
@@ -349,13 +353,13 @@ def advance(
     t_last = min(imu_t[-1], prob.t_limit)
     j = st.j
     while j < m and st.diverged is None:
-        tj = prob.uwb_t[j]
+        tj = uwb_t[j]
         if tj > t_uwb_end:
             break
-        b = -1 if prob.uwb_b is None else int(prob.uwb_b[j])
+        b = -1 if uwb_b is None else int(uwb_b[j])
         model = prob.models[-b - 2][0] if b <= -2 else None
         # a UWB-clock stamp sees the IMU-clock state t_d later
-        tau = tj + x[S.TD] if model is None or model.clock == "uwb" else tj
+        tau = tj + x[i_td] if model is None or model.clock == "uwb" else tj
         if tau > t_last:
             break
         if record:
@@ -380,14 +384,15 @@ def advance(
             rec[j, REC_STATUS] = STATUS_IN_GAP
             j += 1
             continue
-        a = prob.uwb_a[j]
+        a = uwb_a[j]
         if a < 0:
             a = consec.shape[0] - 1  # the gate counter of the model measurements
         force = consec[a] >= prob.reopen_after
         # no rotation, no lever-arm information: Schmidt (consider) update for the lever arm only
         # (the rate must stand out from the gyro-bias uncertainty: before the bias has converged an
         # uncorrected bias would otherwise pass for rotation)
-        frozen = gate_lever and (prob.rotation_rms(k, x[S.BG]) - math.sqrt(max(np.trace(P[S.EBG, S.EBG]), 0.0))
+        frozen = gate_lever and (prob.rotation_rms(k, x[i_bg + 1:i_bg + 4])
+                                 - math.sqrt(max(P[i_bg, i_bg] + P[i_bg + 1, i_bg + 1] + P[i_bg + 2, i_bg + 2], 0.0))
                                  < prob.lever_min_rate)
         mask = mask_frozen if frozen else prob.gain_mask
         lev = int(prob.tag_lever_err[prob.uwb_tag[j]]) if multi else 15
@@ -395,7 +400,7 @@ def advance(
             _model_update(prob, x, P, k, tau, model, prob.models[-b - 2][1], force, mask, o)
         elif b < 0:
             K.range_update(
-                x, P, imu_t, prob.imu_u, prob.imu_um, k, tau, prob.anchors[a], prob.bias_idx[a], prob.uwb_r[j],
+                x, P, imu_t, imu_u, imu_um, k, tau, anchors[a], bias_idx[a], uwb_r[j],
                 prob.r_var, prob.gate, force, prob.robust_kind, prob.robust_c, mask, prob.dt_max, o, lev,
             )
         else:
