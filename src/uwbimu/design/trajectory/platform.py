@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field
 
 from uwbimu.models.reference import GRAVITY
 
@@ -32,17 +32,12 @@ class MultirotorLimits(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
+    # thrust_min_g < 1 < thrust_max_g: the vehicle must be able to hover
     thrust_max_g: float = Field(2.0, gt=1.0, description="max collective thrust per unit mass [g] (thrust-to-weight ratio)")
     thrust_min_g: float = Field(0.3, ge=0.0, lt=1.0, description="min collective thrust per unit mass [g] (rotors never stop)")
     tilt_max_deg: float = Field(35.0, gt=0, lt=80, description="max angle of the body z axis from vertical [deg]")
     rate_max: float = Field(3.0, gt=0, description="max body angular rate |w| [rad/s]")
     yaw_rate_max: float = Field(2.0, gt=0, description="max yaw rate |psi'| [rad/s]")
-
-    @model_validator(mode="after")
-    def _check(self):
-        if self.thrust_min_g >= self.thrust_max_g:
-            raise ValueError("thrust_min_g must be below thrust_max_g")
-        return self
 
     @property
     def thrust_max(self) -> float:

@@ -94,6 +94,11 @@ class PointMassPlanConfig(BaseModel):
     platform: Platform = Field("multirotor", description="multirotor: thrust/tilt/rate limits, flat attitude; handheld: none")
     multirotor: MultirotorLimits = Field(default_factory=MultirotorLimits, description="limits of the multirotor platform")
     yaw: float = Field(0.0, description="constant yaw of the flown trajectory [rad] (the point mass has none)")
+    limit_margin: float = Field(
+        0.9, gt=0, le=1,
+        description="multirotor: the grid constraints use this fraction of the thrust-max / tilt / rate limits "
+        "(the simulator's spline through the nodes overshoots the piecewise-constant plan by a few %)",
+    )
     x0: list[float] = Field(min_length=6, max_length=6, description="[px, py, pz, vx, vy, vz]")
     tf: float = Field(gt=0)
     n_steps: int = Field(100, ge=4)
@@ -281,7 +286,7 @@ def _multirotor_constraints(opti, U, cfg: PointMassPlanConfig) -> None:
     """
     import casadi as ca
 
-    lim = cfg.multirotor
+    lim, k = cfg.multirotor, cfg.limit_margin
     start, end = _rest_ends(cfg)
     g = ca.DM([0.0, 0.0, GRAVITY])
     n = U.shape[1]
@@ -289,12 +294,18 @@ def _multirotor_constraints(opti, U, cfg: PointMassPlanConfig) -> None:
     A = ca.horzcat(*cols)
     T = A + ca.repmat(g, 1, A.shape[1])
     T2 = ca.sum1(T**2)
-    opti.subject_to(opti.bounded(lim.thrust_min**2, T2, lim.thrust_max**2))
+    opti.subject_to(opti.bounded((lim.thrust_min / k) ** 2, T2, (k * lim.thrust_max) ** 2))
     opti.subject_to(T[2, :] >= 0)
-    opti.subject_to(T[2, :] ** 2 >= np.cos(lim.tilt_max) ** 2 * T2)
+    opti.subject_to(T[2, :] ** 2 >= np.cos(k * lim.tilt_max) ** 2 * T2)
+    # at a rest end the first / last control is a hover node too: the simulator's spline brings the
+    # acceleration to zero within one node interval, and a jump there would be a body-rate spike
+    if start:
+        opti.subject_to(U[:, 0] == 0)
+    if end:
+        opti.subject_to(U[:, -1] == 0)
     Jk = (A[:, 1:] - A[:, :-1]) / cfg.h
     Tk, T2k = T[:, :-1], T2[:-1]
-    opti.subject_to(ca.sum1(Jk**2) * T2k - ca.sum1(Tk * Jk) ** 2 <= lim.rate_max**2 * T2k**2)
+    opti.subject_to(ca.sum1(Jk**2) * T2k - ca.sum1(Tk * Jk) ** 2 <= (k * lim.rate_max) ** 2 * T2k**2)
 
 
 def flight_trajectory(plan: "PointMassPlan", cfg: PointMassPlanConfig):
