@@ -84,7 +84,7 @@ def bench_pointmass() -> None:
     )  # fmt: skip
     print("\n== 2. point-mass planner (4 beacons, 2 obstacles, box, |v|<=2, |a|<=2, rest-to-rest, N=100) ==")
     for obj, plat in ((o, p) for p in ("handheld", "multirotor") for o in ("none", "logdet", "min_eig", "trace_inv")):
-        r = plan_point_mass(PointMassPlanConfig(objective=obj, platform=plat, ipopt_max_iter=3000, **base))
+        r = plan_point_mass(PointMassPlanConfig(objective=obj, platform=plat, **base))
         m = r.metrics
         print(f"  {plat:10s} {obj:9s}: {r.status:22s} solve {r.solve_time_s:.2f} s, logdet {m['logdet']:.3f}, min_eig {m['min_eig']:.1f}, "
               f"trace_inv {m['trace_inv']:.3e}, effort {m['control_effort']:.3f}, max violation {max(r.constraint_violation.values()):.1e}")

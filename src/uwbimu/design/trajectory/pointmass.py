@@ -121,7 +121,7 @@ class PointMassPlanConfig(BaseModel):
     prior_sigma_p: float = Field(10.0, gt=0, description="prior sd of the initial position [m] (regularises I)")
     prior_sigma_v: float = Field(10.0, gt=0, description="prior sd of the initial velocity [m/s]")
     ipopt_tol: float = Field(1e-8, gt=0)
-    ipopt_max_iter: int = Field(500, ge=1)
+    ipopt_max_iter: int = Field(3000, ge=1, description="E-optimality with the multirotor limits needs ~1100")
 
     @model_validator(mode="after")
     def _check(self):
