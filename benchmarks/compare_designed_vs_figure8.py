@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -32,6 +33,7 @@ import numpy as np
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_eskf_crlb, also in the pool's workers
 NAMES = ["lever_x", "lever_y", "lever_z", "t_d"]
 TRAJS = ("designed", "figure8_excited")
 
@@ -45,17 +47,11 @@ def crlb_sd(scenario_file: str, seed: int) -> np.ndarray:
 
     sc = load_scenario(scenario_file)
     sc = sc.model_copy(update={"seeds": sc.seeds.model_copy(update={"noise": 1000 + seed, "init": 5000 + seed})})
+    from bench_eskf_crlb import truth_states  # benchmarks/ (this script's folder)
+
     sim = simulate_full(sc)
     ds = sim.dataset
-    gt = ds.groundtruth
-    X = np.zeros((len(gt), 20))
-    X[:, 0:3] = gt[["px", "py", "pz"]].to_numpy()
-    X[:, 3:6] = gt[["vx", "vy", "vz"]].to_numpy()
-    X[:, 6:10] = gt[["qw", "qx", "qy", "qz"]].to_numpy()
-    X[:, 10:13] = sim.accel_bias
-    X[:, 13:16] = sim.gyro_bias
-    X[:, 16:19] = ds.meta.truth.lever_arm
-    X[:, 19] = ds.meta.truth.time_offset
+    X = truth_states(sim)
     td = ds.meta.truth.time_offset
     k0 = int(np.searchsorted(ds.imu_t, ds.uwb["t"].iloc[0] + td))
     opts = EskfOptions(store_covariance=False)

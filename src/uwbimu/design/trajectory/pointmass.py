@@ -54,7 +54,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from uwbimu.design.trajectory.platform import MultirotorLimits, Platform
-from uwbimu.design.trajectory.seed_ocp import _weights, rollout
+from uwbimu.design.trajectory.seed_ocp import _weights
 from uwbimu.models.reference import GRAVITY
 
 
