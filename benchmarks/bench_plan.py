@@ -106,7 +106,7 @@ def bench_calibration() -> None:
     print("\n== 3. calibration design ==")
     print(f"one candidate evaluation (40 s, 2000 ranges, 19-state covariance): {statistics.median(t) * 1e3:.1f} ms")
     sc = builtin_scenario("calibration-flight")
-    c60 = CalibrationDesignConfig(duration=sc.duration, truth={"lever_arm": list(sc.lever_arm), "time_offset": sc.time_offset})
+    c60 = CalibrationDesignConfig(platform="handheld", duration=sc.duration, truth={"lever_arm": list(sc.lever_arm), "time_offset": sc.time_offset})
     pred = evaluate_sim_trajectory(sc.trajectory.build(), c60)
     res = run_eskf(simulate(sc))
     cal = res.calibration
