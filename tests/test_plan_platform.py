@@ -191,6 +191,14 @@ def test_cli_default_is_multirotor(tmp_path):
     data = json.loads((tmp_path / "p" / "plan.json").read_text())
     assert data["config"]["platform"] == "multirotor" and data["platform"]["flown_limit_violations"] == []
     assert (tmp_path / "p" / "flight_trajectory.csv").is_file()
+    # a coarse grid without margin: the flown spline overshoots the tilt limit between the nodes;
+    # the files are written, the verb names the limit and exits 3 (check flagged)
+    c.write_text(yaml.safe_dump({**PM, "objective": "none", "multirotor": {"tilt_max_deg": 5.0, "rate_max": 1.5}, "limit_margin": 1.0}))
+    res = CliRunner().invoke(app, ["plan", "point-mass", str(c), "--out", str(tmp_path / "p2")])
+    assert res.exit_code == 3, res.output
+    assert "tilt" in res.output and "limit exceeded" in res.output
+    data = json.loads((tmp_path / "p2" / "plan.json").read_text())
+    assert data["platform"]["flown_limit_violations"][0].startswith("tilt")
     # an infeasible limit is refused with its name
     c.write_text(yaml.safe_dump({**TINY, "multirotor": {"thrust_max_g": 0.8}}))
     res = CliRunner().invoke(app, ["plan", "calibration", str(c), "--out", str(tmp_path / "o3")])
