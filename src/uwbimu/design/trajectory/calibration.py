@@ -9,6 +9,14 @@ calibration block (scaled by ``scale_lever_arm`` / ``scale_time_offset``,
 navigation states marginalised, IMU process noise included), computed by
 the linearised ESKF covariance along the candidate (:mod:`.predictor`).
 
+Platform (``platform``, default ``multirotor``, :mod:`.platform`): a multirotor
+manoeuvre chooses x, y, z and yaw only; roll and pitch follow the thrust
+(differential flatness, :mod:`uwbimu.sim.flat`), the vehicle's thrust, tilt,
+body-rate and yaw-rate limits hold (:func:`.maneuver.fit_flat_to_bounds`), the
+scenarios fly it with ``attitude: flat`` and the flown splines are checked
+(:func:`.platform.check_multirotor`).  ``handheld``: a free rigid body, six
+channels, as below.
+
 Bounds are enforced by construction: every candidate is scaled
 (:func:`.maneuver.fit_to_bounds`) so that its peaks sit at 99 % of the
 bounds, which leaves the optimiser (scipy Powell, seeded random starts) an
