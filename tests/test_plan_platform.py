@@ -132,6 +132,10 @@ def test_check_names_the_violated_limit():
         assert name in names, (name, names)
         hit = v[names.index(name)]
         assert hit.usage > 1 and 0.0 <= hit.t <= m.duration and name in hit.message()
+    # thrust_min: a plan that ever accelerates downwards needs less than 1 g of thrust
+    assert kin["thrust"].min() < 0.99 * GRAVITY
+    v = check_multirotor(kin, MultirotorLimits(thrust_min_g=0.995))
+    assert [x.limit for x in v] == ["thrust_min"] and "below the limit" in v[0].message()
     # a handheld-style attitude (roll not following the thrust) is named too
     from dataclasses import replace
 
