@@ -106,6 +106,16 @@ class InitOptions(_Strict):
                                 description="a best grid point on an edge widens the grid up to |t_d| = this [s]")
 
 
+class HeightOptions(_Strict):
+    """Altimeter measurements (``Eskf.push_height``): height of the IMU origin on the IMU clock."""
+
+    sigma: float = Field(default=0.1, gt=0, description="altimeter noise sd [m]")
+    bias: Literal["fixed", "estimate"] = Field(
+        default="fixed", description="'estimate': one altimeter-bias state (random walk); 'fixed': no bias")
+    bias_prior_sd: float = Field(default=1.0, gt=0, description="initial sd of the altimeter bias [m]")
+    bias_random_walk: float = Field(default=0.01, ge=0, description="altimeter-bias random walk [m/sqrt(s)]")
+
+
 class SupervisorOptions(_Strict):
     enabled: bool = True
     max_position_sd: float = Field(default=20.0, gt=0, description="[m]; above: divergence")
@@ -137,6 +147,7 @@ class EskfOptions(_Strict):
     time_offset: TimeOffsetOptions = Field(default_factory=TimeOffsetOptions)
     anchor_bias: AnchorBiasOptions = Field(default_factory=AnchorBiasOptions)
     gating: GatingOptions = Field(default_factory=GatingOptions)
+    height: HeightOptions = Field(default_factory=HeightOptions)
     init: InitOptions = Field(default_factory=InitOptions)
     supervisor: SupervisorOptions = Field(default_factory=SupervisorOptions)
     excitation: ExcitationOptions = Field(default_factory=ExcitationOptions)
