@@ -42,7 +42,7 @@ import pandas as pd
 from numba import njit
 
 from uwbimu.models.imu import BMI088, ImuNoise
-from uwbimu.models.kernels import _phi_blocks_R, _phi_vec, refresh_stale_cache
+from uwbimu.models.kernels import phi_left_R, refresh_stale_cache
 from uwbimu.models import kernels as _physics
 from uwbimu.models.quaternion import quat_normalize, quat_slerp, quat_to_rotmat
 from uwbimu.models.state import ERROR_STATE_NAMES
@@ -245,21 +245,8 @@ def _skew(w):
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
-@njit(cache=True)
-def _step_rows(M, R, f, w, dt, B, W, col):
-    """In place ``M <- Phi M`` on the rows 0:15 of an error-state matrix (lever arm and t_d constant).
-
-    ``Phi`` is the estimator's error-state transition over ``dt`` (``models.kernels._phi_blocks_R``:
-    second order, exact attitude block), at attitude ``R`` with the bias-corrected specific force ``f``
-    and body rate ``w``: the physics is written once, in :mod:`uwbimu.models.kernels`.
-    """
-    _phi_blocks_R(R, f[0], f[1], f[2], w[0], w[1], w[2], dt, B, W)
-    for c in range(M.shape[1]):
-        for i in range(15):
-            col[i] = M[i, c]
-        _phi_vec(B, dt, col)
-        for i in range(15):
-            M[i, c] = col[i]
+#: ``M <- Phi M`` on rows 0:15 with the estimator's transition (written once, in models.kernels)
+_step_rows = phi_left_R
 
 
 @njit(cache=True)
