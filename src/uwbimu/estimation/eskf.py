@@ -162,7 +162,11 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
         levers = [dataset_lever_prior(ds, opts, n) for n in tag_names]
     else:
         levers = dataset_lever_prior(ds, opts, tag)
-    prob, priors = make_settings(opts, anchor_ids, anchors, noise, rsig, tsig, levers, tag_names or None)
+    pairs = None
+    if opts.tdoa_pair_bias.mode == "estimate" and (uwb_b >= 0).any():
+        td_rows = uwb_b >= 0
+        pairs = sorted({(int(a_), int(b_)) for a_, b_ in zip(uwb_a[td_rows], uwb_b[td_rows])})
+    prob, priors = make_settings(opts, anchor_ids, anchors, noise, rsig, tsig, levers, tag_names or None, pairs)
     if tag_names:
         prob.uwb_tag = np.ascontiguousarray(uwb_tag)
     prob.imu_t, prob.imu_u = imu_t, imu_u
@@ -435,6 +439,11 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
             # Gauss-Markov biases vary in time: the values above are the last ones (whole series in
             # result.extra["anchor_bias_states"])
             calibration["anchor_bias_correlation_time"] = float(opts.anchor_bias.correlation_time)
+
+    if prob.pair_index:
+        ids = prob.anchor_ids
+        calibration["tdoa_pair_bias"] = {f"{ids[a_]}-{ids[b_]}": float(x_end[i + 1]) for (a_, b_), i in prob.pair_index.items()}
+        calibration["tdoa_pair_bias_sd"] = {f"{ids[a_]}-{ids[b_]}": float(sd_end[i]) for (a_, b_), i in prob.pair_index.items()}
 
     # diagnostics: excitation, outages
     w_exc, e_exc = excitation_warnings(prob, t_imu, X, sd, info["priors"], opts)

@@ -111,6 +111,9 @@ class Problem:
     uwb_tag: Optional[np.ndarray] = None
     tag_lever_err: Optional[np.ndarray] = None
     tag_names: list = field(default_factory=list)
+    # TDoA pair biases: (a, b) anchor indices -> error index of the pair's bias state; prior sd [m]
+    pair_index: dict = field(default_factory=dict)
+    pair_sd0: float = 0.0
     height_sd0: float = 0.0  # prior sd of the altimeter bias state (when the layout has one) [m]
 
     def state_layout(self) -> StateLayout:
@@ -342,6 +345,7 @@ def advance(
     uwb_t, uwb_a, uwb_b, uwb_r = prob.uwb_t, prob.uwb_a, prob.uwb_b, prob.uwb_r
     imu_u, imu_um, anchors, bias_idx = prob.imu_u, prob.imu_um, prob.anchors, prob.bias_idx
     i_td, i_bg = S.TD, S.EBG.start
+    pair_index = prob.pair_index
 
     def _record():
         st.out_t.append(imu_t[st.k])
@@ -406,9 +410,9 @@ def advance(
         else:
             # per-anchor bias states (anchor_bias mode estimate): the TDoA sees their difference b_b - b_a
             K.tdoa_update(
-                x, P, imu_t, prob.imu_u, prob.imu_um, k, tau, prob.anchors[a], prob.anchors[b], prob.bias_idx[a],
-                prob.bias_idx[b], prob.uwb_r[j],
+                x, P, imu_t, imu_u, imu_um, k, tau, anchors[a], anchors[b], bias_idx[a], bias_idx[b], uwb_r[j],
                 prob.tdoa_var, prob.gate, force, prob.robust_kind, prob.robust_c, mask, prob.dt_max, o, lev,
+                pair_index.get((int(a), b), -1) if pair_index else -1,
             )
         rec[j] = o
         if o[REC_ACC] > 0:

@@ -210,6 +210,8 @@ def assemble(prob: Problem, pr: Prior, yaw: float, yaw_sd: float, td: float, td_
     P[ab, ab] = np.eye(L.n_anchor_bias) * pr.sd_bias**2
     hb = L.err("height_bias")
     P[hb, hb] = np.eye(L.n_height_bias) * prob.height_sd0**2
+    pb = L.err("pair_bias")
+    P[pb, pb] = np.eye(L.n_pair_bias) * prob.pair_sd0**2
     return x, P
 
 

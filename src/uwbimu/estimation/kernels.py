@@ -228,7 +228,7 @@ def _move_lever_rows(h, lever_err):
 
 @njit(cache=True)
 def range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor, bias_idx, z, r_var, gate, force,
-                 robust_kind, robust_c, gain_mask, dt_max, out, lever_err=15):
+                 robust_kind, robust_c, gain_mask, dt_max, out, lever_err=15, pair_idx=-1):
     """Process one range: predict at IMU time ``tau``, gate, re-weight, Joseph update.
 
     ``x``, ``P`` belong to IMU time ``imu_t[k] >= tau`` and are updated in
@@ -262,7 +262,7 @@ def range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor, bias_idx, z, r_var,
 
 @njit(cache=True)
 def tdoa_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor_a, anchor_b, bias_a, bias_b, z, r_var, gate, force,
-                robust_kind, robust_c, gain_mask, dt_max, out, lever_err=15):
+                robust_kind, robust_c, gain_mask, dt_max, out, lever_err=15, pair_idx=-1):
     """Process one TDoA ``z = |p_U - p_b| - |p_U - p_a|`` [m] as :func:`range_update` does a range.
 
     Prediction and Jacobian from :func:`tdoa_jacobian` (pinned to ``reference.tdoa_measurement``);
@@ -293,6 +293,10 @@ def tdoa_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor_a, anchor_b, bias_a, 
     if bias_a >= 0:
         h[bias_a] -= 1.0
         pred -= xt[bias_a + 1]
+    if pair_idx >= 0:
+        # a constant bias of this anchor pair (error index pair_idx, nominal pair_idx + 1)
+        h[pair_idx] += 1.0
+        pred += xt[pair_idx + 1]
     scalar_update(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, gain_mask, out)
 
 

@@ -45,6 +45,7 @@ def make_settings(
     tdoa_sigma: Optional[float],
     lever_prior: Sequence,
     tag_names: Optional[Sequence[str]] = None,
+    tdoa_pairs: Optional[Sequence[tuple[int, int]]] = None,
 ) -> tuple[Problem, dict[str, Any]]:
     """A :class:`Problem` with the resolved settings and no data, and the calibration priors.
 
@@ -55,6 +56,7 @@ def make_settings(
     range_sigma, tdoa_sigma : measurement noise sd [m] (``tdoa_sigma`` None: ``sqrt(2) range_sigma``).
     lever_prior : (3,) prior lever arm [m], IMU frame, or ``(T, 3)``: one per tag of ``tag_names``.
     tag_names : the tags whose lever arms are estimated (one filter, one lever arm each); None: one tag.
+    tdoa_pairs : anchor-index pairs ``(a, b)`` that get a bias state (``tdoa_pair_bias.mode: estimate``).
     """
     anchors = np.ascontiguousarray(np.asarray(anchors, dtype=float).reshape(-1, 3))
     M = len(anchor_ids)
@@ -65,7 +67,8 @@ def make_settings(
         levers = np.repeat(levers, n_tags, axis=0)
     if len(levers) != n_tags:
         raise ValueError(f"make_settings: {len(levers)} lever-arm priors for {n_tags} tags")
-    layout = S.StateLayout(nb, 1 if opts.height.bias == "estimate" else 0, n_tags)
+    pairs = [tuple(int(v) for v in pq) for pq in (tdoa_pairs or [])] if opts.tdoa_pair_bias.mode == "estimate" else []
+    layout = S.StateLayout(nb, 1 if opts.height.bias == "estimate" else 0, n_tags, len(pairs))
     N = layout.n_err
     mask = np.ones(N)
     if opts.lever_arm.mode != "estimate":
@@ -86,7 +89,7 @@ def make_settings(
         anchors=anchors,
         noise=np.array([noise.accel_noise_density**2, noise.gyro_noise_density**2, noise.accel_bias_rw**2,
                         noise.gyro_bias_rw**2, opts.lever_arm.random_walk**2, opts.time_offset.random_walk**2]
-                       + _extra_noise(opts, nb, layout.n_height_bias, n_tags - 1)),
+                       + _extra_noise(opts, nb, layout.n_height_bias, n_tags - 1, len(pairs))),
         r_var=float(range_sigma**2), bias_idx=bias_idx, gain_mask=mask, dt_nom=float("nan"),
         dt_max=float("nan"), gate=gate, robust_kind=_ROBUST[opts.gating.robust],
         robust_c=opts.gating.robust_c, reopen_after=opts.gating.reopen_after, cov_every=opts.cov_every,
@@ -99,6 +102,8 @@ def make_settings(
     prob.layout = layout
     prob.tag_names = list(tag_names) if tag_names else []
     prob.tag_lever_err = np.array([layout.lever_err(i).start for i in range(n_tags)], dtype=np.int64)
+    prob.pair_index = {pq: layout.err("pair_bias").start + i for i, pq in enumerate(pairs)}
+    prob.pair_sd0 = opts.tdoa_pair_bias.prior_sd if pairs else 0.0
     prob.height_sd0 = opts.height.bias_prior_sd if layout.n_height_bias else 0.0
     tsig = tdoa_sigma or math.sqrt(2.0) * range_sigma
     prob.tdoa_var = float(tsig) ** 2
@@ -119,12 +124,12 @@ def make_settings(
     return prob, priors
 
 
-def _extra_noise(opts: EskfOptions, nb: int, nh: int, n_lev: int = 0) -> list[float]:
+def _extra_noise(opts: EskfOptions, nb: int, nh: int, n_lev: int = 0, n_pair: int = 0) -> list[float]:
     """Noise entries after the six densities (see ``models.kernels.cov_step``)."""
     gm = [opts.anchor_bias.prior_sd**2, 1.0 / opts.anchor_bias.correlation_time] \
         if nb and opts.anchor_bias.correlation_time else [0.0, 0.0]
-    if nh or n_lev:
-        return gm + [float(nb), opts.height.bias_random_walk**2, 3.0 * n_lev]
+    if nh or n_lev or n_pair:
+        return gm + [float(nb), opts.height.bias_random_walk**2, 3.0 * n_lev, float(n_pair)]
     return gm if nb and opts.anchor_bias.correlation_time else []
 
 

@@ -142,6 +142,8 @@ class Eskf:
         :meth:`passes`); without it the buffers are trimmed as the filter advances.
     max_latency_s : how long [s of IMU time] the filter waits for measurements before it moves its
         outputs on without them.
+    tdoa_pairs : anchor-id pairs ``(a, b)`` that get a constant TDoA bias state when
+        ``options.tdoa_pair_bias.mode`` is ``"estimate"``.
     """
 
     def __init__(
@@ -157,6 +159,7 @@ class Eskf:
         known_anchor_bias: Optional[Mapping[str, float]] = None,
         record: bool = False,
         max_latency_s: float = 0.2,
+        tdoa_pairs: Optional[Sequence[tuple[str, str]]] = None,
     ):
         self.options = opts = options or EskfOptions()
         if not anchors:
@@ -191,8 +194,9 @@ class Eskf:
         noise = imu_noise if imu_noise is not None else opts.resolve_imu_noise(None)
         rsig = range_sigma or opts.range_sigma or 0.1
         tsig = tdoa_sigma or opts.tdoa_sigma
+        pairs = [(self._index[a_], self._index[b_]) for a_, b_ in (tdoa_pairs or [])]
         self._prob, self.priors = make_settings(opts, self.anchor_ids, pos, noise, rsig, tsig, lever,
-                                                self.tag_names or None)
+                                                self.tag_names or None, pairs)
         self._n_models = 0
         self.imu_noise, self.range_sigma = noise, rsig
         self._known_bias = {str(k): float(v) for k, v in (known_anchor_bias or {}).items()}

@@ -418,7 +418,8 @@ def _cov_step(P, x, u, dt, noise, B, W, col):
         # further additive states after the anchor biases: the lever arms of further tags (``noise[10]``
         # of them, random walks like the first lever arm), then an altimeter bias (random walk noise[9])
         n_lev = int(noise[10]) if noise.shape[0] >= 11 else 0
-        r0 = 19 + int(noise[8])
+        # constant TDoA pair biases (noise[11] of them) come first: no process noise
+        r0 = 19 + int(noise[8]) + (int(noise[11]) if noise.shape[0] >= 12 else 0)
         for r in range(r0, r0 + n_lev):
             P[r, r] += noise[4] * adt
         for r in range(r0 + n_lev, N):

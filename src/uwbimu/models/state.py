@@ -130,10 +130,11 @@ class StateLayout:
     """Named blocks of the extended filter state, so that no code needs a literal index.
 
     The extended nominal state is the 20 numbers above followed by ``n_anchor_bias`` per-anchor range
-    biases [m], the lever arms of tags 2..``n_tags`` [m] (``extra_levers``; the first tag's is ``lever``)
+    biases [m], ``n_pair_bias`` TDoA pair biases [m] (``pair_bias``), the lever arms of tags
+    2..``n_tags`` [m] (``extra_levers``; the first tag's is ``lever``)
     and ``n_height_bias`` (0 or 1) altimeter biases [m]; the error state is the 19 above followed by the
     same additive components.  Blocks: ``p, v, q`` (nominal) / ``theta`` (error), ``b_a, b_g, lever,
-    t_d, anchor_bias, extra_levers, height_bias``; ``lever_err(i)`` / ``lever_nom(i)`` per tag.  ``err(name)`` and ``nom(name)``
+    t_d, anchor_bias, pair_bias, extra_levers, height_bias``; ``lever_err(i)`` / ``lever_nom(i)`` per tag.  ``err(name)`` and ``nom(name)``
     give slices, ``cov(P, a, b)`` a covariance block (as OpenVINS addresses its covariance by the
     variable's id).
 
@@ -146,18 +147,20 @@ class StateLayout:
                  "t_d": slice(ETD, ETD + 1)}
     _BASE_NOM = {"p": P, "v": V, "q": Q, "b_a": BA, "b_g": BG, "lever": PIU, "t_d": slice(TD, TD + 1)}
 
-    def __init__(self, n_anchor_bias: int = 0, n_height_bias: int = 0, n_tags: int = 1):
-        if n_anchor_bias < 0 or n_height_bias not in (0, 1) or n_tags < 1:
-            raise ValueError("StateLayout: n_anchor_bias >= 0, n_height_bias in (0, 1), n_tags >= 1")
+    def __init__(self, n_anchor_bias: int = 0, n_height_bias: int = 0, n_tags: int = 1, n_pair_bias: int = 0):
+        if n_anchor_bias < 0 or n_height_bias not in (0, 1) or n_tags < 1 or n_pair_bias < 0:
+            raise ValueError("StateLayout: n_anchor_bias >= 0, n_height_bias in (0, 1), n_tags >= 1, "
+                             "n_pair_bias >= 0")
         self.n_anchor_bias = int(n_anchor_bias)
         self.n_height_bias = int(n_height_bias)
         self.n_tags = int(n_tags)
+        self.n_pair_bias = int(n_pair_bias)
         self._err = dict(self._BASE_ERR)
         self._nom = dict(self._BASE_NOM)
         e, n = ERROR_DIM, NOMINAL_DIM
-        # order of the extras: anchor biases, the lever arms of tags 2.., the altimeter bias
-        for name, size in (("anchor_bias", self.n_anchor_bias), ("extra_levers", 3 * (self.n_tags - 1)),
-                           ("height_bias", self.n_height_bias)):
+        # order of the extras: anchor biases, TDoA pair biases, the lever arms of tags 2.., the altimeter bias
+        for name, size in (("anchor_bias", self.n_anchor_bias), ("pair_bias", self.n_pair_bias),
+                           ("extra_levers", 3 * (self.n_tags - 1)), ("height_bias", self.n_height_bias)):
             self._err[name] = slice(e, e + size)
             self._nom[name] = slice(n, n + size)
             e += size
