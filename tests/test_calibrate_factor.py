@@ -109,3 +109,39 @@ def test_gtsam_factor_wraps_the_residual(case):
     assert f.unwhitenedError(vals)[0] == pytest.approx(e, abs=1e-12)
     Ab, _b = f.linearize(vals).jacobian()
     np.testing.assert_allclose(Ab[0] * 0.1, np.concatenate([Jp, Jv, Jl, [Jt, 1.0]]), atol=1e-9)
+
+
+def _reference_tdoa(c, s, anchor_a, anchor_b):
+    """Reference TDoA at IMU time s (same integration as :func:`_reference_range`)."""
+    ca = dict(c, anchor=anchor_a)
+    cb = dict(c, anchor=anchor_b)
+    return _reference_range(cb, s) - _reference_range(ca, s)
+
+
+def test_tdoa_factor_matches_reference_and_finite_differences(case):
+    """The TDoA factor: residual = reference TDoA (+ b_b - b_a - z) at IMU time s0 + delta, and its
+    Jacobians (pose, velocity, lever arm, t_d, both biases) against central finite differences."""
+    from uwbimu.calibration.tdoa_factor import tdoa_error
+
+    c = case
+    a, b = c["anchor"], np.array([-2.0, 3.0, 0.4])
+    z = 0.7
+    for delta in (0.0, 0.004):
+        e = tdoa_error(c["R_k"], c["p_k"], c["v_k"], c["lever"], 0.02 + delta, 0.03, -0.05, a, b, z, c["d"], 0.02)
+        assert abs(e - (_reference_tdoa(c, c["s0"] + delta, a, b) - 0.05 - 0.03 - z)) < 1e-4
+
+    def f(x):
+        R = c["R_k"] @ so3_exp(x[0:3])
+        p = c["p_k"] + c["R_k"] @ x[3:6]
+        return tdoa_error(R, p, c["v_k"] + x[6:9], c["lever"] + x[9:12], 0.02 + x[12], 0.03 + x[13], -0.05 + x[14],
+                          a, b, z, c["d"], 0.02)
+
+    _, Jp, Jv, Jl, Jt = tdoa_error(c["R_k"], c["p_k"], c["v_k"], c["lever"], 0.02, 0.03, -0.05, a, b, z, c["d"],
+                                   0.02, jacobians=True)
+    eps = 1e-6
+    num = np.array([(f(np.eye(15)[i] * eps) - f(-np.eye(15)[i] * eps)) / (2 * eps) for i in range(15)])
+    np.testing.assert_allclose(num[0:6], Jp, atol=1e-6)
+    np.testing.assert_allclose(num[6:9], Jv, atol=1e-6)
+    np.testing.assert_allclose(num[9:12], Jl, atol=1e-6)
+    assert num[12] == pytest.approx(Jt, abs=1e-5)
+    assert num[13] == pytest.approx(-1.0, abs=1e-9) and num[14] == pytest.approx(1.0, abs=1e-9)
