@@ -174,9 +174,9 @@ def _residual_step(result, T: float, alpha: float) -> Optional[tuple[float, floa
     """Step of tau at ``T`` (split fixed) on a run: ``(size, scaled sd)``, None when not measurable."""
     win = windowed_time_offsets(result)
     c = consistency_tests(win, float(result.t[0]), alpha)
-    if c["verdict"] is None and "scale" not in c:
+    if "scale" not in c:
         return None
-    # the jump's own window and the lag after it carry the filter's transient: leave them out
+    # the jump's own window and the next carry the filter's transient: leave them out
     k = int(np.searchsorted(win["t0"], T))
     keep = np.ones(len(win["t"]), bool)
     keep[max(0, k - 1):k + 1] = False
@@ -188,6 +188,12 @@ def _residual_step(result, T: float, alpha: float) -> Optional[tuple[float, floa
     return m2 - m1, sd * c["scale"]
 
 
+def _residual_slope(result, alpha: float) -> Optional[tuple[float, float]]:
+    """Trend of tau on a run: ``(slope, scaled sd)``."""
+    c = consistency_tests(windowed_time_offsets(result), float(result.t[0]), alpha)
+    return (c["slope"], c["slope_sd"]) if "slope" in c else None
+
+
 def _nis_cost(result) -> float:
     """Mean NIS of the ranges, each clipped at the gate (a robust fit measure across re-runs)."""
     r = _range_rows(result)
@@ -195,6 +201,47 @@ def _nis_cost(result) -> float:
     nis = nis[np.isfinite(nis)]
     gate = float((result.config.get("resolved") or {}).get("gate_nis") or 10.8)
     return float(np.mean(np.minimum(nis, gate))) if len(nis) else np.inf
+
+
+class _Fault:
+    """One corrected quantity (a jump's size or the drift's slope) and its correction rounds.
+
+    Each round measures the residual ``r`` (what the corrected run still shows) for the applied
+    value ``a``.  The filter absorbs part of a fault, so ``r = g (true - a)`` with a gain
+    ``g <= 1``; the secant of the last two rounds estimates ``g`` and the next value is
+    ``a + r / g`` (first round: ``g = 1``).
+    """
+
+    def __init__(self, event: dict[str, Any], first: float):
+        self.event = event
+        self.applied = [0.0]
+        self.residual = [float(event["size"] if event["kind"] == "clock_jump" else event["t_d_slope"])]
+        self.sd = [float(event["sigma"])]
+        self.next_value = first
+
+    def gain(self) -> float:
+        if len(self.applied) < 2 or self.applied[-1] == self.applied[-2]:
+            return 1.0
+        g = (self.residual[-2] - self.residual[-1]) / (self.applied[-1] - self.applied[-2])
+        return float(np.clip(g, 0.2, 1.0))
+
+    def update(self, measured: Optional[tuple[float, float]]) -> bool:
+        """Record the residual of the run with ``next_value`` applied; True when another round is due."""
+        self.applied.append(self.next_value)
+        if measured is None:
+            self.residual.append(0.0)
+            self.sd.append(float("nan"))
+            return False
+        self.residual.append(float(measured[0]))
+        self.sd.append(float(measured[1]))
+        self.next_value = self.value()
+        return abs(measured[0]) > REFINE_SD * measured[1]
+
+    def value(self) -> float:
+        return self.applied[-1] + self.residual[-1] / self.gain()
+
+    def value_sd(self) -> float:
+        return self.sd[-1] / self.gain()
 
 
 def handle_clock_faults(result, dataset, rerun: Callable, console=None, alpha: float = ALPHA,
@@ -208,39 +255,48 @@ def handle_clock_faults(result, dataset, rerun: Callable, console=None, alpha: f
     """
     found = detect_clock_faults(result, dataset, alpha)
     if not found:
+        if not len(windowed_time_offsets(result)["t"]):
+            result.warnings.append("clock-fault check not made: the time offset was not estimated (held or fixed)")
+        elif any(e.get("kind") == "reinitialised" for e in result.events):
+            result.warnings.append("clock-fault check: no clock fault found between the re-initialisations; a UWB "
+                                   "clock jump or drift larger than the filter can follow also ends in divergence")
         return result, dataset
     u = dataset.uwb if len(dataset.uwb) else dataset.tdoa
     t0 = float(u["t"].min())
-    jumps: list[dict[str, Any]] = []
-    drift: Optional[dict[str, Any]] = None
-    slope = 0.0
-    events = found
+    faults: list[_Fault] = []
     current, cur_ds = result, dataset
     for _ in range(max_rounds):
-        changed = False
-        for ev in events:
+        for ev in found:
             if ev["kind"] == "clock_jump":
-                near = [j for j in jumps if abs(j["t"] - ev["t"]) <= (LAG_WINDOWS + 1) * ev["window_s"]]
-                if near:
-                    near[0]["size"] += ev["size"]
-                else:
-                    # map the time back to the input stamps (earlier corrections moved them)
-                    T = ev["t"] if not jumps and slope == 0.0 else _input_time(dataset, cur_ds, ev["t"])
-                    size = -ev["stamp_gap"] if ev.get("stamp_gap") and ev["size"] < 0 else ev["size"]
-                    jumps.append({**ev, "t": T, "t_detected": ev["t"], "size": float(size), "size_first": ev["size"]})
-                changed = True
-            elif ev["kind"] == "clock_drift":
-                slope += ev["t_d_slope"]
-                drift = drift or dict(ev)
-                changed = True
-        if not changed:
-            break
+                if any(f.event["kind"] == "clock_jump" and abs(f.event["t_detected"] - ev["t"])
+                       <= (LAG_WINDOWS + 1) * ev["window_s"] for f in faults):
+                    continue  # the same jump: its residual is measured below
+                # the time in the input stamps (earlier corrections moved them)
+                T = _input_time(dataset, cur_ds, ev["t"]) if faults else ev["t"]
+                first = -ev["stamp_gap"] if ev.get("stamp_gap") and ev["size"] < 0 else ev["size"]
+                faults.append(_Fault({**ev, "t": T, "t_detected": ev["t"]}, first))
+            elif not any(f.event["kind"] == "clock_drift" for f in faults):
+                faults.append(_Fault(ev, ev["t_d_slope"]))
+        jumps = [{"t": f.event["t"], "size": f.next_value} for f in faults if f.event["kind"] == "clock_jump"]
+        slope = sum(f.next_value for f in faults if f.event["kind"] == "clock_drift")
         cur_ds = apply_clock_corrections(dataset, jumps, slope, t0)
         current = rerun(cur_ds)
-        events = detect_clock_faults(current, cur_ds, alpha)
-        if not events:
-            events = _refinements(current, jumps, slope, drift, alpha)
-    final = _final_values(current, jumps, slope, drift, t0, alpha)
+        again = False
+        for f in faults:
+            if f.event["kind"] == "clock_jump":
+                split = f.event["t"] + max(f.next_value, 0.0)  # first corrected post-jump stamp
+                again |= f.update(_residual_step(current, split, alpha))
+            else:
+                again |= f.update(_residual_slope(current, alpha))
+        found = [e for e in detect_clock_faults(current, cur_ds, alpha)]
+        new = [e for e in found if not any(
+            (f.event["kind"] == e["kind"] == "clock_drift")
+            or (f.event["kind"] == e["kind"] == "clock_jump"
+                and abs(f.event["t_detected"] - e["t"]) <= (LAG_WINDOWS + 1) * e["window_s"]) for f in faults)]
+        if not (again or new):
+            break
+        found = new
+    final = [_final_event(f, current, t0, alpha) for f in faults]
     if not (_nis_cost(current) < _nis_cost(result)):
         # the corrected log does not fit better: keep the input, report what was seen
         for ev in final:
@@ -255,52 +311,37 @@ def handle_clock_faults(result, dataset, rerun: Callable, console=None, alpha: f
 
 
 def _input_time(original, corrected, T: float) -> float:
-    """Input stamp of the first corrected UWB stamp at or after ``T`` (rows keep their order by anchor/time)."""
-    a = original.uwb["t"].to_numpy(float)
+    """Input stamp of the first corrected UWB stamp at or after ``T`` (matched by rank)."""
+    a = np.sort(original.uwb["t"].to_numpy(float))
     b = np.sort(corrected.uwb["t"].to_numpy(float))
-    a = np.sort(a)
-    i = min(int(np.searchsorted(b, T)), len(a) - 1)
-    return float(a[i])
+    return float(a[min(int(np.searchsorted(b, T)), len(a) - 1)])
 
 
-def _refinements(result, jumps, slope, drift, alpha) -> list[dict[str, Any]]:
-    """Residual corrections larger than their own sd (none: converged)."""
-    out = []
-    for j in jumps:
-        r = _residual_step(result, j["t"] + j["size"] * (j["size"] > 0), alpha)
-        if r is not None and abs(r[0]) > REFINE_SD * r[1]:
-            out.append({**j, "size": r[0], "stamp_gap": None})
-    if drift is not None:
-        win = windowed_time_offsets(result)
-        c = consistency_tests(win, float(result.t[0]), alpha)
-        if "slope" in c and abs(c["slope"]) > REFINE_SD * c["slope_sd"]:
-            out.append({**drift, "t_d_slope": c["slope"]})
-    return out
-
-
-def _final_values(result, jumps, slope, drift, t0, alpha) -> list[dict[str, Any]]:
-    """Total corrections plus the residuals measured on the final run, with their sds."""
-    out = []
-    for j in jumps:
-        r = _residual_step(result, j["t"] + j["size"] * (j["size"] > 0), alpha)
-        res_size, sd = r if r is not None else (0.0, float("nan"))
-        out.append({"kind": "clock_jump", "t": float(j["t"]), "size": float(j["size"] + res_size), "sigma": float(sd),
-                    "z": j["z"], "crit": j["crit"], "alpha": alpha, "dispersion": j["dispersion"],
-                    "stamp_gap": j.get("stamp_gap"), "size_first": j["size_first"],
-                    "t_d_before": float(result.calibration.get("time_offset", np.nan)),
-                    "handled": "UWB stamps after the jump shifted by its size; estimator re-run"})
-    if drift is not None:
-        win = windowed_time_offsets(result)
-        c = consistency_tests(win, float(result.t[0]), alpha)
-        s = slope + float(c.get("slope", 0.0))
-        sd = float(c.get("slope_sd", np.nan))
-        out.append({"kind": "clock_drift", "t": float(t0), "t0": float(t0), "t1": drift["t1"], "t_d_slope": s,
-                    "rate": -s / (1 + s), "sigma": sd, "rate_ppm": -1e6 * s / (1 + s), "sigma_ppm": 1e6 * sd,
-                    "z": drift["z"], "crit": drift["crit"], "alpha": alpha, "dispersion": drift["dispersion"],
-                    "t_d0": float(result.calibration.get("time_offset", np.nan)),
-                    "handled": "time offset modelled as t_d(t) = t_d0 + t_d_slope (t - t0): UWB stamps re-stamped "
-                               "by -t_d_slope (t - t0); estimator re-run"})
-    return out
+def _final_event(f: _Fault, result, t0: float, alpha: float) -> dict[str, Any]:
+    """The event of a handled fault: applied correction plus the last residual, with its sd."""
+    ev = f.event
+    common = {"z": ev["z"], "crit": ev["crit"], "alpha": alpha, "dispersion": ev["dispersion"],
+              "rounds": len(f.applied) - 1, "absorption_gain": f.gain(),
+              "t_d": float(result.calibration.get("time_offset", np.nan)),
+              "t_d_sd": float(result.calibration.get("time_offset_sd", np.nan))}
+    if ev["kind"] == "clock_jump":
+        return {"kind": "clock_jump", "t": float(ev["t"]), "size": f.value(), "sigma": f.value_sd(),
+                "size_first": float(ev["size"]), "stamp_gap": ev.get("stamp_gap"), "region": ev["region"], **common,
+                "handled": "UWB stamps after the jump shifted by its size; estimator re-run"}
+    s, sd = f.value(), f.value_sd()
+    # The run's t_d is the (re-stamped) offset near the information-weighted centre of the log; what is
+    # left of the slope moves the offset at t0 by the residual slope times that lever, and its
+    # uncertainty adds the same way.
+    win = windowed_time_offsets(result)
+    w = 1.0 / win["sd"] ** 2 if len(win["sd"]) else np.ones(1)
+    t_c = float(np.sum(w * win["t"]) / np.sum(w)) if len(win["sd"]) else float(t0)
+    td0 = common["t_d"] - (s - f.applied[-1]) * (t_c - t0)
+    td0_sd = float(np.hypot(common["t_d_sd"], sd * (t_c - t0)))
+    return {"kind": "clock_drift", "t": float(t0), "t0": float(t0), "t1": ev["t1"], "t_d_slope": s,
+            "rate": -s / (1 + s), "sigma": sd / (1 + s) ** 2, "rate_ppm": -1e6 * s / (1 + s),
+            "sigma_ppm": 1e6 * sd / (1 + s) ** 2, "t_d0": float(td0), "t_d0_sd": td0_sd, "t_centre": t_c, **common,
+            "handled": "time offset modelled as t_d(t) = t_d0 + t_d_slope (t - t0): UWB stamps re-stamped as "
+                       "t + t_d_slope (t - t0); estimator re-run"}
 
 
 def _message(ev: dict[str, Any]) -> str:
@@ -309,5 +350,5 @@ def _message(ev: dict[str, Any]) -> str:
                 f"± {1000 * ev['sigma']:.1f} ms (test z={ev['z']:.1f} > {ev['crit']:.1f}, false-alarm "
                 f"probability {ev['alpha']:g}); {ev['handled']}")
     return (f"UWB clock drift of {ev['rate_ppm']:+.0f} ± {ev['sigma_ppm']:.0f} ppm relative to the IMU between "
-            f"t={ev['t0']:.1f} and {ev['t1']:.1f} s (test z={ev['z']:.1f} > {ev['crit']:.1f}, false-alarm "
+            f"t={ev['t0']:.1f} and {ev['t1']:.1f} s, t_d(t0) = {1000 * ev['t_d0']:.1f} ± {1000 * ev['t_d0_sd']:.1f} ms (test z={ev['z']:.1f} > {ev['crit']:.1f}, false-alarm "
             f"probability {ev['alpha']:g}); {ev['handled']}")
