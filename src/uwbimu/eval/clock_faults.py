@@ -58,11 +58,10 @@ LAG_WINDOWS = 6
 
 
 def _range_rows(result):
+    """Residual rows with an NIS (ranges and TDoA alike: the NIS is normalised)."""
     res = result.residuals
-    if res is None or len(res) == 0:
-        return res
-    if "kind" in res.columns:
-        res = res[res["kind"] == "range"]  # TDoA rows are not ranges
+    if res is None or len(res) == 0 or "nis" not in res.columns:
+        return res.iloc[0:0] if res is not None else None
     return res
 
 
@@ -94,19 +93,21 @@ def _jump_time(result, dataset, t_lo: float, t_hi: float) -> tuple[float, Option
     x = np.minimum(nis, gate)
     if len(x) < 8:
         return 0.5 * (t_lo + t_hi), None
-    # best split of the clipped NIS into a low level then a high level (least squares)
-    c = np.concatenate([[0.0], np.cumsum(x)])
-    c2 = np.concatenate([[0.0], np.cumsum(x * x)])
-    n = len(x)
-    best, k_best = np.inf, n // 2
-    for k in range(3, n - 3):
-        m1, m2 = c[k] / k, (c[n] - c[k]) / (n - k)
-        if m2 <= m1:
-            continue
-        sse = (c2[k] - k * m1 * m1) + (c2[n] - c2[k] - (n - k) * m2 * m2)
-        if sse < best:
-            best, k_best = sse, k
-    return float(rt[k_best]), None
+    # The jump starts the stretch where the NIS stays above its level elsewhere in the log (until
+    # the filter has absorbed the jump): the maximum-sum stretch of the excess, and T its start.
+    r_all = r["nis"].to_numpy(float)
+    outside = np.minimum(r_all[np.isfinite(r_all) & ~((r["t"].to_numpy(float) >= t_lo)
+                                                        & (r["t"].to_numpy(float) <= t_hi))], gate)
+    base = float(np.mean(outside)) if len(outside) else float(np.median(x))
+    d = x - base
+    best, start, run_sum, run_start = -np.inf, 0, 0.0, 0
+    for i, v in enumerate(d):
+        if run_sum <= 0:
+            run_sum, run_start = 0.0, i
+        run_sum += v
+        if run_sum > best:
+            best, start = run_sum, run_start
+    return float(rt[start]), None
 
 
 def apply_clock_corrections(dataset, jumps: list[dict[str, Any]], slope: float = 0.0, t0: float = 0.0):
@@ -135,6 +136,31 @@ def correct_clock_jumps(dataset, events: list[dict[str, Any]]):
     return apply_clock_corrections(dataset, [e for e in events if e.get("kind") == "clock_jump"])
 
 
+def _candidates(result, dataset, alpha: float) -> list[dict[str, Any]]:
+    """Every significant hypothesis (jump, drift), the verdict's first."""
+    win = windowed_time_offsets(result)
+    t_ref = float(result.t[0])
+    c = consistency_tests(win, t_ref, alpha)
+    if "scale" not in c:
+        return []
+    W = float(np.median(win["t1"] - win["t0"]))
+    common = {"alpha": alpha, "dispersion": c["scale"], "windows": c["n"], "window_s": W}
+    out = []
+    if c["z_jump"] > c["crit_jump"]:
+        lo = float(win["t0"][max(0, c["k"] - LAG_WINDOWS)])
+        hi = float(win["t1"][c["k"]])
+        T, gap = (_jump_time(result, dataset, lo, hi) if dataset is not None else (c["t_split"], None))
+        out.append({"kind": "clock_jump", "t": T, "size": float(c["m2"] - c["m1"]), "sigma": c["step_sd"],
+                    "z": c["z_jump"], "crit": c["crit_jump"], "region": [lo, hi], "stamp_gap": gap, **common})
+    if c["z_drift"] > c["crit_drift"]:
+        s = c["slope"]
+        out.append({"kind": "clock_drift", "t": t_ref, "t0": t_ref, "t1": float(result.t[-1]), "t_d_slope": s,
+                    "rate": -s / (1 + s), "sigma": c["slope_sd"], "z": c["z_drift"], "crit": c["crit_drift"],
+                    **common})
+    out.sort(key=lambda e: e["kind"] != {"jump": "clock_jump", "drift": "clock_drift"}.get(c["verdict"]))
+    return out
+
+
 def detect_clock_faults(result, dataset=None, alpha: float = ALPHA) -> list[dict[str, Any]]:
     """Clock jumps and drift of the UWB clock relative to the IMU, from one filter run (no re-run).
 
@@ -146,28 +172,12 @@ def detect_clock_faults(result, dataset=None, alpha: float = ALPHA) -> list[dict
 
     Returns
     -------
-    list with at most one event (``clock_jump`` with ``t``, ``size`` as first measured, or
-    ``clock_drift`` with ``rate``), each with its test statistic ``z``, critical value ``crit``,
-    ``alpha`` and the scale ``dispersion`` applied to the window sds; empty when the effective
-    time offset is constant within the noise (or cannot be tested: t_d held or fixed).
+    list with at most one event, the tests' verdict (``clock_jump`` with ``t``, ``size`` as first
+    measured, or ``clock_drift`` with ``rate``), with its test statistic ``z``, critical value
+    ``crit``, ``alpha`` and the scale ``dispersion`` applied to the window sds; empty when the
+    effective time offset is constant within the noise (or cannot be tested: t_d held or fixed).
     """
-    win = windowed_time_offsets(result)
-    t_ref = float(result.t[0])
-    c = consistency_tests(win, t_ref, alpha)
-    if c["verdict"] is None:
-        return []
-    W = float(np.median(win["t1"] - win["t0"]))
-    common = {"alpha": alpha, "dispersion": c["scale"], "windows": c["n"], "window_s": W}
-    if c["verdict"] == "jump":
-        lo = float(win["t0"][max(0, c["k"] - LAG_WINDOWS)])
-        hi = float(win["t1"][c["k"]])
-        T, gap = (_jump_time(result, dataset, lo, hi) if dataset is not None else (c["t_split"], None))
-        size = c["m2"] - c["m1"]
-        return [{"kind": "clock_jump", "t": T, "size": float(size), "sigma": c["step_sd"], "z": c["z_jump"],
-                 "crit": c["crit_jump"], "region": [lo, hi], "stamp_gap": gap, **common}]
-    s = c["slope"]
-    return [{"kind": "clock_drift", "t": t_ref, "t0": t_ref, "t1": float(result.t[-1]), "t_d_slope": s,
-             "rate": -s / (1 + s), "sigma": c["slope_sd"], "z": c["z_drift"], "crit": c["crit_drift"], **common}]
+    return _candidates(result, dataset, alpha)[:1]
 
 
 def _residual_step(result, T: float, alpha: float) -> Optional[tuple[float, float]]:
@@ -209,15 +219,17 @@ class _Fault:
     Each round measures the residual ``r`` (what the corrected run still shows) for the applied
     value ``a``.  The filter absorbs part of a fault, so ``r = g (true - a)`` with a gain
     ``g <= 1``; the secant of the last two rounds estimates ``g`` and the next value is
-    ``a + r / g`` (first round: ``g = 1``).
+    ``a + r / g`` (first round: ``g = 1``).  A forward jump's stamp gap measures its size
+    directly: that value is kept unless the corrected run still shows a significant step.
     """
 
-    def __init__(self, event: dict[str, Any], first: float):
+    def __init__(self, event: dict[str, Any], first: float, trusted: bool = False):
         self.event = event
         self.applied = [0.0]
         self.residual = [float(event["size"] if event["kind"] == "clock_jump" else event["t_d_slope"])]
         self.sd = [float(event["sigma"])]
         self.next_value = first
+        self.trusted = trusted
 
     def gain(self) -> float:
         if len(self.applied) < 2 or self.applied[-1] == self.applied[-2]:
@@ -234,6 +246,10 @@ class _Fault:
             return False
         self.residual.append(float(measured[0]))
         self.sd.append(float(measured[1]))
+        if self.trusted and abs(measured[0]) <= self.event["crit"] * measured[1]:
+            self.residual[-1] = 0.0  # the gap's value stands: the corrected run shows no step
+            return False
+        self.trusted = False
         self.next_value = self.value()
         return abs(measured[0]) > REFINE_SD * measured[1]
 
@@ -244,16 +260,49 @@ class _Fault:
         return self.sd[-1] / self.gain()
 
 
+def _correct(result, dataset, ev: dict[str, Any], rerun: Callable, alpha: float, max_rounds: int):
+    """Correction rounds for one hypothesis; returns ``(fault, run, dataset, t0, leftover events)``."""
+    u = dataset.uwb if len(dataset.uwb) else dataset.tdoa
+    t0 = float(u["t"].min())
+    if ev["kind"] == "clock_jump":
+        gap = ev.get("stamp_gap")
+        trusted = bool(gap) and ev["size"] < 0
+        fault = _Fault({**ev, "t_detected": ev["t"]}, -gap if trusted else ev["size"], trusted)
+    else:
+        fault = _Fault(ev, ev["t_d_slope"])
+    current, cur_ds = result, dataset
+    for _ in range(max_rounds):
+        if fault.event["kind"] == "clock_jump":
+            cur_ds = apply_clock_corrections(dataset, [{"t": ev["t"], "size": fault.next_value}])
+        else:
+            cur_ds = apply_clock_corrections(dataset, [], fault.next_value, t0)
+        current = rerun(cur_ds)
+        if fault.event["kind"] == "clock_jump":
+            split = ev["t"] + max(fault.next_value, 0.0)  # first corrected post-jump stamp
+            again = fault.update(_residual_step(current, split, alpha))
+        else:
+            again = fault.update(_residual_slope(current, alpha))
+        if not again:
+            break
+    return fault, current, cur_ds, t0, detect_clock_faults(current, cur_ds, alpha)
+
+
 def handle_clock_faults(result, dataset, rerun: Callable, console=None, alpha: float = ALPHA,
                         max_rounds: int = MAX_ROUNDS):
     """Detect clock faults in ``result``; correct the stamps and re-run (``rerun(dataset)``) until the
     residual jump / trend is below its sd.
 
-    Returns ``(result, dataset)``: the final run (its ``events`` and ``warnings`` name every fault
-    found, its time, size or rate with sd, and how it was handled) and the dataset it ran on.
-    A clean log returns ``result`` unchanged without any re-run.
+    When both a jump and a drift are significant (a jump the filter absorbs slowly looks like a
+    ramp; a drift is also fitted by a step), both corrections are made and the one whose corrected
+    log fits the ranges better (mean NIS clipped at the gate) is kept.  One fault per log is
+    corrected; one still significant afterwards is reported as a warning.
+
+    Returns ``(result, dataset)``: the final run (its ``events`` and ``warnings`` name the fault
+    found, its time, size or rate with sd, and how it was handled; its ``calibration`` t_d sd
+    includes the uncertainty of the correction) and the dataset it ran on.  A clean log returns
+    ``result`` unchanged without any re-run.
     """
-    found = detect_clock_faults(result, dataset, alpha)
+    found = _candidates(result, dataset, alpha)
     if not found:
         if not len(windowed_time_offsets(result)["t"]):
             result.warnings.append("clock-fault check not made: the time offset was not estimated (held or fixed)")
@@ -261,52 +310,31 @@ def handle_clock_faults(result, dataset, rerun: Callable, console=None, alpha: f
             result.warnings.append("clock-fault check: no clock fault found between the re-initialisations; a UWB "
                                    "clock jump or drift larger than the filter can follow also ends in divergence")
         return result, dataset
-    u = dataset.uwb if len(dataset.uwb) else dataset.tdoa
-    t0 = float(u["t"].min())
-    faults: list[_Fault] = []
-    current, cur_ds = result, dataset
-    for _ in range(max_rounds):
-        for ev in found:
-            if ev["kind"] == "clock_jump":
-                if any(f.event["kind"] == "clock_jump" and abs(f.event["t_detected"] - ev["t"])
-                       <= (LAG_WINDOWS + 1) * ev["window_s"] for f in faults):
-                    continue  # the same jump: its residual is measured below
-                # the time in the input stamps (earlier corrections moved them)
-                T = _input_time(dataset, cur_ds, ev["t"]) if faults else ev["t"]
-                first = -ev["stamp_gap"] if ev.get("stamp_gap") and ev["size"] < 0 else ev["size"]
-                faults.append(_Fault({**ev, "t": T, "t_detected": ev["t"]}, first))
-            elif not any(f.event["kind"] == "clock_drift" for f in faults):
-                faults.append(_Fault(ev, ev["t_d_slope"]))
-        jumps = [{"t": f.event["t"], "size": f.next_value} for f in faults if f.event["kind"] == "clock_jump"]
-        slope = sum(f.next_value for f in faults if f.event["kind"] == "clock_drift")
-        cur_ds = apply_clock_corrections(dataset, jumps, slope, t0)
-        current = rerun(cur_ds)
-        again = False
-        for f in faults:
-            if f.event["kind"] == "clock_jump":
-                split = f.event["t"] + max(f.next_value, 0.0)  # first corrected post-jump stamp
-                again |= f.update(_residual_step(current, split, alpha))
-            else:
-                again |= f.update(_residual_slope(current, alpha))
-        found = [e for e in detect_clock_faults(current, cur_ds, alpha)]
-        new = [e for e in found if not any(
-            (f.event["kind"] == e["kind"] == "clock_drift")
-            or (f.event["kind"] == e["kind"] == "clock_jump"
-                and abs(f.event["t_detected"] - e["t"]) <= (LAG_WINDOWS + 1) * e["window_s"]) for f in faults)]
-        if not (again or new):
-            break
-        found = new
-    final = [_final_event(f, current, t0, alpha) for f in faults]
-    if not (_nis_cost(current) < _nis_cost(result)):
+    tried = [_correct(result, dataset, ev, rerun, alpha, max_rounds) for ev in found]
+    costs = [_nis_cost(t[1]) for t in tried]
+    best = int(np.argmin(costs))
+    fault, current, cur_ds, t0, leftover = tried[best]
+    ev = _final_event(fault, current, t0, alpha)
+    ev["nis_cost"] = costs[best]
+    ev["alternatives"] = [{"kind": t[0].event["kind"], "nis_cost": c} for i, (t, c) in enumerate(zip(tried, costs))
+                          if i != best]
+    if not (costs[best] < _nis_cost(result)):
         # the corrected log does not fit better: keep the input, report what was seen
-        for ev in final:
-            ev["handled"] = "not corrected: the corrected log did not fit the ranges better (mean clipped NIS)"
+        ev["handled"] = "not corrected: the corrected log did not fit the ranges better (mean clipped NIS)"
         current, cur_ds = result, dataset
-    for ev in final:
-        current.events.append(ev)
-        current.warnings.append(_message(ev))
-        if console is not None:
-            console.print(f"[yellow]clock fault:[/yellow] {_message(ev)}", soft_wrap=True)
+    else:
+        cal = current.calibration
+        cal["time_offset_filter"], cal["time_offset_sd_filter"] = cal.get("time_offset"), cal.get("time_offset_sd")
+        cal["time_offset"], cal["time_offset_sd"] = ev["t_d"], ev["t_d_sd"]
+    current.events.append(ev)
+    current.warnings.append(_message(ev))
+    if leftover and not ev["handled"].startswith("not corrected"):
+        current.warnings.append(f"clock-fault check: after the correction the log still shows a {leftover[0]['kind']} "
+                                f"(z={leftover[0]['z']:.1f}); not corrected")
+    if console is not None:
+        for w in current.warnings[-2:]:
+            if "clock" in w:
+                console.print(f"[yellow]clock fault:[/yellow] {w}", soft_wrap=True)
     return current, cur_ds
 
 
@@ -318,28 +346,34 @@ def _input_time(original, corrected, T: float) -> float:
 
 
 def _final_event(f: _Fault, result, t0: float, alpha: float) -> dict[str, Any]:
-    """The event of a handled fault: applied correction plus the last residual, with its sd."""
+    """The event of a handled fault: applied correction plus the last residual, with its sd.
+
+    The run's t_d inherits the correction's uncertainty: for a jump, the share of the t_d
+    information after it times the size sd; for a drift, the lever from t0 to the information
+    centre times the slope sd.
+    """
     ev = f.event
+    win = windowed_time_offsets(result)
+    w = 1.0 / win["sd"] ** 2
+    td, td_sd = float(result.calibration.get("time_offset", np.nan)), float(result.calibration.get("time_offset_sd", np.nan))
     common = {"z": ev["z"], "crit": ev["crit"], "alpha": alpha, "dispersion": ev["dispersion"],
-              "rounds": len(f.applied) - 1, "absorption_gain": f.gain(),
-              "t_d": float(result.calibration.get("time_offset", np.nan)),
-              "t_d_sd": float(result.calibration.get("time_offset_sd", np.nan))}
+              "rounds": len(f.applied) - 1, "absorption_gain": f.gain()}
     if ev["kind"] == "clock_jump":
-        return {"kind": "clock_jump", "t": float(ev["t"]), "size": f.value(), "sigma": f.value_sd(),
+        size, sd = f.value(), f.value_sd()
+        share = float(np.sum(w[win["t"] > ev["t"]]) / np.sum(w)) if len(w) else 0.5
+        return {"kind": "clock_jump", "t": float(ev["t"]), "size": size, "sigma": sd,
                 "size_first": float(ev["size"]), "stamp_gap": ev.get("stamp_gap"), "region": ev["region"], **common,
+                "t_d": td, "t_d_sd": float(np.hypot(td_sd, share * sd)),
                 "handled": "UWB stamps after the jump shifted by its size; estimator re-run"}
     s, sd = f.value(), f.value_sd()
     # The run's t_d is the (re-stamped) offset near the information-weighted centre of the log; what is
-    # left of the slope moves the offset at t0 by the residual slope times that lever, and its
-    # uncertainty adds the same way.
-    win = windowed_time_offsets(result)
-    w = 1.0 / win["sd"] ** 2 if len(win["sd"]) else np.ones(1)
-    t_c = float(np.sum(w * win["t"]) / np.sum(w)) if len(win["sd"]) else float(t0)
-    td0 = common["t_d"] - (s - f.applied[-1]) * (t_c - t0)
-    td0_sd = float(np.hypot(common["t_d_sd"], sd * (t_c - t0)))
+    # left of the slope moves the offset at t0 by the residual slope times that lever.
+    t_c = float(np.sum(w * win["t"]) / np.sum(w)) if len(w) else float(t0)
+    td0 = td - (s - f.applied[-1]) * (t_c - t0)
     return {"kind": "clock_drift", "t": float(t0), "t0": float(t0), "t1": ev["t1"], "t_d_slope": s,
             "rate": -s / (1 + s), "sigma": sd / (1 + s) ** 2, "rate_ppm": -1e6 * s / (1 + s),
-            "sigma_ppm": 1e6 * sd / (1 + s) ** 2, "t_d0": float(td0), "t_d0_sd": td0_sd, "t_centre": t_c, **common,
+            "sigma_ppm": 1e6 * sd / (1 + s) ** 2, "t_d0": float(td0), "t_d0_sd": float(np.hypot(td_sd, sd * (t_c - t0))),
+            "t_centre": t_c, **common, "t_d": float(td0), "t_d_sd": float(np.hypot(td_sd, sd * (t_c - t0))),
             "handled": "time offset modelled as t_d(t) = t_d0 + t_d_slope (t - t0): UWB stamps re-stamped as "
                        "t + t_d_slope (t - t0); estimator re-run"}
 
