@@ -65,18 +65,69 @@ def _range_rows(result):
     return res
 
 
-def _jump_time(result, dataset, t_lo: float, t_hi: float) -> tuple[float, Optional[float]]:
-    """Time of a jump in ``[t_lo, t_hi]``: after the largest stamp gap if the jump left one, else
-    the change point of the clipped NIS (the filter's surprise starts at the jump).
+def _max_excess(x: np.ndarray) -> tuple[float, int]:
+    """Largest sum of a contiguous stretch of ``x`` and the stretch's first index (Kadane)."""
+    best, start, run_sum, run_start = -np.inf, 0, 0.0, 0
+    for i, v in enumerate(x):
+        if run_sum <= 0:
+            run_sum, run_start = 0.0, i
+        run_sum += v
+        if run_sum > best:
+            best, start = run_sum, run_start
+    return float(best), start
 
-    Returns ``(T, gap)``, ``gap`` [s] (beyond the typical spacing) or None.
+
+def _nis_onset(result, t_lo: float, t_hi: float) -> Optional[float]:
+    """Start of the stretch of excess NIS in ``[t_lo, t_hi]`` (the filter's surprise after a jump),
+    or None when that excess is not larger than in every same-length stretch elsewhere in the log
+    (an empirical null from the log itself: on real logs model mismatch can hide the jump's NIS)."""
+    r = _range_rows(result)
+    rt = r["t"].to_numpy(float)
+    nis = r["nis"].to_numpy(float)
+    ok = np.isfinite(nis)
+    rt = rt[ok]
+    gate = float((result.config.get("resolved") or {}).get("gate_nis") or 10.8)
+    x = np.minimum(nis[ok], gate)
+    inside = (rt >= t_lo) & (rt <= t_hi)
+    if inside.sum() < 8 or (~inside).sum() < 8:
+        return None
+    base = float(np.mean(x[~inside]))
+    s_in, i0 = _max_excess(x[inside] - base)
+    span = t_hi - t_lo
+    null = []
+    for a in np.arange(rt[0], rt[-1] - span, span / 4):  # same-length stretches outside the region
+        m = (rt >= a) & (rt < a + span)
+        if m.sum() >= 8 and not np.any(inside[m]):
+            null.append(_max_excess(x[m] - base)[0])
+    if len(null) < 2 or not s_in > max(null):
+        return None
+    return float(rt[inside][i0])
+
+
+def _window_onset(result, t_lo: float, t_hi: float, m1: float, m2: float, W: float) -> Optional[float]:
+    """First of finer windows (W/4) in ``[t_lo, t_hi]`` from which tau sits at the later level ``m2``."""
+    fine = windowed_time_offsets(result, window_s=W / 4)
+    m = (fine["t"] >= t_lo) & (fine["t"] <= t_hi)
+    y, w, t0 = fine["tau"][m], 1.0 / fine["sd"][m] ** 2, fine["t0"][m]
+    if len(y) < 2:
+        return None
+    cost = [np.sum(w[:k] * (y[:k] - m1) ** 2) + np.sum(w[k:] * (y[k:] - m2) ** 2) for k in range(1, len(y))]
+    return float(t0[1 + int(np.argmin(cost))])
+
+
+def _jump_time(result, dataset, t_lo: float, t_hi: float, m1: float, m2: float,
+               W: float) -> tuple[float, Optional[float]]:
+    """Time of a jump in ``[t_lo, t_hi]`` and the stamp gap it left (or None).
+
+    In order: after the largest stamp gap there if it is far beyond the spacing's jitter (a
+    forward jump of J leaves a gap of J); else where the NIS excess starts, when that excess stands
+    out against the rest of the log; else where finer windows of tau reach the later level.
     """
     u = dataset.uwb if len(dataset.uwb) else getattr(dataset, "tdoa", None)
     t_all = np.unique(u["t"].to_numpy(float))
     d_all = np.diff(t_all)
     typical = float(np.median(d_all[d_all > 0])) if np.any(d_all > 0) else 0.0
-    m = (t_all >= t_lo) & (t_all <= t_hi)
-    tt = t_all[m]
+    tt = t_all[(t_all >= t_lo) & (t_all <= t_hi)]
     if len(tt) > 2 and typical > 0:
         gaps = np.diff(tt)
         i = int(np.argmax(gaps))
@@ -84,30 +135,10 @@ def _jump_time(result, dataset, t_lo: float, t_hi: float) -> tuple[float, Option
         spread = 1.4826 * float(np.median(np.abs(d_all - typical))) + 1e-9
         if gaps[i] - typical > max(10 * spread, 4 * typical):
             return float(tt[i + 1]), float(gaps[i] - typical)
-    r = _range_rows(result)
-    rt = r["t"].to_numpy(float)
-    nis = r["nis"].to_numpy(float)
-    keep = (rt >= t_lo) & (rt <= t_hi) & np.isfinite(nis)
-    rt, nis = rt[keep], nis[keep]
-    gate = float((result.config.get("resolved") or {}).get("gate_nis") or 10.8)
-    x = np.minimum(nis, gate)
-    if len(x) < 8:
-        return 0.5 * (t_lo + t_hi), None
-    # The jump starts the stretch where the NIS stays above its level elsewhere in the log (until
-    # the filter has absorbed the jump): the maximum-sum stretch of the excess, and T its start.
-    r_all = r["nis"].to_numpy(float)
-    outside = np.minimum(r_all[np.isfinite(r_all) & ~((r["t"].to_numpy(float) >= t_lo)
-                                                        & (r["t"].to_numpy(float) <= t_hi))], gate)
-    base = float(np.mean(outside)) if len(outside) else float(np.median(x))
-    d = x - base
-    best, start, run_sum, run_start = -np.inf, 0, 0.0, 0
-    for i, v in enumerate(d):
-        if run_sum <= 0:
-            run_sum, run_start = 0.0, i
-        run_sum += v
-        if run_sum > best:
-            best, start = run_sum, run_start
-    return float(rt[start]), None
+    T = _nis_onset(result, t_lo, t_hi)
+    if T is None:
+        T = _window_onset(result, t_lo, t_hi, m1, m2, W)
+    return (T if T is not None else 0.5 * (t_lo + t_hi)), None
 
 
 def apply_clock_corrections(dataset, jumps: list[dict[str, Any]], slope: float = 0.0, t0: float = 0.0):
@@ -149,7 +180,8 @@ def _candidates(result, dataset, alpha: float) -> list[dict[str, Any]]:
     if c["z_jump"] > c["crit_jump"]:
         lo = float(win["t0"][max(0, c["k"] - LAG_WINDOWS)])
         hi = float(win["t1"][c["k"]])
-        T, gap = (_jump_time(result, dataset, lo, hi) if dataset is not None else (c["t_split"], None))
+        T, gap = (_jump_time(result, dataset, lo, hi, c["m1"], c["m2"], W) if dataset is not None
+                  else (c["t_split"], None))
         out.append({"kind": "clock_jump", "t": T, "size": float(c["m2"] - c["m1"]), "sigma": c["step_sd"],
                     "z": c["z_jump"], "crit": c["crit_jump"], "region": [lo, hi], "stamp_gap": gap, **common})
     if c["z_drift"] > c["crit_drift"]:
