@@ -79,8 +79,8 @@ def _max_excess(x: np.ndarray) -> tuple[float, int]:
 
 def _nis_onset(result, t_lo: float, t_hi: float) -> Optional[float]:
     """Start of the stretch of excess NIS in ``[t_lo, t_hi]`` (the filter's surprise after a jump),
-    or None when that excess is not larger than in every same-length stretch elsewhere in the log
-    (an empirical null from the log itself: on real logs model mismatch can hide the jump's NIS)."""
+    or None when that excess is not larger than in every same-length stretch before it (an
+    empirical null from the log itself: on real logs model mismatch can hide the jump's NIS)."""
     r = _range_rows(result)
     rt = r["t"].to_numpy(float)
     nis = r["nis"].to_numpy(float)
@@ -89,19 +89,24 @@ def _nis_onset(result, t_lo: float, t_hi: float) -> Optional[float]:
     gate = float((result.config.get("resolved") or {}).get("gate_nis") or 10.8)
     x = np.minimum(nis[ok], gate)
     inside = (rt >= t_lo) & (rt <= t_hi)
-    if inside.sum() < 8 or (~inside).sum() < 8:
+    before = rt < t_lo  # the log before the jump: after it the filter may still be recovering
+    if inside.sum() < 8 or before.sum() < 8:
         return None
-    base = float(np.mean(x[~inside]))
+    base = float(np.mean(x[before]))
     s_in, i0 = _max_excess(x[inside] - base)
     span = t_hi - t_lo
     null = []
-    for a in np.arange(rt[0], rt[-1] - span, span / 4):  # same-length stretches outside the region
+    for a in np.arange(rt[0], t_lo - span + 1e-9, span / 4):  # same-length stretches before the region
         m = (rt >= a) & (rt < a + span)
-        if m.sum() >= 8 and not np.any(inside[m]):
+        if m.sum() >= 8:
             null.append(_max_excess(x[m] - base)[0])
-    if len(null) < 2 or not s_in > max(null):
+    if not null or not s_in > max(null):
         return None
-    return float(rt[inside][i0])
+    # CUSUM reference halfway between the levels: small fluctuations before the jump reset the sum
+    xi = x[inside]
+    end = i0 + int(np.argmax(np.cumsum(xi[i0:] - base))) + 1
+    level = float(np.mean(xi[i0:end]))
+    return float(rt[inside][_max_excess(xi - 0.5 * (base + level))[1]])
 
 
 def _window_onset(result, t_lo: float, t_hi: float, m1: float, m2: float, W: float) -> Optional[float]:
