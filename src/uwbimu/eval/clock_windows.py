@@ -139,6 +139,8 @@ def windowed_time_offsets(result, window_s: Optional[float] = None) -> dict[str,
         if not L_w[-1, -1] > 1e-3 * L_b[-1, -1]:
             continue  # the window told nothing about t_d (held, or no excitation)
         tau = (eta_w[-1] - L_w[-1, :-1] @ nuis_final) / L_w[-1, -1]
+        if not np.isfinite(tau):
+            continue
         rows.append((t[a], t[b], tau, 1.0 / np.sqrt(L_w[-1, -1])))
     if not rows:
         return empty
