@@ -96,8 +96,8 @@ def register(app: typer.Typer) -> None:
             "eskf", "--estimator", help="eskf (19-state ESKF) or pointmass (seed 002's 6-state EKF)"
         ),
         clock_faults: bool = typer.Option(True, "--clock-faults/--no-clock-faults",
-                                          help="detect UWB clock jumps/drift from the innovations and re-run with "
-                                               "the jumps corrected"),
+                                          help="test the run's time offset for UWB clock jumps/drift (no re-run "
+                                               "on a clean log); correct the UWB stamps and re-run when found"),
         load_options=None,
     ) -> None:
         """Estimate trajectory, lever arm and time offset with the UWB-IMU error-state EKF."""
