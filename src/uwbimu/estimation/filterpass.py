@@ -216,18 +216,19 @@ def _propagate(prob: Problem, x: np.ndarray, P: np.ndarray, k: int, t_target: fl
 
 
 def _diverged(prob: Problem, x: np.ndarray, P: np.ndarray, all_rej: int) -> Optional[str]:
-    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(np.diag(P)))):
+    """The supervisor's verdict (None: healthy); the checks run compiled, the message only on failure."""
+    code = K.divergence_code(x, P, prob.max_pos_var, prob.hull_lo, prob.hull_hi, all_rej, prob.all_reject_run)
+    if code == 0:
+        return None
+    if code == 1:
         return "NaN in state or covariance"
-    if np.any(np.diag(P) < -1e-9):
+    if code == 2:
         return "negative covariance diagonal"
-    pv = P[0, 0] + P[1, 1] + P[2, 2]
-    if pv > prob.max_pos_var:
-        return f"position sd {np.sqrt(pv):.1f} m above limit"
-    if np.any(x[:3] < prob.hull_lo) or np.any(x[:3] > prob.hull_hi):
+    if code == 3:
+        return f"position sd {np.sqrt(P[0, 0] + P[1, 1] + P[2, 2]):.1f} m above limit"
+    if code == 4:
         return f"position {np.round(x[:3], 2).tolist()} far outside the anchors' hull"
-    if all_rej >= prob.all_reject_run:
-        return f"{all_rej} consecutive ranges rejected"
-    return None
+    return f"{all_rej} consecutive ranges rejected"
 
 
 @dataclass

@@ -413,4 +413,28 @@ def rotation_stats_into(u, k0, n, win, off, cs, cs2, rot_mean, rot_ms):
         rot_ms[k] = (cs2[k + 1] - cs2[b0]) / cnt
 
 
+@njit(cache=True)
+def divergence_code(x, P, max_pos_var, hull_lo, hull_hi, all_rej, all_reject_run):
+    """The supervisor's checks: 0 healthy, 1 non-finite state or covariance diagonal, 2 negative
+    covariance diagonal, 3 position variance above ``max_pos_var``, 4 position outside the hull box,
+    5 ``all_rej`` consecutive rejections."""
+    for i in range(x.shape[0]):
+        if not math.isfinite(x[i]):
+            return 1
+    for i in range(P.shape[0]):
+        if not math.isfinite(P[i, i]):
+            return 1
+    for i in range(P.shape[0]):
+        if P[i, i] < -1e-9:
+            return 2
+    if P[0, 0] + P[1, 1] + P[2, 2] > max_pos_var:
+        return 3
+    for i in range(3):
+        if x[i] < hull_lo[i] or x[i] > hull_hi[i]:
+            return 4
+    if all_rej >= all_reject_run:
+        return 5
+    return 0
+
+
 refresh_stale_cache(globals(), [_physics])
