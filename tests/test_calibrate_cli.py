@@ -25,7 +25,7 @@ def test_calibrate_writes_its_files(dataset_dir, tmp_path):
     out = tmp_path / "out"
     r = CliRunner().invoke(app, ["calibrate", str(dataset_dir), "--out", str(out), "--config", str(cfg)])
     assert r.exit_code == 0, r.output
-    assert {p.name for p in out.iterdir() if not p.name.startswith(".")} == {"calibration.yaml", "trajectory.csv", "residuals.csv",
+    assert {p.name for p in out.iterdir() if not p.name.startswith(".")} == {"calibration.yaml", "trajectory.csv", "residuals.csv", "anchors_estimated.csv",
                                                "td_profile.csv", "td_profile.png"}
     cal = yaml.safe_load((out / "calibration.yaml").read_text())
     assert cal["time_offset"]["verdict"] in {"identified", "flat", "multi_modal", "at_grid_edge", "not_curved"}

@@ -183,9 +183,9 @@ def _pairs(dataset, s: AnchorSetup, options) -> Optional[pd.DataFrame]:
 
 
 def eskf_dataset(dataset, s: AnchorSetup, with_unsurveyed: bool):
-    """The dataset an initialising ESKF pass runs on: anchors at ``s.pos`` (gauge frame).
+    """The dataset the initialising ESKF runs on: anchors at ``s.pos`` (gauge frame).
 
-    ``with_unsurveyed=False`` leaves out the anchors marked ``surveyed: false`` (and their ranges).
+    ``with_unsurveyed=False`` leaves out the anchors marked ``surveyed: false`` and their ranges.
     """
     keep = [a for a, sv in zip(s.ids, s.surveyed) if sv or with_unsurveyed]
     an = dataset.anchors[dataset.anchors["anchor"].astype(str).isin(keep)].copy()
@@ -195,8 +195,11 @@ def eskf_dataset(dataset, s: AnchorSetup, with_unsurveyed: bool):
     return replace(dataset, anchors=an.reset_index(drop=True), uwb=uwb, groundtruth=None, anchor_ranges=None)
 
 
-def antenna_positions(eskf, t_uwb: np.ndarray) -> np.ndarray:
-    """(M, 3) antenna positions of the ESKF trajectory at UWB stamps ``t_uwb`` (its t_d and lever arm)."""
+def antenna_positions(eskf, t_uwb: np.ndarray, with_sd: bool = False):
+    """(M, 3) antenna positions of the ESKF trajectory at UWB stamps ``t_uwb`` (its t_d and lever arm).
+
+    With ``with_sd`` also the (M, 3) position sds of the ESKF (world frame) at those instants.
+    """
     from scipy.spatial.transform import Rotation, Slerp
 
     td = float(eskf.calibration["time_offset"])
@@ -207,7 +210,11 @@ def antenna_positions(eskf, t_uwb: np.ndarray) -> np.ndarray:
     q = st[:, 6:10] / np.linalg.norm(st[:, 6:10], axis=1, keepdims=True)
     _, first = np.unique(t_e, return_index=True)
     rot = Slerp(t_e[first], Rotation.from_quat(q[first][:, [1, 2, 3, 0]]))(s)
-    return p + rot.apply(np.asarray(eskf.calibration["lever_arm"], float))
+    pu = p + rot.apply(np.asarray(eskf.calibration["lever_arm"], float))
+    if not with_sd:
+        return pu
+    sd = np.column_stack([np.interp(s, t_e, np.nan_to_num(eskf.sd[:, c])) for c in range(3)])
+    return pu, sd
 
 
 def multilaterate(P: np.ndarray, rho: np.ndarray, iterations: int = 20) -> tuple[np.ndarray, float]:
@@ -235,14 +242,17 @@ def multilaterate(P: np.ndarray, rho: np.ndarray, iterations: int = 20) -> tuple
 
 
 def geometry_checks(anchor_id: str, a: np.ndarray, P: np.ndarray, rho: np.ndarray, sigma: float,
-                    bias_sd: Optional[float]) -> list[dict]:
+                    bias_sd: Optional[float], position_sd: Optional[np.ndarray] = None) -> list[dict]:
     """Degenerate-geometry events for one estimated anchor (empty list: well located).
 
     Parameters
     ----------
     a : (3,) anchor position estimate [m]; P : (M, 3) antenna positions; rho : (M,) ranges [m].
-    sigma : range sd used for the chi2 [m] (pass ``max(range sigma, fit RMS)`` to be conservative).
+    sigma : range sd of the measurement model [m] (information and chi2 units).
     bias_sd : prior sd of the anchor's range bias [m], or None when no bias is estimated.
+    position_sd : (M, 3) sd of the antenna positions [m] (the estimated trajectory's), or None.  Their
+        noise is not motion: the out-of-plane spread is shrunk by it before the mirror test (an
+        estimated trajectory of a planar motion is never exactly planar).
 
     Events
     ------
@@ -279,15 +289,21 @@ def geometry_checks(anchor_id: str, a: np.ndarray, P: np.ndarray, rho: np.ndarra
     c = P.mean(axis=0)
     _, sv, Vt = np.linalg.svd(P - c, full_matrices=False)
     normal = Vt[-1]
-    planarity = float(sv[-1] / sv[0]) if sv[0] > 0 else 0.0
+    off = (P - c) @ normal
+    spread2 = float(np.mean(off**2))
+    noise2 = float(np.mean(position_sd**2 @ normal**2)) if position_sd is not None else 0.0
+    shrink = np.sqrt(max(spread2 - noise2, 0.0) / spread2) if spread2 > 0 else 0.0
+    Pm = P - (1.0 - shrink) * np.outer(off, normal)  # out-of-plane motion without the trajectory's noise
+    planarity = float(np.sqrt(max(spread2 - noise2, 0.0) * len(P)) / sv[0]) if sv[0] > 0 else 0.0
     h = float((a - c) @ normal)
     mirror = a - 2.0 * h * normal
-    chi_a = np.sum((np.linalg.norm(P - a, axis=1) - rho) ** 2) / sigma**2
-    chi_m = np.sum((np.linalg.norm(P - mirror, axis=1) - rho) ** 2) / sigma**2
-    dchi2 = float(chi_m - chi_a)
+    # Expected (noise-free) chi2 increase of the mirror image: sum of its range changes over sigma.  The
+    # realised increase adds a zero-mean cross term with the trajectory's own errors, which would make the
+    # verdict depend on the initialising ESKF's accuracy rather than on the geometry.
+    dchi2 = float(np.sum((np.linalg.norm(Pm - mirror, axis=1) - np.linalg.norm(Pm - a, axis=1)) ** 2) / sigma**2)
     # A mirror image within a few sds of the anchor is local uncertainty (the marginal sd reports it), not a
     # second solution: only a distinct mirror that fits as well is an ambiguity.
-    sd_normal = float(np.sqrt(normal @ np.linalg.solve(Ha, normal)))
+    sd_normal = float(np.sqrt(np.sum((vec.T @ normal) ** 2 / np.maximum(lam, 1e-300))))
     if dchi2 < MIRROR_CHI2 and 2.0 * abs(h) > DIRECTION_SIGMAS * sd_normal:
         events.append({"kind": "anchor_mirror_ambiguity", "anchor": anchor_id, "delta_chi2": dchi2,
                        "planarity": planarity, "height_above_plane_m": h,

@@ -140,22 +140,25 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
 def _bootstrap(dataset, o: CalibrationOptions, setup, eo, eskf, events: list):
     """ESKF initialisation with anchors to estimate (gauge frame), then their initial guesses.
 
-    Pass 1 runs the ESKF on the surveyed anchors (plus the rough ``anchors.csv`` guesses of the
-    ``surveyed: false`` ones when fewer than 4 are surveyed: the ESKF's first fix needs 4);
-    the unsurveyed anchors are then multilaterated from its trajectory, and pass 2 reruns the
-    ESKF with every anchor at those positions before the final multilateration and the geometry
-    checks (:func:`_initial_anchors`).  A given ``eskf`` (same frame) replaces both passes.
+    With 4 or more anchors with surveyed coordinates the ESKF runs on those alone.  With fewer
+    (its first fix needs 4), it runs on every anchor, the ``surveyed: false`` ones at their rough
+    ``anchors.csv`` guesses, with the range sd raised to ``bootstrap_range_sigma``: an ESKF that
+    trusts ranges to wrongly placed anchors diverges, one that de-weights them tracks the IMU
+    trajectory to a few tens of cm, which the joint batch solve then refines.  The unsurveyed
+    anchors start at the multilateration of their ranges from that trajectory, followed by the
+    geometry checks (:func:`_initial_anchors`).  A given ``eskf`` (same frame) is used as is.
     """
     from uwbimu.estimation import run_eskf
 
-    if eskf is not None:
-        events += _initial_anchors(dataset, eskf, o, setup)
-        return eskf
-    unsurveyed = setup.estimated & ~setup.surveyed
-    eskf = run_eskf(AN.eskf_dataset(dataset, setup, with_unsurveyed=int(setup.surveyed.sum()) < 4), eo)
-    if unsurveyed.any():
-        _initial_anchors(dataset, eskf, o, setup, checks=False)
-        eskf = run_eskf(AN.eskf_dataset(dataset, setup, with_unsurveyed=True), eo)
+    if eskf is None:
+        guesses = int(setup.surveyed.sum()) < 4 and bool((setup.estimated & ~setup.surveyed).any())
+        if guesses:
+            sigma = max(float(o.range_sigma or dataset.meta.range_sigma or 0.1), o.bootstrap_range_sigma)
+            eo = eo.model_copy(update={"range_sigma": sigma})
+            events.append({"kind": "anchor_bootstrap_from_guesses", "range_sigma": sigma,
+                           "message": f"fewer than 4 surveyed anchors: the initialising ESKF used the anchors.csv "
+                                      f"guesses of the unsurveyed anchors with a range sd of {sigma:g} m"})
+        eskf = run_eskf(AN.eskf_dataset(dataset, setup, with_unsurveyed=guesses), eo)
     events += _initial_anchors(dataset, eskf, o, setup)
     return eskf
 
@@ -177,13 +180,13 @@ def _initial_anchors(dataset, eskf, o: CalibrationOptions, setup, checks: bool =
     events = []
     for j in np.flatnonzero(setup.estimated):
         a_id = setup.ids[j]
-        sel = aid == a_id
+        sel = (aid == a_id) & (uwb["t"].to_numpy(float) <= eskf.t[-1])  # pass 1 may cover a window only
         rho = uwb["range"].to_numpy(float)[sel]
         has_prior = bool(np.isfinite(setup.prior_sd[j]))
         if sel.sum() < 4 and not has_prior:
             raise InputError(f"anchor self-survey: anchor {a_id!r} has {int(sel.sum())} ranges in uwb.csv; at least 4 "
                              "(from different places) are needed to locate it without a prior")
-        P = AN.antenna_positions(eskf, uwb["t"].to_numpy(float)[sel])
+        P, P_sd = AN.antenna_positions(eskf, uwb["t"].to_numpy(float)[sel], with_sd=True)
         if has_prior:
             a0, rms = setup.pos[j], float(np.sqrt(np.mean((np.linalg.norm(P - setup.pos[j], axis=1) - rho) ** 2)))
         else:
@@ -191,7 +194,7 @@ def _initial_anchors(dataset, eskf, o: CalibrationOptions, setup, checks: bool =
             setup.pos[j] = a0
         if not checks:
             continue
-        found = AN.geometry_checks(a_id, a0, P, rho, max(sigma, rms), bias_sd) if len(rho) else []
+        found = AN.geometry_checks(a_id, a0, P, rho, sigma, bias_sd, P_sd) if len(rho) else []
         for ev in found:
             ev["severity"] = "warning" if has_prior or o.degenerate_anchors == "warn" else "refused"
             ev["has_prior"] = has_prior

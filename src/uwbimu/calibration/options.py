@@ -47,6 +47,9 @@ class CalibrationOptions(BaseModel):
     degenerate_anchors: Literal["refuse", "warn"] = Field(
         "refuse", description="an estimated anchor without prior seen from too few directions or mirror-ambiguous "
                               "(coplanar motion): refuse (InputError) or warn (event) and solve")
+    bootstrap_range_sigma: float = Field(
+        0.5, gt=0, description="[m] range sd of the initialising ESKF when it must use rough anchors.csv guesses "
+                               "(fewer than 4 surveyed anchors); about the guesses' error")
     max_iterations: int = Field(50, ge=1)
     reassociate_max: int = Field(3, ge=0, description="re-attach ranges when t_d moved > half a keyframe step")
     td_profile: TdProfileOptions = Field(default_factory=TdProfileOptions)
