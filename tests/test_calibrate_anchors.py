@@ -145,3 +145,49 @@ def test_coplanar_motion_is_refused_without_a_prior():
     an = ds.anchors.assign(surveyed=[a != "A6" for a in ds.anchors["anchor"]])
     with pytest.raises(InputError, match="A6.*(height|directions)"):
         calibrate(dataclasses.replace(ds, anchors=an), CalibrationOptions(td_profile={"enabled": False}))
+
+
+def test_gauge_convention_and_anchor_ranges_end_to_end():
+    """Every anchor estimated (weak priors around 20 cm-off guesses) plus measured inter-anchor ranges.
+
+    The gauge convention holds A0 at the origin and A1 on the x axis; the solution matches the truth
+    expressed in that frame within 4 sd, and the anchor_ranges factors hold each measured pair to its
+    1 cm sd although the guesses were off by tens of cm.
+    """
+    pytest.importorskip("gtsam")
+    from uwbimu.calibration import calibrate
+    from uwbimu.sim import builtin_scenario, simulate
+
+    ds = simulate(builtin_scenario("calibration-flight").model_copy(update={"duration": 15.0}))
+    truth = ds.anchors[["x", "y", "z"]].to_numpy()
+    ids = list(ds.anchors["anchor"])
+    rng = np.random.default_rng(5)
+    guess = ds.anchors.copy()
+    guess[["x", "y", "z"]] = truth + rng.normal(0, 0.2, truth.shape)
+    pairs = [(0, 1), (1, 2), (2, 3), (3, 0), (4, 6), (5, 7), (0, 4), (2, 6)]
+    ar = pd.DataFrame({"anchor_a": [ids[a] for a, _ in pairs], "anchor_b": [ids[b] for _, b in pairs],
+                       "range": [np.linalg.norm(truth[a] - truth[b]) + rng.normal(0, 0.01) for a, b in pairs],
+                       "sd": 0.01})
+    opts = CalibrationOptions.model_validate({"td_profile": {"enabled": False}, "estimate_anchors": ids,
+                                              "estimate_anchor_bias": False})
+    res = calibrate(dataclasses.replace(ds, anchors=guess, anchor_ranges=ar), opts)
+    cal = res.calibration["anchors"]
+    assert (cal["gauge"]["kind"], cal["gauge"]["origin_anchor"], cal["gauge"]["x_axis_anchor"]) == ("convention", "A0", "A1")
+    assert any(e["kind"] == "anchor_gauge_convention" for e in res.events)
+    est = res.anchors[["x", "y", "z"]].to_numpy()
+    sd = res.anchors[["sd_x", "sd_y", "sd_z"]].to_numpy()
+    np.testing.assert_allclose(est[0], 0.0, atol=1e-12)
+    assert abs(est[1, 1]) < 1e-3 and est[1, 0] > 0
+    d = truth[1] - truth[0]
+    c, s = np.cos(-np.arctan2(d[1], d[0])), np.sin(-np.arctan2(d[1], d[0]))
+    in_gauge = (truth - truth[0]) @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T
+    err = (est - in_gauge)[1:]
+    ok = np.abs(err) < 4 * sd[1:]
+    ok[0, 1] = True  # A1's y is the gauge constraint (sd ~ 0)
+    assert ok.all(), (err, sd)
+    res_pairs = np.array([p["residual"] for p in cal["anchor_ranges"]])
+    assert all(p["in_graph"] for p in cal["anchor_ranges"])
+    assert np.all(np.abs(res_pairs) < 0.03), res_pairs
+    guess_err = [abs(np.linalg.norm(guess[["x", "y", "z"]].to_numpy()[a] - guess[["x", "y", "z"]].to_numpy()[b])
+                     - r) for (a, b), r in zip(pairs, ar["range"])]
+    assert np.median(guess_err) > 0.1  # the guesses alone were far off: the factors did the work
