@@ -117,7 +117,7 @@ def plan_anchors(dataset, options) -> AnchorSetup:
     setup = AnchorSetup(ids=ids, pos=pos, estimated=estimated, surveyed=surveyed, prior_sd=prior_sd, gauge={},
                         events=events)
     if setup.any_estimated:
-        _apply_gauge(setup, [file_ids.index(a) for a in ids], file_ids)
+        _apply_gauge(setup, [file_ids.index(a) for a in ids])
     else:
         setup.gauge = {"kind": "surveyed", "fixed_anchors": list(ids),
                        "description": "all anchors fixed at their anchors.csv positions"}
@@ -125,7 +125,7 @@ def plan_anchors(dataset, options) -> AnchorSetup:
     return setup
 
 
-def _apply_gauge(s: AnchorSetup, order_in_file: list[int], file_ids: list[str]) -> None:
+def _apply_gauge(s: AnchorSetup, order_in_file: list[int]) -> None:
     J = len(s.ids)
     by_file = sorted(range(J), key=lambda j: order_in_file[j])  # graph indices in anchors.csv order
     fixed = [j for j in by_file if not s.estimated[j]]

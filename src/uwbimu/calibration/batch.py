@@ -163,7 +163,7 @@ def _bootstrap(dataset, o: CalibrationOptions, setup, eo, eskf, events: list):
     return eskf
 
 
-def _initial_anchors(dataset, eskf, o: CalibrationOptions, setup, checks: bool = True) -> list[dict]:
+def _initial_anchors(dataset, eskf, o: CalibrationOptions, setup) -> list[dict]:
     """Initial guesses of the estimated anchors (multilateration of the ESKF trajectory) and geometry checks.
 
     An anchor without prior (``surveyed: false``) starts at the multilateration of its ranges from the
@@ -180,21 +180,21 @@ def _initial_anchors(dataset, eskf, o: CalibrationOptions, setup, checks: bool =
     events = []
     for j in np.flatnonzero(setup.estimated):
         a_id = setup.ids[j]
-        sel = (aid == a_id) & (uwb["t"].to_numpy(float) <= eskf.t[-1])  # pass 1 may cover a window only
+        sel = (aid == a_id) & (uwb["t"].to_numpy(float) <= eskf.t[-1])  # ranges within the ESKF's span
         rho = uwb["range"].to_numpy(float)[sel]
         has_prior = bool(np.isfinite(setup.prior_sd[j]))
         if sel.sum() < 4 and not has_prior:
             raise InputError(f"anchor self-survey: anchor {a_id!r} has {int(sel.sum())} ranges in uwb.csv; at least 4 "
                              "(from different places) are needed to locate it without a prior")
+        if not sel.any():
+            continue  # a prior and no ranges: the prior alone places it (its sd says so)
         P, P_sd = AN.antenna_positions(eskf, uwb["t"].to_numpy(float)[sel], with_sd=True)
         if has_prior:
-            a0, rms = setup.pos[j], float(np.sqrt(np.mean((np.linalg.norm(P - setup.pos[j], axis=1) - rho) ** 2)))
+            a0 = setup.pos[j]
         else:
-            a0, rms = AN.multilaterate(P, rho)
+            a0, _rms = AN.multilaterate(P, rho)
             setup.pos[j] = a0
-        if not checks:
-            continue
-        found = AN.geometry_checks(a_id, a0, P, rho, sigma, bias_sd, P_sd) if len(rho) else []
+        found = AN.geometry_checks(a_id, a0, P, rho, sigma, bias_sd, P_sd)
         for ev in found:
             ev["severity"] = "warning" if has_prior or o.degenerate_anchors == "warn" else "refused"
             ev["has_prior"] = has_prior
