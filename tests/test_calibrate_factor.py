@@ -145,3 +145,69 @@ def test_tdoa_factor_matches_reference_and_finite_differences(case):
     np.testing.assert_allclose(num[9:12], Jl, atol=1e-6)
     assert num[12] == pytest.approx(Jt, abs=1e-5)
     assert num[13] == pytest.approx(-1.0, abs=1e-9) and num[14] == pytest.approx(1.0, abs=1e-9)
+
+def test_anchor_jacobian_matches_finite_differences(case):
+    """Self-survey: d e / d p_anchor (world, m) against central differences of the residual."""
+    c = case
+    args = (c["R_k"], c["p_k"], c["v_k"], c["lever"], 0.027, c["bias"])
+    res = range_error(*args, c["anchor"], 5.0, c["d"], 0.02, jacobians=True, with_anchor=True)
+    assert len(res) == 6
+    h = 1e-6
+    num = np.array([(range_error(*args, c["anchor"] + h * np.eye(3)[i], 5.0, c["d"], 0.02)
+                     - range_error(*args, c["anchor"] - h * np.eye(3)[i], 5.0, c["d"], 0.02)) / (2 * h)
+                    for i in range(3)])
+    np.testing.assert_allclose(res[5], num, atol=1e-7)
+    # The other Jacobians are unchanged by the flag.
+    for a, b in zip(res[1:5], range_error(*args, c["anchor"], 5.0, c["d"], 0.02, jacobians=True)[1:]):
+        np.testing.assert_allclose(a, b)
+
+
+def test_gtsam_factor_with_anchor_variable(case):
+    """The CustomFactor with the anchor as a Point3 key: same residual, numerical Jacobian of the whole factor."""
+    gtsam = pytest.importorskip("gtsam")
+    from gtsam.symbol_shorthand import A, L, P, T, V, X
+
+    c = case
+    noise = gtsam.noiseModel.Isotropic.Sigma(1, 0.1)
+    keys = [X(0), V(0), L(0), T(0), A(0), P(0)]
+    f = make_gtsam_factor(keys, np.zeros(3), 5.0, c["d"], 0.02, noise, anchor_variable=True)
+    vals = gtsam.Values()
+    vals.insert(X(0), gtsam.Pose3(gtsam.Rot3(c["R_k"]), c["p_k"]))
+    vals.insert(V(0), c["v_k"])
+    vals.insert(L(0), c["lever"])
+    vals.insert(T(0), np.array([0.027]))
+    vals.insert(A(0), np.array([c["bias"]]))
+    vals.insert(P(0), c["anchor"])
+    e = range_error(c["R_k"], c["p_k"], c["v_k"], c["lever"], 0.027, c["bias"], c["anchor"], 5.0, c["d"], 0.02)
+    assert f.unwhitenedError(vals)[0] == pytest.approx(e, abs=1e-12)
+    Ab, _b = f.linearize(vals).jacobian()
+    # Numerical Jacobian through GTSAM's own retraction of every key (pose on the manifold).
+    h, num = 1e-6, []
+    for k, dim in zip(keys, (6, 3, 3, 1, 1, 3)):
+        for i in range(dim):
+            dx = gtsam.VectorValues()
+            for kk, dd in zip(keys, (6, 3, 3, 1, 1, 3)):
+                dx.insert(kk, h * np.eye(dd)[i] if kk == k else np.zeros(dd))
+            ep = f.unwhitenedError(vals.retract(dx))[0]
+            dx2 = gtsam.VectorValues()
+            for kk, dd in zip(keys, (6, 3, 3, 1, 1, 3)):
+                dx2.insert(kk, -h * np.eye(dd)[i] if kk == k else np.zeros(dd))
+            num.append((ep - f.unwhitenedError(vals.retract(dx2))[0]) / (2 * h))
+    np.testing.assert_allclose(Ab[0] * 0.1, num, atol=1e-6)
+
+
+def test_inter_anchor_factor_jacobians():
+    from uwbimu.calibration.graph import pair_error
+
+    rng = np.random.default_rng(3)
+    pa, pb, h = rng.normal(size=3) * 3, rng.normal(size=3) * 3, 1e-6
+    e, Ja, Jb = pair_error(pa, pb, 4.0, jacobians=True)
+    assert e == pytest.approx(np.linalg.norm(pa - pb) - 4.0)
+    for J, which in ((Ja, 0), (Jb, 1)):
+        num = []
+        for i in range(3):
+            d = h * np.eye(3)[i]
+            plus = pair_error(pa + d, pb, 4.0) if which == 0 else pair_error(pa, pb + d, 4.0)
+            minus = pair_error(pa - d, pb, 4.0) if which == 0 else pair_error(pa, pb - d, 4.0)
+            num.append((plus - minus) / (2 * h))
+        np.testing.assert_allclose(J, num, atol=1e-8)

@@ -47,7 +47,7 @@ def test_lever_arm_and_td_within_three_sigma(seeded_runs):
 def test_outputs_are_finite_and_complete(seeded_runs, tmp_path):
     ds, res = seeded_runs[0]
     paths = write_calibration(res, tmp_path)
-    assert {p.name for p in paths} == {"calibration.yaml", "trajectory.csv", "residuals.csv"}
+    assert {p.name for p in paths} == {"calibration.yaml", "trajectory.csv", "residuals.csv", "anchors_estimated.csv"}
     assert np.all(np.isfinite(res.trajectory.to_numpy(float)))
     assert len(res.residuals) == res.calibration["ranges"]["used"] > 0
     corr = np.array(res.calibration["correlations"]["matrix"])
