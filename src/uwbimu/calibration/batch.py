@@ -231,7 +231,14 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
         e = float(f.unwhitenedError(values)[0])
         rows.append((pb.t_range[m], pb.anchor_ids[pb.anchor_j[m]], pb.rho[m], pb.rho[m] + e, e))
     res = pd.DataFrame(rows, columns=["t", "anchor", "range", "predicted", "residual"])
-    res["z"] = res["residual"] / pb.range_sigma
+    sig = np.full(len(res), pb.range_sigma)
+    if pb.anchor_b is not None:
+        # TDoA rows: "anchor" is anchor_a, "range" the measured TDoA [m]
+        b = pb.anchor_b[assoc.used]
+        res["kind"] = np.where(b >= 0, "tdoa", "range")
+        res["anchor_b"] = np.where(b >= 0, np.array(pb.anchor_ids, dtype=object)[np.maximum(b, 0)], "")
+        sig[b >= 0] = pb.tdoa_sigma
+    res["z"] = res["residual"] / sig
     res["outlier"] = np.abs(res["z"]) > pb.options.huber_k
     offs = 3 + (1 if td_free else 0)
     bias = {a: float(values.atVector(A(j))[0]) for j, a in enumerate(pb.anchor_ids)}

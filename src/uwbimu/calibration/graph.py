@@ -23,6 +23,7 @@ import numpy as np
 from uwbimu.calibration.anchors import GAUGE_SIGMA, AnchorSetup
 from uwbimu.calibration.options import CalibrationOptions
 from uwbimu.calibration.range_factor import imu_deltas, make_gtsam_factor
+from uwbimu.calibration.tdoa_factor import make_gtsam_tdoa_factor
 from uwbimu.models.reference import GRAVITY
 
 #: IMU noise used when neither the options nor dataset.yaml document it (consumer MEMS).
@@ -63,6 +64,13 @@ class Problem:
     range_sigma: float
     imu_noise: dict = field(default_factory=dict)
     anchors: Optional[AnchorSetup] = None
+    # TDoA rows (``tdoa.csv``) merged with the ranges in time order: anchor_b[m] >= 0 makes row m the TDoA
+    # rho[m] = |p_U - p_b| - |p_U - p_a| with a = anchor_j[m], b = anchor_b[m]; None: ranges only
+    anchor_b: Optional[np.ndarray] = None
+    tdoa_sigma: float = 0.0
+
+    def is_tdoa(self, m: int) -> bool:
+        return self.anchor_b is not None and int(self.anchor_b[m]) >= 0
 
     def estimated(self, j: int) -> bool:
         return self.anchors is not None and bool(self.anchors.estimated[j])
@@ -113,8 +121,31 @@ def build_problem(dataset, eskf, options: CalibrationOptions, anchors: Optional[
             v = getattr(meta_noise, name, None)
         noise[name] = float(v if v is not None else default)
     sigma = options.range_sigma or dataset.meta.range_sigma or 0.1
-    return Problem(t_imu=t_imu, u_imu=u_imu, key_idx=key_idx, t_range=uwb["t"].to_numpy(float),
-                   rho=uwb["range"].to_numpy(float), anchor_j=np.array([jmap[a] for a in uwb["anchor"].astype(str)]),
+    t_r = uwb["t"].to_numpy(float)
+    rho = uwb["range"].to_numpy(float)
+    aj = np.array([jmap[a] for a in uwb["anchor"].astype(str)], dtype=np.int64)
+    bj = None
+    tdoa = getattr(dataset, "tdoa", None)
+    tsig = 0.0
+    if tdoa is not None and len(tdoa):
+        if anchors is not None and any(anchors.estimated):
+            from uwbimu.errors import UsageError
+
+            raise UsageError("calibrate: anchor self-survey with TDoA is not supported yet",
+                             hint="survey the anchors with ranges, or fix them (no --estimate-anchors)")
+        ok = tdoa["anchor_a"].astype(str).isin(ids).to_numpy() & tdoa["anchor_b"].astype(str).isin(ids).to_numpy()
+        td = tdoa[ok]
+        t_r = np.concatenate([t_r, td["t"].to_numpy(float)])
+        rho = np.concatenate([rho, td["tdoa"].to_numpy(float)])
+        aj = np.concatenate([aj, np.array([jmap[a] for a in td["anchor_a"].astype(str)], dtype=np.int64)])
+        bj = np.concatenate([np.full(len(uwb), -1, dtype=np.int64),
+                             np.array([jmap[b] for b in td["anchor_b"].astype(str)], dtype=np.int64)])
+        order = np.argsort(t_r, kind="stable")
+        t_r, rho, aj, bj = t_r[order], rho[order], aj[order], bj[order]
+        base = options.range_sigma or dataset.meta.range_sigma or 0.1
+        tsig = float(options.tdoa_sigma or (dataset.meta.extra or {}).get("tdoa_sigma") or np.sqrt(2.0) * base)
+    return Problem(t_imu=t_imu, u_imu=u_imu, key_idx=key_idx, t_range=t_r,
+                   rho=rho, anchor_j=aj, anchor_b=bj, tdoa_sigma=tsig,
                    anchor_ids=ids, anchor_pos=np.array([pos[a] for a in ids]), init_states=init,
                    lever0=np.asarray(eskf.calibration["lever_arm"], float),
                    td0=float(eskf.calibration["time_offset"]), options=options, range_sigma=float(sigma),
@@ -204,9 +235,19 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
     noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(o.huber_k),
                                            gtsam.noiseModel.Isotropic.Sigma(1, pb.range_sigma))
     P = _P()
+    tnoise = None
+    if pb.anchor_b is not None:
+        tnoise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(o.huber_k),
+                                                gtsam.noiseModel.Isotropic.Sigma(1, pb.tdoa_sigma))
     # The range factors come last: _report reads them as the graph's final len(assoc.used) factors.
     for m, k, d in zip(assoc.used, assoc.key, assoc.deltas):
         j = int(pb.anchor_j[m])
+        if pb.is_tdoa(m):
+            jb = int(pb.anchor_b[m])
+            keys = [X(k), V(k), L(0)] + ([T(0)] if td_fixed is None else []) + [A(j), A(jb)]
+            g.add(make_gtsam_tdoa_factor(keys, pb.anchor_pos[j], pb.anchor_pos[jb], pb.rho[m], d, assoc.td0, tnoise,
+                                         td_fixed=td_fixed))
+            continue
         est = pb.estimated(j)
         keys = [X(k), V(k), L(0)] + ([T(0)] if td_fixed is None else []) + [A(j)] + ([P(j)] if est else [])
         g.add(make_gtsam_factor(keys, pb.anchor_pos[j], pb.rho[m], d, assoc.td0, noise, td_fixed=td_fixed,

@@ -26,6 +26,8 @@ class CalibrationOptions(BaseModel):
     model_config = ConfigDict(extra="forbid")
     keyframe_hz: float = Field(10.0, gt=0, le=200, description="keyframe rate of the graph [Hz]")
     range_sigma: Optional[float] = Field(None, gt=0, description="range noise sd [m]; default dataset's or 0.1")
+    tdoa_sigma: Optional[float] = Field(
+        None, gt=0, description="TDoA noise sd [m]; default the dataset's extra.tdoa_sigma, else sqrt(2) range_sigma")
     huber_k: float = Field(1.345, gt=0, description="Huber threshold in sigmas (outliers: |e| > k sigma)")
     accel_noise_density: Optional[float] = Field(None, gt=0, description="m/s^2/sqrt(Hz); default dataset's")
     gyro_noise_density: Optional[float] = Field(None, gt=0, description="rad/s/sqrt(Hz); default dataset's")
