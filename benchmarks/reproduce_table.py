@@ -17,6 +17,10 @@ from __future__ import annotations
 import json
 import sys
 from decimal import Decimal
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from reproduce_blas_spread import spread as spread_of  # noqa: E402
 
 RF = "python benchmarks/reproduce_figures.py"
 CMD = {
@@ -39,7 +43,10 @@ B19, BPM, BTD, BTDOA = "boundary.19-state_uwb-imu_model", "boundary.point_mass",
 # (file, section, figure, quoted, group, key)
 CATALOGUE = [
     (R, "Observability", "TDoA, 2 anchors, excited motion: rank", "18", "boundary", f"{BTDOA}.0.rank / 18 (min)"),
-    (R, "Observability", "PCRB vs matched ESKF sigma within 5 % (lever arm x)", "1.00", "pcrb", "pcrb.ratio_eskf_over_bound.lx"),
+    (R, "Observability", "PCRB = matched ESKF sigma within 5 %: lever x ratio", "0.95..1.05", "pcrb", "pcrb.ratio_eskf_over_bound.lx"),
+    (R, "Observability", "same: lever y ratio", "0.95..1.05", "pcrb", "pcrb.ratio_eskf_over_bound.ly"),
+    (R, "Observability", "same: lever z ratio", "0.95..1.05", "pcrb", "pcrb.ratio_eskf_over_bound.lz"),
+    (R, "Observability", "same: t_d ratio", "0.95..1.05", "pcrb", "pcrb.ratio_eskf_over_bound.td"),
     (R, "Observability", "point mass in the beacons' plane: rank at order 1", "5", "boundary", f"{BPM}.3.rank / 6 (min)"),
     (R, "Observability", "point mass in the beacons' plane: rank at order 2", "6", "boundary", f"{BPM}.4.rank / 6 (min)"),
     (R, "Observability", "no excitation: rank", "12", "boundary", f"{B19}.15.rank / 18 (min over points)"),
@@ -151,13 +158,17 @@ def half_unit(q: str) -> float:
 
 def fmt(v) -> str:
     if isinstance(v, float):
-        return f"{v:.6g}" if abs(v) < 1e-3 or abs(v) >= 1e5 else f"{v:.7g}"
+        return f"{v:.4g}" if 0 < abs(v) < 1e-3 else f"{v:.10g}"
     return str(v)
 
 
 def verdict(quoted: str, lo, hi) -> str:
+    if ".." in quoted:  # a quoted interval ("within 5 %")
+        a, b = (float(x) for x in quoted.split(".."))
+        return "yes" if a <= lo and hi <= b else ("spread" if lo <= b and hi >= a else "no")
     try:
         q, h = float(quoted), half_unit(quoted)
+        lo, hi = float(lo), float(hi)
     except Exception:
         return "yes" if str(lo) == quoted and str(hi) == quoted else "no"
     if "e" in quoted.lower():  # a quoted order of magnitude: match within a factor of 2
@@ -169,31 +180,62 @@ def verdict(quoted: str, lo, hi) -> str:
     return "no"
 
 
+def _boundary_section(results: dict) -> None:
+    """Every cell of the generated boundary tables against docs/observability.md, per variant."""
+    from reproduce_figures import ROOT, parse_md_tables
+
+    doc = {}
+    for title, rows in parse_md_tables((ROOT / "docs" / "observability.md").read_text()).items():
+        tkey = title.split("(")[0].strip().lower().replace(" ", "_")
+        for i, r in enumerate(rows):
+            for col, val in list(r.items())[1:]:
+                doc[f"boundary.{tkey}.{i}.{col}"] = val
+    print()
+    print("| boundary table (docs/observability.md) | cells | equal to the doc in every variant | cells that differ between variants | cells that differ from the doc |")
+    print("|---|---|---|---|---|")
+    tables = sorted({k.split(".")[1] for k in doc})
+    for t in tables:
+        keys = [k for k in doc if k.split(".")[1] == t]
+        vals = {k: {str(r.get(k)) for r in results.values()} for k in keys}
+        equal = sum(1 for k in keys if vals[k] == {doc[k]})
+        varying = [k for k in keys if len(vals[k]) > 1]
+        off = [f"{k.split('.', 2)[2]}: doc {doc[k]}, measured {' / '.join(sorted(vals[k]))}" for k in keys if vals[k] != {doc[k]}]
+        print(f"| {t} | {len(keys)} | {equal} | {len(varying)} | {'; '.join(off) or '-'} |")
+
+
 def main(argv=None) -> int:
     files = (argv if argv is not None else sys.argv[1:])
     spread: dict = {}
     corenames: dict = {}
+    merged: dict = {}
     for f in files:
         raw = json.loads(open(f).read())
         corenames.update(raw.get("corename", {}))
         for g, d in raw["groups"].items():
-            spread[g] = {"spread": d["spread"], "variants": list(d["results"])}
-    print("| # | where | figure | quoted | command | key | measured (min .. max over variants) | variants | match |")
-    print("|---|---|---|---|---|---|---|---|---|")
+            merged[g] = {**merged.get(g, {}), **d["results"]}  # files with the same group add variants
+    for g, res in merged.items():
+        spread[g] = {"spread": spread_of(res), "variants": list(res)}
+    boundary_raw = merged.get("boundary")
+    print("| # | where | figure | quoted | command | key | measured min | measured max | rel. spread | variants | match |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for i, (f, sec, fig, q, g, key) in enumerate(CATALOGUE, 1):
         s = spread.get(g, {}).get("spread", {}).get(key)
         if s is None:
-            print(f"| {i} | {f}, {sec} | {fig} | {q} | `{CMD[g]}` | `{key}` | not measured | - | - |")
+            print(f"| {i} | {f}, {sec} | {fig} | {q} | `{CMD[g]}` | `{key}` | not measured | - | - | - | - |")
             continue
         n = s["n"]
         if "min" in s:
             lo, hi = s["min"], s["max"]
-            meas = fmt(lo) if lo == hi else f"{fmt(lo)} .. {fmt(hi)}"
+            rel = "0" if lo == hi else f"{abs(hi - lo) / max(abs(hi), 1e-300):.1e}"
+            mlo, mhi = fmt(lo), fmt(hi)
         else:
             lo = hi = s["values"][0] if len(s["values"]) == 1 else None
-            meas = " / ".join(s["values"])
+            mlo, mhi = s["values"][0], s["values"][-1]
+            rel = "0" if lo is not None else "differs"
         m = verdict(q, lo, hi) if lo is not None else "no"
-        print(f"| {i} | {f}, {sec} | {fig} | {q} | `{CMD[g]}` | `{key}` | {meas} | {n} | {m} |")
+        print(f"| {i} | {f}, {sec} | {fig} | {q} | `{CMD[g]}` | `{key}` | {mlo} | {mhi} | {rel} | {n} | {m} |")
+    if boundary_raw is not None:
+        _boundary_section(boundary_raw)
     print()
     print("Core types selected: " + ", ".join(f"{v} -> {c}" for v, c in corenames.items()))
     return 0

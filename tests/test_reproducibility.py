@@ -9,7 +9,6 @@ verdicts, the PCRB vs matched-ESKF ratios of a 60 s simulated flight).
 
 from __future__ import annotations
 
-import re
 import sys
 from decimal import Decimal
 from pathlib import Path
@@ -37,11 +36,11 @@ def _rows() -> dict[str, dict]:
             continue
         r = dict(zip(header, cells))
         key = r["key"].strip("`")
-        meas = r[next(h for h in header if h.startswith("measured"))]
-        nums = re.findall(r"[-+]?\d[\d.]*(?:e[-+]?\d+)?", meas)
-        if not nums:
+        lo, hi = r.get("measured min", ""), r.get("measured max", "")
+        try:
+            float(lo), float(hi)
+        except ValueError:
             continue
-        lo, hi = (nums[0], nums[0]) if len(nums) == 1 else (nums[0], nums[1])
         rows.setdefault(key, {"quoted": r["quoted"], "lo": lo, "hi": hi, "match": r["match"]})
     return rows
 
@@ -54,8 +53,9 @@ def _check(key: str, value: float, rows: dict) -> None:
     assert key in rows, f"{key} missing from the table of {DOC.name}"
     r = rows[key]
     lo, hi = float(r["lo"]), float(r["hi"])
-    # the documented min .. max, widened by the rounding of the printed numbers
-    tol = max(_half_unit(r["lo"]), _half_unit(r["hi"])) + 1e-12 * abs(hi)
+    # the documented min .. max, widened by the rounding of the printed numbers and by 1e-6
+    # relative (another CPU's last digits; a change of the result itself is far larger)
+    tol = max(_half_unit(r["lo"]), _half_unit(r["hi"])) + 1e-6 * max(abs(lo), abs(hi))
     assert lo - tol <= value <= hi + tol, f"{key}: measured {value!r}, documented {r['lo']} .. {r['hi']}"
 
 
