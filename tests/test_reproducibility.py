@@ -53,9 +53,9 @@ def _check(key: str, value: float, rows: dict) -> None:
     assert key in rows, f"{key} missing from the table of {DOC.name}"
     r = rows[key]
     lo, hi = float(r["lo"]), float(r["hi"])
-    # the documented min .. max, widened by the rounding of the printed numbers and by 1e-6
+    # the documented min .. max, widened by the rounding of the printed numbers and by 1e-8
     # relative (another CPU's last digits; a change of the result itself is far larger)
-    tol = max(_half_unit(r["lo"]), _half_unit(r["hi"])) + 1e-6 * max(abs(lo), abs(hi))
+    tol = max(_half_unit(r["lo"]), _half_unit(r["hi"])) + 1e-8 * max(abs(lo), abs(hi))
     assert lo - tol <= value <= hi + tol, f"{key}: measured {value!r}, documented {r['lo']} .. {r['hi']}"
 
 
