@@ -45,7 +45,11 @@ CORENAME = (
 
 
 def _env(extra: dict) -> dict:
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OPENBLAS_", "OMP_NUM_THREADS"))}
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if not k.startswith(("OPENBLAS_", "OMP_NUM_THREADS"))
+    }
     env.setdefault("PYTHONPATH", str(ROOT / "src"))
     env["MPLBACKEND"] = "Agg"
     env.update(extra)
@@ -53,12 +57,18 @@ def _env(extra: dict) -> dict:
 
 
 def corename(extra: dict) -> str:
-    return subprocess.run([sys.executable, "-c", CORENAME], env=_env(extra), capture_output=True, text=True).stdout.strip()
+    return subprocess.run(
+        [sys.executable, "-c", CORENAME],
+        check=False,
+        env=_env(extra),
+        capture_output=True,
+        text=True,
+    ).stdout.strip()
 
 
 def run_group(group: str, extra: dict) -> dict:
     p = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "reproduce_figures.py"), group, "--json"],
-                       cwd=ROOT, env=_env(extra), capture_output=True, text=True)  # fmt: skip
+                       check=False, cwd=ROOT, env=_env(extra), capture_output=True, text=True)  # fmt: skip
     if p.returncode != 0:
         return {"error": p.stderr[-500:]}
     return json.loads(p.stdout.strip().splitlines()[-1])
@@ -90,12 +100,22 @@ def main(argv=None) -> int:
         res = {}
         for v in a.variants.split(","):
             res[v] = run_group(g, VARIANTS[v])
-            print(f"# {g} / {v} (core {raw['corename'][v]}): {len(res[v])} figures", file=sys.stderr, flush=True)
+            print(
+                f"# {g} / {v} (core {raw['corename'][v]}): {len(res[v])} figures",
+                file=sys.stderr,
+                flush=True,
+            )
         raw["groups"][g] = {"results": res, "spread": spread(res)}
         for k, s in raw["groups"][g]["spread"].items():
             if "min" in s:
-                same = "identical" if s["min"] == s["max"] else f"rel spread {abs(s['max'] - s['min']) / max(abs(s['max']), 1e-300):.1e}"
-                print(f"{k:60s} min {s['min']:.10g}  max {s['max']:.10g}  ({same}, n={s['n']})")
+                same = (
+                    "identical"
+                    if s["min"] == s["max"]
+                    else f"rel spread {abs(s['max'] - s['min']) / max(abs(s['max']), 1e-300):.1e}"
+                )
+                print(
+                    f"{k:60s} min {s['min']:.10g}  max {s['max']:.10g}  ({same}, n={s['n']})"
+                )
             else:
                 print(f"{k:60s} {' | '.join(s['values'])}  (n={s['n']})")
         if a.out:

@@ -40,15 +40,26 @@ def _run(args: list[str], cwd: Path = ROOT) -> str:
     env = dict(os.environ)
     env.setdefault("PYTHONPATH", str(ROOT / "src"))
     env.setdefault("MPLBACKEND", "Agg")
-    p = subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True)
+    p = subprocess.run(
+        args, check=False, cwd=cwd, env=env, capture_output=True, text=True
+    )
     if p.returncode != 0:
-        raise SystemExit(f"command failed ({p.returncode}): {' '.join(args)}\n{p.stderr[-2000:]}")
+        raise SystemExit(
+            f"command failed ({p.returncode}): {' '.join(args)}\n{p.stderr[-2000:]}"
+        )
     return p.stdout
 
 
 def _uwbimu(*args: str) -> str:
     # the `uwbimu` console script, run with this interpreter and PYTHONPATH
-    return _run([sys.executable, "-c", "import sys; sys.argv[0] = 'uwbimu'; from uwbimu.cli.main import app; app()", *args])
+    return _run(
+        [
+            sys.executable,
+            "-c",
+            "import sys; sys.argv[0] = 'uwbimu'; from uwbimu.cli.main import app; app()",
+            *args,
+        ]
+    )
 
 
 def seed_ocp() -> dict:
@@ -63,7 +74,8 @@ def seed_ocp() -> dict:
         "ocp.det_mean_pd": j["det_mean_pd"],
         "ocp.det_mean_opt": j["det_mean_opt"],
         "ocp.det_mean_fixed_final": j["det_mean_fixed_final"],
-        "ocp.rel_dJ_ind_dir": abs(j["cost_indirect"] - j["cost_direct"]) / j["cost_direct"],
+        "ocp.rel_dJ_ind_dir": abs(j["cost_indirect"] - j["cost_direct"])
+        / j["cost_direct"],
     }
 
 
@@ -75,7 +87,10 @@ def room() -> dict:
     with tempfile.TemporaryDirectory() as d:
         _uwbimu("place", "--example", "room", "--out", f"{d}/o")
         j = json.loads(Path(f"{d}/o/placement.json").read_text())
-    out = {"room.coverage_pct": 100 * j["coverage"], "room.outside_hull_pct": 100 * j["hull_outside"]}
+    out = {
+        "room.coverage_pct": 100 * j["coverage"],
+        "room.outside_hull_pct": 100 * j["hull_outside"],
+    }
     for r in j["table"]:
         key = r["layout"]
         out[f"room.{key}.pdop_p50"] = r["pdop_p50"]
@@ -102,7 +117,9 @@ def crane() -> dict:
 
 def calib() -> dict:
     with tempfile.TemporaryDirectory() as d:
-        _uwbimu("plan", "calibration", "examples/plan/calibration.yaml", "--out", f"{d}/o")
+        _uwbimu(
+            "plan", "calibration", "examples/plan/calibration.yaml", "--out", f"{d}/o"
+        )
         j = json.loads(Path(f"{d}/o/design.json").read_text())
     out = {}
     for t in ("designed", "figure8", "figure8_excited"):
@@ -143,7 +160,9 @@ def parse_md_tables(text: str) -> dict[str, list[dict]]:
 
 def boundary() -> dict:
     t0 = time.perf_counter()
-    text = _run([sys.executable, "-m", "uwbimu.observability.boundary", "--points", "20"])
+    text = _run(
+        [sys.executable, "-m", "uwbimu.observability.boundary", "--points", "20"]
+    )
     out: dict = {"boundary.seconds": time.perf_counter() - t0}
     for title, rows in parse_md_tables(text).items():
         tkey = title.split("(")[0].strip().lower().replace(" ", "_")
@@ -160,9 +179,13 @@ def delay() -> dict:
     a3 = [[0, 0, 0], [5, 0, 0.5], [0, 5, 1.0]]
     v = structural_verdict({"anchors": a3, "lever_arm": [0.12, -0.08, 0.14]})
     out = {"obs.quick.rank": v["rank"], "obs.quick.lie_order": v["lie_order"]}
-    v = structural_verdict({"anchors": a3[:1], "lever_arm": [0.12, -0.08, 0.14], "random_points": 3})
+    v = structural_verdict(
+        {"anchors": a3[:1], "lever_arm": [0.12, -0.08, 0.14], "random_points": 3}
+    )
     out["obs.quick.single_anchor_rank"] = v["rank"]
-    d = delay_verdict({"anchors": a3, "excitation": {"accel": [], "gyro": ["x", "y", "z"]}})
+    d = delay_verdict(
+        {"anchors": a3, "excitation": {"accel": [], "gyro": ["x", "y", "z"]}}
+    )
     out["obs.quick.delay_T2"] = int(d["conditions"]["T2"])
     d = delay_verdict({"anchors": a3, "lever_arm": [0, 0, 0], "time_offset": 0.0005,
                        "excitation": {"accel": [], "gyro": ["x", "y", "z"]}})  # fmt: skip
@@ -181,13 +204,20 @@ def pcrb() -> dict:
     from uwbimu.estimation.options import EskfOptions
     from uwbimu.observability.window import posterior_crb
 
-    ds = sim.simulate(sim.builtin_scenario("calibration-flight").model_copy(update={"duration": 60.0}))
+    ds = sim.simulate(
+        sim.builtin_scenario("calibration-flight").model_copy(update={"duration": 60.0})
+    )
     opts = EskfOptions.model_validate({"lever_arm": {"min_rotation_rate": 0.0}, "gating": {"probability": 1.0, "robust": "none"},
                                        "supervisor": {"enabled": False}})  # fmt: skip
     res = run_eskf(ds, opts)
-    P_end, _ = posterior_crb(ds, t_start=float(res.t_imu[0]), prior_cov=res.covariances[0])
+    P_end, _ = posterior_crb(
+        ds, t_start=float(res.t_imu[0]), prior_cov=res.covariances[0]
+    )
     sd_b, sd_e = np.sqrt(np.diag(P_end)), res.sd[-1]
-    return {f"pcrb.ratio_eskf_over_bound.{n}": float(sd_e[i] / sd_b[i]) for n, i in (("lx", 15), ("ly", 16), ("lz", 17), ("td", 18))}
+    return {
+        f"pcrb.ratio_eskf_over_bound.{n}": float(sd_e[i] / sd_b[i])
+        for n, i in (("lx", 15), ("ly", 16), ("lz", 17), ("td", 18))
+    }
 
 
 def demo() -> dict:
@@ -201,12 +231,16 @@ def demo() -> dict:
 
         cal = yaml.safe_load(Path(f"{d}/demo/estimate/calibration.yaml").read_text())
     last = obs.iloc[-1]
-    out = {f"demo.bound_cm.{n}": 100 * float(last[f"sd_{n}"]) for n in ("lx", "ly", "lz")}
+    out = {
+        f"demo.bound_cm.{n}": 100 * float(last[f"sd_{n}"]) for n in ("lx", "ly", "lz")
+    }
     out["demo.bound_ms.td"] = 1e3 * float(last["sd_td"])
     for i, n in enumerate(("lx", "ly", "lz")):
         out[f"demo.eskf_sd_cm.{n}"] = 100 * float(cal["lever_arm_sd"][i])
     out["demo.eskf_sd_ms.td"] = 1e3 * float(cal["time_offset_sd"])
-    out["demo.all_windows_excited"] = int(bool(obs["lever_arm_excited"].all() and obs["time_offset_excited"].all()))
+    out["demo.all_windows_excited"] = int(
+        bool(obs["lever_arm_excited"].all() and obs["time_offset_excited"].all())
+    )
     return out
 
 
@@ -225,7 +259,14 @@ def seed_ocp_sweep() -> dict:
     with tempfile.TemporaryDirectory() as d:
         for name, over in cases.items():
             Path(f"{d}/{name}.yaml").write_text(yaml.safe_dump({**base, **over}))
-            _uwbimu("plan", "seed-ocp", "--config", f"{d}/{name}.yaml", "--out", f"{d}/{name}")
+            _uwbimu(
+                "plan",
+                "seed-ocp",
+                "--config",
+                f"{d}/{name}.yaml",
+                "--out",
+                f"{d}/{name}",
+            )
             j = json.loads(Path(f"{d}/{name}/plan.json").read_text())
             out[f"ocp.{name}.cost_direct"] = j["cost_direct"]
             out[f"ocp.{name}.det_mean_opt"] = j["det_mean_opt"]
@@ -243,7 +284,9 @@ def pointmass() -> dict:
     out = {}
     with tempfile.TemporaryDirectory() as d:
         for obj in ("none", "logdet", "min_eig", "trace_inv"):
-            Path(f"{d}/{obj}.yaml").write_text(yaml.safe_dump({**base, "objective": obj}))
+            Path(f"{d}/{obj}.yaml").write_text(
+                yaml.safe_dump({**base, "objective": obj})
+            )
             _uwbimu("plan", "point-mass", f"{d}/{obj}.yaml", "--out", f"{d}/{obj}")
             m = json.loads(Path(f"{d}/{obj}/plan.json").read_text())["plan"]["metrics"]
             for k in ("logdet", "min_eig", "trace_inv", "control_effort"):
@@ -254,12 +297,18 @@ def pointmass() -> dict:
 def predictor() -> dict:
     """docs/trajectory_design.md sec. 3: predicted sd vs the ESKF's reported sd on the builtin
     60 s `calibration-flight` (the check of `python benchmarks/bench_plan.py`)."""
-    from uwbimu.design.trajectory.calibration import CalibrationDesignConfig, evaluate_sim_trajectory
+    from uwbimu.design.trajectory.calibration import (
+        CalibrationDesignConfig,
+        evaluate_sim_trajectory,
+    )
     from uwbimu.estimation import run_eskf
     from uwbimu.sim import builtin_scenario, simulate
 
     sc = builtin_scenario("calibration-flight")
-    cfg = CalibrationDesignConfig(duration=sc.duration, truth={"lever_arm": list(sc.lever_arm), "time_offset": sc.time_offset})
+    cfg = CalibrationDesignConfig(
+        duration=sc.duration,
+        truth={"lever_arm": list(sc.lever_arm), "time_offset": sc.time_offset},
+    )
     pred = evaluate_sim_trajectory(sc.trajectory.build(), cfg)
     cal = run_eskf(simulate(sc)).calibration
     out = {}
@@ -275,7 +324,13 @@ def place_extra() -> dict:
     """docs/placement.md: the other example configs (`uwbimu place CONFIG --out OUT`)."""
     out = {}
     with tempfile.TemporaryDirectory() as d:
-        for name in ("room_pdop_only", "crane_fewer", "crane_geometric", "bridge", "bridge_geometric"):
+        for name in (
+            "room_pdop_only",
+            "crane_fewer",
+            "crane_geometric",
+            "bridge",
+            "bridge_geometric",
+        ):
             _uwbimu("place", f"examples/placement/{name}.yaml", "--out", f"{d}/{name}")
             j = json.loads(Path(f"{d}/{name}/placement.json").read_text())
             out[f"place.{name}.coverage_pct"] = 100 * j["coverage"]
@@ -289,7 +344,9 @@ def place_extra() -> dict:
                 if "coverage" in r and "our PSO" in str(r.get("layout")):
                     out[f"place.{name}.seed_style_coverage_pct"] = 100 * r["coverage"]
                     if "geometric_coverage" in r:
-                        out[f"place.{name}.seed_style_geometric_pct"] = 100 * r["geometric_coverage"]
+                        out[f"place.{name}.seed_style_geometric_pct"] = (
+                            100 * r["geometric_coverage"]
+                        )
     return out
 
 

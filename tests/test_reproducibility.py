@@ -41,7 +41,9 @@ def _rows() -> dict[str, dict]:
             float(lo), float(hi)
         except ValueError:
             continue
-        rows.setdefault(key, {"quoted": r["quoted"], "lo": lo, "hi": hi, "match": r["match"]})
+        rows.setdefault(
+            key, {"quoted": r["quoted"], "lo": lo, "hi": hi, "match": r["match"]}
+        )
     return rows
 
 
@@ -56,7 +58,9 @@ def _check(key: str, value: float, rows: dict) -> None:
     # the documented min .. max, widened by the rounding of the printed numbers and by 1e-8
     # relative (another CPU's last digits; a change of the result itself is far larger)
     tol = max(_half_unit(r["lo"]), _half_unit(r["hi"])) + 1e-8 * max(abs(lo), abs(hi))
-    assert lo - tol <= value <= hi + tol, f"{key}: measured {value!r}, documented {r['lo']} .. {r['hi']}"
+    assert lo - tol <= value <= hi + tol, (
+        f"{key}: measured {value!r}, documented {r['lo']} .. {r['hi']}"
+    )
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +93,13 @@ def test_seed_ocp_cost(rows):
     from reproduce_figures import seed_ocp
 
     res = seed_ocp()
-    for key in ("ocp.cost_direct", "ocp.cost_indirect", "ocp.cost_pd", "ocp.det_mean_opt", "ocp.cost_fixed_final"):
+    for key in (
+        "ocp.cost_direct",
+        "ocp.cost_indirect",
+        "ocp.cost_pd",
+        "ocp.det_mean_opt",
+        "ocp.cost_fixed_final",
+    ):
         _check(key, res[key], rows)
 
 
