@@ -7,7 +7,7 @@ docs/reproducibility.md::
     python benchmarks/reproduce_figures.py seed-ocp     # uwbimu plan seed-ocp
     python benchmarks/reproduce_figures.py room         # uwbimu place --example room
     python benchmarks/reproduce_figures.py crane        # uwbimu place --example crane
-    python benchmarks/reproduce_figures.py calib        # uwbimu plan calibration examples/plan/calibration.yaml
+    python benchmarks/reproduce_figures.py calib        # uwbimu plan calibration examples/plan/calibration_handheld.yaml
     python benchmarks/reproduce_figures.py boundary     # python -m uwbimu.observability.boundary --points 20
     python benchmarks/reproduce_figures.py delay        # the README/doc delay and rank cases (cheap)
     python benchmarks/reproduce_figures.py pcrb         # PCRB vs matched ESKF sigma, 60 s flight
@@ -118,7 +118,7 @@ def crane() -> dict:
 def calib() -> dict:
     with tempfile.TemporaryDirectory() as d:
         _uwbimu(
-            "plan", "calibration", "examples/plan/calibration.yaml", "--out", f"{d}/o"
+            "plan", "calibration", "examples/plan/calibration_handheld.yaml", "--out", f"{d}/o"
         )
         j = json.loads(Path(f"{d}/o/design.json").read_text())
     out = {}

@@ -26,7 +26,7 @@ RF = "python benchmarks/reproduce_figures.py"
 CMD = {
     "seed-ocp": "uwbimu plan seed-ocp --out OUT (plan.json)",
     "delay": f"{RF} delay",
-    "calib": "uwbimu plan calibration examples/plan/calibration.yaml --out OUT (design.json)",
+    "calib": "uwbimu plan calibration examples/plan/calibration_handheld.yaml --out OUT (design.json)",
     "pcrb": f"{RF} pcrb",
     "room": "uwbimu place --example room --out OUT (placement.json)",
     "crane": "uwbimu place --example crane --out OUT (placement.json)",
