@@ -343,8 +343,8 @@ def phi_left_R(M, R, f, w, dt, B, W, col):
 
     ``Phi`` is the error-state transition over ``dt`` at attitude ``R`` with the bias-corrected specific
     force ``f`` and body rate ``w`` (:func:`_phi_blocks_R`); ``B`` (7,3,3), ``W`` (6,3,3) and ``col``
-    (>= 15,) are work arrays.  Used by the observability windows and the trajectory-design predictor,
-    which have the motion as attitude matrices."""
+    (>= 15,) are work arrays.  Used by the observability windows, which have the motion as attitude
+    matrices."""
     _phi_blocks_R(R, f[0], f[1], f[2], w[0], w[1], w[2], dt, B, W)
     for c in range(M.shape[1]):
         for i in range(15):
@@ -352,25 +352,6 @@ def phi_left_R(M, R, f, w, dt, B, W, col):
         _phi_vec(B, dt, col)
         for i in range(15):
             M[i, c] = col[i]
-
-
-@njit(cache=True)
-def phi_sandwich_R(P, R, f, w, dt, B, W, col):
-    """In place ``P <- Phi P Phi^T`` (see :func:`phi_left_R`; symmetric ``P``, any size >= 15)."""
-    _phi_blocks_R(R, f[0], f[1], f[2], w[0], w[1], w[2], dt, B, W)
-    N = P.shape[0]
-    for c in range(N):
-        for i in range(15):
-            col[i] = P[i, c]
-        _phi_vec(B, dt, col)
-        for i in range(15):
-            P[i, c] = col[i]
-    for r in range(N):
-        for i in range(15):
-            col[i] = P[r, i]
-        _phi_vec(B, dt, col)
-        for i in range(15):
-            P[r, i] = col[i]
 
 
 @njit(cache=True)

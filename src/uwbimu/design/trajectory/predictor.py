@@ -15,8 +15,7 @@ body rate of the truth::
     dth' = -[w]x dth - db_g + n_g
     db_a' = n_ba,  db_g' = n_bg,  dp_IU' = 0,  dt_d' = 0
 
-``Phi`` is the estimator's transition (``models.kernels.phi_sandwich_R``: second order, exact
-attitude block; the physics is written once); ``Q_d = G Q_c G^T dt``.  Range Jacobian of
+``Phi = I + F dt + (F dt)^2 / 2``; ``Q_d = G Q_c G^T dt``.  Range Jacobian of
 ``h = |a - p - R Exp(dth) p_IU|`` at IMU time ``t + t_d`` (``u`` the unit
 vector from the antenna to the anchor)::
 
@@ -46,8 +45,6 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from uwbimu.models import kernels as _physics
-from uwbimu.models.kernels import phi_sandwich_R, refresh_stale_cache
 from uwbimu.models.quaternion import skew
 
 
@@ -81,9 +78,8 @@ def _cov_run(P0, R, f, w, dt, qa, qg, qba, qbg, meas_step, H, sigma2):
     """Covariance recursion; updates for measurements assigned to each step after its prediction."""
     n = R.shape[0]
     P = P0.copy()
-    B = np.zeros((7, 3, 3))
-    W = np.zeros((6, 3, 3))
-    col = np.zeros(19)
+    F = np.zeros((19, 19))
+    I19 = np.eye(19)
     m = 0
     M = meas_step.shape[0]
     for k in range(n):
@@ -98,7 +94,27 @@ def _cov_run(P0, R, f, w, dt, qa, qg, qba, qbg, meas_step, H, sigma2):
             m += 1
         if k == n - 1:
             break
-        phi_sandwich_R(P, R[k], f[k], w[k], dt, B, W, col)
+        Rk = R[k]
+        fk = f[k]
+        wk = w[k]
+        F[:, :] = 0.0
+        for i in range(3):
+            F[i, 3 + i] = 1.0
+        # -R [f]x
+        Sf = np.array([[0.0, -fk[2], fk[1]], [fk[2], 0.0, -fk[0]], [-fk[1], fk[0], 0.0]])
+        RSf = Rk @ Sf
+        for i in range(3):
+            for j in range(3):
+                F[3 + i, 6 + j] = -RSf[i, j]
+                F[3 + i, 9 + j] = -Rk[i, j]
+        Sw = np.array([[0.0, -wk[2], wk[1]], [wk[2], 0.0, -wk[0]], [-wk[1], wk[0], 0.0]])
+        for i in range(3):
+            for j in range(3):
+                F[6 + i, 6 + j] = -Sw[i, j]
+            F[6 + i, 12 + i] = -1.0
+        Fd = F * dt
+        Phi = I19 + Fd + 0.5 * (Fd @ Fd)
+        P = Phi @ P @ Phi.T
         for i in range(3):
             P[3 + i, 3 + i] += qa * dt  # R n_a: isotropic, R drops out
             P[6 + i, 6 + i] += qg * dt
@@ -167,6 +183,3 @@ def calibration_metrics(P: np.ndarray, scale_lever_arm: float, scale_time_offset
         "lambda_min_scaled": float(1.0 / ev[-1]),
         "lambda_max_scaled": float(1.0 / ev[0]),
     }
-
-
-refresh_stale_cache(globals(), [_physics])
