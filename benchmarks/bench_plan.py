@@ -83,10 +83,10 @@ def bench_pointmass() -> None:
         v_max=2.0, a_max=2.0, w_info=1.0,
     )  # fmt: skip
     print("\n== 2. point-mass planner (4 beacons, 2 obstacles, box, |v|<=2, |a|<=2, rest-to-rest, N=100) ==")
-    for obj in ("none", "logdet", "min_eig", "trace_inv"):
-        r = plan_point_mass(PointMassPlanConfig(objective=obj, **base))
+    for obj, plat in ((o, p) for p in ("handheld", "multirotor") for o in ("none", "logdet", "min_eig", "trace_inv")):
+        r = plan_point_mass(PointMassPlanConfig(objective=obj, platform=plat, **base))
         m = r.metrics
-        print(f"  {obj:9s}: {r.status:22s} solve {r.solve_time_s:.2f} s, logdet {m['logdet']:.3f}, min_eig {m['min_eig']:.1f}, "
+        print(f"  {plat:10s} {obj:9s}: {r.status:22s} solve {r.solve_time_s:.2f} s, logdet {m['logdet']:.3f}, min_eig {m['min_eig']:.1f}, "
               f"trace_inv {m['trace_inv']:.3e}, effort {m['control_effort']:.3f}, max violation {max(r.constraint_violation.values()):.1e}")
 
 
@@ -106,7 +106,7 @@ def bench_calibration() -> None:
     print("\n== 3. calibration design ==")
     print(f"one candidate evaluation (40 s, 2000 ranges, 19-state covariance): {statistics.median(t) * 1e3:.1f} ms")
     sc = builtin_scenario("calibration-flight")
-    c60 = CalibrationDesignConfig(duration=sc.duration, truth={"lever_arm": list(sc.lever_arm), "time_offset": sc.time_offset})
+    c60 = CalibrationDesignConfig(platform="handheld", duration=sc.duration, truth={"lever_arm": list(sc.lever_arm), "time_offset": sc.time_offset})
     pred = evaluate_sim_trajectory(sc.trajectory.build(), c60)
     res = run_eskf(simulate(sc))
     cal = res.calibration

@@ -25,7 +25,7 @@ def test_calibrate_writes_its_files(dataset_dir, tmp_path):
     out = tmp_path / "out"
     r = CliRunner().invoke(app, ["calibrate", str(dataset_dir), "--out", str(out), "--config", str(cfg)])
     assert r.exit_code == 0, r.output
-    assert {p.name for p in out.iterdir() if not p.name.startswith(".")} == {"calibration.yaml", "trajectory.csv", "residuals.csv",
+    assert {p.name for p in out.iterdir() if not p.name.startswith(".")} == {"calibration.yaml", "trajectory.csv", "residuals.csv", "anchors_estimated.csv",
                                                "td_profile.csv", "td_profile.png"}
     cal = yaml.safe_load((out / "calibration.yaml").read_text())
     assert cal["time_offset"]["verdict"] in {"identified", "flat", "multi_modal", "at_grid_edge", "not_curved"}
@@ -43,3 +43,29 @@ def test_bad_config_is_a_usage_error(dataset_dir, tmp_path):
 def test_refuses_to_write_into_the_dataset(dataset_dir):
     r = CliRunner().invoke(app, ["calibrate", str(dataset_dir), "--out", str(dataset_dir)])
     assert r.exit_code == 4
+
+
+def test_estimate_anchors_option(dataset_dir, tmp_path):
+    import pandas as pd
+
+    cfg = tmp_path / "calibrate.yaml"
+    cfg.write_text(yaml.safe_dump({"td_profile": {"enabled": False}, "max_iterations": 10}))
+    out = tmp_path / "out"
+    r = CliRunner().invoke(app, ["calibrate", str(dataset_dir), "--out", str(out), "--config", str(cfg),
+                                 "--estimate-anchors", "A7"])
+    assert r.exit_code == 0, r.output
+    tab = pd.read_csv(out / "anchors_estimated.csv", dtype={"anchor": str})
+    assert list(tab.columns[:4]) == ["anchor", "x", "y", "z"] and {"sd_x", "sd_y", "sd_z", "estimated"} <= set(tab)
+    assert tab.set_index("anchor")["estimated"].to_dict() == {a: a == "A7" for a in tab["anchor"]}
+    assert (tab.loc[tab.anchor == "A7", ["sd_x", "sd_y", "sd_z"]].to_numpy() > 0).all()
+    cal = yaml.safe_load((out / "calibration.yaml").read_text())
+    assert cal["anchors"]["estimated"] == ["A7"] and "anchor_x_A7" in cal["correlations"]["names"]
+    assert "Anchor self-survey" in r.output
+
+
+@pytest.mark.parametrize("value, code", [("Q9", 1), (" , ", 2)])
+def test_estimate_anchors_refusals(dataset_dir, tmp_path, value, code):
+    out = tmp_path / "o"
+    r = CliRunner().invoke(app, ["calibrate", str(dataset_dir), "--out", str(out), "--estimate-anchors", value])
+    assert r.exit_code == code, r.output
+    assert not out.exists()

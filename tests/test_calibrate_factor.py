@@ -109,3 +109,105 @@ def test_gtsam_factor_wraps_the_residual(case):
     assert f.unwhitenedError(vals)[0] == pytest.approx(e, abs=1e-12)
     Ab, _b = f.linearize(vals).jacobian()
     np.testing.assert_allclose(Ab[0] * 0.1, np.concatenate([Jp, Jv, Jl, [Jt, 1.0]]), atol=1e-9)
+
+
+def _reference_tdoa(c, s, anchor_a, anchor_b):
+    """Reference TDoA at IMU time s (same integration as :func:`_reference_range`)."""
+    ca = dict(c, anchor=anchor_a)
+    cb = dict(c, anchor=anchor_b)
+    return _reference_range(cb, s) - _reference_range(ca, s)
+
+
+def test_tdoa_factor_matches_reference_and_finite_differences(case):
+    """The TDoA factor: residual = reference TDoA (+ b_b - b_a - z) at IMU time s0 + delta, and its
+    Jacobians (pose, velocity, lever arm, t_d, both biases) against central finite differences."""
+    from uwbimu.calibration.tdoa_factor import tdoa_error
+
+    c = case
+    a, b = c["anchor"], np.array([-2.0, 3.0, 0.4])
+    z = 0.7
+    for delta in (0.0, 0.004):
+        e = tdoa_error(c["R_k"], c["p_k"], c["v_k"], c["lever"], 0.02 + delta, 0.03, -0.05, a, b, z, c["d"], 0.02)
+        assert abs(e - (_reference_tdoa(c, c["s0"] + delta, a, b) - 0.05 - 0.03 - z)) < 1e-4
+
+    def f(x):
+        R = c["R_k"] @ so3_exp(x[0:3])
+        p = c["p_k"] + c["R_k"] @ x[3:6]
+        return tdoa_error(R, p, c["v_k"] + x[6:9], c["lever"] + x[9:12], 0.02 + x[12], 0.03 + x[13], -0.05 + x[14],
+                          a, b, z, c["d"], 0.02)
+
+    _, Jp, Jv, Jl, Jt = tdoa_error(c["R_k"], c["p_k"], c["v_k"], c["lever"], 0.02, 0.03, -0.05, a, b, z, c["d"],
+                                   0.02, jacobians=True)
+    eps = 1e-6
+    num = np.array([(f(np.eye(15)[i] * eps) - f(-np.eye(15)[i] * eps)) / (2 * eps) for i in range(15)])
+    np.testing.assert_allclose(num[0:6], Jp, atol=1e-6)
+    np.testing.assert_allclose(num[6:9], Jv, atol=1e-6)
+    np.testing.assert_allclose(num[9:12], Jl, atol=1e-6)
+    assert num[12] == pytest.approx(Jt, abs=1e-5)
+    assert num[13] == pytest.approx(-1.0, abs=1e-9) and num[14] == pytest.approx(1.0, abs=1e-9)
+
+def test_anchor_jacobian_matches_finite_differences(case):
+    """Self-survey: d e / d p_anchor (world, m) against central differences of the residual."""
+    c = case
+    args = (c["R_k"], c["p_k"], c["v_k"], c["lever"], 0.027, c["bias"])
+    res = range_error(*args, c["anchor"], 5.0, c["d"], 0.02, jacobians=True, with_anchor=True)
+    assert len(res) == 6
+    h = 1e-6
+    num = np.array([(range_error(*args, c["anchor"] + h * np.eye(3)[i], 5.0, c["d"], 0.02)
+                     - range_error(*args, c["anchor"] - h * np.eye(3)[i], 5.0, c["d"], 0.02)) / (2 * h)
+                    for i in range(3)])
+    np.testing.assert_allclose(res[5], num, atol=1e-7)
+    # The other Jacobians are unchanged by the flag.
+    for a, b in zip(res[1:5], range_error(*args, c["anchor"], 5.0, c["d"], 0.02, jacobians=True)[1:]):
+        np.testing.assert_allclose(a, b)
+
+
+def test_gtsam_factor_with_anchor_variable(case):
+    """The CustomFactor with the anchor as a Point3 key: same residual, numerical Jacobian of the whole factor."""
+    gtsam = pytest.importorskip("gtsam")
+    from gtsam.symbol_shorthand import A, L, P, T, V, X
+
+    c = case
+    noise = gtsam.noiseModel.Isotropic.Sigma(1, 0.1)
+    keys = [X(0), V(0), L(0), T(0), A(0), P(0)]
+    f = make_gtsam_factor(keys, np.zeros(3), 5.0, c["d"], 0.02, noise, anchor_variable=True)
+    vals = gtsam.Values()
+    vals.insert(X(0), gtsam.Pose3(gtsam.Rot3(c["R_k"]), c["p_k"]))
+    vals.insert(V(0), c["v_k"])
+    vals.insert(L(0), c["lever"])
+    vals.insert(T(0), np.array([0.027]))
+    vals.insert(A(0), np.array([c["bias"]]))
+    vals.insert(P(0), c["anchor"])
+    e = range_error(c["R_k"], c["p_k"], c["v_k"], c["lever"], 0.027, c["bias"], c["anchor"], 5.0, c["d"], 0.02)
+    assert f.unwhitenedError(vals)[0] == pytest.approx(e, abs=1e-12)
+    Ab, _b = f.linearize(vals).jacobian()
+    # Numerical Jacobian through GTSAM's own retraction of every key (pose on the manifold).
+    h, num = 1e-6, []
+    for k, dim in zip(keys, (6, 3, 3, 1, 1, 3)):
+        for i in range(dim):
+            dx = gtsam.VectorValues()
+            for kk, dd in zip(keys, (6, 3, 3, 1, 1, 3)):
+                dx.insert(kk, h * np.eye(dd)[i] if kk == k else np.zeros(dd))
+            ep = f.unwhitenedError(vals.retract(dx))[0]
+            dx2 = gtsam.VectorValues()
+            for kk, dd in zip(keys, (6, 3, 3, 1, 1, 3)):
+                dx2.insert(kk, -h * np.eye(dd)[i] if kk == k else np.zeros(dd))
+            num.append((ep - f.unwhitenedError(vals.retract(dx2))[0]) / (2 * h))
+    np.testing.assert_allclose(Ab[0] * 0.1, num, atol=1e-6)
+
+
+def test_inter_anchor_factor_jacobians():
+    from uwbimu.calibration.graph import pair_error
+
+    rng = np.random.default_rng(3)
+    pa, pb, h = rng.normal(size=3) * 3, rng.normal(size=3) * 3, 1e-6
+    e, Ja, Jb = pair_error(pa, pb, 4.0, jacobians=True)
+    assert e == pytest.approx(np.linalg.norm(pa - pb) - 4.0)
+    for J, which in ((Ja, 0), (Jb, 1)):
+        num = []
+        for i in range(3):
+            d = h * np.eye(3)[i]
+            plus = pair_error(pa + d, pb, 4.0) if which == 0 else pair_error(pa, pb + d, 4.0)
+            minus = pair_error(pa - d, pb, 4.0) if which == 0 else pair_error(pa, pb - d, 4.0)
+            num.append((plus - minus) / (2 * h))
+        np.testing.assert_allclose(J, num, atol=1e-8)

@@ -1,8 +1,8 @@
 """Fault injection (issue 14, item 7): bounded errors and the expected warnings/events.
 
 One short simulated calibration flight (30 s) is corrupted in memory per case and run
-through the ESKF (and, for clock jumps, the detection/correction of
-:mod:`uwbimu.eval.clock_faults` and the loader's clock-jump handling).  Bounds are
+through the ESKF (and, for a backward clock jump in a file, the loader's clock-jump handling;
+the clock-fault detector has its own tests, tests/test_clock_faults.py).  Bounds are
 relative to the clean run of the same flight where a scale exists.
 """
 
@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 
 from uwbimu.estimation import EskfOptions, compute_metrics, run_eskf
-from uwbimu.eval.clock_faults import handle_clock_faults
 from uwbimu.sim import builtin_scenario, simulate
 
 DURATION = 30.0
@@ -111,52 +110,9 @@ def test_range_spike_during_initialisation_does_not_consume_the_supervisor(fligh
     assert m["position_rmse_after"] < 2 * m0["position_rmse_after"] + 0.05
 
 
-def _jumped(ds, jump: float, at: float = DURATION / 2):
-    """The UWB clock jumps by ``jump`` s at ``at`` (ranges stamped later after it when jump > 0).
-
-    A backward jump is given within a dropout of its length, so the stamps stay monotonic
-    (a non-monotonic one is the loader's case, below).
-    """
-    u = ds.uwb.copy()
-    t = u["t"].to_numpy().copy()
-    if jump < 0:
-        keep = ~((t >= at) & (t < at - jump))
-        u, t = u[keep].copy(), t[keep]
-    t[t >= at] += jump
-    u["t"] = t
-    return _with(ds, uwb=u)
-
-
-@pytest.mark.parametrize("jump", [
-    0.3,
-    0.12,
-    pytest.param(-0.2, marks=pytest.mark.xfail(strict=True, reason=(
-        "known limit: a backward jump that leaves the stamps monotonic and gap-free is absorbed by the "
-        "filter's position/t_d states; the innovation regression does not reach significance"))),
-])
-def test_clock_jump_detected_and_corrected(flight, jump):
-    ds, res0, _ = flight
-    bad = _jumped(ds, jump)
-    res = run_eskf(bad, EskfOptions())
-    fixed, _ = handle_clock_faults(res, bad, lambda d: run_eskf(d, EskfOptions()))
-    jumps = [e for e in fixed.events if e.get("kind") == "clock_jump"]
-    assert len(jumps) == 1
-    assert abs(jumps[0]["t"] - DURATION / 2 - max(jump, 0)) < 0.5
-    assert abs(jumps[0]["size"] + jump) <= 0.05
-    # the corrected run calibrates like the clean one
-    assert _lever_err(fixed, ds) < _lever_err(res0, ds) + 0.03
-    assert abs(fixed.calibration["time_offset"] - ds.meta.truth.time_offset) < 0.02
-
-
-def test_no_clock_fault_on_a_clean_log_or_a_dropout(flight):
-    ds, res, _ = flight
-    out, _ = handle_clock_faults(copy.deepcopy(res), ds, lambda d: run_eskf(d, EskfOptions()))
-    assert not [e for e in out.events if str(e.get("kind", "")).startswith("clock_")]
-    u = ds.uwb
-    dropout = _with(ds, uwb=u[~((u["t"] > 15) & (u["t"] < 15.3))])  # a gap that is no jump
-    res_d = run_eskf(dropout, EskfOptions())
-    out, _ = handle_clock_faults(res_d, dropout, lambda d: run_eskf(d, EskfOptions()))
-    assert not [e for e in out.events if str(e.get("kind", "")).startswith("clock_")]
+# Clock jumps (both ways, +0.3 / -0.3 / -0.2 / +0.12 s) and the clean-log / dropout checks of the
+# clock-fault detector live in tests/test_clock_faults.py (a 60 s flight: the windowed t_d test
+# needs a few windows on each side of the jump), drift in tests/test_clock_drift.py.
 
 
 def test_backward_clock_jump_in_a_file_is_a_jump_not_a_sort(flight, tmp_path):

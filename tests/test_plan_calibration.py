@@ -12,14 +12,12 @@ from uwbimu.design.trajectory.calibration import (
     CalibrationDesignConfig,
     design_and_write,
     design_calibration,
-    evaluate_maneuver,
     naive_figure8,
 )
 from uwbimu.design.trajectory.maneuver import bound_usage, envelope, fit_to_bounds, fourier_maneuver
 from uwbimu.design.trajectory.predictor import _cov_run, range_jacobian
 from uwbimu.models import reference as ref
 from uwbimu.models import state as S
-from uwbimu.models.imu import imu_preset
 
 TINY = dict(
     duration=12.0,

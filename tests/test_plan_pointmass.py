@@ -15,6 +15,7 @@ from uwbimu.design.trajectory.pointmass import (
 
 BASE = dict(
     beacons=[[0, 0, 0], [10, 0, 0], [0, 10, 0], [10, 10, 0.5]],
+    platform="handheld",  # the information planner alone; the multirotor limits: tests/test_plan_platform.py
     x0=[1, 1, 1, 0, 0, 0],
     goal=[9, 9, 2],
     goal_velocity=[0, 0, 0],

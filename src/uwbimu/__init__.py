@@ -33,6 +33,7 @@ _EXPORTS = {
     # estimation
     "EskfOptions": "uwbimu.estimation.options:EskfOptions",
     "run_eskf": "uwbimu.estimation.eskf:run_eskf",
+    "Eskf": "uwbimu.estimation.streaming:Eskf",
     "write_estimate": "uwbimu.estimation.outputs:write_outputs",
     "CalibrationOptions": "uwbimu.calibration:CalibrationOptions",
     "calibrate": "uwbimu.calibration:calibrate",

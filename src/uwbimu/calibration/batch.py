@@ -11,6 +11,7 @@ from math import erfc
 import numpy as np
 import pandas as pd
 
+from uwbimu.calibration import anchors as AN
 from uwbimu.calibration import graph as G
 from uwbimu.calibration.options import CalibrationOptions
 from uwbimu.calibration.profile import TdProfile, motion_advice, profile_verdict
@@ -25,6 +26,8 @@ class CalibrationResult:
     calibration : plain dict written to ``calibration.yaml`` (value, sd, correlations, verdicts).
     trajectory : DataFrame ``t`` (UWB clock), ``t_imu``, position, quaternion, velocity and their sd.
     residuals : DataFrame ``t, anchor, range, predicted, residual, z, outlier`` (z = residual / sigma).
+    anchors : DataFrame in the ``anchors.csv`` format plus ``sd_x, sd_y, sd_z`` [m] (marginal; 0 for
+        fixed anchors) and ``estimated`` (bool), every anchor, in the gauge frame.
     profile : the t_d profile, or None when disabled.
     eskf : the initialising ESKF result.
     """
@@ -36,6 +39,7 @@ class CalibrationResult:
     eskf: Any
     runtime_s: float = float("nan")
     events: list[dict] = field(default_factory=list)
+    anchors: Optional[pd.DataFrame] = None
 
 
 def _solve(pb, imf, values, td0: float, td_fixed: Optional[float]):
@@ -94,17 +98,21 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
 
     t_start = time.perf_counter()
     o = options or CalibrationOptions()
-    if eskf is None:
-        eskf = run_eskf(dataset, eskf_options or EskfOptions())
+    setup = AN.plan_anchors(dataset, o)
+    events = list(setup.events)
+    eo = eskf_options or EskfOptions()
+    if not setup.any_estimated:
+        eskf = eskf if eskf is not None else run_eskf(dataset, eo)
+    else:
+        eskf = _bootstrap(dataset, o, setup, eo, eskf, events)
     if progress is not None:
         progress(0.1)
-    pb = G.build_problem(dataset, eskf, o)
+    pb = G.build_problem(dataset, eskf, o, setup)
     imf = G._imu_factors(pb)
     X, V, B, L, T, A = G._keys()
     graph, values, assoc, iters = _solve(pb, imf, G.initial_values(pb), pb.td0, None)
     free_td = float(values.atVector(T(0))[0])
     prof = None
-    events = []
     td_free = True
     if o.td_profile.enabled:
         prof = run_profile(pb, imf, values, free_td, progress)
@@ -118,23 +126,98 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
                                                  o.time_offset_prior)
     if progress is not None:
         progress(0.9)
-    cal, traj, res = _report(pb, graph, values, assoc, td_free, prof, iters)
-    if events:
-        cal["time_offset"]["advice"] = events[0]["advice"]
+    cal, traj, res, anchors = _report(pb, graph, values, assoc, td_free, prof, iters, dataset)
+    for ev in events:
+        if ev["kind"] == "time_offset_not_identified":
+            cal["time_offset"]["advice"] = ev["advice"]
+    cal["events"] = [{k: v for k, v in ev.items()} for ev in events]
     if progress is not None:
         progress(1.0)
     return CalibrationResult(calibration=cal, trajectory=traj, residuals=res, profile=prof, eskf=eskf,
-                             runtime_s=time.perf_counter() - t_start, events=events)
+                             runtime_s=time.perf_counter() - t_start, events=events, anchors=anchors)
 
 
-def _report(pb, graph, values, assoc, td_free: bool, prof, iters):
+def _bootstrap(dataset, o: CalibrationOptions, setup, eo, eskf, events: list):
+    """ESKF initialisation with anchors to estimate (gauge frame), then their initial guesses.
+
+    With 4 or more anchors with surveyed coordinates the ESKF runs on those alone.  With fewer
+    (its first fix needs 4), it runs on every anchor, the ``surveyed: false`` ones at their rough
+    ``anchors.csv`` guesses, with the range sd raised to ``bootstrap_range_sigma``: an ESKF that
+    trusts ranges to wrongly placed anchors diverges, one that de-weights them tracks the IMU
+    trajectory to a few tens of cm, which the joint batch solve then refines.  The unsurveyed
+    anchors start at the multilateration of their ranges from that trajectory, followed by the
+    geometry checks (:func:`_initial_anchors`).  A given ``eskf`` (same frame) is used as is.
+    """
+    from uwbimu.estimation import run_eskf
+
+    if eskf is None:
+        guesses = int(setup.surveyed.sum()) < 4 and bool((setup.estimated & ~setup.surveyed).any())
+        if guesses:
+            sigma = max(float(o.range_sigma or dataset.meta.range_sigma or 0.1), o.bootstrap_range_sigma)
+            eo = eo.model_copy(update={"range_sigma": sigma})
+            events.append({"kind": "anchor_bootstrap_from_guesses", "range_sigma": sigma,
+                           "message": f"fewer than 4 surveyed anchors: the initialising ESKF used the anchors.csv "
+                                      f"guesses of the unsurveyed anchors with a range sd of {sigma:g} m"})
+        eskf = run_eskf(AN.eskf_dataset(dataset, setup, with_unsurveyed=guesses), eo)
+    events += _initial_anchors(dataset, eskf, o, setup)
+    return eskf
+
+
+def _initial_anchors(dataset, eskf, o: CalibrationOptions, setup) -> list[dict]:
+    """Initial guesses of the estimated anchors (multilateration of the ESKF trajectory) and geometry checks.
+
+    An anchor without prior (``surveyed: false``) starts at the multilateration of its ranges from the
+    ESKF antenna positions; one with a prior starts at its ``anchors.csv`` position.  Degenerate
+    geometry (:func:`uwbimu.calibration.anchors.geometry_checks`) refuses an anchor without prior unless
+    ``degenerate_anchors: warn``; with a prior it is a warning (the prior decides).
+    """
+    from uwbimu.errors import InputError
+
+    sigma = float(o.range_sigma or dataset.meta.range_sigma or 0.1)
+    bias_sd = o.anchor_bias_prior_sd if o.estimate_anchor_bias else None
+    uwb = dataset.uwb
+    aid = uwb["anchor"].astype(str).to_numpy()
+    events = []
+    for j in np.flatnonzero(setup.estimated):
+        a_id = setup.ids[j]
+        sel = (aid == a_id) & (uwb["t"].to_numpy(float) <= eskf.t[-1])  # ranges within the ESKF's span
+        rho = uwb["range"].to_numpy(float)[sel]
+        has_prior = bool(np.isfinite(setup.prior_sd[j]))
+        if sel.sum() < 4 and not has_prior:
+            raise InputError(f"anchor self-survey: anchor {a_id!r} has {int(sel.sum())} ranges in uwb.csv; at least 4 "
+                             "(from different places) are needed to locate it without a prior")
+        if not sel.any():
+            continue  # a prior and no ranges: the prior alone places it (its sd says so)
+        P, P_sd = AN.antenna_positions(eskf, uwb["t"].to_numpy(float)[sel], with_sd=True)
+        if has_prior:
+            a0 = setup.pos[j]
+        else:
+            a0, _rms = AN.multilaterate(P, rho)
+            setup.pos[j] = a0
+        found = AN.geometry_checks(a_id, a0, P, rho, sigma, bias_sd, P_sd)
+        for ev in found:
+            ev["severity"] = "warning" if has_prior or o.degenerate_anchors == "warn" else "refused"
+            ev["has_prior"] = has_prior
+        refused = [ev for ev in found if ev["severity"] == "refused"]
+        if refused:
+            raise InputError("anchor self-survey refused: " + "; ".join(ev["message"] for ev in refused),
+                             hint="give a rough position (surveyed: true) for a weak prior, drop the anchor from "
+                                  "--estimate-anchors, or set degenerate_anchors: warn in the calibrate config")
+        events += found
+    return events
+
+
+def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
     import gtsam
 
     X, V, B, L, T, A = G._keys()
+    P = G._P()
     marg = _marginals(pb, graph, values)
-    keys = [L(0)] + ([T(0)] if td_free else []) + [A(j) for j in range(len(pb.anchor_ids))]
+    est = [j for j in range(len(pb.anchor_ids)) if pb.estimated(j)]
+    keys = [L(0)] + ([T(0)] if td_free else []) + [A(j) for j in range(len(pb.anchor_ids))] + [P(j) for j in est]
     names = ["lever_arm_x", "lever_arm_y", "lever_arm_z"] + (["time_offset"] if td_free else []) + \
-        [f"anchor_bias_{a}" for a in pb.anchor_ids]
+        [f"anchor_bias_{a}" for a in pb.anchor_ids] + \
+        [f"anchor_{c}_{pb.anchor_ids[j]}" for j in est for c in "xyz"]
     cov = marg.jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
     sd = np.sqrt(np.diag(cov))
     corr = cov / np.outer(sd, sd)
@@ -148,7 +231,14 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters):
         e = float(f.unwhitenedError(values)[0])
         rows.append((pb.t_range[m], pb.anchor_ids[pb.anchor_j[m]], pb.rho[m], pb.rho[m] + e, e))
     res = pd.DataFrame(rows, columns=["t", "anchor", "range", "predicted", "residual"])
-    res["z"] = res["residual"] / pb.range_sigma
+    sig = np.full(len(res), pb.range_sigma)
+    if pb.anchor_b is not None:
+        # TDoA rows: "anchor" is anchor_a, "range" the measured TDoA [m]
+        b = pb.anchor_b[assoc.used]
+        res["kind"] = np.where(b >= 0, "tdoa", "range")
+        res["anchor_b"] = np.where(b >= 0, np.array(pb.anchor_ids, dtype=object)[np.maximum(b, 0)], "")
+        sig[b >= 0] = pb.tdoa_sigma
+    res["z"] = res["residual"] / sig
     res["outlier"] = np.abs(res["z"]) > pb.options.huber_k
     offs = 3 + (1 if td_free else 0)
     bias = {a: float(values.atVector(A(j))[0]) for j, a in enumerate(pb.anchor_ids)}
@@ -174,12 +264,63 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters):
                    "final_cost": float(graph.error(values))},
     }
     cal["time_offset_sd"] = cal["time_offset"]["sd"]
+    off_p = offs + len(pb.anchor_ids)
+    sd_p = {j: sd[off_p + 3 * i: off_p + 3 * i + 3] for i, j in enumerate(est)}
+    cal["anchors"], anchors = _anchor_report(pb, values, sd_p, dataset)
     traj = _trajectory(pb, values, marg, td)
-    return cal, traj, res
+    return cal, traj, res, anchors
+
+
+def _anchor_positions(pb, values) -> np.ndarray:
+    P = G._P()
+    return np.array([values.atPoint3(P(j)) if pb.estimated(j) else pb.anchor_pos[j]
+                     for j in range(len(pb.anchor_ids))]).reshape(-1, 3)
+
+
+def _anchor_report(pb, values, sd_p: dict, dataset):
+    """``calibration.yaml``'s ``anchors`` section and the ``anchors_estimated.csv`` table."""
+    s = pb.anchors
+    pos = _anchor_positions(pb, values)
+    R = s.transform[0]
+    file_ids = [str(a) for a in dataset.anchors["anchor"]]
+    per = {}
+    for j, a in enumerate(pb.anchor_ids):
+        e = {"position": [float(v) for v in pos[j]],
+             "sd": [float(v) for v in sd_p[j]] if j in sd_p else [0.0, 0.0, 0.0],
+             "estimated": bool(s.estimated[j]), "surveyed": bool(s.surveyed[j]),
+             "prior_sd": float(s.prior_sd[j]) if np.isfinite(s.prior_sd[j]) else None}
+        if s.estimated[j] and s.surveyed[j]:
+            e["moved_from_anchors_csv"] = [float(v) for v in pos[j] - s.pos[j]]
+        per[a] = e
+    out = {"gauge": s.gauge, "estimated": [a for j, a in enumerate(pb.anchor_ids) if s.estimated[j]],
+           "positions": per}
+    if s.pairs is not None:
+        out["anchor_ranges"] = [
+            {"anchor_a": pb.anchor_ids[int(a)], "anchor_b": pb.anchor_ids[int(b)], "range": float(r), "sd": float(sd),
+             "residual": float(np.linalg.norm(pos[int(a)] - pos[int(b)]) - r),
+             "in_graph": bool(s.estimated[int(a)] or s.estimated[int(b)])}
+            for a, b, r, sd in s.pairs[["a", "b", "range", "sd"]].itertuples(index=False)]
+    j_of = {a: j for j, a in enumerate(pb.anchor_ids)}
+    rows = []
+    for i, a in enumerate(file_ids):
+        j = j_of[a]
+        sdj = sd_p.get(j, np.zeros(3))
+        rows.append([a, *pos[j], *sdj, bool(s.estimated[j])])
+    table = pd.DataFrame(rows, columns=["anchor", "x", "y", "z", "sd_x", "sd_y", "sd_z", "estimated"])
+    quat = ["qw", "qx", "qy", "qz"]
+    if set(quat) <= set(dataset.anchors.columns):
+        from scipy.spatial.transform import Rotation
+
+        q = dataset.anchors[quat].to_numpy(float)
+        # Antenna orientations follow the gauge rotation (identity unless the convention applies).
+        rq = (Rotation.from_matrix(R) * Rotation.from_quat(q[:, [1, 2, 3, 0]])).as_quat()
+        for k, c in enumerate(quat):
+            table.insert(4 + k, c, rq[:, [3, 0, 1, 2]][:, k])
+    return out, table
 
 
 #: Tangent dimension of every variable, by the GTSAM symbol letter (see graph.py).
-_DIMS = {"x": 6, "v": 3, "b": 6, "l": 3, "t": 1, "a": 1}
+_DIMS = {"x": 6, "v": 3, "b": 6, "l": 3, "t": 1, "a": 1, "p": 3}
 
 
 class SparseMarginals:

@@ -6,7 +6,11 @@ offset t_d (s); ``A(j)`` constant range bias of anchor ``j`` (m).  Factors:
 ``CombinedImuFactor`` between consecutive keyframes (preintegration with bias
 random walk), one robust (Huber) :mod:`uwbimu.calibration.range_factor` per
 range, priors on the first keyframe, the lever arm, t_d and the anchor biases.
-The anchors are fixed: they define the world frame (the gauge).
+The fixed anchors define the world frame (the gauge).  Self-survey
+(:mod:`uwbimu.calibration.anchors`): an estimated anchor's position is a
+``Point3`` ``P(j)`` with an optional weak prior, the range factors of its ranges
+depend on it, ``anchor_ranges.csv`` adds a factor ``|p_a - p_b| - r`` per measured
+pair, and the gauge convention (fewer than two fixed anchors) holds one anchor's y.
 """
 
 from __future__ import annotations
@@ -16,8 +20,10 @@ from typing import Optional
 
 import numpy as np
 
+from uwbimu.calibration.anchors import GAUGE_SIGMA, AnchorSetup
 from uwbimu.calibration.options import CalibrationOptions
 from uwbimu.calibration.range_factor import imu_deltas, make_gtsam_factor
+from uwbimu.calibration.tdoa_factor import make_gtsam_tdoa_factor
 from uwbimu.models.reference import GRAVITY
 
 #: IMU noise used when neither the options nor dataset.yaml document it (consumer MEMS).
@@ -30,6 +36,13 @@ def _keys():
     from gtsam.symbol_shorthand import A, B, L, T, V, X
 
     return X, V, B, L, T, A
+
+
+def _P():
+    """Key of an estimated anchor position (``P(j)``, ``Point3``, world frame)."""
+    from gtsam.symbol_shorthand import P
+
+    return P
 
 
 @dataclass
@@ -50,14 +63,29 @@ class Problem:
     options: CalibrationOptions
     range_sigma: float
     imu_noise: dict = field(default_factory=dict)
+    anchors: Optional[AnchorSetup] = None
+    # TDoA rows (``tdoa.csv``) merged with the ranges in time order: anchor_b[m] >= 0 makes row m the TDoA
+    # rho[m] = |p_U - p_b| - |p_U - p_a| with a = anchor_j[m], b = anchor_b[m]; None: ranges only
+    anchor_b: Optional[np.ndarray] = None
+    tdoa_sigma: float = 0.0
+
+    def is_tdoa(self, m: int) -> bool:
+        return self.anchor_b is not None and int(self.anchor_b[m]) >= 0
+
+    def estimated(self, j: int) -> bool:
+        return self.anchors is not None and bool(self.anchors.estimated[j])
 
     @property
     def t_key(self) -> np.ndarray:
         return self.t_imu[self.key_idx]
 
 
-def build_problem(dataset, eskf, options: CalibrationOptions) -> Problem:
-    """Keyframes, ranges, noise and the ESKF initial guess of one tag's log."""
+def build_problem(dataset, eskf, options: CalibrationOptions, anchors: Optional[AnchorSetup] = None) -> Problem:
+    """Keyframes, ranges, noise and the ESKF initial guess of one tag's log.
+
+    ``anchors`` (self-survey): anchor ids, fixed positions and initial guesses in the
+    gauge frame; default: every anchor fixed at its ``anchors.csv`` position.
+    """
     imu = dataset.imu
     t_imu = imu["t"].to_numpy(float)
     u_imu = imu[["ax", "ay", "az", "wx", "wy", "wz"]].to_numpy(float)
@@ -66,8 +94,12 @@ def build_problem(dataset, eskf, options: CalibrationOptions) -> Problem:
     key_idx = np.arange(0, len(t_imu), step)
     if key_idx[-1] != len(t_imu) - 1:
         key_idx = np.append(key_idx, len(t_imu) - 1)
-    pos = dataset.anchor_positions()
-    ids = sorted(pos)
+    if anchors is None:
+        pos = dataset.anchor_positions()
+        ids = sorted(pos)
+    else:
+        ids = list(anchors.ids)
+        pos = {a: anchors.pos[j] for j, a in enumerate(ids)}
     uwb = dataset.uwb
     known = uwb["anchor"].astype(str).isin(ids).to_numpy()
     uwb = uwb[known]
@@ -89,12 +121,35 @@ def build_problem(dataset, eskf, options: CalibrationOptions) -> Problem:
             v = getattr(meta_noise, name, None)
         noise[name] = float(v if v is not None else default)
     sigma = options.range_sigma or dataset.meta.range_sigma or 0.1
-    return Problem(t_imu=t_imu, u_imu=u_imu, key_idx=key_idx, t_range=uwb["t"].to_numpy(float),
-                   rho=uwb["range"].to_numpy(float), anchor_j=np.array([jmap[a] for a in uwb["anchor"].astype(str)]),
+    t_r = uwb["t"].to_numpy(float)
+    rho = uwb["range"].to_numpy(float)
+    aj = np.array([jmap[a] for a in uwb["anchor"].astype(str)], dtype=np.int64)
+    bj = None
+    tdoa = getattr(dataset, "tdoa", None)
+    tsig = 0.0
+    if tdoa is not None and len(tdoa):
+        if anchors is not None and any(anchors.estimated):
+            from uwbimu.errors import UsageError
+
+            raise UsageError("calibrate: anchor self-survey with TDoA is not supported yet",
+                             hint="survey the anchors with ranges, or fix them (no --estimate-anchors)")
+        ok = tdoa["anchor_a"].astype(str).isin(ids).to_numpy() & tdoa["anchor_b"].astype(str).isin(ids).to_numpy()
+        td = tdoa[ok]
+        t_r = np.concatenate([t_r, td["t"].to_numpy(float)])
+        rho = np.concatenate([rho, td["tdoa"].to_numpy(float)])
+        aj = np.concatenate([aj, np.array([jmap[a] for a in td["anchor_a"].astype(str)], dtype=np.int64)])
+        bj = np.concatenate([np.full(len(uwb), -1, dtype=np.int64),
+                             np.array([jmap[b] for b in td["anchor_b"].astype(str)], dtype=np.int64)])
+        order = np.argsort(t_r, kind="stable")
+        t_r, rho, aj, bj = t_r[order], rho[order], aj[order], bj[order]
+        base = options.range_sigma or dataset.meta.range_sigma or 0.1
+        tsig = float(options.tdoa_sigma or (dataset.meta.extra or {}).get("tdoa_sigma") or np.sqrt(2.0) * base)
+    return Problem(t_imu=t_imu, u_imu=u_imu, key_idx=key_idx, t_range=t_r,
+                   rho=rho, anchor_j=aj, anchor_b=bj, tdoa_sigma=tsig,
                    anchor_ids=ids, anchor_pos=np.array([pos[a] for a in ids]), init_states=init,
                    lever0=np.asarray(eskf.calibration["lever_arm"], float),
                    td0=float(eskf.calibration["time_offset"]), options=options, range_sigma=float(sigma),
-                   imu_noise=noise)
+                   imu_noise=noise, anchors=anchors)
 
 
 def _pose(s):
@@ -174,13 +229,92 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
     bias_sd = o.anchor_bias_prior_sd if o.estimate_anchor_bias else 1e-6
     for j in range(len(pb.anchor_ids)):
         g.add(gtsam.PriorFactorVector(A(j), np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, bias_sd)))
+    if pb.anchors is not None:
+        for f in anchor_factors(pb):
+            g.add(f)
     noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(o.huber_k),
                                            gtsam.noiseModel.Isotropic.Sigma(1, pb.range_sigma))
+    P = _P()
+    tnoise = None
+    if pb.anchor_b is not None:
+        tnoise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(o.huber_k),
+                                                gtsam.noiseModel.Isotropic.Sigma(1, pb.tdoa_sigma))
+    # The range factors come last: _report reads them as the graph's final len(assoc.used) factors.
     for m, k, d in zip(assoc.used, assoc.key, assoc.deltas):
         j = int(pb.anchor_j[m])
-        keys = [X(k), V(k), L(0)] + ([T(0)] if td_fixed is None else []) + [A(j)]
-        g.add(make_gtsam_factor(keys, pb.anchor_pos[j], pb.rho[m], d, assoc.td0, noise, td_fixed=td_fixed))
+        if pb.is_tdoa(m):
+            jb = int(pb.anchor_b[m])
+            keys = [X(k), V(k), L(0)] + ([T(0)] if td_fixed is None else []) + [A(j), A(jb)]
+            g.add(make_gtsam_tdoa_factor(keys, pb.anchor_pos[j], pb.anchor_pos[jb], pb.rho[m], d, assoc.td0, tnoise,
+                                         td_fixed=td_fixed))
+            continue
+        est = pb.estimated(j)
+        keys = [X(k), V(k), L(0)] + ([T(0)] if td_fixed is None else []) + [A(j)] + ([P(j)] if est else [])
+        g.add(make_gtsam_factor(keys, pb.anchor_pos[j], pb.rho[m], d, assoc.td0, noise, td_fixed=td_fixed,
+                                anchor_variable=est))
     return g
+
+
+def pair_error(pa: np.ndarray, pb_: np.ndarray, r: float, jacobians: bool = False):
+    """Inter-anchor range residual ``|p_a - p_b| - r`` [m] and, on request, its Jacobians (world frame)."""
+    u = np.asarray(pa, float) - np.asarray(pb_, float)
+    d = float(np.linalg.norm(u))
+    if not jacobians:
+        return d - r
+    n = u / d
+    return d - r, n, -n
+
+
+def _pair_factor(key_a, key_b, fixed_a, fixed_b, r: float, sd: float):
+    """CustomFactor of one anchor_ranges.csv row; a ``None`` key means that anchor is fixed."""
+    import gtsam
+
+    keys = [k for k in (key_a, key_b) if k is not None]
+
+    def error(this, values, H):
+        pa = values.atPoint3(key_a) if key_a is not None else fixed_a
+        pb_ = values.atPoint3(key_b) if key_b is not None else fixed_b
+        e, Ja, Jb = pair_error(pa, pb_, r, jacobians=True)
+        if H is not None:
+            i = 0
+            if key_a is not None:
+                H[i] = Ja.reshape(1, 3)
+                i += 1
+            if key_b is not None:
+                H[i] = Jb.reshape(1, 3)
+        return np.array([e])
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, sd), gtsam.KeyVector(keys), error)
+
+
+def anchor_factors(pb: Problem) -> list:
+    """Priors of the estimated anchors, the gauge constraint and the inter-anchor range factors."""
+    import gtsam
+
+    s, P = pb.anchors, _P()
+    out = []
+    for j in np.flatnonzero(s.estimated):
+        if np.isfinite(s.prior_sd[j]):
+            out.append(gtsam.PriorFactorPoint3(P(int(j)), s.pos[j].copy(),
+                                               gtsam.noiseModel.Isotropic.Sigma(3, float(s.prior_sd[j]))))
+    if s.yaw_fix is not None:
+        j, y = s.yaw_fix
+
+        def gauge(this, values, H):
+            if H is not None:
+                H[0] = np.array([[0.0, 1.0, 0.0]])
+            return np.array([values.atPoint3(this.keys()[0])[1] - y])
+
+        out.append(gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, GAUGE_SIGMA),
+                                      gtsam.KeyVector([P(int(j))]), gauge))
+    if s.pairs is not None:
+        for a, b, r, sd in s.pairs[["a", "b", "range", "sd"]].itertuples(index=False):
+            a, b = int(a), int(b)
+            if not (s.estimated[a] or s.estimated[b]):
+                continue  # both fixed: a check only (reported), no variable to constrain
+            out.append(_pair_factor(P(a) if s.estimated[a] else None, P(b) if s.estimated[b] else None,
+                                    s.pos[a], s.pos[b], float(r), float(sd)))
+    return out
 
 
 def initial_values(pb: Problem, with_td: bool = True):
@@ -197,6 +331,8 @@ def initial_values(pb: Problem, with_td: bool = True):
         vals.insert(T(0), np.array([pb.td0]))
     for j in range(len(pb.anchor_ids)):
         vals.insert(A(j), np.zeros(1))
+        if pb.estimated(j):
+            vals.insert(_P()(j), np.asarray(pb.anchor_pos[j], float).copy())
     return vals
 
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -26,6 +26,8 @@ class CalibrationOptions(BaseModel):
     model_config = ConfigDict(extra="forbid")
     keyframe_hz: float = Field(10.0, gt=0, le=200, description="keyframe rate of the graph [Hz]")
     range_sigma: Optional[float] = Field(None, gt=0, description="range noise sd [m]; default dataset's or 0.1")
+    tdoa_sigma: Optional[float] = Field(
+        None, gt=0, description="TDoA noise sd [m]; default the dataset's extra.tdoa_sigma, else sqrt(2) range_sigma")
     huber_k: float = Field(1.345, gt=0, description="Huber threshold in sigmas (outliers: |e| > k sigma)")
     accel_noise_density: Optional[float] = Field(None, gt=0, description="m/s^2/sqrt(Hz); default dataset's")
     gyro_noise_density: Optional[float] = Field(None, gt=0, description="rad/s/sqrt(Hz); default dataset's")
@@ -38,6 +40,18 @@ class CalibrationOptions(BaseModel):
     time_offset_prior_sd: float = Field(0.5, gt=0, description="[s]")
     anchor_bias_prior_sd: float = Field(0.3, gt=0, description="per-anchor constant range bias prior sd [m]")
     estimate_anchor_bias: bool = True
+    estimate_anchors: list[str] = Field(
+        default_factory=list, description="anchor ids whose positions are estimated (self-survey; anchors marked "
+                                          "surveyed: false in anchors.csv are always estimated)")
+    anchor_prior_sd: float = Field(0.5, gt=0, description="[m] per axis: weak prior of an estimated anchor around "
+                                                          "its anchors.csv position (none when surveyed: false)")
+    anchor_range_sigma: float = Field(0.05, gt=0, description="[m] sd of an anchor_ranges.csv range without sd")
+    degenerate_anchors: Literal["refuse", "warn"] = Field(
+        "refuse", description="an estimated anchor without prior seen from too few directions or mirror-ambiguous "
+                              "(coplanar motion): refuse (InputError) or warn (event) and solve")
+    bootstrap_range_sigma: float = Field(
+        0.5, gt=0, description="[m] range sd of the initialising ESKF when it must use rough anchors.csv guesses "
+                               "(fewer than 4 surveyed anchors); about the guesses' error")
     max_iterations: int = Field(50, ge=1)
     reassociate_max: int = Field(3, ge=0, description="re-attach ranges when t_d moved > half a keyframe step")
     td_profile: TdProfileOptions = Field(default_factory=TdProfileOptions)

@@ -1,4 +1,5 @@
-"""Files written by ``uwbimu calibrate``: calibration.yaml, trajectory.csv, residuals.csv, td_profile.csv/png."""
+"""Files written by ``uwbimu calibrate``: calibration.yaml, trajectory.csv, residuals.csv, anchors_estimated.csv,
+td_profile.csv/png."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ import numpy as np
 import yaml
 
 #: Every file the verb may write (the output rule refuses others without --force).
-OUTPUT_FILES = ("calibration.yaml", "trajectory.csv", "residuals.csv", "td_profile.csv", "td_profile.png")
+OUTPUT_FILES = ("calibration.yaml", "trajectory.csv", "residuals.csv", "anchors_estimated.csv", "td_profile.csv",
+                "td_profile.png")
 
 
 def write_calibration(result, out_dir, plots: bool = True) -> list[Path]:
@@ -18,6 +20,9 @@ def write_calibration(result, out_dir, plots: bool = True) -> list[Path]:
     paths[0].write_text(yaml.safe_dump(result.calibration, sort_keys=False))
     result.trajectory.to_csv(paths[1], index=False, float_format="%.9g")
     result.residuals.to_csv(paths[2], index=False, float_format="%.9g")
+    if getattr(result, "anchors", None) is not None:
+        paths.append(out / "anchors_estimated.csv")
+        result.anchors.to_csv(paths[-1], index=False, float_format="%.9g")
     prof = result.profile
     if prof is not None:
         paths.append(out / "td_profile.csv")

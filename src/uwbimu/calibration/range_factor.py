@@ -112,12 +112,14 @@ def imu_deltas(t_imu: np.ndarray, u_imu: np.ndarray, b_a: np.ndarray, b_g: np.nd
 
 
 def range_error(R_k, p_k, v_k, lever, td, bias, anchor, rho, d: RangeDelta, td0: float,
-                jacobians: bool = False):
+                jacobians: bool = False, with_anchor: bool = False):
     """Whitening-free residual ``e`` [m] of one range and, on request, its Jacobians.
 
     Jacobians (rows of ``de/dx``) are with respect to the GTSAM tangents: pose
     ``[theta, p]`` with ``R_k Exp(theta)``, ``p_k + R_k dp``; velocity, lever arm
-    (IMU frame), ``t_d`` and the anchor bias in their own coordinates.
+    (IMU frame), ``t_d`` and the anchor bias in their own coordinates.  With
+    ``with_anchor`` a sixth Jacobian, with respect to the anchor position (world,
+    m; a ``Point3`` variable of the self-survey), is appended.
     """
     delta = td - td0
     tau = d.tau
@@ -139,36 +141,45 @@ def range_error(R_k, p_k, v_k, lever, td, bias, anchor, rho, d: RangeDelta, td0:
     J_vel = n * (tau + delta)
     J_lever = n @ R_s
     J_td = float(n @ (v_s0 + a_s0 * delta + R_s @ np.cross(d.omega, lever)))
+    if with_anchor:
+        return e, J_pose, J_vel, J_lever, J_td, -n
     return e, J_pose, J_vel, J_lever, J_td
 
 
-def make_gtsam_factor(keys, anchor, rho, d: RangeDelta, td0: float, noise, td_fixed: float | None = None):
-    """A ``gtsam.CustomFactor`` on ``[pose, velocity, lever arm, (t_d), anchor bias]``.
+def make_gtsam_factor(keys, anchor, rho, d: RangeDelta, td0: float, noise, td_fixed: float | None = None,
+                      anchor_variable: bool = False):
+    """A ``gtsam.CustomFactor`` on ``[pose, velocity, lever arm, (t_d), anchor bias, (anchor position)]``.
 
     With ``td_fixed`` the time offset is a constant (profile points) and ``keys``
-    has no t_d key.
+    has no t_d key.  With ``anchor_variable`` the last key is the anchor's
+    ``Point3`` (self-survey) and ``anchor`` is ignored.
     """
     import gtsam
 
     anchor = np.asarray(anchor, float)
     has_td = td_fixed is None
+    ib = -2 if anchor_variable else -1  # position of the bias key
 
     def error(this, values, H):
         ks = this.keys()
         pose = values.atPose3(ks[0])
         td = values.atVector(ks[3])[0] if has_td else td_fixed
-        bias = values.atVector(ks[-1])[0]
+        bias = values.atVector(ks[ib])[0]
+        a = values.atPoint3(ks[-1]) if anchor_variable else anchor
         res = range_error(pose.rotation().matrix(), pose.translation(), values.atVector(ks[1]),
-                          values.atVector(ks[2]), td, bias, anchor, rho, d, td0, jacobians=H is not None)
+                          values.atVector(ks[2]), td, bias, a, rho, d, td0, jacobians=H is not None,
+                          with_anchor=anchor_variable)
         if H is None:
             return np.array([res])
-        e, Jp, Jv, Jl, Jt = res
+        e, Jp, Jv, Jl, Jt = res[:5]
         H[0] = Jp.reshape(1, 6)
         H[1] = Jv.reshape(1, 3)
         H[2] = Jl.reshape(1, 3)
         if has_td:
             H[3] = np.array([[Jt]])
-        H[-1] = np.ones((1, 1))
+        H[len(ks) + ib] = np.ones((1, 1))
+        if anchor_variable:
+            H[len(ks) - 1] = res[5].reshape(1, 3)
         return np.array([e])
 
     return gtsam.CustomFactor(noise, gtsam.KeyVector(keys), error)

@@ -32,6 +32,18 @@ def calibration_summary(cal: dict, truth=None) -> Table:
     return t
 
 
+def anchor_summary(anchors: dict) -> Table:
+    """Rich table of the anchor self-survey: position ± σ (cm) of every estimated anchor and the gauge."""
+    t = Table(title=f"Anchor self-survey (gauge: {anchors['gauge']['kind']})")
+    for c in ("anchor", "x ± σ (m)", "y ± σ (m)", "z ± σ (m)", "prior"):
+        t.add_column(c, justify="left" if c == "anchor" else "right")
+    for a in anchors["estimated"]:
+        e = anchors["positions"][a]
+        t.add_row(a, *[f"{v:.3f} ± {s:.3f}" for v, s in zip(e["position"], e["sd"])],
+                  "none" if e["prior_sd"] is None else f"{e['prior_sd']:g} m")
+    return t
+
+
 def register(app: typer.Typer) -> None:
     @app.command("calibrate")
     @with_load_options
@@ -40,6 +52,10 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(..., "--out", "-o", help="output folder"),
         config: Optional[Path] = typer.Option(None, "--config", "-c", help="calibrate.yaml (see docs/calibrate.md)"),
         eskf_config: Optional[Path] = typer.Option(None, "--eskf-config", help="options of the initialising ESKF"),
+        estimate_anchors: Optional[str] = typer.Option(
+            None, "--estimate-anchors",
+            help="comma-separated anchor ids whose positions are estimated (self-survey; weak prior around "
+                 "anchors.csv, none for rows marked surveyed: false); adds to the config's estimate_anchors"),
         plots: bool = typer.Option(True, "--plots/--no-plots", help="td_profile.png"),
         force: bool = typer.Option(False, "--force", help="write over files uwbimu did not write in the output folder"),
         load_options=None,
@@ -49,7 +65,7 @@ def register(app: typer.Typer) -> None:
         from uwbimu.calibration.outputs import OUTPUT_FILES
         from uwbimu.cli.dataset_options import apply_dataset_properties, estimator_options, load, \
             print_load_warnings
-        from uwbimu.errors import EstimationError, UsageError
+        from uwbimu.errors import EstimationError, UsageError, UwbimuError
         from uwbimu.estimation import InitialisationError
         from uwbimu.io.atomic import check_output_target, output_folder
 
@@ -58,6 +74,11 @@ def register(app: typer.Typer) -> None:
             opts = CalibrationOptions.from_yaml(config) if config is not None else CalibrationOptions()
         except (OSError, ValueError) as exc:
             raise UsageError(f"--config {config}: {exc}") from None
+        if estimate_anchors is not None:
+            ids = [a.strip() for a in estimate_anchors.split(",") if a.strip()]
+            if not ids:
+                raise UsageError("--estimate-anchors: expected comma-separated anchor ids, e.g. --estimate-anchors 6,7,8")
+            opts = opts.model_copy(update={"estimate_anchors": list(dict.fromkeys(opts.estimate_anchors + ids))})
         eskf_opts = estimator_options("eskf", eskf_config, None)
         check_output_target(out, sorted(OUTPUT_FILES), force, protect=[dataset])
         ds = load(dataset, load_options)
@@ -66,6 +87,8 @@ def register(app: typer.Typer) -> None:
         try:
             with console.status("ESKF initialisation, factor graph, t_d profile"):
                 res = calibrate(ds, opts, eskf_options=eskf_opts)
+        except UwbimuError:
+            raise  # refusals (e.g. anchor self-survey geometry) keep their own exit code
         except (InitialisationError, ValueError, RuntimeError) as exc:
             raise EstimationError(str(exc)) from None
         with output_folder(out, force, protect=[dataset], names=sorted(OUTPUT_FILES)) as tmp:
@@ -75,6 +98,11 @@ def register(app: typer.Typer) -> None:
         if cal["time_offset"].get("advice"):
             console.print(f"[yellow]time offset not identified ({cal['time_offset']['verdict']}):[/] "
                           f"{cal['time_offset']['advice']}")
+        if "anchors" in cal and cal["anchors"]["estimated"]:
+            console.print(anchor_summary(cal["anchors"]))
+        for ev in res.events:
+            if ev["kind"].startswith("anchor_"):
+                console.print(f"[yellow]{ev['kind']}:[/] {ev['message']}")
         r = cal["ranges"]
         console.print(f"{r['used']} ranges ({r['downweighted']} down-weighted by Huber, "
                       f"{r['expected_downweighted']:.0f} expected from Gaussian noise), {len(written)} files "

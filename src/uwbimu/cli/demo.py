@@ -10,6 +10,8 @@ report.  Everything lands in one output folder.
 
 from __future__ import annotations
 
+from typing import Optional
+
 import time
 from pathlib import Path
 
@@ -201,12 +203,20 @@ def _run_demo_into(out: Path, console: Console, duration: float | None) -> dict:
 def register(app: typer.Typer) -> None:
     @app.command("demo")
     def demo(
-        out: Path = typer.Option(Path("uwbimu-demo"), "--out", help="output folder (replaced if a previous demo wrote it)"),
+        out: Optional[Path] = typer.Option(
+            None, "--out", "-o",
+            help="output folder (replaced if a previous demo wrote it); default: a new temporary folder, printed"),
         force: bool = typer.Option(False, "--force", help="replace --out even if another program wrote it"),
         duration: float = typer.Option(None, "--duration", help="flight duration in s (default: the scenario's 60 s)"),
     ) -> None:
         """Simulate a calibration flight, validate it, analyse, estimate and write the report."""
         console = Console()
+        if out is None:
+            # never litter the current folder: a fresh folder the user is told about
+            import tempfile
+
+            out = Path(tempfile.mkdtemp(prefix="uwbimu-demo-"))
+            console.print(f"writing the demo into {out}/ (choose another folder with --out)")
         t0 = time.perf_counter()
         run_demo(out, console, force=force, duration=duration)
         console.print(f"demo finished in {time.perf_counter() - t0:.1f} s; everything is in {out}/")

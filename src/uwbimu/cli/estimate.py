@@ -31,12 +31,18 @@ def calibration_table(result, dataset=None, title: str = "Calibration (value ± 
     table.add_column("estimate ± σ", justify="right")
     table.add_column("truth", justify="right")
     table.add_column("error / σ", justify="right")
-    for i, c in enumerate("xyz"):
-        v, s = cal["lever_arm"][i], cal["lever_arm_sd"][i]
-        tv = truth.lever_arm[i] if truth is not None and truth.lever_arm is not None else None
-        table.add_row(f"lever arm {c} (cm)", f"{100 * v:.2f} ± {100 * s:.2f}",
-                      f"{100 * tv:.2f}" if tv is not None else "-",
-                      f"{(v - tv) / s:+.1f}" if tv is not None and s > 0 else "-")
+    tags = cal.get("tags") or {}
+    blocks = list(tags.items()) if len(tags) > 1 else [(None, cal)]
+    for name, blk in blocks:
+        t_lever = truth.lever_arm if truth is not None else None
+        if name is not None and truth is not None and truth.tags:
+            t_lever = truth.tags.get(name)
+        for i, c in enumerate("xyz"):
+            v, s = blk["lever_arm"][i], blk["lever_arm_sd"][i]
+            tv = t_lever[i] if t_lever is not None else None
+            label = f"lever arm {c} (cm)" if name is None else f"lever arm {c}, {name} (cm)"
+            table.add_row(label, f"{100 * v:.2f} ± {100 * s:.2f}", f"{100 * tv:.2f}" if tv is not None else "-",
+                          f"{(v - tv) / s:+.1f}" if tv is not None and s > 0 else "-")
     v, s = cal["time_offset"], cal["time_offset_sd"]
     tv = truth.time_offset if truth is not None else None
     table.add_row("time offset (ms)", f"{1000 * v:.2f} ± {1000 * s:.2f}", f"{1000 * tv:.2f}" if tv is not None else "-",
@@ -91,8 +97,8 @@ def register(app: typer.Typer) -> None:
             "eskf", "--estimator", help="eskf (19-state ESKF) or pointmass (seed 002's 6-state EKF)"
         ),
         clock_faults: bool = typer.Option(True, "--clock-faults/--no-clock-faults",
-                                          help="detect UWB clock jumps/drift from the innovations and re-run with "
-                                               "the jumps corrected"),
+                                          help="test the run's time offset for UWB clock jumps/drift (no re-run "
+                                               "on a clean log); correct the UWB stamps and re-run when found"),
         load_options=None,
     ) -> None:
         """Estimate trajectory, lever arm and time offset with the UWB-IMU error-state EKF."""

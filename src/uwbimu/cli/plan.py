@@ -34,7 +34,7 @@ def _load_yaml(path: Path) -> dict:
 
 
 SEED_FILES = {"plan.json", "trajectories.csv", "fig7_trajectories.png", "fig8_det_observability.png", "indirect_convergence.png", "controls.png"}
-POINTMASS_FILES = {"plan.json", "trajectory.csv", "pointmass.png"}
+POINTMASS_FILES = {"plan.json", "trajectory.csv", "flight_trajectory.csv", "pointmass.png"}
 CALIBRATION_FILES = {
     *(f"{k}_{s}" for k in ("designed", "figure8", "figure8_excited") for s in ("trajectory.csv", "scenario.yaml")),
     "design.json", "calibration_design.png", "proof",
@@ -143,7 +143,7 @@ def point_mass(
     from pydantic import ValidationError
 
     from uwbimu.design.trajectory.plots import save_pointmass_figure
-    from uwbimu.design.trajectory.pointmass import PointMassPlanConfig, plan_point_mass
+    from uwbimu.design.trajectory.pointmass import PointMassPlanConfig, flight_trajectory, plan_point_mass
     from uwbimu.io.atomic import write_csv, write_json
 
     try:
@@ -169,18 +169,40 @@ def point_mass(
     for i, c in enumerate(("ux", "uy", "uz")):
         cols[c] = np.append(res.u[:, i], np.nan)
     write_csv(out / "trajectory.csv", pd.DataFrame(cols), float_format="%.9g")
+    # the plan as the simulator flies it (trajectory file; multirotor: scenario `attitude: flat`)
+    from uwbimu.design.trajectory.calibration import sim_trajectory_kinematics
+    from uwbimu.design.trajectory.platform import check_multirotor
+    from uwbimu.sim.trajfile import write_trajectory_file
+
+    write_trajectory_file(out / "flight_trajectory.csv", res.t, res.x[:, :3], yaw=np.full(len(res.t), cfg.yaw))
+    violations = []
+    if cfg.platform == "multirotor":
+        tf = np.arange(0.0, cfg.tf, min(0.005, cfg.h / 4))
+        violations = [v.message() for v in check_multirotor(sim_trajectory_kinematics(flight_trajectory(res, cfg), tf), cfg.multirotor)]
     summary = {
         name: {"success": r.success, "status": r.status, "solve_time_s": r.solve_time_s, "metrics": r.metrics,
                "constraint_violation": r.constraint_violation, "information": r.info.tolist()}
         for name, r in (("min_effort", base), ("plan", res))
     }  # fmt: skip
+    summary["platform"] = {"platform": cfg.platform, "flown_limit_violations": violations}
     summary["config"] = cfg.model_dump(mode="json")
     write_json(out / "plan.json", summary)
     save_pointmass_figure(base, res, cfg, out / "pointmass.png")
-    console.print(f"wrote {out / 'plan.json'}, {out / 'trajectory.csv'}, {out / 'pointmass.png'}")
+    console.print(f"wrote {out / 'plan.json'}, {out / 'trajectory.csv'}, {out / 'flight_trajectory.csv'}, {out / 'pointmass.png'}")
+    if cfg.platform == "multirotor":
+        console.print("platform multirotor: fly flight_trajectory.csv with `trajectory: {type: file, path: ..., attitude: flat}`")
     if not res.success:
         console.print(f"[red]error:[/red] IPOPT did not converge: {res.status}")
         raise typer.Exit(code=1)
+    _report_violations(violations)
+
+
+def _report_violations(violations: list) -> None:
+    """Name every multirotor limit the flown trajectory exceeds; exit 3 (check flagged) if any."""
+    if violations:
+        for v in violations:
+            console.print(f"[red]limit exceeded[/red] (multirotor, flown trajectory): {v}")
+        raise typer.Exit(code=3)
 
 
 @plan_app.command("calibration")
@@ -214,7 +236,7 @@ def calibration(
         except ValueError as exc:
             console.print(f"[red]error:[/red] {config}: {exc}")
             raise typer.Exit(code=1)
-    tab = Table(title="Calibration manoeuvre: predicted 1-sigma (linearised ESKF covariance)")
+    tab = Table(title=f"Calibration manoeuvre ({cfg.platform}): predicted 1-sigma (linearised ESKF covariance)")
     tab.add_column("trajectory")
     for col in ("lever x [mm]", "lever y [mm]", "lever z [mm]", "t_d [ms]", "lambda_min (scaled info)"):
         tab.add_column(col, justify="right")
@@ -231,6 +253,7 @@ def calibration(
         )
     console.print(f"optimised in {report['design_time_s']:.1f} s ({report['n_evals']} evaluations)")
     console.print(f"wrote {len(report['files'])} files into {out}; fly with: uwbimu simulate {out / 'designed_scenario.yaml'}")
+    _report_violations([f"{name}: {v}" for name in ("designed", "figure8", "figure8_excited") for v in report[f"{name}_flown"].get("limit_violations", [])])
 
 
 def register(app: typer.Typer) -> None:

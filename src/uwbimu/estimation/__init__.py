@@ -15,6 +15,7 @@ from uwbimu.estimation.options import EskfOptions  # noqa: F401
 from uwbimu.estimation.result import EstimationResult  # noqa: F401
 from uwbimu.estimation.init import InitialState, InitialisationError  # noqa: F401
 from uwbimu.estimation.eskf import run_eskf  # noqa: F401
+from uwbimu.estimation.streaming import Eskf, EskfState  # noqa: F401
 from uwbimu.estimation.metrics import compute_metrics, truth_at  # noqa: F401
 from uwbimu.estimation.outputs import write_outputs, residual_table  # noqa: F401
 from uwbimu.estimation.pointmass import PointMassOptions, run_pointmass  # noqa: F401
@@ -25,6 +26,8 @@ __all__ = [
     "InitialState",
     "InitialisationError",
     "run_eskf",
+    "Eskf",
+    "EskfState",
     "compute_metrics",
     "truth_at",
     "write_outputs",

@@ -19,6 +19,7 @@ import numpy as np
 from uwbimu.estimation.filterpass import REC_ACC, Problem
 from uwbimu.models.quaternion import quat_to_rotmat
 from uwbimu.models.reference import G_WORLD
+from uwbimu.models import state as S
 
 _MAX_LISTED = 8
 
@@ -104,17 +105,17 @@ def excitation_warnings(prob: Problem, t_imu_out, X, sd, priors, opts) -> tuple[
     sd_end = sd[-1]
     if opts.lever_arm.mode == "estimate":
         prior = priors["sd_lever"]
-        ratio = sd_end[15:18] / np.where(prior > 0, prior, np.nan)
+        ratio = sd_end[S.EPIU] / np.where(prior > 0, prior, np.nan)
         if np.any(ratio > ex.sd_ratio_warn):
             warnings.append(
-                f"lever arm not well determined: final sd {np.round(100 * sd_end[15:18], 1).tolist()} cm "
+                f"lever arm not well determined: final sd {np.round(100 * sd_end[S.EPIU], 1).tolist()} cm "
                 f"vs prior {np.round(100 * prior, 1).tolist()} cm; excite rotations about all axes"
             )
     if opts.time_offset.mode == "estimate" and priors["td_sd"] > 0:
         td_prior = max(priors["td_sd"], opts.init.td_sd_after_grid if priors["search_td"] else 0.0)
-        if sd_end[18] > ex.sd_ratio_warn * td_prior:
+        if sd_end[S.ETD] > ex.sd_ratio_warn * td_prior:
             warnings.append(
-                f"time offset not well determined: final sd {1000 * sd_end[18]:.1f} ms vs prior "
+                f"time offset not well determined: final sd {1000 * sd_end[S.ETD]:.1f} ms vs prior "
                 f"{1000 * td_prior:.1f} ms; move with changing velocity"
             )
     return warnings, events

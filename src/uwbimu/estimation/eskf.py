@@ -16,25 +16,26 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 import pandas as pd
-from scipy.stats import chi2
 
 from uwbimu.estimation import kernels as K
 from uwbimu.estimation.diagnostics import excitation_warnings, imu_gap_events, outage_warnings
 from uwbimu.estimation.filterpass import (
     REC_ACC, REC_INNOV, REC_NIS, REC_PRED, REC_STATUS, STATUS_IN_GAP, STATUS_NOT_PROCESSED, PassResult, Problem, gap_inputs,
-    rotation_window_stats, run_pass,
+    rotation_window_stats,
 )
-from uwbimu.estimation.init import InitialisationError, InitialState, hold_time_offset, initialise
+from uwbimu.estimation.init import InitialisationError, InitialState
 from uwbimu.estimation.timeoffset import time_offset_verdict
 from uwbimu.models import state as S
 from uwbimu.estimation.options import EskfOptions
+from uwbimu.estimation.problem import make_settings, nominal_period, set_imu_timing
+from uwbimu.estimation.streaming import Eskf
 from uwbimu.estimation.result import EstimationResult
 from uwbimu.io.dataset import Dataset
 from uwbimu.models.quaternion import quat_multiply
 from uwbimu.models.reference import midpoint_inputs
 
 
-_ROBUST = {"none": K.ROBUST_NONE, "huber": K.ROBUST_HUBER, "geman-mcclure": K.ROBUST_GM}
+
 
 #: rotation of 180 deg about x (diagonal of the matrix; it is its own inverse) and its quaternion [w, x, y, z]
 FLIP_X = np.array([1.0, -1.0, -1.0])
@@ -97,17 +98,26 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
         raise ValueError(f"dataset {ds.meta.name!r}: only {len(imu_t)} IMU samples")
     uwb = ds.uwb
     tag = opts.tag
+    tag_names: list[str] = []
     if "tag" in uwb.columns:
         tags = list(pd.unique(uwb["tag"].astype(str)))
-        if tag is None:
-            tag = tags[0]
-        if tag not in tags:
+        if tag is not None and tag not in tags:
             raise ValueError(f"tag {tag!r} not in the UWB log (tags: {tags})")
-        if len(tags) > 1:
-            n_other = int((uwb["tag"].astype(str) != tag).sum())
-            warnings.append(f"UWB: {len(tags)} tags in the log; using {tag!r}, {n_other} ranges of other tags not used")
-        uwb = uwb[uwb["tag"].astype(str) == tag]
+        if tag is None and len(tags) > 1:
+            # several tags, one filter: one lever arm each (dataset.yaml's order first)
+            meta_order = [tm.name for tm in ds.meta.tags if tm.name in tags]
+            tag_names = meta_order + [t_ for t_ in tags if t_ not in meta_order]
+            tag = tag_names[0]
+        else:
+            tag = tag or tags[0]
+            if len(tags) > 1:
+                n_other = int((uwb["tag"].astype(str) != tag).sum())
+                warnings.append(f"UWB: {len(tags)} tags in the log; using {tag!r} (options.tag), {n_other} ranges "
+                                f"of other tags not used")
+            uwb = uwb[uwb["tag"].astype(str) == tag]
     uwb = uwb.sort_values("t", kind="stable")
+    tag_of_row = (uwb["tag"].astype(str).map({n: i for i, n in enumerate(tag_names)}).to_numpy(np.int64)
+                  if tag_names else None)
     anchor_ids = [str(a) for a in ds.anchors["anchor"]]
     index = {a: i for i, a in enumerate(anchor_ids)}
     aid = uwb["anchor"].astype(str).to_numpy()
@@ -124,6 +134,7 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
     uwb_a = np.ascontiguousarray(np.array([index[a] for a in aid[sel]], dtype=np.int64))
     uwb_r = np.ascontiguousarray(rng[sel])
     uwb_anchor_ids = aid[sel]
+    uwb_tag = tag_of_row[sel] if tag_of_row is not None else np.zeros(len(uwb_t), dtype=np.int64)
     kb = ds.meta.known_anchor_bias or {}
     for a, b in kb.items():
         if a in index:
@@ -131,8 +142,8 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
     uwb_b = np.full(len(uwb_t), -1, dtype=np.int64)
     tdoa = getattr(ds, "tdoa", None)
     if tdoa is not None and len(tdoa):
-        uwb_t, uwb_a, uwb_b, uwb_r, uwb_anchor_ids = _merge_tdoa(tdoa, tag, index, warnings, uwb_t, uwb_a, uwb_r,
-                                                                 uwb_anchor_ids, kb)
+        uwb_t, uwb_a, uwb_b, uwb_r, uwb_anchor_ids, uwb_tag = _merge_tdoa(
+            tdoa, tag, index, warnings, uwb_t, uwb_a, uwb_r, uwb_anchor_ids, kb, uwb_tag, tag_names)
     anchors = ds.anchor_array(anchor_ids).astype(float)
     frame_up = resolve_anchor_frame_up(ds, opts, warnings, events)
     if frame_up == "-z":
@@ -144,85 +155,58 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
 
     noise = opts.resolve_imu_noise(ds.meta.imu_noise)
     rsig = opts.range_sigma or ds.meta.range_sigma or 0.1
-    M = len(anchor_ids)
-    nb = M if opts.anchor_bias.mode != "fixed" else 0
-    N = 19 + nb
-    mask = np.ones(N)
-    if opts.lever_arm.mode != "estimate":
-        mask[15:18] = 0.0
-    if opts.time_offset.mode != "estimate":
-        mask[18] = 0.0
-    if nb and opts.anchor_bias.mode != "estimate":
-        mask[19:] = 0.0
-    bias_idx = np.full(M, -1, dtype=np.int64)
-    if nb:
-        bias_idx[:] = 19 + np.arange(M)
-    dts = np.diff(imu_t)
-    dt_nom = float(np.median(dts))
-    gate = float(chi2.ppf(opts.gating.probability, 1)) if opts.gating.probability < 1 else -1.0
-    lo = anchors.min(axis=0) - opts.supervisor.hull_margin
-    hi = anchors.max(axis=0) + opts.supervisor.hull_margin
-    prob = Problem(
-        imu_t=imu_t, imu_u=imu_u, imu_um=np.ascontiguousarray(midpoint_inputs(imu_t, imu_u)),
-        uwb_t=uwb_t, uwb_a=uwb_a, uwb_r=uwb_r, anchor_ids=anchor_ids,
-        anchors=np.ascontiguousarray(anchors),
-        noise=np.array([noise.accel_noise_density**2, noise.gyro_noise_density**2, noise.accel_bias_rw**2,
-                        noise.gyro_bias_rw**2, opts.lever_arm.random_walk**2, opts.time_offset.random_walk**2]
-                       + ([opts.anchor_bias.prior_sd**2, 1.0 / opts.anchor_bias.correlation_time]
-                          if nb and opts.anchor_bias.correlation_time else [])),
-        r_var=float(rsig**2), bias_idx=bias_idx, gain_mask=mask, dt_nom=dt_nom,
-        dt_max=opts.imu_gap_factor * dt_nom, gate=gate, robust_kind=_ROBUST[opts.gating.robust],
-        robust_c=opts.gating.robust_c, reopen_after=opts.gating.reopen_after, cov_every=opts.cov_every,
-        max_lookback=opts.max_lookback_s, out_period=1.0 / opts.output_rate_hz, store_cov=opts.store_covariance,
-        hull_lo=lo, hull_hi=hi, max_pos_var=opts.supervisor.max_position_sd**2,
-        all_reject_run=opts.supervisor.all_reject_run, supervise=opts.supervisor.enabled,
-    )
+    # TDoA noise: options, else the dataset's (extra.tdoa_sigma, written by the simulator), else the
+    # difference of two independent ranges
+    tsig = opts.tdoa_sigma or (ds.meta.extra or {}).get("tdoa_sigma")
+    if tag_names:
+        levers = [dataset_lever_prior(ds, opts, n) for n in tag_names]
+    else:
+        levers = dataset_lever_prior(ds, opts, tag)
+    pairs = None
+    if opts.tdoa_pair_bias.mode == "estimate" and (uwb_b >= 0).any():
+        td_rows = uwb_b >= 0
+        pairs = sorted({(int(a_), int(b_)) for a_, b_ in zip(uwb_a[td_rows], uwb_b[td_rows])})
+    prob, priors = make_settings(opts, anchor_ids, anchors, noise, rsig, tsig, levers, tag_names or None, pairs)
+    if tag_names:
+        prob.uwb_tag = np.ascontiguousarray(uwb_tag)
+    prob.imu_t, prob.imu_u = imu_t, imu_u
+    prob.imu_um = np.ascontiguousarray(midpoint_inputs(imu_t, imu_u))
+    prob.uwb_t, prob.uwb_a, prob.uwb_r = uwb_t, uwb_a, uwb_r
+    set_imu_timing(prob, opts, nominal_period(imu_t))
     prob.gap_idx, prob.gap_sd = gap_inputs(imu_t, imu_u, prob.dt_max)
     if (uwb_b >= 0).any():
         prob.uwb_b = np.ascontiguousarray(uwb_b)
-        # TDoA noise: options, else the dataset's (extra.tdoa_sigma, written by the simulator), else the
-        # difference of two independent ranges
-        tsig = opts.tdoa_sigma or (ds.meta.extra or {}).get("tdoa_sigma") or math.sqrt(2.0) * rsig
-        prob.tdoa_var = float(tsig) ** 2
-    if opts.lever_arm.mode == "estimate" and opts.lever_arm.min_rotation_rate > 0:
-        prob.lever_win = max(1, int(round(opts.excitation.window_s / dt_nom)))
+    if prob.lever_min_rate > 0:
         prob.rot_mean, prob.rot_ms = rotation_window_stats(imu_u, prob.lever_win)
-        prob.lever_min_rate = float(opts.lever_arm.min_rotation_rate)
-    # calibration priors
-    lever = opts.lever_arm.prior
-    if lever is None:
-        lever = [0.0, 0.0, 0.0]
-    elif lever == "dataset":
-        tagmeta = [tm for tm in ds.meta.tags if tm.name == tag] or list(ds.meta.tags[:1])
-        lever = tagmeta[0].lever_arm if tagmeta and tagmeta[0].lever_arm is not None else [0.0, 0.0, 0.0]
-    sd_ba = opts.accel_bias_sd or (noise.accel_bias_sigma0 if noise.accel_bias_sigma0 > 0 else 0.1)
-    sd_bg = opts.gyro_bias_sd or (noise.gyro_bias_sigma0 if noise.gyro_bias_sigma0 > 0 else math.radians(1.0))
-    td_mode = opts.time_offset.mode
-    priors = {
-        "lever": np.array(lever, dtype=float),
-        "sd_lever": np.zeros(3) if opts.lever_arm.mode == "fixed" else np.full(3, opts.lever_arm.prior_sd),
-        "anchor_bias": np.zeros(nb),
-        "sd_bias": opts.anchor_bias.prior_sd if nb else 0.0,
-        "ba": np.zeros(3), "bg": np.zeros(3), "sd_ba": sd_ba, "sd_bg": sd_bg,
-        "td": float(opts.time_offset.prior or 0.0),
-        "td_sd": 0.0 if td_mode == "fixed" else opts.time_offset.prior_sd,
-        "search_td": td_mode != "fixed" and opts.time_offset.prior is None and opts.init.search_time_offset,
-    }
     info = {"warnings": warnings, "events": events, "imu_noise": noise, "range_sigma": rsig, "tag": tag,
+            "tags": tag_names or [tag],
             "anchor_frame_up": frame_up,
             "priors": priors, "uwb_anchor_ids": uwb_anchor_ids}
     return prob, info
 
 
+def dataset_lever_prior(ds: Dataset, opts: EskfOptions, tag: Optional[str]) -> list[float]:
+    """The prior lever arm of the options (``"dataset"``: the tag's nominal one from dataset.yaml)."""
+    lever = opts.lever_arm.prior
+    if lever is None:
+        return [0.0, 0.0, 0.0]
+    if lever == "dataset":
+        tagmeta = [tm for tm in ds.meta.tags if tm.name == tag] or list(ds.meta.tags[:1])
+        return list(tagmeta[0].lever_arm) if tagmeta and tagmeta[0].lever_arm is not None else [0.0, 0.0, 0.0]
+    return list(lever)
+
+
 def _merge_tdoa(tdoa: pd.DataFrame, tag, index: dict[str, int], warnings: list[str], uwb_t, uwb_a, uwb_r,
-                uwb_anchor_ids, known_bias: dict[str, float]):
+                uwb_anchor_ids, known_bias: dict[str, float], uwb_tag=None, tag_names=()):
     """Merge ``ds.tdoa`` (``t, anchor_a, anchor_b, tdoa`` [+ ``tag``]) into the UWB stream in time order.
 
     Returns ``(t, a, b, z, ids)`` with ``b = -1`` for ranges and ``ids`` the (first) anchor's id; rows
     with an unknown anchor or a non-finite value are not used (and counted in ``warnings``).  Known anchor
     range biases (``dataset.yaml`` ``known_anchor_bias``) are removed as ``b_b - b_a``."""
     td = tdoa
-    if "tag" in td.columns and tag is not None:
+    if "tag" in td.columns and tag_names:
+        td = td[td["tag"].astype(str).isin(list(tag_names))]
+    elif "tag" in td.columns and tag is not None:
         td = td[td["tag"].astype(str) == str(tag)]
     ida = td["anchor_a"].astype(str).to_numpy()
     idb = td["anchor_b"].astype(str).to_numpy()
@@ -242,19 +226,15 @@ def _merge_tdoa(tdoa: pd.DataFrame, tag, index: dict[str, int], warnings: list[s
     z_all = np.concatenate([uwb_r, z[ok]])[order]
     ids = np.concatenate([np.asarray(uwb_anchor_ids, dtype=object),
                           ida[ok].astype(object)])[order]
+    if uwb_tag is None:
+        uwb_tag = np.zeros(len(uwb_t), dtype=np.int64)
+    if "tag" in td.columns and tag_names:
+        ttag = td["tag"].astype(str).map({n: i for i, n in enumerate(tag_names)}).to_numpy(np.int64)[ok]
+    else:
+        ttag = np.zeros(int(ok.sum()), dtype=np.int64)
+    tag_all = np.concatenate([np.asarray(uwb_tag, dtype=np.int64), ttag])[order]
     return (np.ascontiguousarray(t_all[order]), np.ascontiguousarray(a_all), np.ascontiguousarray(b_all),
-            np.ascontiguousarray(z_all), ids)
-
-
-def _reinit(prob: Problem, opts: EskfOptions, priors: dict[str, Any], j: int, last: PassResult) -> InitialState:
-    """Re-initialise after divergence at range ``j``: a fresh data-driven initialisation.
-
-    The calibration estimates of a diverged filter cannot be trusted (the
-    divergence usually corrupts them first), so the priors of the options are
-    used again and the yaw / time-offset search is repeated on the data that
-    follows.
-    """
-    return initialise(prob, opts, priors, j0=j)
+            np.ascontiguousarray(z_all), ids, np.ascontiguousarray(tag_all))
 
 
 def run_eskf(
@@ -297,55 +277,21 @@ def run_eskf(
     events += ev_gap
     warnings += warn_gap
 
-    if initial is None:
-        initial = initialise(prob, opts, priors, j0=0)
-    events.append({"t": float(prob.uwb_t[initial.j]), "kind": "initialised", **_plain(initial.info)})
-    td_init = initial.info.get("td_init") or {}
-    if td_init.get("status") == "not identified" and opts.time_offset.mode == "estimate":
-        # hold t_d at its prior (consider mode) for the whole run, as the initialiser did
-        prob = hold_time_offset(prob)
-        warnings.append(f"time offset not identified by the initial search ({td_init.get('reason')}): held at its "
-                        f"prior {priors['td']:g} s (sd {priors['td_sd']:g} s, consider mode); set time_offset.prior "
-                        f"or record more excited motion")
-        events.append({"t": float(prob.uwb_t[initial.j]), "kind": "time_offset_held", "reason": td_init.get("reason"),
-                       "prior": float(priors["td"]), "prior_sd": float(priors["td_sd"])})
-    passes: list[PassResult] = []
-    st = initial
-    n_reinit = 0
-    prob_run = prob
-    while True:
-        c0 = time.process_time()
-        res = run_pass(prob_run, st.x, st.P, st.k, st.j, progress=cb)
-        cpu_filter += time.process_time() - c0
-        passes.append(res)
-        events += res.events
-        if not res.diverged:
-            break
-        t_div = float(prob.imu_t[res.k] - res.x[19]) if np.isfinite(res.x[19]) else float(prob.imu_t[res.k])
-        events.append({"t": t_div, "kind": "divergence", "reason": res.diverged})
-        j = res.j_end
-        if j >= len(prob.uwb_t) - 8:
-            warnings.append(f"divergence at t={t_div:.2f} s ({res.diverged}) near the end of the log; stopped there")
-            break
-        if n_reinit >= opts.supervisor.max_reinit:
-            if not (np.all(np.isfinite(res.x)) and np.all(np.isfinite(res.P))):
-                warnings.append(f"divergence at t={t_div:.2f} s ({res.diverged}); re-initialisation limit "
-                                f"({opts.supervisor.max_reinit}) reached and the state is not finite: stopped there")
-                break
-            warnings.append(f"divergence at t={t_div:.2f} s ({res.diverged}); re-initialisation limit "
-                            f"({opts.supervisor.max_reinit}) reached, continuing without supervisor")
-            prob_run = _unsupervised(prob)
-            st = InitialState(x=res.x.copy(), P=res.P.copy(), k=res.k, j=j)
-            continue
-        try:
-            st = _reinit(prob, opts, priors, j, res)
-        except InitialisationError as exc:
-            warnings.append(f"divergence at t={t_div:.2f} s ({res.diverged}); re-initialisation failed: {exc}")
-            break
-        n_reinit += 1
-        warnings.append(f"divergence at t={t_div:.2f} s ({res.diverged}); re-initialised from the ranges at "
-                        f"t={prob.uwb_t[j]:.2f} s")
-        events.append({"t": float(prob.uwb_t[j]), "kind": "reinitialised", **_plain(st.info)})
+    # the batch run is the streaming filter fed with the whole log
+    f = Eskf.from_problem(prob, priors, opts, record=True, initial=initial)
+    c0 = time.process_time()
+    f.feed(prob.imu_t, prob.imu_u, prob.uwb_t, prob.uwb_a,
+           prob.uwb_b if prob.uwb_b is not None else np.full(len(prob.uwb_t), -1, dtype=np.int64), prob.uwb_r,
+           prob.uwb_tag)
+    f.finish(progress=cb)
+    cpu_filter = time.process_time() - c0
+    if f.initial is None:
+        raise InitialisationError(f._init_failure or "not enough data to initialise")
+    initial = f.initial
+    passes = f.passes()
+    events += f.events()
+    warnings += f.warnings()
+    prob = f.problem()
     result = _assemble(dataset, prob, info, passes, opts)
     _add_time_offset_verdict(result, prob, priors, opts, initial)
     result.warnings = warnings + result.warnings
@@ -377,12 +323,6 @@ def _add_time_offset_verdict(result: EstimationResult, prob: Problem, priors: di
         result.warnings.append(f"time offset not identified: {reason}")
 
 
-def _unsupervised(prob: Problem) -> Problem:
-    from dataclasses import replace
-
-    return replace(prob, supervise=False)
-
-
 def _plain(d: dict[str, Any]) -> dict[str, Any]:
     out = {}
     for k, v in d.items():
@@ -410,14 +350,15 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
     t_imu, X, D = t_imu[keep], X[keep], D[keep]
     if covs is not None:
         covs = covs[keep]
-    nb = X.shape[1] - 20
-    t_out = t_imu - X[:, 19]
+    L = prob.state_layout()
+    nb = L.n_anchor_bias
+    t_out = t_imu - X[:, S.TD]
     fixed = np.zeros(19, dtype=bool)
     if opts.lever_arm.mode == "fixed":
         fixed[S.EPIU] = True
     if opts.time_offset.mode == "fixed":
         fixed[S.ETD] = True
-    sd = np.sqrt(np.clip(D[:, :19], 0, None))
+    sd = np.sqrt(np.clip(D[:, :S.ERROR_DIM], 0, None))
     sd[:, fixed] = np.nan
 
     # per-range records
@@ -437,12 +378,14 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
         "nis": rec[:, REC_NIS],
         "accepted": rec[:, REC_ACC] > 0,
     })
-    if prob.uwb_b is not None:
+    if prob.uwb_b is not None and bool(np.any(prob.uwb_b >= 0)):
         # TDoA rows: "anchor" is anchor_a, "range" the measured TDoA [m]; consumers that need ranges keep
         # the rows whose kind is "range"
         is_td = prob.uwb_b >= 0
         residuals["kind"] = np.where(is_td, "tdoa", "range")
         residuals["anchor_b"] = np.where(is_td, np.array(prob.anchor_ids, dtype=object)[np.maximum(prob.uwb_b, 0)], "")
+    if prob.tag_names and prob.uwb_tag is not None:
+        residuals["tag"] = np.array(prob.tag_names, dtype=object)[prob.uwb_tag]
     n_gap = int((rec[:, REC_STATUS] == STATUS_IN_GAP).sum())
     n_frozen = sum(p.n_lever_frozen for p in passes)
     n_acc = int((rec[:, REC_ACC] > 0).sum())
@@ -483,14 +426,24 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
     # per-tag block (the top-level lever_arm keys stay for the first/used tag)
     calibration["tags"] = {str(info["tag"] or "tag0"): {"lever_arm": calibration["lever_arm"],
                                                          "lever_arm_sd": calibration["lever_arm_sd"]}}
+    for i, name in enumerate(prob.tag_names[1:], start=1):
+        calibration["tags"][str(name)] = {
+            "lever_arm": [float(v) for v in x_end[L.lever_nom(i)]],
+            "lever_arm_sd": [float(v) if not fixed[S.EPIU.start] else 0.0 for v in sd_end[L.lever_err(i)]]}
     if nb:
-        calibration["anchor_bias"] = {a: float(x_end[20 + i]) for i, a in enumerate(prob.anchor_ids)}
-        calibration["anchor_bias_sd"] = {a: float(sd_end[19 + i]) for i, a in enumerate(prob.anchor_ids)}
+        xb, sb = x_end[L.nom("anchor_bias")], sd_end[L.err("anchor_bias")]
+        calibration["anchor_bias"] = {a: float(xb[i]) for i, a in enumerate(prob.anchor_ids)}
+        calibration["anchor_bias_sd"] = {a: float(sb[i]) for i, a in enumerate(prob.anchor_ids)}
         calibration["anchor_bias_mode"] = opts.anchor_bias.mode
         if opts.anchor_bias.correlation_time:
             # Gauss-Markov biases vary in time: the values above are the last ones (whole series in
             # result.extra["anchor_bias_states"])
             calibration["anchor_bias_correlation_time"] = float(opts.anchor_bias.correlation_time)
+
+    if prob.pair_index:
+        ids = prob.anchor_ids
+        calibration["tdoa_pair_bias"] = {f"{ids[a_]}-{ids[b_]}": float(x_end[i + 1]) for (a_, b_), i in prob.pair_index.items()}
+        calibration["tdoa_pair_bias_sd"] = {f"{ids[a_]}-{ids[b_]}": float(sd_end[i]) for (a_, b_), i in prob.pair_index.items()}
 
     # diagnostics: excitation, outages
     w_exc, e_exc = excitation_warnings(prob, t_imu, X, sd, info["priors"], opts)
@@ -509,11 +462,11 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
     cfg["resolved"] = {"imu_noise": noise.model_dump(), "range_sigma": float(info["range_sigma"]),
                        "tag": info["tag"], "anchor_frame_up": info["anchor_frame_up"], "gate_nis": float(prob.gate), "imu_rate_hz": 1.0 / prob.dt_nom}
     res = EstimationResult(
-        t=t_out, states=X[:, :20].copy(), sd=sd, residuals=residuals, calibration=calibration,
-        covariances=covs[:, :19, :19].copy() if covs is not None else None, warnings=warnings, events=events,
+        t=t_out, states=X[:, :S.NOMINAL_DIM].copy(), sd=sd, residuals=residuals, calibration=calibration,
+        covariances=covs[:, :S.ERROR_DIM, :S.ERROR_DIM].copy() if covs is not None else None, warnings=warnings, events=events,
         estimator="eskf", config=cfg, t_imu=t_imu,
     )
     if nb:
-        res.extra["anchor_bias_states"] = X[:, 20:].copy()
+        res.extra["anchor_bias_states"] = X[:, L.nom("anchor_bias")].copy()
         res.extra["anchor_ids"] = list(prob.anchor_ids)
     return res

@@ -32,6 +32,9 @@ from typing import Any, Callable, Optional
 import numpy as np
 
 from uwbimu.estimation import kernels as K
+from uwbimu.models.measurements import vector_update
+from uwbimu.models.state import StateLayout
+from uwbimu.models import state as S
 
 # columns of the per-range output record
 REC_PRED, REC_INNOV, REC_NIS, REC_ACC, REC_W, REC_STATUS, REC_S = range(7)
@@ -96,6 +99,25 @@ class Problem:
     # None (or -1 everywhere): every row is a range
     uwb_b: Optional[np.ndarray] = None
     tdoa_var: float = 0.0
+    # the filter does not propagate beyond this IMU time (a streaming filter: the newest samples wait
+    # for the next one that the cubic mid-interval input needs)
+    t_limit: float = np.inf
+    # measurements through the Python model protocol (height, zero velocity, user models): row j with
+    # uwb_b[j] <= -2 is models[-uwb_b[j] - 2] = (model, z); uwb_a[j] = -1
+    models: dict = field(default_factory=dict)
+    layout: Optional[StateLayout] = None
+    # several tags: tag number of each row (None: all the first tag), the error index of each tag's
+    # lever block and the tags' names
+    uwb_tag: Optional[np.ndarray] = None
+    tag_lever_err: Optional[np.ndarray] = None
+    tag_names: list = field(default_factory=list)
+    # TDoA pair biases: (a, b) anchor indices -> error index of the pair's bias state; prior sd [m]
+    pair_index: dict = field(default_factory=dict)
+    pair_sd0: float = 0.0
+    height_sd0: float = 0.0  # prior sd of the altimeter bias state (when the layout has one) [m]
+
+    def state_layout(self) -> StateLayout:
+        return self.layout if self.layout is not None else StateLayout.for_dims(self.gain_mask.shape[0])
 
     @property
     def n_err(self) -> int:
@@ -141,7 +163,8 @@ def gap_inputs(imu_t: np.ndarray, imu_u: np.ndarray, dt_max: float, around_s: fl
     real input differs from it by an unknown amount, which the white-noise
     densities (made for one sample period) do not cover.  Its sd is taken from
     the data: the per-axis standard deviation of the accelerometer and gyro
-    readings within ``around_s`` on both sides of the gap (largest axis).
+    readings within ``around_s`` before the gap and the first sample after it
+    (largest axis).
     Returns ``(gap_idx (G,), gap_sd (G, 2))``.
     """
     d = np.diff(imu_t)
@@ -149,7 +172,7 @@ def gap_inputs(imu_t: np.ndarray, imu_u: np.ndarray, dt_max: float, around_s: fl
     sd = np.zeros((len(idx), 2))
     for i, g in enumerate(idx):
         lo = np.searchsorted(imu_t, imu_t[g] - around_s)
-        hi = np.searchsorted(imu_t, imu_t[g + 1] + around_s, side="right")
+        hi = g + 2  # past data only (and the first sample after the gap): a streaming filter knows no more
         u = imu_u[lo:hi]
         if len(u) > 2:
             sd[i, 0] = float(np.max(np.std(u[:, 0:3], axis=0)))
@@ -193,18 +216,67 @@ def _propagate(prob: Problem, x: np.ndarray, P: np.ndarray, k: int, t_target: fl
 
 
 def _diverged(prob: Problem, x: np.ndarray, P: np.ndarray, all_rej: int) -> Optional[str]:
-    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(np.diag(P)))):
+    """The supervisor's verdict (None: healthy); the checks run compiled, the message only on failure."""
+    code = K.divergence_code(x, P, prob.max_pos_var, prob.hull_lo, prob.hull_hi, all_rej, prob.all_reject_run)
+    if code == 0:
+        return None
+    if code == 1:
         return "NaN in state or covariance"
-    if np.any(np.diag(P) < -1e-9):
+    if code == 2:
         return "negative covariance diagonal"
-    pv = P[0, 0] + P[1, 1] + P[2, 2]
-    if pv > prob.max_pos_var:
-        return f"position sd {np.sqrt(pv):.1f} m above limit"
-    if np.any(x[:3] < prob.hull_lo) or np.any(x[:3] > prob.hull_hi):
+    if code == 3:
+        return f"position sd {np.sqrt(P[0, 0] + P[1, 1] + P[2, 2]):.1f} m above limit"
+    if code == 4:
         return f"position {np.round(x[:3], 2).tolist()} far outside the anchors' hull"
-    if all_rej >= prob.all_reject_run:
-        return f"{all_rej} consecutive ranges rejected"
-    return None
+    return f"{all_rej} consecutive ranges rejected"
+
+
+@dataclass
+class PassState:
+    """Where a filter pass stands: state, covariance, IMU sample ``k``, next range ``j`` and the
+    bookkeeping of the gate and the supervisor.  :func:`advance` moves it on as far as the data in the
+    :class:`Problem` allows, so a pass can be resumed when more data arrive (the streaming filter) or
+    run to the end in one call (:func:`run_pass`)."""
+
+    x: np.ndarray
+    P: np.ndarray
+    k: int
+    j: int
+    j0: int
+    next_out: float
+    consec: np.ndarray  # (M,) consecutive rejections per anchor
+    all_rej: int = 0
+    n_frozen: int = 0
+    diverged: Optional[str] = None
+    out_t: list = field(default_factory=list)
+    out_x: list = field(default_factory=list)
+    out_d: list = field(default_factory=list)
+    out_P: list = field(default_factory=list)
+    events: list = field(default_factory=list)
+
+    @classmethod
+    def start(cls, prob: "Problem", x0: np.ndarray, P0: np.ndarray, k0: int, j0: int) -> "PassState":
+        return cls(x=np.array(x0, dtype=float), P=np.array(P0, dtype=float), k=int(k0), j=int(j0), j0=int(j0),
+                   next_out=float(prob.imu_t[int(k0)]), consec=np.zeros(len(prob.anchor_ids) + 1, dtype=np.int64))
+
+    def result(self, rec: np.ndarray, N: int) -> "PassResult":
+        """The pass so far as a :class:`PassResult` (``rec`` indexed by absolute range index)."""
+        nb = self.x.shape[0]
+        return PassResult(
+            t_imu=np.array(self.out_t),
+            states=np.array(self.out_x).reshape(-1, nb),
+            cov_diag=np.array(self.out_d).reshape(-1, N),
+            covs=np.array(self.out_P).reshape(-1, N, N) if self.out_P else None,
+            rec=rec[self.j0:self.j],
+            j0=self.j0,
+            j_end=self.j,
+            x=self.x,
+            P=self.P,
+            k=self.k,
+            diverged=self.diverged,
+            events=self.events,
+            n_lever_frozen=self.n_frozen,
+        )
 
 
 def run_pass(
@@ -218,139 +290,192 @@ def run_pass(
     to_end: bool = True,
     progress: Optional[Callable[[int], None]] = None,
 ) -> PassResult:
-    """Run the filter from IMU sample ``k0`` (state ``x0``, ``P0``) and range ``j0``.
+    """Run the filter from IMU sample ``k0`` (state ``x0``, ``P0``) and range ``j0`` to the end of the data.
 
     Ranges with stamps beyond ``t_uwb_end`` are left alone.  ``record``
     stores the state and covariance every ``out_period`` seconds; ``to_end``
     propagates (and records) to the end of the IMU stream after the last range.
     """
-    imu_t, imu_u = prob.imu_t, prob.imu_u
+    st = PassState.start(prob, x0, P0, k0, j0)
+    m = prob.uwb_t.shape[0]
+    rec = np.full((m, 7), np.nan)
+    rec[j0:, REC_STATUS] = STATUS_NOT_PROCESSED
+    rec[j0:, REC_ACC] = 0.0
+    advance(prob, st, rec, final=True, t_uwb_end=t_uwb_end, record=record, to_end=to_end, progress=progress)
+    res = st.result(rec, P0.shape[0])
+    if not prob.store_cov:
+        res.covs = None
+    return res
+
+
+def advance(
+    prob: Problem,
+    st: PassState,
+    rec: np.ndarray,
+    final: bool,
+    t_uwb_end: float = np.inf,
+    record: bool = True,
+    to_end: bool = True,
+    t_safe: float = -np.inf,
+    progress: Optional[Callable[[int], None]] = None,
+) -> None:
+    """Move the pass ``st`` on (in place) through the ranges and IMU samples of ``prob``.
+
+    A range is processed once the IMU stream reaches its IMU time ``tau = t + t_d_hat``; the ranges are
+    taken in index order.  With ``final`` the data are complete: the pass stops at the first range the
+    IMU does not reach and (``record`` and ``to_end``) records outputs to the end of the IMU stream.
+    Without it (streaming) the pass waits there instead, and outputs are recorded only up to ``t_safe``
+    (IMU clock), the time before which no further range can arrive; the sequence of propagations and
+    updates is the same as in one final call over the same data, so chunked and batch runs agree.
+    ``rec`` (m, 7) receives the per-range records at the ranges' absolute indices.
+    """
+    imu_t = prob.imu_t
     n_imu = imu_t.shape[0]
-    x = np.array(x0, dtype=float)
-    P = np.array(P0, dtype=float)
-    N = P.shape[0]
-    k = int(k0)
+    x, P = st.x, st.P
     ws = np.zeros(1)
     m = prob.uwb_t.shape[0]
-    rec = np.full((max(m - j0, 0), 7), np.nan)
-    rec[:, REC_STATUS] = STATUS_NOT_PROCESSED
-    rec[:, REC_ACC] = 0.0
-    consec = np.zeros(len(prob.anchor_ids), dtype=np.int64)
-    all_rej = 0
-    out_t: list[float] = []
-    out_x: list[np.ndarray] = []
-    out_d: list[np.ndarray] = []
-    out_P: list[np.ndarray] = []
-    events: list[dict[str, Any]] = []
     o = np.empty(7)
-    diverged = None
-    gate_lever = prob.lever_min_rate > 0 and prob.rot_ms is not None and prob.gain_mask[15] > 0
+    gate_lever = prob.lever_min_rate > 0 and prob.rot_ms is not None and prob.gain_mask[S.EPIU.start] > 0
     mask_frozen = prob.gain_mask.copy()
-    mask_frozen[15:18] = 0.0
-    n_frozen = 0
+    mask_frozen[S.EPIU] = 0.0
+    if prob.layout is not None:
+        mask_frozen[prob.layout.err("extra_levers")] = 0.0
+    multi = prob.uwb_tag is not None and prob.tag_lever_err is not None and len(prob.tag_lever_err) > 1
+    consec = st.consec
+    # locals for the per-range loop (attribute lookups cost as much as the kernels' calls here)
+    uwb_t, uwb_a, uwb_b, uwb_r = prob.uwb_t, prob.uwb_a, prob.uwb_b, prob.uwb_r
+    imu_u, imu_um, anchors, bias_idx = prob.imu_u, prob.imu_um, prob.anchors, prob.bias_idx
+    i_td, i_bg = S.TD, S.EBG.start
+    pair_index = prob.pair_index
 
     def _record():
-        out_t.append(imu_t[k])
-        out_x.append(x.copy())
-        out_d.append(np.diag(P).copy())
+        st.out_t.append(imu_t[st.k])
+        st.out_x.append(x.copy())
+        st.out_d.append(np.diag(P).copy())
         if prob.store_cov:
-            out_P.append(P.copy())
+            st.out_P.append(P.copy())
 
-    next_out = imu_t[k]
-    j = j0
-    t_last = imu_t[-1]
-    while j < m:
-        tj = prob.uwb_t[j]
+    t_last = min(imu_t[-1], prob.t_limit)
+    j = st.j
+    while j < m and st.diverged is None:
+        tj = uwb_t[j]
         if tj > t_uwb_end:
             break
-        tau = tj + x[19]
+        b = -1 if uwb_b is None else int(uwb_b[j])
+        model = prob.models[-b - 2][0] if b <= -2 else None
+        # a UWB-clock stamp sees the IMU-clock state t_d later
+        tau = tj + x[i_td] if model is None or model.clock == "uwb" else tj
         if tau > t_last:
             break
         if record:
-            while next_out <= tau:
-                k = _propagate(prob, x, P, k, next_out, ws)
+            while st.next_out <= tau:
+                st.k = _propagate(prob, x, P, st.k, st.next_out, ws)
                 _record()
-                next_out += prob.out_period
+                st.next_out += prob.out_period
                 if prob.supervise:
-                    diverged = _diverged(prob, x, P, all_rej)
-                    if diverged:
+                    st.diverged = _diverged(prob, x, P, st.all_rej)
+                    if st.diverged:
                         break
                 if progress is not None:
-                    progress(k)
-            if diverged:
+                    progress(st.k)
+            if st.diverged:
                 break
-        k = _propagate(prob, x, P, k, tau, ws)
-        i = j - j0
+        st.k = k = _propagate(prob, x, P, st.k, tau, ws)
         if imu_t[k] - tau > prob.max_lookback:
-            rec[i, REC_STATUS] = STATUS_STALE
+            rec[j, REC_STATUS] = STATUS_STALE
             j += 1
             continue
         if k > 0 and imu_t[k] - imu_t[k - 1] > prob.dt_max and imu_t[k - 1] < tau < imu_t[k]:
-            rec[i, REC_STATUS] = STATUS_IN_GAP
+            rec[j, REC_STATUS] = STATUS_IN_GAP
             j += 1
             continue
-        a = prob.uwb_a[j]
+        a = uwb_a[j]
+        if a < 0:
+            a = consec.shape[0] - 1  # the gate counter of the model measurements
         force = consec[a] >= prob.reopen_after
         # no rotation, no lever-arm information: Schmidt (consider) update for the lever arm only
         # (the rate must stand out from the gyro-bias uncertainty: before the bias has converged an
         # uncorrected bias would otherwise pass for rotation)
-        frozen = gate_lever and (prob.rotation_rms(k, x[13:16]) - math.sqrt(max(P[12, 12] + P[13, 13] + P[14, 14], 0.0))
+        frozen = gate_lever and (prob.rotation_rms(k, x[i_bg + 1:i_bg + 4])
+                                 - math.sqrt(max(P[i_bg, i_bg] + P[i_bg + 1, i_bg + 1] + P[i_bg + 2, i_bg + 2], 0.0))
                                  < prob.lever_min_rate)
-        b = -1 if prob.uwb_b is None else int(prob.uwb_b[j])
         mask = mask_frozen if frozen else prob.gain_mask
-        if b < 0:
+        lev = int(prob.tag_lever_err[prob.uwb_tag[j]]) if multi else 15
+        if model is not None:
+            _model_update(prob, x, P, k, tau, model, prob.models[-b - 2][1], force, mask, o)
+        elif b < 0:
             K.range_update(
-                x, P, imu_t, imu_u, prob.imu_um, k, tau, prob.anchors[a], prob.bias_idx[a], prob.uwb_r[j],
-                prob.r_var, prob.gate, force, prob.robust_kind, prob.robust_c, mask, prob.dt_max, o,
+                x, P, imu_t, imu_u, imu_um, k, tau, anchors[a], bias_idx[a], uwb_r[j],
+                prob.r_var, prob.gate, force, prob.robust_kind, prob.robust_c, mask, prob.dt_max, o, lev,
             )
         else:
             # per-anchor bias states (anchor_bias mode estimate): the TDoA sees their difference b_b - b_a
             K.tdoa_update(
-                x, P, imu_t, imu_u, prob.imu_um, k, tau, prob.anchors[a], prob.anchors[b], prob.bias_idx[a],
-                prob.bias_idx[b], prob.uwb_r[j],
-                prob.tdoa_var, prob.gate, force, prob.robust_kind, prob.robust_c, mask, prob.dt_max, o,
+                x, P, imu_t, imu_u, imu_um, k, tau, anchors[a], anchors[b], bias_idx[a], bias_idx[b], uwb_r[j],
+                prob.tdoa_var, prob.gate, force, prob.robust_kind, prob.robust_c, mask, prob.dt_max, o, lev,
+                pair_index.get((int(a), b), -1) if pair_index else -1,
             )
-        rec[i] = o
+        rec[j] = o
         if o[REC_ACC] > 0:
-            n_frozen += int(frozen)
+            st.n_frozen += int(frozen)
             if force:
                 # a reopened gate does not prove the filter healthy: keep counting towards divergence
-                events.append({"t": float(tj), "kind": "gate_reopened", "anchor": prob.anchor_ids[a],
-                               "after_rejections": int(consec[a])})
-                all_rej += 1
+                st.events.append({"t": float(tj), "kind": "gate_reopened",
+                                  "anchor": prob.anchor_ids[a] if a < len(prob.anchor_ids) else model.name,
+                                  "after_rejections": int(consec[a])})
+                st.all_rej += 1
             else:
-                all_rej = 0
+                st.all_rej = 0
             consec[a] = 0
         elif o[REC_STATUS] == K.UPD_OK:
             consec[a] += 1
-            all_rej += 1
+            st.all_rej += 1
         j += 1
-        if prob.supervise and all_rej >= prob.all_reject_run:
-            diverged = _diverged(prob, x, P, all_rej)
-            if diverged:
-                break
-    if not diverged and record and to_end:
-        while next_out <= t_last + 1e-12:
-            k = _propagate(prob, x, P, k, next_out, ws)
+        if prob.supervise and st.all_rej >= prob.all_reject_run:
+            st.diverged = _diverged(prob, x, P, st.all_rej)
+    st.j = j
+    if st.diverged is None and record:
+        t_out_end = t_last + 1e-12 if (final and to_end) else min(t_last, t_safe)
+        while st.next_out <= t_out_end:
+            st.k = _propagate(prob, x, P, st.k, st.next_out, ws)
             _record()
-            next_out += prob.out_period
-            if k >= n_imu - 1:
+            st.next_out += prob.out_period
+            if st.k >= n_imu - 1:
                 break
     if progress is not None:
-        progress(k)
-    nb = x.shape[0]
-    return PassResult(
-        t_imu=np.array(out_t),
-        states=np.array(out_x).reshape(-1, nb),
-        cov_diag=np.array(out_d).reshape(-1, N),
-        covs=np.array(out_P).reshape(-1, N, N) if prob.store_cov else None,
-        rec=rec[: j - j0],
-        j0=j0,
-        j_end=j,
-        x=x,
-        P=P,
-        k=k,
-        diverged=diverged,
-        events=events,
-        n_lever_frozen=n_frozen,
-    )
+        progress(st.k)
+
+
+def _model_update(prob: Problem, x: np.ndarray, P: np.ndarray, k: int, tau: float, model, z: np.ndarray,
+                  force: bool, mask: np.ndarray, o: np.ndarray) -> None:
+    """One measurement through the Python model protocol (:mod:`uwbimu.models.measurements`).
+
+    The model is evaluated at ``tau`` (state integrated back from the filter's sample ``k``, as for a
+    range) and its Jacobian applied at the filter time: ``tau`` lies within one IMU period of it, the
+    first-order time mapping the range kernel applies is neglected here (an error of order dt_imu)."""
+    xt = np.empty_like(x)
+    u_tau = np.empty(6)
+    st = K.state_at(x, prob.imu_t, prob.imu_u, prob.imu_um, k, tau, prob.dt_max, xt, u_tau)
+    o[5] = st
+    if st != K.UPD_OK:
+        o[0:5] = (np.nan, np.nan, np.nan, 0.0, 0.0)
+        o[6] = np.nan
+        return
+    L = prob.state_layout()
+    pred = np.atleast_1d(model.evaluate(xt, u_tau))
+    H = np.atleast_2d(model.jacobian(xt, u_tau, L))
+    r = np.atleast_1d(z) - pred
+    gate_p = 1.0 if prob.gate <= 0 else _gate_probability(prob.gate)
+    res = vector_update(x, P, H, r, np.atleast_2d(model.covariance()), gate_p, force,
+                        prob.robust_c if prob.robust_kind != K.ROBUST_NONE else 0.0, mask, K.inject)
+    o[0], o[1], o[2] = pred[0], r[0], res["nis"]
+    o[3] = 1.0 if res["accepted"] else 0.0
+    o[4] = res["weight"]
+    o[6] = res["S"]
+
+
+def _gate_probability(gate_nis_1dof: float) -> float:
+    """The acceptance probability behind a one-degree-of-freedom NIS threshold (same for any dim)."""
+    from scipy.stats import chi2
+
+    return float(chi2.cdf(gate_nis_1dof, 1))

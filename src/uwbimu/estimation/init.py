@@ -118,18 +118,23 @@ def level_attitude(prob: Problem, k0: int, window: float) -> tuple[float, float]
 
 
 def motion_start(prob: Problem, k0: int, max_s: float, smooth_s: float = 0.1,
-                 rate_thr: float = 0.15, acc_thr: float = 0.4) -> float:
+                 rate_thr: float = 0.15, acc_thr: float = 0.4, undecided_nan: bool = False) -> float:
     """IMU time at which the vehicle starts moving, searching ``max_s`` seconds from sample ``k0``.
 
     Motion is a (0.1 s moving-average) body rate or specific-force magnitude
     departing from the values of the first 0.3 s by more than ``rate_thr``
     [rad/s] or ``acc_thr`` [m/s^2].  Returns ``imu_t[k0]`` when moving from the
-    start and ``inf`` when no motion is found.
+    start and ``inf`` when no motion is found.  Only data up to the first moving sample (plus the
+    averaging half-window) decide the answer; with ``undecided_nan`` a search the data do not yet
+    cover (no motion so far, window not complete) returns NaN (the streaming filter waits).
     """
     t = prob.imu_t
     k1 = int(np.searchsorted(t, t[k0] + max_s))
+    # data that end before the search window does (a stream still arriving, or the end of the log): the
+    # moving averages of the last samples are not final, and motion not found yet may still come
+    truncated = k1 >= len(t) and t[-1] < t[k0] + max_s
     if k1 - k0 < 10:
-        return float(t[k0])
+        return float("nan") if truncated and undecided_nan else float(t[k0])
     u = prob.imu_u[k0:k1]
     n = max(1, int(round(smooth_s / prob.dt_nom)))
     ker = np.ones(n) / n
@@ -140,9 +145,11 @@ def motion_start(prob: Problem, k0: int, max_s: float, smooth_s: float = 0.1,
     a0 = a[n:m].mean() if m > n else a[0]
     moving = (np.linalg.norm(w - w0, axis=1) > rate_thr) | (np.abs(a - a0) > acc_thr)
     moving[: n] = False  # edge effect of the moving average
+    if truncated:
+        moving[max(len(moving) - n, 0):] = False
     idx = np.flatnonzero(moving)
     if len(idx) == 0:
-        return float("inf")
+        return float("nan") if truncated and undecided_nan else float("inf")
     return float(t[k0 + idx[0]]) if idx[0] > m else float(t[k0])
 
 
@@ -165,24 +172,29 @@ class Prior:
     sd_bg: float
     sd_lever: np.ndarray  # (3,) zero when fixed
     sd_bias: float  # zero when fixed
+    extra_levers: Optional[np.ndarray] = None  # (T-1, 3) lever arms of tags 2.. (several tags)
 
 
 def assemble(prob: Problem, pr: Prior, yaw: float, yaw_sd: float, td: float, td_sd: float, k0: int,
              t0_uwb: float, v_t0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Extended nominal state and covariance for one (yaw, t_d) hypothesis at IMU sample ``k0``."""
-    nb = prob.n_err - 19
-    x = np.zeros(20 + nb)
+    L = prob.state_layout()
+    x = np.zeros(L.n_nom)
     dt = prob.imu_t[k0] - td - t0_uwb  # UWB-time elapsed since the fix
     x[0:3] = pr.p + v_t0 * dt
     x[3:6] = pr.v
     q = quat_from_euler(pr.roll, pr.pitch, yaw)
-    x[6:10] = q
-    x[10:13] = pr.ba
-    x[13:16] = pr.bg
-    x[16:19] = pr.lever
-    x[19] = td
-    x[20:] = pr.anchor_bias
-    P = np.zeros((19 + nb, 19 + nb))
+    x[S.Q] = q
+    x[S.BA] = pr.ba
+    x[S.BG] = pr.bg
+    x[S.PIU] = pr.lever
+    x[S.TD] = td
+    x[L.nom("anchor_bias")] = pr.anchor_bias
+    P = np.zeros((L.n_err, L.n_err))
+    if L.n_tags > 1:
+        x[L.nom("extra_levers")] = np.asarray(pr.extra_levers, dtype=float).reshape(-1)
+        el = L.err("extra_levers")
+        P[el, el] = np.diag(np.tile(pr.sd_lever**2, L.n_tags - 1))
     P[0:3, 0:3] = np.eye(3) * pr.sd_p**2
     P[3:6, 3:6] = np.eye(3) * pr.sd_v**2
     # roll/pitch/yaw uncertainty is about world axes; the error state is a body
@@ -194,8 +206,12 @@ def assemble(prob: Problem, pr: Prior, yaw: float, yaw_sd: float, td: float, td_
     P[12:15, 12:15] = np.eye(3) * pr.sd_bg**2
     P[15:18, 15:18] = np.diag(pr.sd_lever**2)
     P[18, 18] = td_sd**2
-    if nb:
-        P[19:, 19:] = np.eye(nb) * pr.sd_bias**2
+    ab = L.err("anchor_bias")
+    P[ab, ab] = np.eye(L.n_anchor_bias) * pr.sd_bias**2
+    hb = L.err("height_bias")
+    P[hb, hb] = np.eye(L.n_height_bias) * prob.height_sd0**2
+    pb = L.err("pair_bias")
+    P[pb, pb] = np.eye(L.n_pair_bias) * prob.pair_sd0**2
     return x, P
 
 
@@ -245,6 +261,7 @@ def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: i
         anchor_bias=pr_fixed["anchor_bias"], sd_p=max(io.position_sd, 2 * rms), sd_v=io.velocity_sd,
         sd_rp=math.radians(io.roll_pitch_sd_deg), sd_ba=pr_fixed["sd_ba"], sd_bg=pr_fixed["sd_bg"],
         sd_lever=pr_fixed["sd_lever"], sd_bias=pr_fixed["sd_bias"],
+        extra_levers=np.asarray(pr_fixed.get("tag_levers", np.zeros((1, 3))), dtype=float)[1:],
     )
     info: dict[str, Any] = {"t0": t0, "fix_position": p0.tolist(), "fix_velocity": v0.tolist(),
                             "fix_rms": rms, "fix_ranges": nfix, "roll": roll, "pitch": pitch}
@@ -290,6 +307,11 @@ def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: i
         return scores
 
     search_td = pr_fixed["search_td"] and td_known is None
+    if search_td and not np.isfinite(t_move):
+        # no motion, no time-offset information: scoring the grid on a standing vehicle would pick noise
+        search_td = False
+        info["td_init"] = {"status": "not identified",
+                           "reason": f"no motion within {io.max_wait_s:g} s of the start (t_d not observable there)"}
     td = td_prior
     td_sd = pr_fixed["td_sd"]
     if io.yaw is not None:
@@ -342,6 +364,33 @@ def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: i
     return InitialState(x=x0, P=P0, k=k0, j=j0, info=info)
 
 
+def data_needed(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: int) -> Optional[tuple[float, float]]:
+    """How far the data must reach before :func:`initialise` at range ``j0`` gives its final answer.
+
+    Returns ``(t_uwb, t_imu)``: every range stamped up to ``t_uwb`` (UWB clock) and the IMU up to
+    ``t_imu`` (IMU clock) must be in ``prob``; ``None`` while the start of motion is still undecided.
+    :func:`initialise` reads no data beyond these (the fix window, the level window, the motion
+    search, the hypothesis bank and the bootstrap pass, for any time offset the grid may reach), so a
+    streaming filter that waits for them initialises exactly as the batch does.
+    """
+    io = opts.init
+    t0 = float(prob.uwb_t[j0])
+    td_prior = pr_fixed["td"]
+    k_lvl = start_index(prob, t0, td_prior)
+    t_move = motion_start(prob, k_lvl, io.max_wait_s, undecided_nan=True)
+    if math.isnan(t_move):
+        return None
+    if np.isfinite(t_move):
+        t_to = max(t0 + io.bank_window_s, t_move - td_prior + 0.75 * io.bank_window_s)
+    else:
+        t_to = t0 + io.bank_window_s
+    t_end = t_to + io.refine_s
+    t_uwb = max(t_end, t0 + 8.0 * io.window_s)
+    td_reach = max(io.td_max_abs_s, abs(td_prior)) if pr_fixed["search_td"] else abs(td_prior)
+    t_imu = max(t_uwb + td_reach, float(prob.imu_t[k_lvl]) + io.max_wait_s if not np.isfinite(t_move) else 0.0)
+    return t_uwb, t_imu + prob.max_lookback
+
+
 def hold_time_offset(prob: Problem) -> Problem:
     """The same problem with the time offset in consider mode (its uncertainty kept, never updated).
 
@@ -365,10 +414,10 @@ def _refine(prob: Problem, pr: Prior, x0, P0, k0: int, j0: int, t0: float, v0, y
     """
     res = run_pass(prob, x0, P0, k0, j0, t_uwb_end=t_end, record=False, to_end=False)
     x = res.x
-    if res.diverged or not np.all(np.isfinite(x)) or abs(x[19] - x0[19]) > 3 * max(td_sd, 1e-9) + 1e-9:
+    if res.diverged or not np.all(np.isfinite(x)) or abs(x[S.TD] - x0[S.TD]) > 3 * max(td_sd, 1e-9) + 1e-9:
         info["refine"] = "skipped (first pass unreliable)"
         return x0, P0, k0
-    td = float(x[19])
+    td = float(x[S.TD])
     k_new = start_index(prob, t0, td)
     xt = np.empty_like(x)
     ut = np.empty(6)
@@ -376,15 +425,17 @@ def _refine(prob: Problem, pr: Prior, x0, P0, k0: int, j0: int, t0: float, v0, y
     if st != K.UPD_OK:
         info["refine"] = "skipped (start not reachable)"
         return x0, P0, k0
-    q = xt[6:10] / np.linalg.norm(xt[6:10])
+    q = xt[S.Q] / np.linalg.norm(xt[S.Q])
     yaw = math.atan2(2 * (q[0] * q[3] + q[1] * q[2]), 1 - 2 * (q[2] ** 2 + q[3] ** 2))
     pr2 = Prior(**{**pr.__dict__})
-    pr2.ba = x[10:13].copy()
-    pr2.bg = x[13:16].copy()
-    pr2.lever = x[16:19].copy()
-    pr2.anchor_bias = x[20:].copy()
+    pr2.ba = x[S.BA].copy()
+    pr2.bg = x[S.BG].copy()
+    pr2.lever = x[S.PIU].copy()
+    L = prob.state_layout()
+    pr2.anchor_bias = x[L.nom("anchor_bias")].copy()
+    pr2.extra_levers = x[L.nom("extra_levers")].reshape(-1, 3).copy()
     pr2.roll = math.atan2(2 * (q[0] * q[1] + q[2] * q[3]), 1 - 2 * (q[1] ** 2 + q[2] ** 2))
     pr2.pitch = math.asin(max(-1.0, min(1.0, 2 * (q[0] * q[2] - q[3] * q[1]))))
     x1, P1 = assemble(prob, pr2, yaw, yaw_sd, td, td_sd, k_new, t0, v0)
-    info["refine"] = {"t_end": float(t_end), "yaw": yaw, "td": td, "lever": x[16:19].tolist()}
+    info["refine"] = {"t_end": float(t_end), "yaw": yaw, "td": td, "lever": x[S.PIU].tolist()}
     return x1, P1, k_new

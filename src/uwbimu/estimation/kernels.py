@@ -209,8 +209,26 @@ def robust_weight(e, kind, c):
 
 
 @njit(cache=True)
+def _other_tag(xt, lever_err):
+    """``xt`` with the lever arm of the tag whose lever block starts at error index ``lever_err`` in the
+    first tag's place (nominal 16:19), so the one-tag Jacobians apply; see :func:`_move_lever_rows`."""
+    x2 = xt.copy()
+    for i in range(3):
+        x2[16 + i] = xt[lever_err + 1 + i]
+    return x2
+
+
+@njit(cache=True)
+def _move_lever_rows(h, lever_err):
+    """Move the lever-arm columns of ``h`` (15:18) to the tag's block ``lever_err .. lever_err + 2``."""
+    for i in range(3):
+        h[lever_err + i] += h[15 + i]
+        h[15 + i] = 0.0
+
+
+@njit(cache=True)
 def range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor, bias_idx, z, r_var, gate, force,
-                 robust_kind, robust_c, gain_mask, dt_max, out):
+                 robust_kind, robust_c, gain_mask, dt_max, out, lever_err=15, pair_idx=-1):
     """Process one range: predict at IMU time ``tau``, gate, re-weight, Joseph update.
 
     ``x``, ``P`` belong to IMU time ``imu_t[k] >= tau`` and are updated in
@@ -219,7 +237,8 @@ def range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor, bias_idx, z, r_var,
     zeroed, and the Joseph form keeps ``P`` correct for that sub-optimal gain.
     ``gate`` is the NIS threshold (<= 0: no gate); ``force`` accepts regardless.
     ``out`` (7,) receives ``predicted, innovation, nis, accepted, weight, status, S``
-    (``S`` the innovation variance before robust re-weighting).
+    (``S`` the innovation variance before robust re-weighting).  ``lever_err``: error index of the
+    measuring tag's lever-arm block (15: the first tag).
     """
     N = P.shape[0]
     xt = np.empty_like(x)
@@ -233,13 +252,17 @@ def range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor, bias_idx, z, r_var,
     delta = imu_t[k] - tau
     if delta < 0:
         delta = 0.0
-    pred = range_jacobian(xt, u_tau, anchor, bias_idx, delta, h)
+    if lever_err != 15:
+        pred = range_jacobian(_other_tag(xt, lever_err), u_tau, anchor, bias_idx, delta, h)
+        _move_lever_rows(h, lever_err)
+    else:
+        pred = range_jacobian(xt, u_tau, anchor, bias_idx, delta, h)
     scalar_update(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, gain_mask, out)
 
 
 @njit(cache=True)
 def tdoa_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor_a, anchor_b, bias_a, bias_b, z, r_var, gate, force,
-                robust_kind, robust_c, gain_mask, dt_max, out):
+                robust_kind, robust_c, gain_mask, dt_max, out, lever_err=15, pair_idx=-1):
     """Process one TDoA ``z = |p_U - p_b| - |p_U - p_a|`` [m] as :func:`range_update` does a range.
 
     Prediction and Jacobian from :func:`tdoa_jacobian` (pinned to ``reference.tdoa_measurement``);
@@ -259,13 +282,21 @@ def tdoa_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor_a, anchor_b, bias_a, 
     delta = imu_t[k] - tau
     if delta < 0:
         delta = 0.0
-    pred = tdoa_jacobian(xt, u_tau, anchor_a, anchor_b, -1, delta, h, work)
+    if lever_err != 15:
+        pred = tdoa_jacobian(_other_tag(xt, lever_err), u_tau, anchor_a, anchor_b, -1, delta, h, work)
+        _move_lever_rows(h, lever_err)
+    else:
+        pred = tdoa_jacobian(xt, u_tau, anchor_a, anchor_b, -1, delta, h, work)
     if bias_b >= 0:
         h[bias_b] += 1.0
         pred += xt[bias_b + 1]
     if bias_a >= 0:
         h[bias_a] -= 1.0
         pred -= xt[bias_a + 1]
+    if pair_idx >= 0:
+        # a constant bias of this anchor pair (error index pair_idx, nominal pair_idx + 1)
+        h[pair_idx] += 1.0
+        pred += xt[pair_idx + 1]
     scalar_update(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, gain_mask, out)
 
 
@@ -326,6 +357,84 @@ def scalar_update(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, g
     inject(x, dx)
     out[3] = 1.0
     out[4] = w
+
+
+@njit(cache=True)
+def midpoints_into(t, u, i0, i1, out):
+    """Cubic mid-interval inputs of intervals ``i0 .. i1-1`` into ``out[i0:i1]``, as
+    ``reference.midpoint_inputs(t, u)`` computes them on the samples given (four nodes around each
+    interval, one-sided at the ends; linear with fewer than four samples).  The streaming filter
+    calls it as samples arrive; an interval ``<= len(t) - 3`` never changes afterwards."""
+    n = t.shape[0]
+    for k in range(i0, i1):
+        if n < 4:
+            for c in range(6):
+                out[k, c] = 0.5 * (u[k, c] + u[k + 1, c])
+            continue
+        f = k - 1
+        if f < 0:
+            f = 0
+        if f > n - 4:
+            f = n - 4
+        tm = 0.5 * (t[k] + t[k + 1])
+        for c in range(6):
+            out[k, c] = 0.0
+        for j in range(4):
+            w = 1.0
+            for m in range(4):
+                if m != j:
+                    w *= (tm - t[f + m]) / (t[f + j] - t[f + m])
+            for c in range(6):
+                out[k, c] += w * u[f + j, c]
+
+
+@njit(cache=True)
+def rotation_stats_into(u, k0, n, win, off, cs, cs2, rot_mean, rot_ms):
+    """Trailing-window gyro statistics of samples ``k0 .. n-1`` (see ``filterpass.rotation_window_stats``).
+
+    ``cs`` (n+1, 3) / ``cs2`` (n+1,) hold the running sums of the gyro and of its squared norm
+    (``cs[0] = 0`` at the start of the log; ``off`` samples were trimmed from the front, so buffer index
+    ``i`` is sample ``i + off``); entries ``k0 + 1 .. n`` are filled, and ``rot_mean[k]``, ``rot_ms[k]``
+    for the new samples."""
+    for k in range(k0, n):
+        w0, w1, w2 = u[k, 3], u[k, 4], u[k, 5]
+        cs[k + 1, 0] = cs[k, 0] + w0
+        cs[k + 1, 1] = cs[k, 1] + w1
+        cs[k + 1, 2] = cs[k, 2] + w2
+        cs2[k + 1] = cs2[k] + (w0 * w0 + w1 * w1 + w2 * w2)
+        i1 = k + 1 + off
+        i0 = i1 - win
+        if i0 < 0:
+            i0 = 0
+        cnt = float(i1 - i0)
+        b0 = i0 - off
+        for c in range(3):
+            rot_mean[k, c] = (cs[k + 1, c] - cs[b0, c]) / cnt
+        rot_ms[k] = (cs2[k + 1] - cs2[b0]) / cnt
+
+
+@njit(cache=True)
+def divergence_code(x, P, max_pos_var, hull_lo, hull_hi, all_rej, all_reject_run):
+    """The supervisor's checks: 0 healthy, 1 non-finite state or covariance diagonal, 2 negative
+    covariance diagonal, 3 position variance above ``max_pos_var``, 4 position outside the hull box,
+    5 ``all_rej`` consecutive rejections."""
+    for i in range(x.shape[0]):
+        if not math.isfinite(x[i]):
+            return 1
+    for i in range(P.shape[0]):
+        if not math.isfinite(P[i, i]):
+            return 1
+    for i in range(P.shape[0]):
+        if P[i, i] < -1e-9:
+            return 2
+    if P[0, 0] + P[1, 1] + P[2, 2] > max_pos_var:
+        return 3
+    for i in range(3):
+        if x[i] < hull_lo[i] or x[i] > hull_hi[i]:
+            return 4
+    if all_rej >= all_reject_run:
+        return 5
+    return 0
 
 
 refresh_stale_cache(globals(), [_physics])

@@ -73,6 +73,15 @@ class AnchorBiasOptions(_Strict):
     )
 
 
+class TdoaPairBiasOptions(_Strict):
+    """A constant bias per anchor pair of the TDoA (e.g. a clock-correction or antenna-delay error that
+    does not split into per-anchor terms); one state per pair seen in the log (``Eskf``: the pairs given
+    to the constructor)."""
+
+    mode: Literal["fixed", "estimate"] = Field(default="fixed", description="'estimate': one bias state per pair")
+    prior_sd: float = Field(default=0.1, gt=0, description="prior sd of each pair's bias [m]")
+
+
 class GatingOptions(_Strict):
     probability: float = Field(default=0.999, gt=0, le=1, description="chi2(1) gate level; 1 disables the gate")
     robust: Literal["none", "huber", "geman-mcclure"] = "huber"
@@ -106,6 +115,16 @@ class InitOptions(_Strict):
                                 description="a best grid point on an edge widens the grid up to |t_d| = this [s]")
 
 
+class HeightOptions(_Strict):
+    """Altimeter measurements (``Eskf.push_height``): height of the IMU origin on the IMU clock."""
+
+    sigma: float = Field(default=0.1, gt=0, description="altimeter noise sd [m]")
+    bias: Literal["fixed", "estimate"] = Field(
+        default="fixed", description="'estimate': one altimeter-bias state (random walk); 'fixed': no bias")
+    bias_prior_sd: float = Field(default=1.0, gt=0, description="initial sd of the altimeter bias [m]")
+    bias_random_walk: float = Field(default=0.01, ge=0, description="altimeter-bias random walk [m/sqrt(s)]")
+
+
 class SupervisorOptions(_Strict):
     enabled: bool = True
     max_position_sd: float = Field(default=20.0, gt=0, description="[m]; above: divergence")
@@ -137,6 +156,8 @@ class EskfOptions(_Strict):
     time_offset: TimeOffsetOptions = Field(default_factory=TimeOffsetOptions)
     anchor_bias: AnchorBiasOptions = Field(default_factory=AnchorBiasOptions)
     gating: GatingOptions = Field(default_factory=GatingOptions)
+    height: HeightOptions = Field(default_factory=HeightOptions)
+    tdoa_pair_bias: TdoaPairBiasOptions = Field(default_factory=TdoaPairBiasOptions)
     init: InitOptions = Field(default_factory=InitOptions)
     supervisor: SupervisorOptions = Field(default_factory=SupervisorOptions)
     excitation: ExcitationOptions = Field(default_factory=ExcitationOptions)

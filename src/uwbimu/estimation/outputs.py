@@ -31,6 +31,7 @@ import uwbimu
 from uwbimu.io import atomic
 from uwbimu.io.dataset import Dataset
 from uwbimu.models.state import ERROR_STATE_NAMES, NOMINAL_STATE_NAMES
+from uwbimu.models import state as S
 
 TRAJ_COLUMNS = ["t", "px", "py", "pz", "qw", "qx", "qy", "qz", "vx", "vy", "vz"]
 TRAJ_SD = ["sd_px", "sd_py", "sd_pz", "sd_vx", "sd_vy", "sd_vz", "sd_thx", "sd_thy", "sd_thz"]
@@ -213,8 +214,8 @@ def _plots(result, dataset: Dataset, out: Path) -> list[Path]:
             ax.legend(loc="upper right")
             ax.set_title("lever arm and time offset")
     ax = fig.add_subplot(4, 1, 4)
-    ax.plot(t, 1000 * X[:, 19], "C0-", lw=0.8)
-    ax.fill_between(t, 1000 * (X[:, 19] - 3 * sd[:, 18]), 1000 * (X[:, 19] + 3 * sd[:, 18]), color="C0", alpha=0.2)
+    ax.plot(t, 1000 * X[:, S.TD], "C0-", lw=0.8)
+    ax.fill_between(t, 1000 * (X[:, S.TD] - 3 * sd[:, S.ETD]), 1000 * (X[:, S.TD] + 3 * sd[:, S.ETD]), color="C0", alpha=0.2)
     if td_true is not None:
         ax.axhline(1000 * td_true, color="k", ls="--", lw=1)
     ax.set_ylabel("t_d [ms]"); ax.set_xlabel("t [s]")

@@ -201,10 +201,11 @@ def write_dataset(ds: Dataset, folder: str | os.PathLike, overwrite: bool = Fals
             tdoa_cols = TDOA_COLUMNS + (["tag"] if "tag" in ds.tdoa.columns else [])
             _write_table(ds.tdoa[tdoa_cols], tmp / f"tdoa.{fmt}")
         anchor_cols = ANCHOR_COLUMNS + (ANCHOR_QUAT_COLUMNS if set(ANCHOR_QUAT_COLUMNS) <= set(ds.anchors.columns)
-                                        else [])
+                                        else []) + [c for c in ("surveyed",) if c in ds.anchors.columns]
         _write_table(ds.anchors[anchor_cols], tmp / f"anchors.{fmt}")
         if ds.anchor_ranges is not None:
-            _write_table(ds.anchor_ranges[ANCHOR_RANGE_COLUMNS], tmp / f"anchor_ranges.{fmt}")
+            _write_table(ds.anchor_ranges[ANCHOR_RANGE_COLUMNS + [c for c in ("sd",) if c in ds.anchor_ranges.columns]],
+                         tmp / f"anchor_ranges.{fmt}")
         if ds.groundtruth is not None:
             cols = GT_COLUMNS + [c for c in GT_VEL_COLUMNS if c in ds.groundtruth.columns]
             _write_table(ds.groundtruth[cols], tmp / f"groundtruth.{fmt}")

@@ -36,6 +36,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from uwbimu.errors import InputError
 from uwbimu.optional import require
+from uwbimu.io.anchor_ranges import parse_range_sd, parse_surveyed
 from uwbimu.io import plausibility
 from uwbimu.io.dataset import (
     ANCHOR_COLUMNS,
@@ -601,7 +602,7 @@ def _load_anchor_ranges(src: _Source, options: LoadOptions, report: LoadReport) 
     """``anchor_ranges.csv``: measured anchor-to-anchor ranges (several per pair allowed)."""
     df = _read_raw(src, ANCHOR_RANGE_COLUMNS)
     report.rows_read["anchor_ranges"] = len(df)
-    _require_columns(src, df, ANCHOR_RANGE_COLUMNS, report)
+    _require_columns(src, df, ANCHOR_RANGE_COLUMNS, report, optional=("sd",))
     df = _to_text(src, df, "anchor_a")
     df = _to_text(src, df, "anchor_b")
     df = _to_numeric(src, df, ["range"])
@@ -611,13 +612,15 @@ def _load_anchor_ranges(src: _Source, options: LoadOptions, report: LoadReport) 
     if len(bad):
         i = df.index[bad[0]]
         raise src.error(f"range {fmt_num(r[bad[0]])} m is not in (0, {options.max_range:g}] m", i, "range")
-    return df[ANCHOR_RANGE_COLUMNS]
+    if "sd" in df.columns:
+        df["sd"] = parse_range_sd(src, df)
+    return df[ANCHOR_RANGE_COLUMNS + (["sd"] if "sd" in df.columns else [])]
 
 
 def _load_anchors(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
     df = _read_raw(src, ANCHOR_COLUMNS)
     report.rows_read["anchors"] = len(df)
-    _require_columns(src, df, ANCHOR_COLUMNS, report, optional=tuple(ANCHOR_QUAT_COLUMNS))
+    _require_columns(src, df, ANCHOR_COLUMNS, report, optional=tuple(ANCHOR_QUAT_COLUMNS) + ("surveyed",))
     quat = [c for c in ANCHOR_QUAT_COLUMNS if c in df.columns]
     if quat and len(quat) != 4:
         missing = [c for c in ANCHOR_QUAT_COLUMNS if c not in quat]
@@ -636,7 +639,9 @@ def _load_anchors(src: _Source, options: LoadOptions, report: LoadReport) -> pd.
                             f"(a unit Hamilton quaternion, antenna frame -> world, is expected)",
                             df.index[bad[0]], "qw")
         df[ANCHOR_QUAT_COLUMNS] = q / n[:, None]
-    return df[ANCHOR_COLUMNS + (ANCHOR_QUAT_COLUMNS if quat else [])]
+    if "surveyed" in df.columns:
+        df["surveyed"] = parse_surveyed(src, df)
+    return df[ANCHOR_COLUMNS + (ANCHOR_QUAT_COLUMNS if quat else []) + (["surveyed"] if "surveyed" in df.columns else [])]
 
 
 def _check_anchor_ids(src: _Source, df: pd.DataFrame, columns: tuple[str, ...], anchors_src: _Source,

@@ -261,19 +261,21 @@ def _skew3(v0, v1, v2, S):
 @njit(cache=True)
 def _phi_blocks(x, u, dt, B, W):
     """:func:`phi_blocks` with a work array ``W`` (6, 3, 3)."""
-    R = W[0]
+    rotmat(x[6:10], W[0])
+    _phi_blocks_R(W[0], u[0] - x[10], u[1] - x[11], u[2] - x[12], u[3] - x[13], u[4] - x[14], u[5] - x[15],
+                  dt, B, W)
+
+
+@njit(cache=True)
+def _phi_blocks_R(R, a0, a1, a2, w0, w1, w2, dt, B, W):
+    """:func:`phi_blocks` from the attitude matrix ``R`` and the bias-corrected specific force ``a`` and
+    body rate ``w`` (what :mod:`uwbimu.observability.window` has along a trajectory); ``W[1:6]`` is
+    work space (``W[0]`` is left alone: it may hold ``R``)."""
     Ax = W[1]
     Wx = W[2]
     RA = W[3]
     RAW = W[4]
     W2 = W[5]
-    rotmat(x[6:10], R)
-    a0 = u[0] - x[10]
-    a1 = u[1] - x[11]
-    a2 = u[2] - x[12]
-    w0 = u[3] - x[13]
-    w1 = u[4] - x[14]
-    w2 = u[5] - x[15]
     _skew3(a0, a1, a2, Ax)
     _skew3(w0, w1, w2, Wx)
     _mm3(R, Ax, RA)
@@ -319,7 +321,6 @@ def phi_blocks(x, u, dt, B):
 @njit(cache=True)
 def _phi_vec(B, dt, X):
     """In place ``X[0:15] <- Phi X[0:15]`` for one vector ``X`` (block-sparse Phi)."""
-    xv0, xv1, xv2 = X[3], X[4], X[5]
     xt0, xt1, xt2 = X[6], X[7], X[8]
     xa0, xa1, xa2 = X[9], X[10], X[11]
     xg0, xg1, xg2 = X[12], X[13], X[14]
@@ -334,6 +335,23 @@ def _phi_vec(B, dt, X):
         X[i] += dt * X[3 + i] + sp
         X[6 + i] = st
         X[3 + i] += sv
+
+
+@njit(cache=True)
+def phi_left_R(M, R, f, w, dt, B, W, col):
+    """In place ``M <- Phi M`` on the rows 0:15 of an error-state matrix (any number of columns).
+
+    ``Phi`` is the error-state transition over ``dt`` at attitude ``R`` with the bias-corrected specific
+    force ``f`` and body rate ``w`` (:func:`_phi_blocks_R`); ``B`` (7,3,3), ``W`` (6,3,3) and ``col``
+    (>= 15,) are work arrays.  Used by the observability windows, which have the motion as attitude
+    matrices."""
+    _phi_blocks_R(R, f[0], f[1], f[2], w[0], w[1], w[2], dt, B, W)
+    for c in range(M.shape[1]):
+        for i in range(15):
+            col[i] = M[i, c]
+        _phi_vec(B, dt, col)
+        for i in range(15):
+            M[i, c] = col[i]
 
 
 @njit(cache=True)
@@ -366,16 +384,35 @@ def _cov_step(P, x, u, dt, noise, B, W, col):
         P[12 + i, 12 + i] += noise[3] * adt
         P[15 + i, 15 + i] += noise[4] * adt
     P[18, 18] += noise[5] * adt
-    if noise.shape[0] >= 8 and noise[7] > 0.0 and N > 19:
+    n_gm = _n_gauss_markov(noise, N)
+    if noise.shape[0] >= 8 and noise[7] > 0.0 and n_gm > 0:
         # per-anchor range biases as first-order Gauss-Markov processes
         # (b' = -b / tau + w, stationary variance noise[6], 1 / tau = noise[7]):
         # Phi_bb = exp(-|dt| / tau) I, Q_bb = var (1 - Phi_bb^2)
         f = math.exp(-adt * noise[7])
-        for r in range(19, N):
+        for r in range(19, 19 + n_gm):
             for c in range(N):
                 P[r, c] *= f
                 P[c, r] *= f
             P[r, r] += noise[6] * (1.0 - f * f)
+    if noise.shape[0] >= 10:
+        # further additive states after the anchor biases: the lever arms of further tags (``noise[10]``
+        # of them, random walks like the first lever arm), then an altimeter bias (random walk noise[9])
+        n_lev = int(noise[10]) if noise.shape[0] >= 11 else 0
+        # constant TDoA pair biases (noise[11] of them) come first: no process noise
+        r0 = 19 + int(noise[8]) + (int(noise[11]) if noise.shape[0] >= 12 else 0)
+        for r in range(r0, r0 + n_lev):
+            P[r, r] += noise[4] * adt
+        for r in range(r0 + n_lev, N):
+            P[r, r] += noise[9] * adt
+
+
+@njit(cache=True)
+def _n_gauss_markov(noise, N):
+    """Number of anchor-bias states (error indices 19 ..): ``noise[8]`` when given, else all extras."""
+    if noise.shape[0] >= 9:
+        return int(noise[8])
+    return N - 19
 
 
 @njit(cache=True)
@@ -387,7 +424,9 @@ def cov_step(P, x, u, dt, noise):
     random walks), optionally followed by ``[var_b, 1 / tau_b]``: the per-anchor
     range biases (error components 19..N-1) are then first-order Gauss-Markov
     processes of stationary variance ``var_b`` and correlation time ``tau_b``
-    (``1 / tau_b = 0``: constant biases).  ``Q`` is the Van Loan expansion to the leading order of
+    (``1 / tau_b = 0``: constant biases), optionally followed by ``[n_b, s_x^2]``: only the first ``n_b``
+    extra states are anchor biases, the rest (e.g. an altimeter bias) random walks of density ``s_x``.
+    ``Q`` is the Van Loan expansion to the leading order of
     each block (``pp = s_a^2 dt^3/3``, ``pv = s_a^2 dt^2/2``, ``vv = s_a^2 dt``, ...).
     """
     _cov_step(P, x, u, dt, noise, np.empty((7, 3, 3)), np.empty((6, 3, 3)), np.empty(P.shape[0]))
@@ -396,9 +435,10 @@ def cov_step(P, x, u, dt, noise):
 @njit(cache=True)
 def decay_biases(x, dt, noise):
     """Mean of Gauss-Markov range biases over ``dt``: ``b <- exp(-|dt| / tau) b`` (no-op when constant)."""
-    if noise.shape[0] >= 8 and noise[7] > 0.0 and x.shape[0] > 20:
+    n_gm = _n_gauss_markov(noise, x.shape[0] - 1)
+    if noise.shape[0] >= 8 and noise[7] > 0.0 and n_gm > 0:
         f = math.exp(-abs(dt) * noise[7])
-        for i in range(20, x.shape[0]):
+        for i in range(20, 20 + n_gm):
             x[i] *= f
 
 

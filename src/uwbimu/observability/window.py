@@ -26,8 +26,9 @@ condition number and weakest direction (named as in
 bound exceeds a threshold is flagged as not exciting it.
 
 The inner loop (transition and IMU covariance along ~4000 IMU samples) is a
-numba kernel re-expressing the linearised reference kinematics; tests pin it to
-finite differences of :func:`uwbimu.models.reference.propagate` and
+numba kernel built on the estimator's error-state transition
+(:mod:`uwbimu.models.kernels`, written once); tests pin it to finite differences of
+:func:`uwbimu.models.reference.propagate` and
 :func:`uwbimu.models.reference.range_measurement`.
 """
 
@@ -41,6 +42,8 @@ import pandas as pd
 from numba import njit
 
 from uwbimu.models.imu import BMI088, ImuNoise
+from uwbimu.models.kernels import phi_left_R, refresh_stale_cache
+from uwbimu.models import kernels as _physics
 from uwbimu.models.quaternion import quat_normalize, quat_slerp, quat_to_rotmat
 from uwbimu.models.state import ERROR_STATE_NAMES
 from uwbimu.observability.directions import candidates_for, name_directions
@@ -242,59 +245,8 @@ def _skew(w):
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
-@njit(cache=True)
-def _step_rows(M, R, f, E, dt):
-    """In place ``M <- F M`` on the rows 0:15 of an error-state matrix.
-
-    ``F = I + A dt`` except the attitude block, which is exact, ``E = Exp(-w dt)``;
-    ``A``: dp' = dv, dv' = -R [f]x dth - R dba, dth' = -[w]x dth - dbg.
-    """
-    # Rf = R [f]x, written out (no allocation in the hot loop)
-    Rf00 = R[0, 1] * f[2] - R[0, 2] * f[1]
-    Rf01 = -R[0, 0] * f[2] + R[0, 2] * f[0]
-    Rf02 = R[0, 0] * f[1] - R[0, 1] * f[0]
-    Rf10 = R[1, 1] * f[2] - R[1, 2] * f[1]
-    Rf11 = -R[1, 0] * f[2] + R[1, 2] * f[0]
-    Rf12 = R[1, 0] * f[1] - R[1, 1] * f[0]
-    Rf20 = R[2, 1] * f[2] - R[2, 2] * f[1]
-    Rf21 = -R[2, 0] * f[2] + R[2, 2] * f[0]
-    Rf22 = R[2, 0] * f[1] - R[2, 1] * f[0]
-    for c in range(M.shape[1]):
-        v0, v1, v2 = M[3, c], M[4, c], M[5, c]
-        t0, t1, t2 = M[6, c], M[7, c], M[8, c]
-        a0, a1, a2 = M[9, c], M[10, c], M[11, c]
-        M[0, c] += dt * v0
-        M[1, c] += dt * v1
-        M[2, c] += dt * v2
-        M[3, c] = v0 - dt * (Rf00 * t0 + Rf01 * t1 + Rf02 * t2 + R[0, 0] * a0 + R[0, 1] * a1 + R[0, 2] * a2)
-        M[4, c] = v1 - dt * (Rf10 * t0 + Rf11 * t1 + Rf12 * t2 + R[1, 0] * a0 + R[1, 1] * a1 + R[1, 2] * a2)
-        M[5, c] = v2 - dt * (Rf20 * t0 + Rf21 * t1 + Rf22 * t2 + R[2, 0] * a0 + R[2, 1] * a1 + R[2, 2] * a2)
-        M[6, c] = E[0, 0] * t0 + E[0, 1] * t1 + E[0, 2] * t2 - dt * M[12, c]
-        M[7, c] = E[1, 0] * t0 + E[1, 1] * t1 + E[1, 2] * t2 - dt * M[13, c]
-        M[8, c] = E[2, 0] * t0 + E[2, 1] * t1 + E[2, 2] * t2 - dt * M[14, c]
-
-
-@njit(cache=True)
-def _exp_neg(w, dt, E):
-    """``E <- Exp(-w dt)`` (Rodrigues), in place."""
-    a0, a1, a2 = -w[0] * dt, -w[1] * dt, -w[2] * dt
-    th2 = a0 * a0 + a1 * a1 + a2 * a2
-    if th2 < 1e-18:
-        s1, s2 = 1.0, 0.5
-    else:
-        th = np.sqrt(th2)
-        s1 = np.sin(th) / th
-        s2 = (1.0 - np.cos(th)) / th2
-    # E = I + s1 K + s2 K^2 with K = [a]x, K^2 = a a^T - |a|^2 I
-    E[0, 0] = 1.0 + s2 * (a0 * a0 - th2)
-    E[1, 1] = 1.0 + s2 * (a1 * a1 - th2)
-    E[2, 2] = 1.0 + s2 * (a2 * a2 - th2)
-    E[0, 1] = -s1 * a2 + s2 * a0 * a1
-    E[1, 0] = s1 * a2 + s2 * a0 * a1
-    E[0, 2] = s1 * a1 + s2 * a0 * a2
-    E[2, 0] = -s1 * a1 + s2 * a0 * a2
-    E[1, 2] = -s1 * a0 + s2 * a1 * a2
-    E[2, 1] = s1 * a0 + s2 * a1 * a2
+#: ``M <- Phi M`` on rows 0:15 with the estimator's transition (written once, in models.kernels)
+_step_rows = phi_left_R
 
 
 @njit(cache=True)
@@ -311,7 +263,9 @@ def _window_information(R, f, w, dt, rng_idx, Hr, sig2, qdiag, use_noise):
     Phi = np.eye(19)
     P = np.zeros((15, 15))
     PT = np.zeros((15, 15))
-    E = np.zeros((3, 3))
+    B = np.zeros((7, 3, 3))
+    W = np.zeros((6, 3, 3))
+    col = np.zeros(15)
     info = np.zeros((19, 19))
     j = 0
     row = np.empty(19)
@@ -337,14 +291,13 @@ def _window_information(R, f, w, dt, rng_idx, Hr, sig2, qdiag, use_noise):
             j += 1
         if k == K - 1:
             break
-        _exp_neg(w[k], dt[k], E)
-        _step_rows(Phi, R[k], f[k], E, dt[k])
+        _step_rows(Phi, R[k], f[k], w[k], dt[k], B, W, col)
         if use_noise:
-            _step_rows(P, R[k], f[k], E, dt[k])  # F P
+            _step_rows(P, R[k], f[k], w[k], dt[k], B, W, col)  # F P
             for a in range(15):
                 for b in range(15):
                     PT[a, b] = P[b, a]
-            _step_rows(PT, R[k], f[k], E, dt[k])  # F (F P)^T = F P F^T
+            _step_rows(PT, R[k], f[k], w[k], dt[k], B, W, col)  # F (F P)^T = F P F^T
             for a in range(15):
                 for b in range(15):
                     P[a, b] = PT[a, b]
@@ -356,14 +309,14 @@ def _window_information(R, f, w, dt, rng_idx, Hr, sig2, qdiag, use_noise):
 
 
 @njit(cache=True)
-def _propagate_cov(P, PT, R, f, E, dt, qdiag):
+def _propagate_cov(P, PT, R, f, w, dt, qdiag, B, W, col):
     """In place ``P <- F P F^T + Q dt`` (19x19; the lever arm and t_d are constants)."""
-    _step_rows(P, R, f, E, dt)  # F P
+    _step_rows(P, R, f, w, dt, B, W, col)  # F P
     n = P.shape[0]
     for a in range(n):
         for b in range(n):
             PT[a, b] = P[b, a]
-    _step_rows(PT, R, f, E, dt)  # F (F P)^T = F P F^T
+    _step_rows(PT, R, f, w, dt, B, W, col)  # F (F P)^T = F P F^T
     for a in range(n):
         for b in range(n):
             P[a, b] = 0.5 * (PT[a, b] + PT[b, a])
@@ -389,7 +342,9 @@ def _window_pcrb(R, f, w, dt, rng_idx, Hr, sig2, qdiag, P0):
     P = P0.copy()
     Pn = P0.copy()
     PT = np.zeros((19, 19))
-    E = np.zeros((3, 3))
+    B = np.zeros((7, 3, 3))
+    W = np.zeros((6, 3, 3))
+    col = np.zeros(15)
     Ph = np.empty(19)
     j = 0
     for k in range(K):
@@ -408,19 +363,19 @@ def _window_pcrb(R, f, w, dt, rng_idx, Hr, sig2, qdiag, P0):
             j += 1
         if k == K - 1:
             break
-        _exp_neg(w[k], dt[k], E)
-        _propagate_cov(P, PT, R[k], f[k], E, dt[k], qdiag)
-        _propagate_cov(Pn, PT, R[k], f[k], E, dt[k], qdiag)
+        _propagate_cov(P, PT, R[k], f[k], w[k], dt[k], qdiag, B, W, col)
+        _propagate_cov(Pn, PT, R[k], f[k], w[k], dt[k], qdiag, B, W, col)
     return P, Pn
 
 
 @njit(cache=True)
 def _transition(R, f, w, dt):
     Phi = np.eye(19)
-    E = np.zeros((3, 3))
+    B = np.zeros((7, 3, 3))
+    W = np.zeros((6, 3, 3))
+    col = np.zeros(15)
     for k in range(R.shape[0] - 1):
-        _exp_neg(w[k], dt[k], E)
-        _step_rows(Phi, R[k], f[k], E, dt[k])
+        _step_rows(Phi, R[k], f[k], w[k], dt[k], B, W, col)
     return Phi
 
 
@@ -740,3 +695,6 @@ def plot_timeline(table: pd.DataFrame, path, lever_sd_threshold: Optional[float]
             ax[2].axvspan(r["t_start"], r["t_end"], color="orange", alpha=0.15)
     fig.suptitle("Per-window observability (shaded: not excited)")
     save_figure(path, fig)
+
+
+refresh_stale_cache(globals(), [_physics])

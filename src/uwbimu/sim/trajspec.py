@@ -210,10 +210,18 @@ class FileSpec(_Spec):
 
     type: Literal["file"] = "file"
     path: str = Field(description="CSV trajectory file; relative paths are relative to the scenario file")
+    attitude: Literal["file", "flat"] = Field(
+        "file", description="file: the file's attitude; flat: multirotor (roll/pitch from the thrust, yaw from the file)"
+    )
 
     def build(self, truth_seed: int = 0) -> Trajectory:
-        from uwbimu.sim.trajfile import load_trajectory_file
+        from uwbimu.sim.trajfile import load_trajectory_file, read_trajectory_file
 
+        if self.attitude == "flat":
+            from uwbimu.sim.flat import FlatSplineTrajectory
+
+            t, p, euler = read_trajectory_file(Path(self.path))
+            return FlatSplineTrajectory(t, p, euler[:, 2])
         return load_trajectory_file(Path(self.path))
 
 

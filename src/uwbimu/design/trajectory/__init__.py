@@ -10,6 +10,7 @@
 * :mod:`.calibration` -- calibration manoeuvre design for the 19-state
   UWB-IMU model (lever arm and time offset, E-optimal).
 * :mod:`.proof` -- Monte Carlo proof of the calibration design with the ESKF.
+* :mod:`.platform` -- platform models (multirotor limits and check, handheld).
 """
 
 from uwbimu.design.trajectory.seed_ocp import (  # noqa: F401

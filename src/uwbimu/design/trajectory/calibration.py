@@ -9,6 +9,14 @@ calibration block (scaled by ``scale_lever_arm`` / ``scale_time_offset``,
 navigation states marginalised, IMU process noise included), computed by
 the linearised ESKF covariance along the candidate (:mod:`.predictor`).
 
+Platform (``platform``, default ``multirotor``, :mod:`.platform`): a multirotor
+manoeuvre chooses x, y, z and yaw only; roll and pitch follow the thrust
+(differential flatness, :mod:`uwbimu.sim.flat`), the vehicle's thrust, tilt,
+body-rate and yaw-rate limits hold (:func:`.maneuver.fit_flat_to_bounds`), the
+scenarios fly it with ``attitude: flat`` and the flown splines are checked
+(:func:`.platform.check_multirotor`).  ``handheld``: a free rigid body, six
+channels, as below.
+
 Bounds are enforced by construction: every candidate is scaled
 (:func:`.maneuver.fit_to_bounds`) so that its peaks sit at 99 % of the
 bounds, which leaves the optimiser (scipy Powell, seeded random starts) an
@@ -34,9 +42,11 @@ from uwbimu.design.trajectory.maneuver import (
     MotionBounds,
     bound_usage,
     figure8_maneuver,
+    fit_flat_to_bounds,
     fit_to_bounds,
     fourier_maneuver,
 )
+from uwbimu.design.trajectory.platform import MultirotorLimits, Platform, check_multirotor, platform_usage
 from uwbimu.design.trajectory.predictor import calibration_metrics, predict_covariance
 from uwbimu.models.imu import ImuNoise, imu_preset
 
@@ -58,8 +68,8 @@ class AnchorItem(_Strict):
 class BoundsOptions(_Strict):
     speed: float = Field(1.5, gt=0, description="max speed [m/s]")
     accel: float = Field(2.0, gt=0, description="max acceleration (kinematic, world) [m/s^2]")
-    tilt_deg: float = Field(30.0, gt=0, lt=80, description="max tilt of the body z axis from vertical [deg]")
-    rate: float = Field(1.5, gt=0, description="max body angular rate [rad/s]")
+    tilt_deg: float = Field(30.0, gt=0, lt=80, description="handheld: max tilt of the body z axis from vertical [deg]")
+    rate: float = Field(1.5, gt=0, description="handheld: max body angular rate [rad/s]")
 
 
 class SensorOptions(_Strict):
@@ -119,6 +129,8 @@ class CalibrationDesignConfig(_Strict):
     """Everything :func:`design_calibration` needs (YAML: see ``examples/plan/calibration.yaml``)."""
 
     name: str = "calibration-design"
+    platform: Platform = Field("multirotor", description="multirotor: attitude follows the thrust (flat); handheld: free rigid body")
+    multirotor: MultirotorLimits = Field(default_factory=MultirotorLimits, description="limits of the multirotor platform")
     duration: float = Field(40.0, gt=0, description="flight length [s] (both trajectories)")
     ramp: float = Field(2.0, ge=0, description="rest-to-motion ramp at both ends [s]")
     anchors: Union[str, list[AnchorItem]] = Field("room8", description="simulator preset name or list")
@@ -145,7 +157,26 @@ class CalibrationDesignConfig(_Strict):
         if self.duration <= 2 * self.ramp + 1.0:
             raise ValueError(f"duration ({self.duration}) must exceed 2 * ramp + 1 s")
         self.anchor_array()  # raises on an unknown preset
+        if self.platform == "multirotor":
+            both = sorted(self.bounds.model_fields_set & {"tilt_deg", "rate"})
+            if both:
+                fields = ", ".join(f"bounds.{k}" for k in both)
+                raise ValueError(
+                    f"{fields} apply to platform 'handheld'; the multirotor's are multirotor.tilt_max_deg and multirotor.rate_max"
+                )
         return self
+
+    @property
+    def flat(self) -> bool:
+        """True for the multirotor: roll and pitch follow the thrust."""
+        return self.platform == "multirotor"
+
+    def fit(self, m: Maneuver, dt: float = 0.02, grow: bool = True) -> Maneuver:
+        """Scale a manoeuvre onto the bounds and the platform's limits (99 %)."""
+        b = self.motion_bounds()
+        if self.flat:
+            return fit_flat_to_bounds(m, b, self.multirotor, dt=dt, grow=grow)
+        return fit_to_bounds(m, b, dt=dt, grow=grow)
 
     def start_point(self) -> list[float]:
         return self.center if self.center is not None else [0.5 * (a + b) for a, b in zip(self.box_min, self.box_max)]
@@ -169,8 +200,20 @@ class CalibrationDesignConfig(_Strict):
         return np.array([a.position for a in self.anchors], dtype=float)
 
     def motion_bounds(self) -> MotionBounds:
+        """Box, speed, acceleration; tilt and body rate of the platform (multirotor: its limits)."""
         b = self.bounds
-        return MotionBounds(np.asarray(self.box_min, float), np.asarray(self.box_max, float), b.speed, b.accel, np.deg2rad(b.tilt_deg), b.rate)
+        if self.flat:
+            tilt, rate = self.multirotor.tilt_max, self.multirotor.rate_max
+        else:
+            tilt, rate = np.deg2rad(b.tilt_deg), b.rate
+        return MotionBounds(np.asarray(self.box_min, float), np.asarray(self.box_max, float), b.speed, b.accel, tilt, rate)
+
+    def usage(self, kin: dict) -> dict[str, float]:
+        """Peak / bound of every bound (and, multirotor, every vehicle limit) along ``kin``."""
+        u = bound_usage(kin, self.motion_bounds())
+        if self.flat:
+            u |= platform_usage(kin, self.multirotor)
+        return u
 
     def prior_covariance(self) -> np.ndarray:
         pr, n = self.prior, self.sensors.noise()
@@ -216,7 +259,7 @@ def evaluate_maneuver(m: Maneuver, cfg: CalibrationDesignConfig, sched=None) -> 
     tg = np.arange(0.0, cfg.duration + 0.5 * cfg.design.dt, cfg.design.dt)
     kin = m.kinematics(tg)
     out = evaluate_kinematics(kin, m.kinematics(tm), ai, cfg)
-    out["bound_usage"] = bound_usage(kin, cfg.motion_bounds())
+    out["bound_usage"] = cfg.usage(kin)
     return out
 
 
@@ -240,7 +283,9 @@ def evaluate_sim_trajectory(traj, cfg: CalibrationDesignConfig) -> dict[str, Any
     kin = sim_trajectory_kinematics(traj, tg)
     out = evaluate_kinematics(kin, sim_trajectory_kinematics(traj, tm), ai, cfg)
     fine = sim_trajectory_kinematics(traj, np.arange(0.0, cfg.duration, 0.01))
-    out["bound_usage"] = bound_usage(fine, cfg.motion_bounds())
+    out["bound_usage"] = cfg.usage(fine)
+    if cfg.flat:
+        out["limit_violations"] = [v.message() for v in check_multirotor(fine, cfg.multirotor)]
     return out
 
 
@@ -263,7 +308,7 @@ def naive_figure8(cfg: CalibrationDesignConfig) -> Maneuver:
     b = cfg.motion_bounds()
 
     def make(period):
-        return figure8_maneuver(c, half[:2], period, cfg.duration, cfg.ramp, f8.attitude_amplitude, f8.attitude_frequency)
+        return figure8_maneuver(c, half[:2], period, cfg.duration, cfg.ramp, f8.attitude_amplitude, f8.attitude_frequency, flat=cfg.flat)
 
     tg = np.arange(0.0, cfg.duration + 0.01, 0.02)
 
@@ -281,20 +326,19 @@ def naive_figure8(cfg: CalibrationDesignConfig) -> Maneuver:
             mid = np.sqrt(lo * hi)
             lo, hi = (mid, hi) if usage(mid) > 0.99 else (lo, mid)
         m = make(hi)
-    # the attitude (and a user-given period) must respect the bounds as well
-    return fit_to_bounds(m, b, grow=False) if max(bound_usage(m.kinematics(tg), b).values()) > 1.0 else m
+    # the attitude (and a user-given period) must respect the bounds (and the vehicle's limits) as well
+    return cfg.fit(m, grow=False) if max(cfg.usage(m.kinematics(tg)).values()) > 1.0 else m
 
 
 def _objective_factory(cfg: CalibrationDesignConfig, counter: list, progress: Optional[Callable[[int], None]]):
     sched = range_schedule(cfg)
     c = np.asarray(cfg.start_point() + [0.0, 0.0, 0.0])
     K = cfg.design.n_harmonics
-    b = cfg.motion_bounds()
     best = {"f": np.inf, "theta": None}
 
     def man(theta):
-        raw = fourier_maneuver(theta, c, cfg.duration, cfg.ramp, cfg.design.period, K)
-        return fit_to_bounds(raw, b, dt=0.05)
+        raw = fourier_maneuver(theta, c, cfg.duration, cfg.ramp, cfg.design.period, K, flat=cfg.flat)
+        return cfg.fit(raw, dt=0.05)
 
     def f(theta):
         counter[0] += 1
@@ -326,8 +370,9 @@ def design_calibration(cfg: CalibrationDesignConfig, progress: Optional[Callable
     counter = [0]
     f, man, best = _objective_factory(cfg, counter, progress)
     n_rand = min(cfg.optimizer.n_random, cfg.optimizer.max_evals)
+    n_chan = 4 if cfg.flat else 6  # multirotor: x, y, z, yaw
     for _ in range(n_rand):
-        f(rng.standard_normal(6 * K * 2))
+        f(rng.standard_normal(n_chan * K * 2))
     left = cfg.optimizer.max_evals - counter[0]
     if left > 0:
         minimize(f, best["theta"], method="Powell", options={"maxfev": left, "xtol": 1e-3, "ftol": 1e-4})
@@ -335,7 +380,7 @@ def design_calibration(cfg: CalibrationDesignConfig, progress: Optional[Callable
     fig8 = naive_figure8(cfg)
     # a stronger (non-naive) reference: the same figure-8 with its attitude
     # oscillation enlarged up to the tilt / rate bounds
-    fig8x = fit_to_bounds(fig8, cfg.motion_bounds())
+    fig8x = cfg.fit(fig8)
     return {
         "designed": designed,
         "figure8": fig8,
@@ -370,7 +415,8 @@ def scenario_dict(cfg: CalibrationDesignConfig, traj_file: str, name: str, descr
         "name": name,
         "description": description,
         "duration": float(cfg.duration),
-        "trajectory": {"type": "file", "path": traj_file},
+        # multirotor: the simulator recomputes roll/pitch from the position spline's thrust
+        "trajectory": {"type": "file", "path": traj_file, "attitude": "flat" if cfg.flat else "file"},
         "imu": {"rate_hz": s.imu_rate_hz, "noise": imu_noise},
         "uwb": {"rate_hz": s.uwb_rate_hz, "schedule": s.schedule, "sigma": s.range_sigma},
         "anchors": anchors,

@@ -31,29 +31,33 @@ import numpy as np
 
 from uwbimu.models.quaternion import quat_to_rotmat
 from uwbimu.models.reference import G_WORLD
+from uwbimu.sim.flat import flat_attitude
 from uwbimu.sim.trajectory import euler_rates_to_body_rate, euler_zyx_to_quat
 
 TWO_PI = 2.0 * np.pi
 
 
-def envelope(t: np.ndarray, T: float, ramp: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Envelope ``w(t)`` and its first two derivatives (septic smoothstep ramps)."""
+def envelope(t: np.ndarray, T: float, ramp: float, third: bool = False) -> tuple[np.ndarray, ...]:
+    """Envelope ``w(t)`` and its first two derivatives (septic smoothstep ramps); ``third``: also the third."""
     t = np.asarray(t, dtype=float)
     w = np.ones_like(t)
     w1 = np.zeros_like(t)
     w2 = np.zeros_like(t)
+    w3 = np.zeros_like(t)
     if ramp <= 0:
-        return w, w1, w2
+        return (w, w1, w2, w3) if third else (w, w1, w2)
     for u, sgn in (((t / ramp), 1.0), (((T - t) / ramp), -1.0)):
         m = u < 1.0
         uu = np.clip(u[m], 0.0, 1.0)
         S = uu**4 * (35 - 84 * uu + 70 * uu**2 - 20 * uu**3)
         dS = 140 * uu**3 * (1 - uu) ** 3
         d2S = 420 * uu**2 * (1 - uu) ** 2 * (1 - 2 * uu)
+        d3S = 840 * uu * (1 - uu) * (1 - 5 * uu + 5 * uu**2)
         w[m] = w[m] * S
         w1[m] = sgn * dS / ramp
         w2[m] = d2S / ramp**2
-    return w, w1, w2
+        w3[m] = sgn * d3S / ramp**3
+    return (w, w1, w2, w3) if third else (w, w1, w2)
 
 
 def warped_clock(t: np.ndarray, T: float, ramp: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -99,9 +103,10 @@ class Maneuver:
     duration: float
     ramp: float
     warp: bool = False  # True: time-warped clock s(t) instead of the amplitude envelope
+    flat: bool = False  # True: multirotor -- roll/pitch from the thrust (uwbimu.sim.flat), channels 3-4 unused
 
-    def channels(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Values and first two time derivatives of the six channels, each (N, 6)."""
+    def channels(self, t: np.ndarray, third: bool = False) -> tuple[np.ndarray, ...]:
+        """Values and first two (``third``: three) time derivatives of the six channels, each (N, 6)."""
         t = np.asarray(t, dtype=float)
         om = TWO_PI * self.freq  # (6, M)
         if self.warp:
@@ -111,8 +116,13 @@ class Maneuver:
             gc = np.sum(self.amp * om * cs, axis=2)
             gs = np.sum(self.amp * om * om * sn, axis=2)
             f = self.center + np.sum(self.amp * sn, axis=2)
-            return f, s1[:, None] * gc, s2[:, None] * gc - (s1 * s1)[:, None] * gs
-        w, w1, w2 = envelope(t, self.duration, self.ramp)
+            out = (f, s1[:, None] * gc, s2[:, None] * gc - (s1 * s1)[:, None] * gs)
+            if not third:
+                return out
+            s3 = envelope(t, self.duration, self.ramp)[2]  # s''' = w''
+            g3 = -np.sum(self.amp * om**3 * cs, axis=2)
+            return out + (s3[:, None] * gc - 3 * (s1 * s2)[:, None] * gs + (s1**3)[:, None] * g3,)
+        w, w1, w2, w3 = envelope(t, self.duration, self.ramp, third=True)
         arg = om[None] * t[:, None, None] + self.phase[None]  # (N, 6, M)
         s, c = np.sin(arg), np.cos(arg)
         g = np.sum(self.amp * s, axis=2)
@@ -121,13 +131,24 @@ class Maneuver:
         f = self.center + w[:, None] * g
         f1 = w1[:, None] * g + w[:, None] * g1
         f2 = w2[:, None] * g + 2 * w1[:, None] * g1 + w[:, None] * g2
-        return f, f1, f2
+        if not third:
+            return f, f1, f2
+        g3 = -np.sum(self.amp * om**3 * c, axis=2)
+        f3 = w3[:, None] * g + 3 * w2[:, None] * g1 + 3 * w1[:, None] * g2 + w[:, None] * g3
+        return f, f1, f2, f3
 
     def kinematics(self, t: np.ndarray) -> dict[str, np.ndarray]:
         """Truth along ``t``: ``p, v, a`` (world), ``euler``, ``q``, ``R``, body rate ``w``,
-        specific force ``f = R^T (a + g)`` (IMU frame), tilt [rad]."""
-        f, f1, f2 = self.channels(t)
-        eul, eul1 = f[:, 3:], f1[:, 3:]
+        specific force ``f = R^T (a + g)`` (IMU frame), tilt [rad]; with ``flat`` also the
+        jerk ``j`` [m/s^3] and the thrust ``thrust = |a + g e_z|`` [m/s^2]."""
+        extra = {}
+        if self.flat:
+            f, f1, f2, f3 = self.channels(t, third=True)
+            eul, eul1, thrust = flat_attitude(f2[:, :3], f3[:, :3], f[:, 5], f1[:, 5])
+            extra = {"j": f3[:, :3], "thrust": thrust, "yaw_rate": f1[:, 5]}
+        else:
+            f, f1, f2 = self.channels(t)
+            eul, eul1 = f[:, 3:], f1[:, 3:]
         q = euler_zyx_to_quat(eul)
         R = quat_to_rotmat(q)
         a = f2[:, :3]
@@ -142,6 +163,7 @@ class Maneuver:
             "w": euler_rates_to_body_rate(eul, eul1),
             "f": np.einsum("nji,nj->ni", R, a + G_WORLD),
             "tilt": np.arccos(np.clip(R[:, 2, 2], -1.0, 1.0)),
+            **extra,
         }
 
     def scaled(self, s_pos: float, s_att: float) -> "Maneuver":
@@ -149,17 +171,26 @@ class Maneuver:
         return replace(self, amp=self.amp * k)
 
 
-def fourier_maneuver(theta: np.ndarray, center, duration: float, ramp: float, period: float, n_harm: int) -> Maneuver:
-    """Manoeuvre from ``theta`` = (6, K, 2) cosine/sine coefficients of the harmonics ``k / period``."""
-    th = np.asarray(theta, dtype=float).reshape(6, n_harm, 2)
+#: channels a multirotor plan chooses (x, y, z, yaw); roll and pitch follow from the thrust
+FLAT_CHANNELS = (0, 1, 2, 5)
+
+
+def fourier_maneuver(theta: np.ndarray, center, duration: float, ramp: float, period: float, n_harm: int, flat: bool = False) -> Maneuver:
+    """Manoeuvre from ``theta`` = (6, K, 2) cosine/sine coefficients of the harmonics ``k / period``
+    (``flat``: (4, K, 2) for x, y, z, yaw; roll and pitch by differential flatness)."""
+    if flat:
+        th = np.zeros((6, n_harm, 2))
+        th[list(FLAT_CHANNELS)] = np.asarray(theta, dtype=float).reshape(4, n_harm, 2)
+    else:
+        th = np.asarray(theta, dtype=float).reshape(6, n_harm, 2)
     a, b = th[..., 0], th[..., 1]
     amp = np.hypot(a, b)
     phase = np.arctan2(a, b)  # a cos + b sin = amp sin(. + phase)
     freq = np.tile(np.arange(1, n_harm + 1) / period, (6, 1))
-    return Maneuver(np.asarray(center, dtype=float), amp, freq, phase, float(duration), float(ramp))
+    return Maneuver(np.asarray(center, dtype=float), amp, freq, phase, float(duration), float(ramp), flat=flat)
 
 
-def figure8_maneuver(center, half_size, period: float, duration: float, ramp: float, attitude_amp, attitude_freq) -> Maneuver:
+def figure8_maneuver(center, half_size, period: float, duration: float, ramp: float, attitude_amp, attitude_freq, flat: bool = False) -> Maneuver:
     """Horizontal lemniscate of Gerono ``x = sx sin(w s)``, ``y = sy sin(2 w s)``, fixed height,
     with a gentle attitude oscillation (the simulator's ``figure8`` defaults), flown on the
     time-warped clock ``s(t)`` (:func:`warped_clock`): it starts at rest at the centre,
@@ -168,9 +199,9 @@ def figure8_maneuver(center, half_size, period: float, duration: float, ramp: fl
     freq = np.zeros((6, 1))
     amp[0, 0], freq[0, 0] = half_size[0], 1.0 / period
     amp[1, 0], freq[1, 0] = half_size[1], 2.0 / period
-    for i in range(3):
+    for i in range(2 if flat else 0, 3):  # flat: only the yaw oscillation, roll/pitch follow the thrust
         amp[3 + i, 0], freq[3 + i, 0] = attitude_amp[i], attitude_freq[i]
-    return Maneuver(np.asarray(center, dtype=float), amp, freq, np.zeros((6, 1)), float(duration), float(ramp), warp=True)
+    return Maneuver(np.asarray(center, dtype=float), amp, freq, np.zeros((6, 1)), float(duration), float(ramp), warp=True, flat=flat)
 
 
 @dataclass(frozen=True)
@@ -275,3 +306,56 @@ def fit_to_bounds(m: Maneuver, b: MotionBounds, dt: float = 0.02, margin: float 
 def _scale_att(m: Maneuver, s_rp: float, s_y: float) -> Maneuver:
     k = np.array([1.0, 1.0, 1.0, s_rp, s_rp, s_y])[:, None]
     return replace(m, amp=m.amp * k)
+
+
+def fit_flat_to_bounds(m: Maneuver, b: MotionBounds, lim, dt: float = 0.02, margin: float = 0.99, grow: bool = True) -> Maneuver:
+    """Scale a multirotor manoeuvre (``m.flat``) so that the motion bounds and the vehicle limits hold.
+
+    Box, speed and acceleration are linear in the position scale (one factor);
+    thrust and tilt depend on the position scale only (the yaw does not tilt
+    the thrust) and grow with it, so a bisection on that scale enforces them;
+    the yaw scale is fixed by the yaw-rate limit (linear); the body rate
+    depends on both, and a common bisection factor on both scales enforces
+    it.  ``lim``: :class:`uwbimu.design.trajectory.platform.MultirotorLimits`;
+    ``b.tilt`` / ``b.rate`` are not used (the limits' tilt and rate are).
+    Checked on a grid of step ``dt`` with the safety factor ``margin``; with
+    ``grow=False`` the manoeuvre is only ever shrunk.
+    """
+    from uwbimu.design.trajectory.platform import platform_usage
+
+    if not m.flat:
+        raise ValueError("fit_flat_to_bounds needs a flat (multirotor) manoeuvre")
+    t = np.arange(0.0, m.duration + 0.5 * dt, dt)
+    _, f1, f2 = m.channels(t)  # the raw candidate may have no attitude (thrust down): channels only
+    sp = min(
+        b.speed / max(np.max(np.linalg.norm(f1[:, :3], axis=1)), 1e-300),
+        b.accel / max(np.max(np.linalg.norm(f2[:, :3], axis=1)), 1e-300),
+        _box_scale(m, t, b),
+    )
+    sp = 1.0 if not np.isfinite(sp) else sp * margin
+    yr = np.max(np.abs(f1[:, 5]))
+    sy = lim.yaw_rate_max / yr * margin if yr > 1e-300 else 1.0
+    if not grow:
+        sp, sy = min(sp, 1.0), min(sy, 1.0)
+
+    def usage(s_pos, s_yaw, keys):
+        try:
+            u = platform_usage(_scale_att(m.scaled(s_pos, 1.0), 1.0, s_yaw).kinematics(t), lim)
+        except ValueError:  # thrust not upward: no attitude at all
+            return np.inf
+        return max(u[k] for k in keys)
+
+    def shrink(f_ok, hi):
+        """Largest factor in (0, hi] with f_ok true (f_ok monotone in practice; 40 halvings)."""
+        if f_ok(hi):
+            return hi
+        lo = 0.0
+        for _ in range(40):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if f_ok(mid) else (lo, mid)
+        return lo
+
+    # thrust (both sides) and tilt: position scale only (yaw cannot change the thrust)
+    sp = shrink(lambda x: usage(x, 0.0, ("thrust_max", "thrust_min", "tilt")) <= margin, sp)
+    lam = shrink(lambda x: usage(sp * x, sy * x, ("rate",)) <= margin, 1.0)
+    return _scale_att(m.scaled(sp * lam, 1.0), 1.0, sy * lam)

@@ -149,7 +149,7 @@ def calibration_figure(res: dict, cfg) -> Figure:
         ax.plot(t, np.linalg.norm(k["v"], axis=1), color=c, label=f"{lab} speed [m/s]")
         ax.plot(t, np.linalg.norm(k["a"], axis=1), color=c, ls="--", label=f"{lab} accel [m/s^2]")
         ax.plot(t, np.linalg.norm(k["w"], axis=1), color=c, ls=":", label=f"{lab} rate [rad/s]")
-    b = cfg.bounds
+    b = cfg.motion_bounds()  # the platform's tilt / rate limits
     for v in (b.speed, b.accel, b.rate):
         ax.axhline(v, color="k", lw=0.5)
     ax.set_xlabel("t [s]")
@@ -182,7 +182,7 @@ def calibration_figure(res: dict, cfg) -> Figure:
     ax = fig.add_subplot(2, 3, 6)
     ax.plot(t, np.rad2deg(kd["tilt"]), color="tab:red", label="designed tilt")
     ax.plot(t, np.rad2deg(kf["tilt"]), color="tab:blue", label="figure-8 tilt")
-    ax.axhline(b.tilt_deg, color="k", lw=0.5)
+    ax.axhline(np.rad2deg(b.tilt), color="k", lw=0.5)
     ax.set_xlabel("t [s]")
     ax.set_ylabel("tilt [deg]")
     ax.legend(fontsize=7)

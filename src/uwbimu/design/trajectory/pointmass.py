@@ -53,7 +53,9 @@ from typing import Any, Literal, Optional
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from uwbimu.design.trajectory.seed_ocp import _weights, rollout
+from uwbimu.design.trajectory.platform import MultirotorLimits, Platform
+from uwbimu.design.trajectory.seed_ocp import _weights
+from uwbimu.models.reference import GRAVITY
 
 
 class Obstacle(BaseModel):
@@ -89,6 +91,14 @@ class PointMassPlanConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     beacons: list[list[float]] = Field(min_length=1)
+    platform: Platform = Field("multirotor", description="multirotor: thrust/tilt/rate limits, flat attitude; handheld: none")
+    multirotor: MultirotorLimits = Field(default_factory=MultirotorLimits, description="limits of the multirotor platform")
+    yaw: float = Field(0.0, description="constant yaw of the flown trajectory [rad] (the point mass has none)")
+    limit_margin: float = Field(
+        0.9, gt=0, le=1,
+        description="multirotor: the grid constraints use this fraction of the thrust-max / tilt / rate limits "
+        "(the simulator's spline through the nodes overshoots the piecewise-constant plan by a few %)",
+    )
     x0: list[float] = Field(min_length=6, max_length=6, description="[px, py, pz, vx, vy, vz]")
     tf: float = Field(gt=0)
     n_steps: int = Field(100, ge=4)
@@ -111,7 +121,7 @@ class PointMassPlanConfig(BaseModel):
     prior_sigma_p: float = Field(10.0, gt=0, description="prior sd of the initial position [m] (regularises I)")
     prior_sigma_v: float = Field(10.0, gt=0, description="prior sd of the initial velocity [m/s]")
     ipopt_tol: float = Field(1e-8, gt=0)
-    ipopt_max_iter: int = Field(500, ge=1)
+    ipopt_max_iter: int = Field(3000, ge=1, description="E-optimality with the multirotor limits needs ~1100")
 
     @model_validator(mode="after")
     def _check(self):
@@ -235,7 +245,82 @@ def constraint_violations(x: np.ndarray, u: np.ndarray, cfg: PointMassPlanConfig
         out["goal"] = float(max(0.0, np.max(np.abs(p[-1] - cfg.goal)) - cfg.goal_tolerance))
     if cfg.goal_velocity is not None:
         out["goal_velocity"] = float(np.max(np.abs(v[-1] - cfg.goal_velocity)))
+    if cfg.platform == "multirotor":
+        lim = cfg.multirotor
+        T, J = _thrust_and_jerk(u, cfg)
+        nT = np.linalg.norm(T, axis=1)
+        out["thrust_max"] = float(max(0.0, np.max(nT) - lim.thrust_max))
+        out["thrust_min"] = float(max(0.0, lim.thrust_min - np.min(nT)))
+        out["tilt"] = float(max(0.0, np.max(np.arccos(np.clip(T[:, 2] / nT, -1, 1))) - lim.tilt_max))
+        zd = np.sqrt(np.maximum(np.sum(J * J, 1) - np.sum(J * T[:-1], 1) ** 2 / nT[:-1] ** 2, 0.0)) / nT[:-1]
+        out["rate"] = float(max(0.0, np.max(zd, initial=0.0) - lim.rate_max))
     return out
+
+
+def _rest_ends(cfg: PointMassPlanConfig) -> tuple[bool, bool]:
+    """Whether the vehicle is at rest (hovering, zero acceleration) before the start / after the end."""
+    start = bool(np.allclose(cfg.x0[3:], 0.0))
+    end = cfg.goal_velocity is not None and bool(np.allclose(cfg.goal_velocity, 0.0))
+    return start, end
+
+
+def _thrust_and_jerk(u, cfg: PointMassPlanConfig, lib=np):
+    """Thrust per unit mass ``T_k = u_k + g e_z`` (rows) and the jerk between consecutive controls,
+    with zero acceleration before / after a rest end (hover: the attitude is level there)."""
+    start, end = _rest_ends(cfg)
+    u = np.asarray(u, dtype=float)
+    seq = [np.zeros((1, 3))] * start + [u] + [np.zeros((1, 3))] * end
+    a = np.vstack(seq)
+    T = a + np.array([0.0, 0.0, GRAVITY])
+    return T, np.diff(a, axis=0) / cfg.h
+
+
+def _multirotor_constraints(opti, U, cfg: PointMassPlanConfig) -> None:
+    """Thrust, tilt and body-rate limits of the multirotor on the grid (ZOH controls).
+
+    ``T = u + g e_z``: ``T_min^2 <= |T|^2 <= T_max^2``, tilt ``T_z >= cos(tilt_max) |T|``
+    (as ``T_z >= 0``, ``T_z^2 >= cos^2 |T|^2``); body z rate ``|z'| = |(I - z z^T) j| / |T|``
+    with the jerk ``j`` of consecutive controls, squared and multiplied out:
+    ``|j|^2 |T|^2 - (T.j)^2 <= rate_max^2 |T|^4`` (with a constant yaw this is the body rate
+    up to the small ``w_z`` of Z-Y-X Euler angles; the flown trajectory is checked exactly).
+    """
+    import casadi as ca
+
+    lim, k = cfg.multirotor, cfg.limit_margin
+    start, end = _rest_ends(cfg)
+    g = ca.DM([0.0, 0.0, GRAVITY])
+    n = U.shape[1]
+    cols = ([ca.DM.zeros(3, 1)] if start else []) + [U[:, k] for k in range(n)] + ([ca.DM.zeros(3, 1)] if end else [])
+    A = ca.horzcat(*cols)
+    T = A + ca.repmat(g, 1, A.shape[1])
+    T2 = ca.sum1(T**2)
+    opti.subject_to(opti.bounded((lim.thrust_min / k) ** 2, T2, (k * lim.thrust_max) ** 2))
+    opti.subject_to(T[2, :] >= 0)
+    opti.subject_to(T[2, :] ** 2 >= np.cos(k * lim.tilt_max) ** 2 * T2)
+    # at a rest end the first / last control is a hover node too: the simulator's spline brings the
+    # acceleration to zero within one node interval, and a jump there would be a body-rate spike
+    if start:
+        opti.subject_to(U[:, 0] == 0)
+    if end:
+        opti.subject_to(U[:, -1] == 0)
+    Jk = (A[:, 1:] - A[:, :-1]) / cfg.h
+    Tk, T2k = T[:, :-1], T2[:-1]
+    opti.subject_to(ca.sum1(Jk**2) * T2k - ca.sum1(Tk * Jk) ** 2 <= (k * lim.rate_max) ** 2 * T2k**2)
+
+
+def flight_trajectory(plan: "PointMassPlan", cfg: PointMassPlanConfig):
+    """The plan as the simulator flies it: rows ``t, p, yaw`` on the grid and the simulator trajectory
+    (multirotor: :class:`uwbimu.sim.flat.FlatSplineTrajectory`, roll/pitch from the thrust;
+    handheld: level, constant yaw)."""
+    from uwbimu.sim.flat import FlatSplineTrajectory
+    from uwbimu.sim.trajectory import SplineTrajectory
+
+    yaw = np.full(len(plan.t), cfg.yaw)
+    if cfg.platform == "multirotor":
+        return FlatSplineTrajectory(plan.t, plan.x[:, :3], yaw)
+    e = np.zeros((len(plan.t), 3))
+    e[:, 2] = yaw
+    return SplineTrajectory(plan.t, plan.x[:, :3], e)
 
 
 def plan_point_mass(cfg: PointMassPlanConfig, x_init=None, u_init=None, verbose: bool = False) -> PointMassPlan:
@@ -267,6 +352,8 @@ def plan_point_mass(cfg: PointMassPlanConfig, x_init=None, u_init=None, verbose:
         opti.subject_to(ca.sum1(X[3:, :] ** 2) <= cfg.v_max**2)
     if cfg.a_max is not None:
         opti.subject_to(ca.sum1(U**2) <= cfg.a_max**2)
+    if cfg.platform == "multirotor":
+        _multirotor_constraints(opti, U, cfg)
     if cfg.goal is not None:
         if cfg.goal_tolerance > 0:
             opti.subject_to(opti.bounded(ca.DM(cfg.goal) - cfg.goal_tolerance, X[:3, -1], ca.DM(cfg.goal) + cfg.goal_tolerance))

@@ -1,0 +1,781 @@
+"""Streaming error-state EKF: push IMU samples and UWB measurements as they arrive, read the state.
+
+::
+
+    from uwbimu.estimation import Eskf, EskfOptions
+
+    f = Eskf(EskfOptions(), anchors={"A1": [0, 0, 2], "A2": [5, 0, 2], ...})
+    for sample in sensor_stream:
+        if sample.kind == "imu":
+            f.push_imu(sample.t, sample.acc, sample.gyro)
+        else:
+            f.push_range(sample.t, sample.anchor, sample.range)
+        s = f.state()          # None until initialised
+    f.finish()                  # end of the data: process what is still waiting
+
+The filter is the batch filter (:func:`uwbimu.estimation.filterpass.advance`, the same kernels, the
+same initialiser), fed piece by piece: a measurement stamped ``t`` (UWB clock) is processed once the
+IMU reaches its IMU time ``t + t_d_hat``, and the IMU interval ``[k, k+1]`` once sample ``k + 2`` has
+arrived (the cubic mid-interval input needs it).  The initialiser waits until the data cover what it
+reads (:func:`uwbimu.estimation.init.data_needed`).  Fed in time order (each measurement before the IMU
+samples that pass its IMU time by more than ``max_latency_s``), the sequence of propagations and
+updates, hence the trajectory, is the batch one whatever the chunk sizes (``tests/test_streaming.py``).
+A measurement that arrives later than that is processed on arrival, at its own time (the state is
+integrated back over at most ``max_lookback_s``).
+
+Memory: without ``record`` the buffers keep only what the time offset, the rotation gate and a
+re-initialisation need; :func:`uwbimu.estimation.run_eskf` records everything.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Mapping, Optional, Sequence
+
+import numpy as np
+
+from uwbimu.estimation import kernels as K
+from uwbimu.estimation.filterpass import (
+    REC_ACC, REC_STATUS, STATUS_NOT_PROCESSED, PassResult, PassState, Problem, advance,
+)
+from uwbimu.estimation.init import InitialisationError, InitialState, data_needed, hold_time_offset, initialise
+from uwbimu.estimation.options import EskfOptions
+from uwbimu.estimation.problem import NOMINAL_PERIOD_SAMPLES, make_settings, nominal_period, set_imu_timing
+from uwbimu.models import state as S
+from uwbimu.models.imu import ImuNoise
+from uwbimu.models.measurements import HeightModel, MeasurementModel, ZeroVelocityModel
+from uwbimu.models.quaternion import quat_multiply
+
+#: rotation of 180 deg about x (its own inverse): anchors' z-down frame <-> the filter's z-up world
+_FLIP = np.array([1.0, -1.0, -1.0])
+_Q_FLIP = np.array([0.0, 1.0, 0.0, 0.0])
+
+
+class _Buffer:
+    """A growable array (amortised appends) with a movable start (trimming)."""
+
+    def __init__(self, width: Optional[int], dtype=float, fill=0.0):
+        self.shape_tail = () if width is None else (width,)
+        self.a = np.full((256,) + self.shape_tail, fill, dtype=dtype)
+        self.n = 0
+        self.fill = fill
+
+    def extend(self, v: np.ndarray) -> None:
+        m = len(v)
+        if self.n + m > len(self.a):
+            cap = max(2 * len(self.a), self.n + m)
+            b = np.full((cap,) + self.shape_tail, self.fill, dtype=self.a.dtype)
+            b[: self.n] = self.a[: self.n]
+            self.a = b
+        self.a[self.n:self.n + m] = v
+        self.n += m
+
+    def reserve(self, n: int) -> None:
+        """Make the length ``n`` (new entries filled), keeping capacity for more."""
+        if n > self.n:
+            self.extend(np.full((n - self.n,) + self.shape_tail, self.fill, dtype=self.a.dtype))
+
+    def view(self, n: Optional[int] = None) -> np.ndarray:
+        return self.a[: self.n if n is None else n]
+
+    def drop_front(self, m: int) -> None:
+        if m <= 0:
+            return
+        self.a[: self.n - m] = self.a[m:self.n].copy()
+        self.n -= m
+
+
+@dataclass
+class EskfState:
+    """The filter's current estimate (world frame of the anchors, SI units).
+
+    ``t`` is the UWB-clock time of the estimate (``t_imu - time_offset``); every ``*_sd`` is the square
+    root of the covariance diagonal; ``covariance`` is the full error-state covariance (19 + number of
+    anchor-bias states), ordered as :data:`uwbimu.models.state.ERROR_STATE_NAMES` then the biases.
+    """
+
+    t: float
+    t_imu: float
+    position: np.ndarray
+    velocity: np.ndarray
+    quaternion: np.ndarray
+    accel_bias: np.ndarray
+    gyro_bias: np.ndarray
+    lever_arm: np.ndarray
+    time_offset: float
+    anchor_bias: dict[str, float]
+    position_sd: np.ndarray
+    velocity_sd: np.ndarray
+    attitude_sd: np.ndarray
+    accel_bias_sd: np.ndarray
+    gyro_bias_sd: np.ndarray
+    lever_arm_sd: np.ndarray
+    time_offset_sd: float
+    covariance: np.ndarray
+    layout: S.StateLayout
+    tags: dict = None  # several tags: name -> (lever arm (3,), sd (3,)); the first is also lever_arm
+    height_bias: Optional[float] = None
+    height_bias_sd: Optional[float] = None
+
+    def cov(self, a: str, b: Optional[str] = None) -> np.ndarray:
+        """Covariance block by name (``"p"``, ``"theta"``, ``"lever"``, ``"t_d"``, ``"anchor_bias"``, ...)."""
+        return self.layout.cov(self.covariance, a, b)
+
+
+class Eskf:
+    """Streaming tightly-coupled UWB-IMU error-state EKF with online lever arm and time offset.
+
+    Parameters
+    ----------
+    options : :class:`EskfOptions` (defaults when None).
+    anchors : mapping anchor id -> position (3,) [m] in the anchors' frame.
+    tags : optional mapping tag name -> nominal lever arm (3,) [m] or None.  The filter estimates the
+        lever arm of one tag (``options.tag``, else the first); ranges of other tags are counted and
+        not used.
+    imu_noise : IMU densities (None: ``options.imu_noise``, else the BMI088 preset).
+    range_sigma, tdoa_sigma : measurement noise sd [m] (None: the options', else 0.1 and
+        ``sqrt(2) range_sigma``).
+    anchor_frame_up : ``"+z"`` (default) or ``"-z"`` when the anchors' frame has z down.
+    known_anchor_bias : documented constant range bias per anchor [m], removed from every range.
+    record : keep every output row (``output_rate_hz``) and every measurement record (for
+        :meth:`passes`); without it the buffers are trimmed as the filter advances.
+    max_latency_s : how long [s of IMU time] the filter waits for measurements before it moves its
+        outputs on without them.
+    tdoa_pairs : anchor-id pairs ``(a, b)`` that get a constant TDoA bias state when
+        ``options.tdoa_pair_bias.mode`` is ``"estimate"``.
+    """
+
+    def __init__(
+        self,
+        options: Optional[EskfOptions] = None,
+        anchors: Optional[Mapping[str, Sequence[float]]] = None,
+        tags: Optional[Mapping[str, Optional[Sequence[float]]]] = None,
+        *,
+        imu_noise: Optional[ImuNoise] = None,
+        range_sigma: Optional[float] = None,
+        tdoa_sigma: Optional[float] = None,
+        anchor_frame_up: str = "+z",
+        known_anchor_bias: Optional[Mapping[str, float]] = None,
+        record: bool = False,
+        max_latency_s: float = 0.2,
+        tdoa_pairs: Optional[Sequence[tuple[str, str]]] = None,
+    ):
+        self.options = opts = options or EskfOptions()
+        if not anchors:
+            raise ValueError("Eskf: anchors must map at least one anchor id to its position [x, y, z]")
+        self.anchor_ids = [str(a) for a in anchors]
+        pos = np.array([np.asarray(anchors[a], dtype=float).reshape(3) for a in anchors])
+        if not np.all(np.isfinite(pos)):
+            raise ValueError("Eskf: anchor positions must be finite")
+        if anchor_frame_up not in ("+z", "-z"):
+            raise ValueError(f"Eskf: anchor_frame_up must be '+z' or '-z', got {anchor_frame_up!r}")
+        self.anchor_frame_up = anchor_frame_up
+        self._flip = anchor_frame_up == "-z"
+        if self._flip:
+            pos = pos * _FLIP
+        self._index = {a: i for i, a in enumerate(self.anchor_ids)}
+        tags = dict(tags or {})
+        self.tag = opts.tag if opts.tag is not None else (next(iter(tags)) if tags else None)
+        # several tags and no options.tag: one filter, one lever arm per tag
+        self.tag_names = [str(t_) for t_ in tags] if opts.tag is None and len(tags) > 1 else []
+        self._tag_index = {n: i for i, n in enumerate(self.tag_names)}
+
+        def prior(name):
+            lv = opts.lever_arm.prior
+            if lv is None:
+                return [0.0, 0.0, 0.0]
+            if lv == "dataset":
+                nominal = tags.get(name) if name is not None else None
+                return list(nominal) if nominal is not None else [0.0, 0.0, 0.0]
+            return list(lv)
+
+        lever = [prior(n) for n in self.tag_names] if self.tag_names else prior(self.tag)
+        noise = imu_noise if imu_noise is not None else opts.resolve_imu_noise(None)
+        rsig = range_sigma or opts.range_sigma or 0.1
+        tsig = tdoa_sigma or opts.tdoa_sigma
+        pairs = [(self._index[a_], self._index[b_]) for a_, b_ in (tdoa_pairs or [])]
+        self._prob, self.priors = make_settings(opts, self.anchor_ids, pos, noise, rsig, tsig, lever,
+                                                self.tag_names or None, pairs)
+        self._n_models = 0
+        self.imu_noise, self.range_sigma = noise, rsig
+        self._known_bias = {str(k): float(v) for k, v in (known_anchor_bias or {}).items()}
+        self.record = bool(record)
+        self.max_latency_s = float(max_latency_s)
+        # IMU buffers (indices are buffer indices; _imu_off counts samples trimmed from the front)
+        self._t = _Buffer(None)
+        self._u = _Buffer(6)
+        self._um = _Buffer(6)  # mid-interval inputs, final for intervals < _um_done
+        self._um_done = 0
+        self._cs = _Buffer(3)  # cumulative gyro sums for the rotation gate (absolute values)
+        self._cs2 = _Buffer(None)
+        self._rot_mean = _Buffer(3)
+        self._rot_ms = _Buffer(None)
+        self._gaps: list[int] = []
+        self._gap_arrays = None
+        self._gaps_done = 0  # samples (buffer index) whose preceding interval was checked for a gap
+        self._gap_sd: list[tuple[float, float]] = []
+        self._imu_off = 0
+        # measurements, in arrival order
+        self._mt = _Buffer(None)
+        self._ma = _Buffer(None, dtype=np.int64)
+        self._mb = _Buffer(None, dtype=np.int64)
+        self._mr = _Buffer(None)
+        self._mtag = _Buffer(None, dtype=np.int64)
+        self._rec = _Buffer(7, fill=np.nan)
+        self._m_off = 0
+        self._watermark = -np.inf  # newest measurement stamp seen [UWB clock]
+        # filter
+        self._mode = "init"  # init | run | stopped
+        self._j_init = 0
+        self._st: Optional[PassState] = None
+        self._passes: list[PassResult] = []
+        self._n_reinit = 0
+        self._final = False
+        self._events: list[dict[str, Any]] = []
+        self._warnings: list[str] = []
+        self._dropped = {"imu_not_increasing": 0, "imu_not_finite": 0, "unknown_anchor": 0,
+                         "other_tag": 0, "not_finite": 0}
+        self.initial: Optional[InitialState] = None
+        self._initial_given: Optional[InitialState] = None
+        self.td_held = False
+        self._progress = None
+
+    @classmethod
+    def for_dataset(cls, dataset, options: Optional[EskfOptions] = None, **kwargs) -> "Eskf":
+        """A filter set up with a dataset's properties (anchors, tags, IMU and range noise, TDoA noise,
+        anchor frame, known anchor biases) as :func:`run_eskf` applies them; feed it the data yourself.
+        Keyword arguments override (e.g. ``record=True``)."""
+        opts = options or EskfOptions()
+        meta = dataset.meta
+        anchors = {str(a): row for a, row in zip(dataset.anchors["anchor"],
+                                                 dataset.anchors[["x", "y", "z"]].to_numpy(float))}
+        tags = {tm.name: tm.lever_arm for tm in meta.tags} if meta.tags else None
+        frame = opts.anchor_frame_up or getattr(meta, "anchor_frame_up", None) or \
+            (meta.extra or {}).get("anchor_frame_up") or "+z"
+        args = dict(imu_noise=opts.resolve_imu_noise(meta.imu_noise), range_sigma=opts.range_sigma or meta.range_sigma,
+                    tdoa_sigma=opts.tdoa_sigma or (meta.extra or {}).get("tdoa_sigma"), anchor_frame_up=frame,
+                    known_anchor_bias=meta.known_anchor_bias)
+        args.update(kwargs)
+        return cls(opts, anchors, tags, **args)
+
+    @classmethod
+    def from_problem(cls, prob: Problem, priors: dict[str, Any], options: EskfOptions, *, record: bool = True,
+                     initial: Optional[InitialState] = None) -> "Eskf":
+        """A filter with the settings of a batch :class:`Problem` (``eskf.build_problem``: anchors already
+        in the filter's z-up frame, known biases already removed) and no data yet; feed it with
+        :meth:`feed`.  ``initial`` bypasses the initialiser (consistency tests)."""
+        f = cls.__new__(cls)
+        cls.__init__(f, options, anchors={a: prob.anchors[i] for i, a in enumerate(prob.anchor_ids)},
+                     tags={n: None for n in prob.tag_names} or None, record=record)
+        settings = Problem(**{**prob.__dict__})
+        settings.dt_nom = settings.dt_max = float("nan")
+        settings.rot_mean = settings.rot_ms = settings.gap_idx = settings.gap_sd = None
+        settings.lever_win, settings.lever_min_rate = 0, 0.0
+        settings.t_limit = np.inf
+        settings.models = {}
+        f._prob = settings
+        f.priors = priors
+        f._initial_given = initial
+        f._sync()
+        return f
+
+    def feed(self, imu_t: np.ndarray, imu_u: np.ndarray, meas_t: np.ndarray, meas_a: np.ndarray,
+             meas_b: np.ndarray, meas_z: np.ndarray, meas_tag: Optional[np.ndarray] = None) -> None:
+        """Push IMU samples ``(n,)``, ``(n, 6)`` and measurements by anchor index (``meas_b >= 0``: TDoA
+        to anchor ``meas_b``, else a range) in one go (arrays as in a :class:`Problem`)."""
+        if len(meas_t):
+            self._add(np.asarray(meas_t, float), np.asarray(meas_a, np.int64), np.asarray(meas_b, np.int64),
+                      np.asarray(meas_z, float), None,
+                      None if meas_tag is None else np.asarray(meas_tag, np.int64))
+        if len(imu_t):
+            imu_u = np.asarray(imu_u, float)
+            self.push_imu_chunk(imu_t, imu_u[:, :3], imu_u[:, 3:])
+
+    # ------------------------------------------------------------------ input
+    def push_imu(self, t: float, acc: Sequence[float], gyro: Sequence[float]) -> None:
+        """One IMU sample: stamp ``t`` [s, IMU clock], specific force ``acc`` [m/s^2] and body rate
+        ``gyro`` [rad/s], both in the IMU frame."""
+        u = np.empty((1, 6))
+        u[0, :3] = acc
+        u[0, 3:] = gyro
+        self.push_imu_chunk(np.array([float(t)]), u[:, :3], u[:, 3:])
+
+    def push_imu_chunk(self, t: np.ndarray, acc: np.ndarray, gyro: np.ndarray) -> None:
+        """Several IMU samples at once (arrays ``(n,)``, ``(n, 3)``, ``(n, 3)``); faster than a loop."""
+        t = np.asarray(t, dtype=float).reshape(-1)
+        u = np.hstack([np.asarray(acc, dtype=float).reshape(-1, 3), np.asarray(gyro, dtype=float).reshape(-1, 3)])
+        if len(t) != len(u):
+            raise ValueError(f"push_imu_chunk: {len(t)} stamps but {len(u)} samples")
+        finite = np.isfinite(t) & np.all(np.isfinite(u), axis=1)
+        if not finite.all():
+            self._dropped["imu_not_finite"] += int((~finite).sum())
+            t, u = t[finite], u[finite]
+        last = self._t.a[self._t.n - 1] if self._t.n else -np.inf
+        # strictly increasing stamps (repeated stamps of the batch loader are dropped the same way)
+        keep = np.empty(len(t), dtype=bool)
+        for i, ti in enumerate(t):
+            keep[i] = ti > last
+            if keep[i]:
+                last = ti
+        if not keep.all():
+            self._dropped["imu_not_increasing"] += int((~keep).sum())
+            t, u = t[keep], u[keep]
+        if len(t) == 0:
+            return
+        self._t.extend(t)
+        self._u.extend(u)
+        self._imu_appended()
+        self._step()
+
+    def push_range(self, t: float, anchor: str, range: float, tag: Optional[str] = None) -> None:
+        """One two-way range [m] to ``anchor``, stamped ``t`` [s, UWB clock]."""
+        self.push_ranges(np.array([float(t)]), [anchor], np.array([float(range)]),
+                         None if tag is None else [tag])
+
+    def push_ranges(self, t: np.ndarray, anchors: Sequence[str], ranges: np.ndarray,
+                    tags: Optional[Sequence[Optional[str]]] = None) -> None:
+        """Several ranges at once, in time order."""
+        t = np.asarray(t, dtype=float).reshape(-1)
+        z = np.asarray(ranges, dtype=float).reshape(-1)
+        ids = [str(a) for a in anchors]
+        a = np.array([self._index.get(x, -1) for x in ids], dtype=np.int64)
+        z = z - np.array([self._known_bias.get(x, 0.0) for x in ids])
+        self._add(t, a, np.full(len(t), -1, dtype=np.int64), z, tags)
+
+    def push_tdoa(self, t: float, anchor_a: str, anchor_b: str, tdoa: float, tag: Optional[str] = None) -> None:
+        """One TDoA ``|p_U - p_b| - |p_U - p_a|`` [m] stamped ``t`` [s, UWB clock]."""
+        self.push_tdoas(np.array([float(t)]), [anchor_a], [anchor_b], np.array([float(tdoa)]),
+                        None if tag is None else [tag])
+
+    def push_tdoas(self, t: np.ndarray, anchors_a: Sequence[str], anchors_b: Sequence[str], tdoa: np.ndarray,
+                   tags: Optional[Sequence[Optional[str]]] = None) -> None:
+        """Several TDoA measurements at once, in time order."""
+        t = np.asarray(t, dtype=float).reshape(-1)
+        ia = [str(x) for x in anchors_a]
+        ib = [str(x) for x in anchors_b]
+        a = np.array([self._index.get(x, -1) for x in ia], dtype=np.int64)
+        b = np.array([self._index.get(x, -1) for x in ib], dtype=np.int64)
+        bad = (b < 0) | (a == b)
+        a[bad] = -1
+        z = np.asarray(tdoa, dtype=float).reshape(-1) - np.array(
+            [self._known_bias.get(y, 0.0) - self._known_bias.get(x, 0.0) for x, y in zip(ia, ib)])
+        self._add(t, a, np.maximum(b, 0), z, tags)
+
+    def push_height(self, t: float, height: float, sigma: Optional[float] = None) -> None:
+        """One altimeter reading: the IMU origin's z coordinate [m] in the anchors' frame, stamped ``t``
+        [s, IMU clock]; ``sigma`` [m] defaults to ``options.height.sigma``.  With
+        ``options.height.bias = "estimate"`` an altimeter bias is estimated along."""
+        sig = self.options.height.sigma if sigma is None else float(sigma)
+        z = float(height) * (-1.0 if self._flip else 1.0)
+        self.push(t, HeightModel(sig, self._prob.state_layout()), np.array([z]))
+
+    def push_zero_velocity(self, t: float, sigma: float = 0.01) -> None:
+        """The platform stands still at ``t`` [s, IMU clock] (e.g. a detected stance phase or a landed
+        drone): a zero-velocity pseudo-measurement with sd ``sigma`` [m/s] per axis."""
+        self.push(t, ZeroVelocityModel(sigma), np.zeros(3))
+
+    def push(self, t: float, model: MeasurementModel, z: Sequence[float]) -> None:
+        """Any measurement through the model protocol (:mod:`uwbimu.models.measurements`): ``model``
+        predicts ``z`` from the state at ``t`` (its own clock, ``model.clock``); processed in order
+        with the ranges, with the same gate (chi-square at the options' probability) and robust loss.
+        The model works in the filter's world frame (z up; ``anchor_frame_up: -z`` turns y and z)."""
+        z = np.atleast_1d(np.asarray(z, dtype=float))
+        if len(z) != model.dim:
+            raise ValueError(f"push: {model.name} has dim {model.dim}, got {len(z)} values")
+        if not (np.isfinite(t) and np.all(np.isfinite(z))):
+            self._dropped["not_finite"] += 1
+            return
+        i = self._n_models
+        self._n_models += 1
+        self._prob.models[i] = (model, z)
+        self._mt.extend(np.array([float(t)]))
+        self._ma.extend(np.array([-1], dtype=np.int64))
+        self._mb.extend(np.array([-2 - i], dtype=np.int64))
+        self._mtag.extend(np.zeros(1, dtype=np.int64))
+        self._mr.extend(z[:1])
+        rec = np.full((1, 7), np.nan)
+        rec[:, REC_STATUS] = STATUS_NOT_PROCESSED
+        rec[:, REC_ACC] = 0.0
+        self._rec.extend(rec)
+        if model.clock == "uwb":
+            self._watermark = max(self._watermark, float(t))
+        self._sync()
+        self._step()
+
+    def finish(self, progress=None) -> None:
+        """End of the data: process everything still waiting (the last IMU intervals included).
+
+        ``progress``: optional callback receiving the filter's IMU sample index as it goes."""
+        self._final = True
+        self._progress = progress
+        n = self._t.n
+        if n >= 2 and self._um_done < n - 1:
+            self._um.reserve(n - 1)
+            K.midpoints_into(self._t.view(), self._u.view(), self._um_done, n - 1, self._um.a)
+            self._um_done = n - 1
+        self._step()
+        if self._mode == "run" and self._st is not None:
+            self._close_pass()
+            self._mode = "stopped"
+        elif self._mode == "init" or (self._mode == "stopped" and self.initial is None):
+            self._warn(f"not initialised: {self._init_failure or 'not enough data'}", "not_initialised",
+                       reason=self._init_failure or "not enough data")
+            self._mode = "stopped"
+        for k, v in self._dropped.items():
+            if v:
+                self._warn(f"{v} inputs not used ({k.replace('_', ' ')})", "inputs_not_used", reason=k, count=v)
+
+    # ------------------------------------------------------------------ output
+    @property
+    def initialised(self) -> bool:
+        return self._st is not None
+
+    def state(self) -> Optional[EskfState]:
+        """The current estimate (``None`` before initialisation)."""
+        if self._st is None:
+            return None
+        x, P = self._st.x, self._st.P
+        t_imu = float(self._prob.imu_t[self._st.k]) if self._st.k < len(self._prob.imu_t) else float("nan")
+        sd = np.sqrt(np.clip(np.diag(P), 0.0, None))
+        p, v, q = x[S.P].copy(), x[S.V].copy(), x[S.Q].copy()
+        Pc = P.copy()
+        if self._flip:
+            p, v = p * _FLIP, v * _FLIP
+            q = quat_multiply(_Q_FLIP, q)
+            d = np.ones(P.shape[0])
+            d[0:6] = np.concatenate([_FLIP, _FLIP])
+            Pc = P * d[:, None] * d[None, :]
+        L = self._prob.state_layout()
+        nb = L.n_anchor_bias
+        return EskfState(
+            t=t_imu - float(x[S.TD]), t_imu=t_imu, position=p, velocity=v, quaternion=q,
+            accel_bias=x[S.BA].copy(), gyro_bias=x[S.BG].copy(), lever_arm=x[S.PIU].copy(),
+            time_offset=float(x[S.TD]),
+            anchor_bias={a: float(v) for a, v in zip(self.anchor_ids, x[L.nom("anchor_bias")])} if nb else {},
+            position_sd=sd[S.EP].copy(), velocity_sd=sd[S.EV].copy(), attitude_sd=sd[S.ETH].copy(),
+            accel_bias_sd=sd[S.EBA].copy(), gyro_bias_sd=sd[S.EBG].copy(), lever_arm_sd=sd[S.EPIU].copy(),
+            time_offset_sd=float(sd[S.ETD]), covariance=Pc, layout=L,
+            tags={n: (x[L.lever_nom(i)].copy(), sd[L.lever_err(i)].copy()) for i, n in enumerate(self.tag_names)},
+            height_bias=float(x[L.nom("height_bias")][0]) if L.n_height_bias else None,
+            height_bias_sd=float(sd[L.err("height_bias")][0]) if L.n_height_bias else None,
+        )
+
+    def events(self) -> list[dict[str, Any]]:
+        """Structured events so far (``{"t", "kind", ...}``: initialised, divergence, gate_reopened, ...)."""
+        out = list(self._events)
+        if self._st is not None:
+            out += self._st.events
+        return out
+
+    def warnings(self) -> list[str]:
+        return list(self._warnings)
+
+    def passes(self) -> list[PassResult]:
+        """The filter passes (one per (re-)initialisation) with their recorded outputs."""
+        return list(self._passes) + ([self._st.result(self._rec.view(), self._st.P.shape[0])]
+                                     if self._st is not None and self._mode == "run" else [])
+
+    def problem(self) -> Problem:
+        """The filter's data and settings as a :class:`Problem` (the buffers, as far as kept)."""
+        return self._prob
+
+    def records(self) -> np.ndarray:
+        """Per-measurement records ``(m, 7)`` (see ``filterpass.REC_*``), in arrival order."""
+        return self._rec.view()
+
+    # ------------------------------------------------------------------ internals
+    _init_failure: Optional[str] = None
+    _need: Optional[tuple[float, float, int]] = None  # data the pending initialisation needs (t_uwb, t_imu, j)
+    _need_recheck: float = -np.inf
+
+    def _warn(self, text: str, kind: str, **fields) -> None:
+        self._warnings.append(text)
+        t = float(self._mt.a[self._mt.n - 1]) if self._mt.n else 0.0
+        self._events.append({"t": t, "kind": kind, **fields})
+
+    def _add(self, t, a, b, z, tags, tag_idx=None) -> None:
+        ok = a >= 0
+        self._dropped["unknown_anchor"] += int((~ok).sum())
+        fin = np.isfinite(t) & np.isfinite(z)
+        self._dropped["not_finite"] += int((ok & ~fin).sum())
+        ok &= fin
+        if tag_idx is None:
+            tag_idx = np.zeros(len(t), dtype=np.int64)
+            if tags is not None and self.tag_names:
+                tag_idx = np.array([self._tag_index.get(str(tg), -1) if tg is not None else 0 for tg in tags],
+                                   dtype=np.int64)
+                self._dropped["other_tag"] += int((ok & (tag_idx < 0)).sum())
+                ok &= tag_idx >= 0
+            elif tags is not None and self.tag is not None:
+                mine = np.array([tg is None or str(tg) == str(self.tag) for tg in tags], dtype=bool)
+                self._dropped["other_tag"] += int((ok & ~mine).sum())
+                ok &= mine
+        if not ok.any():
+            return
+        t, a, b, z, tag_idx = t[ok], a[ok], b[ok], z[ok], tag_idx[ok]
+        self._mtag.extend(tag_idx)
+        self._mt.extend(t)
+        self._ma.extend(a)
+        self._mb.extend(b)
+        self._mr.extend(z)
+        rec = np.full((len(t), 7), np.nan)
+        rec[:, REC_STATUS] = STATUS_NOT_PROCESSED
+        rec[:, REC_ACC] = 0.0
+        self._rec.extend(rec)
+        self._watermark = max(self._watermark, float(t.max()))
+        self._sync()
+        self._step()
+
+    def _imu_appended(self) -> None:
+        """Mid-interval inputs that became final, gaps and rotation-gate statistics of new samples."""
+        n = self._t.n
+        t, u = self._t.view(), self._u.view()
+        self._um.reserve(n - 1)
+        hi = n - 2 if n >= 4 else 0  # intervals < n - 2 have their four centred samples
+        if hi > self._um_done:
+            K.midpoints_into(t, u, self._um_done, hi, self._um.a)
+            self._um_done = hi
+        if math.isnan(self._prob.dt_nom):
+            if n + self._imu_off > NOMINAL_PERIOD_SAMPLES:
+                self._set_timing()
+        else:
+            self._extend_timing()
+        self._sync()
+
+    def _set_timing(self) -> None:
+        set_imu_timing(self._prob, self.options, nominal_period(self._t.view()))
+        self._extend_timing()
+
+    def _extend_timing(self) -> None:
+        """Gaps and rotation statistics of the samples not yet seen (as the batch computes them)."""
+        n = self._t.n
+        t, u = self._t.view(), self._u.view()
+        dt_max = self._prob.dt_max
+        g0 = max(self._gaps_done - 1, 0)
+        self._gaps_done = n
+        if n - g0 == 2:  # one new sample (the usual streaming call): a scalar test
+            new_gaps = [g0] if t[g0 + 1] - t[g0] > dt_max else []
+        else:
+            new_gaps = (np.flatnonzero(np.diff(t[g0:]) > dt_max) + g0).tolist()
+        for g in new_gaps:
+            lo = int(np.searchsorted(t, t[g] - 1.0))
+            seg = u[lo:g + 2]
+            sd = (float(np.max(np.std(seg[:, 0:3], axis=0))), float(np.max(np.std(seg[:, 3:6], axis=0)))) \
+                if len(seg) > 2 else (0.0, 0.0)
+            if not self._gaps or g > self._gaps[-1]:
+                self._gaps.append(int(g))
+                self._gap_sd.append(sd)
+                self._gap_arrays = None
+        if self._prob.lever_min_rate > 0:
+            if self._cs.n == 0:
+                self._cs.extend(np.zeros((1, 3)))
+                self._cs2.extend(np.zeros(1))
+            k0 = self._cs.n - 1  # samples already summed
+            if n > k0:
+                for b, m in ((self._cs, n + 1), (self._cs2, n + 1), (self._rot_mean, n), (self._rot_ms, n)):
+                    b.reserve(m)
+                K.rotation_stats_into(u, k0, n, max(int(self._prob.lever_win), 1), self._imu_off, self._cs.a,
+                                      self._cs2.a, self._rot_mean.a, self._rot_ms.a)
+
+    def _sync(self) -> None:
+        """Point the :class:`Problem` at the buffers."""
+        p = self._prob
+        n = self._t.n
+        p.imu_t = self._t.view()
+        p.imu_u = self._u.view()
+        p.imu_um = self._um.view(max(n - 1, 0))
+        if self._final:
+            p.t_limit = np.inf
+        else:
+            p.t_limit = float(p.imu_t[n - 2]) if n >= 4 else -np.inf
+        p.uwb_t = self._mt.view()
+        p.uwb_a = self._ma.view()
+        p.uwb_b = self._mb.view()
+        p.uwb_r = self._mr.view()
+        if p.tag_lever_err is not None and len(p.tag_lever_err) > 1:
+            p.uwb_tag = self._mtag.view()
+        if not math.isnan(p.dt_nom):
+            if self._gap_arrays is None:
+                self._gap_arrays = (np.array(self._gaps, dtype=np.int64),
+                                    np.array(self._gap_sd, dtype=float).reshape(-1, 2))
+            p.gap_idx, p.gap_sd = self._gap_arrays
+            if p.lever_min_rate > 0:
+                p.rot_mean = self._rot_mean.view()
+                p.rot_ms = self._rot_ms.view()
+
+    def _step(self) -> None:
+        self._sync()
+        for _ in range(2 * self.options.supervisor.max_reinit + 4):
+            if self._mode == "init":
+                if not self._try_init():
+                    return
+            if self._mode != "run":
+                return
+            self._advance()
+            if self._st.diverged is None:
+                return
+            self._on_divergence()
+
+    def _try_init(self) -> bool:
+        p = self._prob
+        m = self._mt.n
+        if math.isnan(p.dt_nom):
+            if not (self._final and self._t.n >= 10):
+                return False
+            self._set_timing()
+            self._sync()
+        if self._j_init >= m or self._t.n < 10:
+            return False
+        if not self._final:
+            # what the initialiser will read is fixed once the start of motion is decided: ask once, then
+            # wait for the data; while undecided, ask again every half second of new IMU data
+            need = self._need
+            if need is None or need[2] != self._j_init:
+                if p.t_limit < self._need_recheck:
+                    return False
+                got = data_needed(p, self.options, self.priors, self._j_init)
+                if got is None:
+                    self._need_recheck = p.t_limit + 0.5
+                    return False
+                self._need = need = (got[0], got[1], self._j_init)
+            if self._watermark <= need[0] or p.t_limit < need[1]:
+                return False
+        if self._initial_given is not None:
+            st, self._initial_given = self._initial_given, None
+            self._start(st)
+            return True
+        try:
+            st = initialise(p, self.options, self.priors, j0=self._j_init)
+        except InitialisationError as exc:
+            # the data the initialiser reads are all here (data_needed): more data would not help
+            self._init_failure = str(exc)
+            if self.initial is not None:
+                self._warnings.append(f"re-initialisation failed: {exc}")
+            self._mode = "stopped"
+            return False
+        self._start(st)
+        return True
+
+    def _start(self, st: InitialState) -> None:
+        first = self.initial is None
+        if first:
+            self.initial = st
+        kind = "initialised" if first else "reinitialised"
+        self._events.append({"t": float(self._prob.uwb_t[st.j]), "kind": kind, **_plain(st.info)})
+        td_init = st.info.get("td_init") or {}
+        if first and td_init.get("status") == "not identified" and self.options.time_offset.mode == "estimate":
+            # hold t_d at its prior (consider mode) for the whole run, as the initialiser did
+            mask = hold_time_offset(self._prob).gain_mask
+            self._prob.gain_mask = mask
+            self.td_held = True
+            pr = self.priors
+            self._warnings.append(
+                f"time offset not identified by the initial search ({td_init.get('reason')}): held at its prior "
+                f"{pr['td']:g} s (sd {pr['td_sd']:g} s, consider mode); set time_offset.prior or record more "
+                f"excited motion")
+            self._events.append({"t": float(self._prob.uwb_t[st.j]), "kind": "time_offset_held",
+                                 "reason": td_init.get("reason"), "prior": float(pr["td"]),
+                                 "prior_sd": float(pr["td_sd"])})
+        self._st = PassState.start(self._prob, st.x, st.P, st.k, st.j)
+        self._mode = "run"
+
+    def _advance(self) -> None:
+        p = self._prob
+        st = self._st
+        # outputs may move on to the IMU time before which no measurement can still arrive
+        t_safe = self._watermark + float(st.x[S.TD])
+        if p.imu_t.shape[0] >= 4:
+            t_safe = max(t_safe, float(p.imu_t[-1]) - self.max_latency_s)
+        advance(p, st, self._rec.view(), final=self._final, record=self.record, t_safe=t_safe,
+                progress=self._progress)
+        if not self.record and not self._final:
+            self._trim()
+
+    def _close_pass(self) -> None:
+        res = self._st.result(self._rec.view(), self._st.P.shape[0])
+        if not self._prob.store_cov:
+            res.covs = None
+        self._passes.append(res)
+        self._events += self._st.events
+        self._st.events = []
+
+    def _on_divergence(self) -> None:
+        st = self._st
+        p = self._prob
+        opts = self.options
+        x = st.x
+        t_div = float(p.imu_t[st.k] - x[S.TD]) if np.isfinite(x[S.TD]) else float(p.imu_t[st.k])
+        self._close_pass()
+        self._events.append({"t": t_div, "kind": "divergence", "reason": st.diverged})
+        j = st.j
+        if self._final and j >= len(p.uwb_t) - 8:
+            self._warnings.append(f"divergence at t={t_div:.2f} s ({st.diverged}) near the end of the log; stopped there")
+            self._mode = "stopped"
+            return
+        if self._n_reinit >= opts.supervisor.max_reinit:
+            if not (np.all(np.isfinite(x)) and np.all(np.isfinite(st.P))):
+                self._warnings.append(f"divergence at t={t_div:.2f} s ({st.diverged}); re-initialisation limit "
+                                      f"({opts.supervisor.max_reinit}) reached and the state is not finite: stopped there")
+                self._mode = "stopped"
+                return
+            self._warnings.append(f"divergence at t={t_div:.2f} s ({st.diverged}); re-initialisation limit "
+                                  f"({opts.supervisor.max_reinit}) reached, continuing without supervisor")
+            p.supervise = False
+            self._st = PassState.start(p, x.copy(), st.P.copy(), st.k, j)
+            return
+        self._n_reinit += 1
+        self._warnings.append(f"divergence at t={t_div:.2f} s ({st.diverged}); re-initialised from the ranges "
+                              f"at t={p.uwb_t[min(j, len(p.uwb_t) - 1)]:.2f} s")
+        self._st = None
+        self._j_init = j
+        self._mode = "init"
+
+    def _trim(self) -> None:
+        """Drop what no later step can read (streaming without ``record``)."""
+        st = self._st
+        p = self._prob
+        # measurements already processed
+        jd = st.j
+        # IMU: keep what a late measurement (max_lookback), the rotation window and a re-initialisation
+        # (time-offset reach) may read behind the filter's sample
+        keep_s = p.max_lookback + max(self.options.init.td_max_abs_s, 1.0) + 2.0
+        kd = int(np.searchsorted(p.imu_t, p.imu_t[st.k] - keep_s)) - max(int(p.lever_win), 1) - 4
+        if kd < 4096 and jd < 4096:
+            return
+        kd = max(0, min(kd, st.k - 4, self._um_done - 4))
+        if kd >= 4096:
+            for b in (self._t, self._u, self._um, self._cs, self._cs2, self._rot_mean, self._rot_ms):
+                b.drop_front(min(kd, b.n))
+            self._um_done -= kd
+            self._gaps_done -= kd
+            self._imu_off += kd
+            st.k -= kd
+            g = np.array(self._gaps, dtype=np.int64) - kd
+            keep = g >= 0
+            self._gaps = g[keep].tolist()
+            self._gap_sd = [s for s, k in zip(self._gap_sd, keep) if k]
+            self._gap_arrays = None
+        if jd >= 4096:
+            for bi in self._mb.a[:jd]:
+                if bi <= -2:
+                    self._prob.models.pop(int(-bi - 2), None)
+            for b in (self._mt, self._ma, self._mb, self._mr, self._mtag, self._rec):
+                b.drop_front(jd)
+            self._m_off += jd
+            st.j -= jd
+            st.j0 = max(st.j0 - jd, 0)
+        self._sync()
+
+
+def _plain(d: dict[str, Any]) -> dict[str, Any]:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, np.ndarray):
+            v = v.tolist()
+        elif isinstance(v, (np.floating, np.integer)):
+            v = v.item()
+        elif isinstance(v, dict):
+            v = _plain(v)
+        out[k] = v
+    return out
