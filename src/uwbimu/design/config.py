@@ -170,6 +170,9 @@ class StructureConfig(_M):
     name: Literal["jib-crane", "bridge"] = "jib-crane"
     range_m: float = Field(30.0, gt=0, description="0 dBi LOS range R0, m")
     beamwidth_deg: float = Field(90.0, gt=0, lt=180)
+    # How the 4 anchors of a crane station face (the seed does not say): corner diagonals or face
+    # normals.  Each reading has its own fitted R0 (docs/placement.md); ignored for the bridge.
+    reading: Literal["diagonal", "axis-aligned"] = "diagonal"
     stations_per_rail: Optional[list[int]] = None
     freedom: Literal["seed", "rotate", "rotate-tilt"] = "rotate-tilt"
     reproduce_seed: bool = True  # also run the seed's set-up (10 variables, PSO)

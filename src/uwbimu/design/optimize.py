@@ -155,7 +155,7 @@ def greedy_structure(problem, step: float = 1.0, rotations: Sequence[float] = (0
 
     def station_counts(c):
         if c not in cache:
-            pos, bor = st.rails[c[0]].station(c[1], c[2], 0.0)
+            pos, bor = st.rails[c[0]].station(c[1], problem.station_rotation + c[2], 0.0)
             cache[c] = count_links_grid(problem.axes, pos, bor, problem.lut, problem.sphere).astype(np.int8)
         return cache[c]
 

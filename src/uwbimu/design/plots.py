@@ -9,7 +9,7 @@ from matplotlib.figure import Figure
 
 from uwbimu.io.atomic import save_figure
 
-__all__ = ["plot_layout_3d", "plot_coverage_map", "plot_pdop_slices", "plot_marginal"]
+__all__ = ["plot_layout_3d", "plot_coverage_map", "plot_pdop_slices", "plot_marginal", "plot_structure_coverage"]
 
 
 def plot_layout_3d(path, anchors, boresights=None, bars=(), polygon=None, height=None, title="", ids=None,
@@ -112,4 +112,41 @@ def plot_marginal(path, n_anchors, coverage, pdop_p95=None, title="") -> Path:
         ax2.set_ylabel("PDOP p95", color="tab:orange")
     ax.set_title(title or "marginal value of each added anchor")
     ax.grid(alpha=0.3)
+    return save_figure(path, fig)
+
+
+def plot_structure_coverage(path, anchors, boresights, bars, points, counts, k: int, lo, hi, title="",
+                            max_points: int = 6000, seed: int = 0) -> Path:
+    """A structure's anchors with their facing and the k-covered points (the seed paper's Figs 5-6).
+
+    Left: the bars and every anchor as an arrow along its boresight.  Right: the same with a
+    random subset (``max_points``, fixed ``seed``) of the covered grid points as blue dots.
+    """
+    a = np.asarray(anchors, float)
+    p = np.asarray(points, float)
+    cov = np.asarray(counts) >= k
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    span = np.maximum(hi - lo, 1e-3)
+    idx = np.flatnonzero(cov)
+    if idx.size > max_points:
+        idx = np.random.default_rng(seed).choice(idx, max_points, replace=False)
+    fig = Figure(figsize=(12, 6), layout="constrained")
+    for j, show_points in enumerate((False, True)):
+        ax = fig.add_subplot(1, 2, j + 1, projection="3d")
+        for b in bars:
+            ax.plot(*np.column_stack([np.asarray(b.p0), np.asarray(b.p1)]), color="0.35", lw=1.2)
+        if show_points:
+            ax.scatter(p[idx, 0], p[idx, 1], p[idx, 2], s=1, color="tab:blue", alpha=0.25, depthshade=False)
+        b = np.asarray(boresights, float) * 0.06 * float(span.max())
+        ax.quiver(a[:, 0], a[:, 1], a[:, 2], b[:, 0], b[:, 1], b[:, 2], color="tab:red", lw=1.0)
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_zlim(lo[2], hi[2])
+        ax.set_box_aspect(tuple(span / span.max()))
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.set_zlabel("z [m]")
+        ax.set_title("anchors (arrow: facing)" if not show_points
+                     else f"covered points ({k} links): {100 * cov.mean():.2f} % (subset drawn)", fontsize=9)
+    fig.suptitle(title or "structure layout")
     return save_figure(path, fig)

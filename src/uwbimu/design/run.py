@@ -285,7 +285,10 @@ def _run_structure(cfg: PlacementConfig, progress: bool) -> dict:
     from uwbimu.design.structures import StructureProblem, girder_bridge, jib_crane
 
     sc = cfg.structure
-    st = (jib_crane if sc.name == "jib-crane" else girder_bridge)(sc.range_m, sc.beamwidth_deg)
+    if sc.name == "jib-crane":
+        st = jib_crane(sc.range_m, sc.beamwidth_deg, sc.reading)
+    else:
+        st = girder_bridge(sc.range_m, sc.beamwidth_deg)
     spr = sc.stations_per_rail or st.stations_per_rail
     per_station = len(st.rails[0].offsets)
     if sum(spr) * per_station != cfg.n_anchors:
@@ -327,9 +330,13 @@ def _run_structure(cfg: PlacementConfig, progress: bool) -> dict:
     table.append({"layout": f"ours: greedy + search ({sc.freedom}, {sc.objective})", "coverage": coverage,
                   "geometric_coverage": geo_prob.geometric_coverage(x),
                   "anchors": len(anchors), "variables": len(pr.bounds), "seconds": timings["ours_s"]})
+    seed_setup = {}
     if sc.reproduce_seed:
         table[-2]["geometric_coverage"] = StructureProblem(st, spr, "seed", sc.grid_step, "geometric",
                                                            sc.pdop_max).geometric_coverage(r["x"])
+        # The seed set-up's own layout (drawn as the seed's Figs 5-6: anchors with their facing, covered points).
+        sa, sb = ps.decode(r["x"])
+        seed_setup = {"anchors": sa, "boresights": sb, "counts": ps.counts(r["x"]), "x": np.asarray(r["x"])}
     ids = _ids(len(anchors))
     # N-1 on the full grid (fast kernel), PDOP on a 2 m sub-grid with the reference link model.
     per = [count_links_grid(pr.axes, anchors[i:i + 1], bores[i:i + 1], pr.lut, pr.sphere) for i in range(len(anchors))]
@@ -392,13 +399,15 @@ def _run_structure(cfg: PlacementConfig, progress: bool) -> dict:
         "table": table,
         "marginal": marginal,
         "decision_vector": np.asarray(x).tolist(),
+        "seed_setup_decision_vector": seed_setup["x"].tolist() if seed_setup else None,
+        "reading": sc.reading if sc.name == "jib-crane" else None,
         "radio": {"range_m_0dBi": sc.range_m, "beamwidth_deg": sc.beamwidth_deg,
                   "peak_range_m": st.link.peak_range, "note": _radio_note(sc)},
         **ray,
         "lint": [w.to_dict() for w in lint],
         "timings": timings,
-        "_plot": {"points": st.points(), "counts": counts, "pdop": pd_c, "pdop_points": pts_c, "k": pr.k,
-                  "bars": st.bars, "lo": st.space_lo, "hi": st.space_hi},
+        "_plot": {"points": st.points(sc.grid_step), "counts": counts, "pdop": pd_c, "pdop_points": pts_c, "k": pr.k,
+                  "bars": st.bars, "lo": st.space_lo, "hi": st.space_hi, "seed_setup": seed_setup},
     }
 
 
@@ -447,6 +456,13 @@ def write_outputs(result: dict, out: str | Path, plots: bool = True) -> list[Pat
         written.append(P.plot_coverage_map(out / "coverage_map.png", pl["points"], pl["counts"], pl["k"]))
         written.append(P.plot_pdop_slices(out / "pdop_slices.png", pl.get("pdop_points", pl["points"]), pl["pdop"],
                                           axis=2 if result["mode"] == "room" else 0))
+        if pl.get("seed_setup"):
+            ss = pl["seed_setup"]
+            written.append(P.plot_structure_coverage(
+                out / "seed_layout.png", ss["anchors"], ss["boresights"], pl["bars"], pl["points"], ss["counts"],
+                pl["k"], pl["lo"], pl["hi"],
+                title=f"seed set-up ({result.get('reading') or 'diagonal'} reading): "
+                      f"{100 * float(np.mean(ss['counts'] >= pl['k'])):.2f} % {pl['k']}-covered"))
         mg = result["marginal"]
         written.append(P.plot_marginal(out / "marginal_value.png", [r["n"] for r in mg], [r["coverage"] for r in mg],
                                        [r["pdop_p95"] for r in mg] if mg and "pdop_p95" in mg[0] else None))

@@ -10,10 +10,13 @@ Reconstruction of the seed's jib crane (assumptions, the seed gives no drawing d
 * Decision variables ``[x_1..x_5, y_1..y_5]``, ``0 < x_i, y_i < 60`` (seed eq. for S*):
   a 60 m usable rail on each bar, mast stations at ``z = 5 + x_i``, jib stations at
   ``y = 15 + y_i``.
-* Each variable is a "double-sided arrow" station of **4 anchors on a square**: the
-  four corners of the bar cross-section, boresights along the corner diagonals,
-  perpendicular to the bar (two pairs facing opposite sides) -> 5 + 5 stations x 4 =
-  40 modules, as in the seed.
+* Each variable is a "double-sided arrow" station of **4 anchors on a square**.  The seed
+  does not say which way the four face, so two readings are offered (``reading``):
+  ``"diagonal"`` (default): the four corners of the bar cross-section, boresights along
+  the corner diagonals, perpendicular to the bar; ``"axis-aligned"``: the centres of
+  the four faces, boresights along the face normals (the diagonal station turned by
+  45 deg about the bar) -> 5 + 5 stations x 4 = 40 modules, as in the seed.  Each
+  reading needs its own fitted range R0 (docs/placement.md).
 * Radio ("measured range / directional antenna model", not given in the seed):
   ``dw1000-long-range`` budget (R0 = 30 m LOS with 0 dBi) and a 90 deg half-power
   beamwidth cos^n patch (n = 2, 7.8 dBi peak, 20 dB front-to-back), omni tag.  A point
@@ -32,7 +35,7 @@ import numpy as np
 
 from uwbimu.design.radio import Bar, CosN, LinkModel, count_links_grid, geometry_grid, lobe_sphere
 
-__all__ = ["Rail", "Structure", "StructureProblem", "jib_crane", "girder_bridge", "grid_axes"]
+__all__ = ["READINGS", "Rail", "Structure", "StructureProblem", "jib_crane", "girder_bridge", "grid_axes"]
 
 
 def grid_axes(lo, hi, step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -89,10 +92,22 @@ class Rail:
         return pos, bw / np.linalg.norm(bw, axis=1, keepdims=True)
 
 
-def _square_station(half: float) -> tuple[np.ndarray, np.ndarray]:
-    """Four anchors at the corners of a square cross-section, facing along the diagonals."""
-    d = np.array([[0.0, 1.0, 1.0], [0.0, 1.0, -1.0], [0.0, -1.0, 1.0], [0.0, -1.0, -1.0]])
-    return d * half, d / np.sqrt(2.0)
+READINGS = ("diagonal", "axis-aligned")
+
+
+def _square_station(half: float, reading: str = "diagonal") -> tuple[np.ndarray, np.ndarray]:
+    """Four anchors on a square cross-section of half-side ``half`` [m], in the rail frame.
+
+    ``"diagonal"``: at the corners, facing outward along the diagonals; ``"axis-aligned"``:
+    at the face centres, facing outward along the face normals.
+    """
+    if reading == "diagonal":
+        d = np.array([[0.0, 1.0, 1.0], [0.0, 1.0, -1.0], [0.0, -1.0, 1.0], [0.0, -1.0, -1.0]])
+        return d * half, d / np.sqrt(2.0)
+    if reading == "axis-aligned":
+        d = np.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0]])
+        return d * half, d.copy()
+    raise ValueError(f"reading must be one of {READINGS}, got {reading!r}")
 
 
 @dataclass
@@ -118,10 +133,14 @@ class Structure:
         return np.stack(np.meshgrid(xs, ys, zs, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
-def jib_crane(range_m: float = 30.0, beamwidth_deg: float = 90.0) -> Structure:
-    """The seed's jib crane, reconstructed as documented in the module docstring."""
+def jib_crane(range_m: float = 30.0, beamwidth_deg: float = 90.0, reading: str = "diagonal") -> Structure:
+    """The seed's jib crane, reconstructed as documented in the module docstring.
+
+    ``reading`` picks how the four anchors of a station face (``"diagonal"`` or
+    ``"axis-aligned"``, see the module docstring).
+    """
     half = 1.0
-    off, bor = _square_station(half)
+    off, bor = _square_station(half, reading)
     mast_axis = (15.0, 8.0)
     jib_z = 70.0
     bars = []
@@ -137,7 +156,7 @@ def jib_crane(range_m: float = 30.0, beamwidth_deg: float = 90.0) -> Structure:
     ]
     link = LinkModel(max_range=range_m, anchor_pattern=CosN(beamwidth_deg))
     return Structure("jib-crane", bars, rails, (0.0, 0.0, 0.0), (30.0, 80.0, 80.0), 1.0, link, 3,
-                     [5, 5], {"seed_coverage": 0.913, "seed_modules": 40})
+                     [5, 5], {"seed_coverage": 0.913, "seed_modules": 40, "reading": reading})
 
 
 def girder_bridge(range_m: float = 30.0, beamwidth_deg: float = 90.0) -> Structure:
@@ -183,10 +202,13 @@ class StructureProblem:
     step : grid resolution [m] (structure's default when None)
     objective : ``"coverage"`` (the seed's: fraction of points with >= k links) or
         ``"geometric"`` (fraction with >= k links AND PDOP <= ``pdop_max``)
+    station_rotation : common rotation [rad] of every station about its bar, added to the
+        per-station rotation (0: the structure's reading as built); used to attribute a
+        gain to orientation alone with the seed's 10 variables
     """
 
     def __init__(self, structure: Structure, stations_per_rail=None, freedom: str = "seed", step=None,
-                 objective: str = "coverage", pdop_max: float = 5.0):
+                 objective: str = "coverage", pdop_max: float = 5.0, station_rotation: float = 0.0):
         if freedom not in ("seed", "rotate", "rotate-tilt"):
             raise ValueError(f"freedom must be seed|rotate|rotate-tilt, got {freedom!r}")
         if objective not in ("coverage", "geometric"):
@@ -198,6 +220,7 @@ class StructureProblem:
         if len(self.spr) != len(structure.rails):
             raise ValueError("stations_per_rail needs one count per rail")
         self.freedom = freedom
+        self.station_rotation = float(station_rotation)
         self.axes = structure.axes(step)
         self.lut = structure.link.reach_lut()
         self.sphere = lobe_sphere(self.lut)
@@ -227,7 +250,7 @@ class StructureProblem:
         n = self.n_stations
         pos, bor = [], []
         for i, r in enumerate(self.station_rails):
-            rot = x[n + i] if self.per >= 2 else 0.0
+            rot = self.station_rotation + (x[n + i] if self.per >= 2 else 0.0)
             tilt = x[2 * n + i] if self.per >= 3 else 0.0
             p, b = self.structure.rails[r].station(x[i], rot, tilt)
             pos.append(p)
