@@ -16,6 +16,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from uwbimu.models import state as ST
 from uwbimu.io.dataset import Dataset
 from uwbimu.models.quaternion import quat_conjugate, quat_log, quat_multiply, quat_normalize
 
@@ -106,13 +107,13 @@ def compute_metrics(result, dataset: Dataset, skip_s: float = 10.0) -> dict[str,
     def estimated(sl) -> bool:  # a block another estimator does not estimate has NaN sd
         return bool(np.any(np.all(np.isfinite(sd[:, sl]), axis=1)))
 
-    has_att = estimated(slice(6, 9))
-    has_vel = estimated(slice(3, 6)) and v is not None
-    ok = valid & np.all(np.isfinite(X[:, :3]), axis=1)
+    has_att = estimated(ST.ETH)
+    has_vel = estimated(ST.EV) and v is not None
+    ok = valid & np.all(np.isfinite(X[:, ST.P]), axis=1)
     if not ok.any():
         raise ValueError("no estimate overlaps the ground truth")
-    ep = X[:, 0:3] - p
-    eth = attitude_error(X[:, 6:10], q) if has_att else None
+    ep = X[:, ST.P] - p
+    eth = attitude_error(X[:, ST.Q], q) if has_att else None
     t0 = tt[ok][0]
     after = ok & (tt >= t0 + skip_s)
     out: dict[str, Any] = {
@@ -125,19 +126,20 @@ def compute_metrics(result, dataset: Dataset, skip_s: float = 10.0) -> dict[str,
         "orientation_rmse_deg": float(np.degrees(np.sqrt(np.mean(np.sum(eth[ok] ** 2, axis=1))))) if has_att else None,
     }
     if has_vel:
-        ev = X[:, 3:6] - v
+        ev = X[:, ST.V] - v
         out["velocity_rmse"] = float(np.sqrt(np.mean(np.sum(ev[ok] ** 2, axis=1))))
     # NEES on the estimated blocks with truth (error = truth ⊟ estimate)
-    blocks = [(slice(0, 3), -ep)]
+    blocks = [(ST.EP, -ep)]
     if has_att:
-        blocks.append((slice(6, 9), eth))
+        blocks.append((ST.ETH, eth))
     if has_vel:
-        blocks.append((slice(3, 6), v - X[:, 3:6]))
-    if lever_true is not None and estimated(slice(15, 18)):
-        blocks.append((slice(15, 18), np.asarray(lever_true) - X[:, 16:19]))
-    if td_true is not None and estimated(slice(18, 19)):
-        blocks.append((slice(18, 19), (td_true - X[:, 19])[:, None]))
-    idx = np.concatenate([np.arange(19)[s] for s, _ in blocks])
+        blocks.append((ST.EV, v - X[:, ST.V]))
+    if lever_true is not None and estimated(ST.EPIU):
+        blocks.append((ST.EPIU, np.asarray(lever_true) - X[:, ST.PIU]))
+    td_err = slice(ST.ETD, ST.ETD + 1)
+    if td_true is not None and estimated(td_err):
+        blocks.append((td_err, (td_true - X[:, ST.TD])[:, None]))
+    idx = np.concatenate([np.arange(ST.ERROR_DIM)[s] for s, _ in blocks])
     err = np.concatenate([e for _, e in blocks], axis=1)  # truth ⊟ estimate
     if result.covariances is not None:
         cov = result.covariances[:, idx][:, :, idx]

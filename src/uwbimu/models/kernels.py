@@ -48,6 +48,9 @@ edited.  Every module that calls these primitives from cached kernels ends
 with ``refresh_stale_cache(globals(), [uwbimu.models.kernels])``: it keys the
 cache on a SHA-256 of the dependency sources (stored next to numba's index
 files) and flushes that module's cached kernels when the sources changed.
+``models/state.py`` is always part of that key: the kernels index the state by
+its block offsets (``N_*`` nominal, ``E_*`` error state), which numba freezes
+into the machine code as compile-time constants.
 """
 
 from __future__ import annotations
@@ -59,6 +62,10 @@ from pathlib import Path
 
 import numpy as np
 from numba import njit
+
+from uwbimu.models import state as _state
+from uwbimu.models.state import (E_BA, E_BG, E_L, E_P, E_TD, E_TH, E_V, ERROR_DIM, N_BA, N_BG, N_L, N_P, N_Q, N_V,
+                                 NOMINAL_DIM)
 
 GRAVITY = 9.81  # must equal uwbimu.models.reference.GRAVITY (pinned by a test)
 
@@ -81,7 +88,8 @@ def refresh_stale_cache(module_globals: dict, dependencies) -> bool:
         flushed the same way).
     """
     digest = hashlib.sha256()
-    for mod in dependencies:
+    # the state layout's offsets are compile-time constants in every kernel: always part of the key
+    for mod in [_state, *[m for m in dependencies if m is not _state]]:
         digest.update(Path(inspect.getfile(mod)).read_bytes())
     key = digest.hexdigest()
     dispatchers = [v for v in module_globals.values()
@@ -122,13 +130,13 @@ def rotmat(q, R):
 @njit(cache=True)
 def _deriv(x, u, out):
     """Derivative of the first 10 nominal components (p, v, q) — reference ``continuous_dynamics``."""
-    qw, qx, qy, qz = x[6], x[7], x[8], x[9]
-    ax = u[0] - x[10]
-    ay = u[1] - x[11]
-    az = u[2] - x[12]
-    wx = u[3] - x[13]
-    wy = u[4] - x[14]
-    wz = u[5] - x[15]
+    qw, qx, qy, qz = x[N_Q], x[N_Q + 1], x[N_Q + 2], x[N_Q + 3]
+    ax = u[0] - x[N_BA]
+    ay = u[1] - x[N_BA + 1]
+    az = u[2] - x[N_BA + 2]
+    wx = u[3] - x[N_BG]
+    wy = u[4] - x[N_BG + 1]
+    wz = u[5] - x[N_BG + 2]
     r00 = 1 - 2 * (qy * qy + qz * qz)
     r01 = 2 * (qx * qy - qw * qz)
     r02 = 2 * (qx * qz + qw * qy)
@@ -138,9 +146,9 @@ def _deriv(x, u, out):
     r20 = 2 * (qx * qz - qw * qy)
     r21 = 2 * (qy * qz + qw * qx)
     r22 = 1 - 2 * (qx * qx + qy * qy)
-    out[0] = x[3]
-    out[1] = x[4]
-    out[2] = x[5]
+    out[0] = x[N_V]
+    out[1] = x[N_V + 1]
+    out[2] = x[N_V + 2]
     out[3] = r00 * ax + r01 * ay + r02 * az
     out[4] = r10 * ax + r11 * ay + r12 * az
     out[5] = r20 * ax + r21 * ay + r22 * az - GRAVITY
@@ -261,8 +269,9 @@ def _skew3(v0, v1, v2, S):
 @njit(cache=True)
 def _phi_blocks(x, u, dt, B, W):
     """:func:`phi_blocks` with a work array ``W`` (6, 3, 3)."""
-    rotmat(x[6:10], W[0])
-    _phi_blocks_R(W[0], u[0] - x[10], u[1] - x[11], u[2] - x[12], u[3] - x[13], u[4] - x[14], u[5] - x[15],
+    rotmat(x[N_Q:N_Q + 4], W[0])
+    _phi_blocks_R(W[0], u[0] - x[N_BA], u[1] - x[N_BA + 1], u[2] - x[N_BA + 2], u[3] - x[N_BG], u[4] - x[N_BG + 1],
+                  u[5] - x[N_BG + 2],
                   dt, B, W)
 
 
@@ -375,22 +384,22 @@ def _cov_step(P, x, u, dt, noise, B, W, col):
             P[r, i] = col[i]
     adt = abs(dt)
     for i in range(3):
-        P[i, i] += noise[0] * adt**3 / 3.0
-        P[i, 3 + i] += noise[0] * adt**2 / 2.0
-        P[3 + i, i] += noise[0] * adt**2 / 2.0
-        P[3 + i, 3 + i] += noise[0] * adt
-        P[6 + i, 6 + i] += noise[1] * adt
-        P[9 + i, 9 + i] += noise[2] * adt
-        P[12 + i, 12 + i] += noise[3] * adt
-        P[15 + i, 15 + i] += noise[4] * adt
-    P[18, 18] += noise[5] * adt
+        P[E_P + i, E_P + i] += noise[0] * adt**3 / 3.0
+        P[E_P + i, E_V + i] += noise[0] * adt**2 / 2.0
+        P[E_V + i, E_P + i] += noise[0] * adt**2 / 2.0
+        P[E_V + i, E_V + i] += noise[0] * adt
+        P[E_TH + i, E_TH + i] += noise[1] * adt
+        P[E_BA + i, E_BA + i] += noise[2] * adt
+        P[E_BG + i, E_BG + i] += noise[3] * adt
+        P[E_L + i, E_L + i] += noise[4] * adt
+    P[E_TD, E_TD] += noise[5] * adt
     n_gm = _n_gauss_markov(noise, N)
     if noise.shape[0] >= 8 and noise[7] > 0.0 and n_gm > 0:
         # per-anchor range biases as first-order Gauss-Markov processes
         # (b' = -b / tau + w, stationary variance noise[6], 1 / tau = noise[7]):
         # Phi_bb = exp(-|dt| / tau) I, Q_bb = var (1 - Phi_bb^2)
         f = math.exp(-adt * noise[7])
-        for r in range(19, 19 + n_gm):
+        for r in range(ERROR_DIM, ERROR_DIM + n_gm):
             for c in range(N):
                 P[r, c] *= f
                 P[c, r] *= f
@@ -400,7 +409,7 @@ def _cov_step(P, x, u, dt, noise, B, W, col):
         # of them, random walks like the first lever arm), then an altimeter bias (random walk noise[9])
         n_lev = int(noise[10]) if noise.shape[0] >= 11 else 0
         # constant TDoA pair biases (noise[11] of them) come first: no process noise
-        r0 = 19 + int(noise[8]) + (int(noise[11]) if noise.shape[0] >= 12 else 0)
+        r0 = ERROR_DIM + int(noise[8]) + (int(noise[11]) if noise.shape[0] >= 12 else 0)
         for r in range(r0, r0 + n_lev):
             P[r, r] += noise[4] * adt
         for r in range(r0 + n_lev, N):
@@ -461,11 +470,11 @@ def range_jacobian(xt, u_tau, anchor, bias_idx, delta, h):
     Returns the predicted range [m].
     """
     R = np.empty((3, 3))
-    rotmat(xt[6:10], R)
-    l0, l1, l2 = xt[16], xt[17], xt[18]
-    w0 = u_tau[3] - xt[13]
-    w1 = u_tau[4] - xt[14]
-    w2 = u_tau[5] - xt[15]
+    rotmat(xt[N_Q:N_Q + 4], R)
+    l0, l1, l2 = xt[N_L], xt[N_L + 1], xt[N_L + 2]
+    w0 = u_tau[3] - xt[N_BG]
+    w1 = u_tau[4] - xt[N_BG + 1]
+    w2 = u_tau[5] - xt[N_BG + 2]
     pu = np.empty(3)
     # w x l (body)
     c0 = w1 * l2 - w2 * l1
@@ -473,8 +482,8 @@ def range_jacobian(xt, u_tau, anchor, bias_idx, delta, h):
     c2 = w0 * l1 - w1 * l0
     vel = np.empty(3)
     for i in range(3):
-        pu[i] = xt[i] + R[i, 0] * l0 + R[i, 1] * l1 + R[i, 2] * l2
-        vel[i] = xt[3 + i] + R[i, 0] * c0 + R[i, 1] * c1 + R[i, 2] * c2
+        pu[i] = xt[N_P + i] + R[i, 0] * l0 + R[i, 1] * l1 + R[i, 2] * l2
+        vel[i] = xt[N_V + i] + R[i, 0] * c0 + R[i, 1] * c1 + R[i, 2] * c2
     d0 = anchor[0] - pu[0]
     d1 = anchor[1] - pu[1]
     d2 = anchor[2] - pu[2]
@@ -492,35 +501,35 @@ def range_jacobian(xt, u_tau, anchor, bias_idx, delta, h):
     hth1 = uR[2] * l0 - uR[0] * l2
     hth2 = uR[0] * l1 - uR[1] * l0
     for i in range(3):
-        h[i] = -un[i]
-        h[15 + i] = -uR[i]
-    h[18] = -(un[0] * vel[0] + un[1] * vel[1] + un[2] * vel[2])
+        h[E_P + i] = -un[i]
+        h[E_L + i] = -uR[i]
+    h[E_TD] = -(un[0] * vel[0] + un[1] * vel[1] + un[2] * vel[2])
     # time mapping tau -> filter time
     for i in range(3):
-        h[3 + i] = delta * un[i]
+        h[E_V + i] = delta * un[i]
     # (H_th [w]x)_j = sum_i hth_i Wx[i, j];  row vector times skew = -(w x hth)^T ... computed explicitly
     g0 = hth1 * w2 - hth2 * w1
     g1 = hth2 * w0 - hth0 * w2
     g2 = hth0 * w1 - hth1 * w0
-    h[6] = hth0 + delta * g0
-    h[7] = hth1 + delta * g1
-    h[8] = hth2 + delta * g2
-    h[12] = delta * hth0
-    h[13] = delta * hth1
-    h[14] = delta * hth2
+    h[E_TH] = hth0 + delta * g0
+    h[E_TH + 1] = hth1 + delta * g1
+    h[E_TH + 2] = hth2 + delta * g2
+    h[E_BG] = delta * hth0
+    h[E_BG + 1] = delta * hth1
+    h[E_BG + 2] = delta * hth2
     bias = 0.0
     if bias_idx >= 0:
         h[bias_idx] = 1.0
-        bias = xt[bias_idx + 1]
+        bias = xt[bias_idx + (NOMINAL_DIM - ERROR_DIM)]  # extras sit one further in the nominal state (q has 4)
     return rho + bias
 
 
 @njit(cache=True)
 def inject(x, dx):
     """``x <- x ⊞ dx`` for the extended state (right attitude perturbation)."""
-    for i in range(6):
-        x[i] += dx[i]
-    t0, t1, t2 = dx[6], dx[7], dx[8]
+    for i in range(6):  # p, v: additive (E_P, E_V == N_P, N_V)
+        x[N_P + i] += dx[E_P + i]
+    t0, t1, t2 = dx[E_TH], dx[E_TH + 1], dx[E_TH + 2]
     th = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
     if th < 1e-8:
         k = 0.5 - th * th / 48.0
@@ -529,18 +538,18 @@ def inject(x, dx):
         k = math.sin(0.5 * th) / th
         dw = math.cos(0.5 * th)
     dq0, dq1, dq2, dq3 = dw, k * t0, k * t1, k * t2
-    pw, px, py, pz = x[6], x[7], x[8], x[9]
+    pw, px, py, pz = x[N_Q], x[N_Q + 1], x[N_Q + 2], x[N_Q + 3]
     qw = pw * dq0 - px * dq1 - py * dq2 - pz * dq3
     qx = pw * dq1 + px * dq0 + py * dq3 - pz * dq2
     qy = pw * dq2 - px * dq3 + py * dq0 + pz * dq1
     qz = pw * dq3 + px * dq2 - py * dq1 + pz * dq0
     n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-    x[6] = qw / n
-    x[7] = qx / n
-    x[8] = qy / n
-    x[9] = qz / n
-    for i in range(9, dx.shape[0]):
-        x[i + 1] += dx[i]
+    x[N_Q] = qw / n
+    x[N_Q + 1] = qx / n
+    x[N_Q + 2] = qy / n
+    x[N_Q + 3] = qz / n
+    for i in range(E_BA, dx.shape[0]):  # everything after the attitude is additive, one index further on
+        x[i + (N_BA - E_BA)] += dx[i]
 
 
 @njit(cache=True)
@@ -613,3 +622,7 @@ def tdoa_jacobian(xt, u_tau, anchor_a, anchor_b, bias_idx, delta, h, work):
         h[bias_idx] = 1.0
         pred += xt[bias_idx + 1]
     return pred
+
+
+# this module's own kernels inline the state layout's offsets (models/state.py)
+refresh_stale_cache(globals(), [])

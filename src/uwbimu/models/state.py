@@ -49,6 +49,11 @@ EPIU = slice(15, 18)
 ETD = 18
 ERROR_DIM = 19
 
+# First indices of the blocks, for numba kernels (integer globals are compile-time constants there;
+# slices are not): nominal ``N_*`` and error-state ``E_*`` offsets of the slices above.
+N_P, N_V, N_Q, N_BA, N_BG, N_L, N_TD = P.start, V.start, Q.start, BA.start, BG.start, PIU.start, TD
+E_P, E_V, E_TH, E_BA, E_BG, E_L, E_TD = EP.start, EV.start, ETH.start, EBA.start, EBG.start, EPIU.start, ETD
+
 #: Names of the 19 error-state components, in order (used for CSV columns and reports).
 ERROR_STATE_NAMES = (
     "px", "py", "pz",

@@ -23,6 +23,7 @@ from typing import Any, Union
 
 import numpy as np
 
+from uwbimu.models import state as ST
 from uwbimu.models import reference as ref
 from uwbimu.observability.config import ObservabilityConfig, load_config
 from uwbimu.observability.structural import evaluation_points
@@ -78,7 +79,7 @@ def theorem1_conditions(x20: np.ndarray, anchors: np.ndarray, accel_axes, gyro_a
         d = np.linalg.norm(np.asarray(anchors, float) - tag, axis=1)
         t1 = bool(np.any(d > tol))
     t2 = len(accel_axes) > 0
-    t3 = bool(np.linalg.norm(x20[16:19]) > tol) and len(gyro_axes) == 3
+    t3 = bool(np.linalg.norm(x20[ST.PIU]) > tol) and len(gyro_axes) == 3
     return {"T1": t1, "T2": t2, "T3": t3}
 
 
@@ -134,9 +135,9 @@ def first_order_criterion(x20: np.ndarray, anchors: np.ndarray, accel_axes, gyro
     trajectory: Theorem 1's argument, evaluated at one point, does not see it.
     For TDoA ``e_i`` is replaced by ``e_i - e_0`` (see :func:`_sight_rows`).
     """
-    R = ref.rotation_matrix(x20[6:10])
+    R = ref.rotation_matrix(x20[ST.Q])
     E = _sight_rows(x20, anchors, measurement)
-    lever = x20[16:19]
+    lever = x20[ST.PIU]
     out = {"accel": 0.0, "gyro": 0.0}
     for a in accel_axes:
         out["accel"] = max(out["accel"], float(np.abs(E @ R[:, _AXES.index(a)]).max()))

@@ -27,6 +27,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
+from uwbimu.models import state as ST
 from uwbimu.models.quaternion import quat_to_rotmat
 
 _COS_TOL = 1e-6  # 1 - cos(principal angle) below which a direction is shared
@@ -231,12 +232,12 @@ def candidates_for(
         consistent, for every ``e``.
     """
     x = np.asarray(x, dtype=float)
-    info = {"p": x[0:3], "v": x[3:6]}
+    info = {"p": x[ST.P], "v": x[ST.V]}
     extra: list[Candidate] = []
     if model_kind == "uwb_imu":
-        R = quat_to_rotmat(x[6:10])
+        R = quat_to_rotmat(x[ST.Q])
         info["R"] = R
-        info["tag"] = x[0:3] + R @ x[16:19]
+        info["tag"] = x[ST.P] + R @ x[ST.PIU]
         blocks = _blocks(names)
         L = np.zeros((len(names), 3))
         for j in range(3):
@@ -248,7 +249,7 @@ def candidates_for(
 
         extra.append(Candidate(L, name_lever))
         if gyro_reading is not None:
-            w = np.asarray(gyro_reading, float) - x[13:16]
+            w = np.asarray(gyro_reading, float) - x[ST.BG]
             W = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
             C = np.zeros((len(names), 3))
             for j in range(3):

@@ -27,6 +27,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from uwbimu.models import state as ST
 from uwbimu.models import reference as ref
 from uwbimu.observability.engine import ControlAffineModel, LieObservability
 
@@ -108,7 +109,7 @@ def uwb_imu_model(spec: UwbImuSpec) -> ControlAffineModel:
         h = ca.vertcat(*[r[i] - r[0] for i in range(1, N)])
     else:
         h = ca.vertcat(*[0.5 * ca.sumsqr(A[3 * i : 3 * i + 3] - pU) for i in range(N)])
-    Xi = ref.quaternion_rate_matrix(x[6:10], ops)
+    Xi = ref.quaternion_rate_matrix(x[ST.Q], ops)
     T = ca.SX.zeros(19, 18)
     T[0:6, 0:6] = ca.SX.eye(6)
     # right (body) perturbation q (x) Exp(dtheta): dq/ddtheta = 0.5 Xi(q)
@@ -136,12 +137,12 @@ def uwb_imu_model(spec: UwbImuSpec) -> ControlAffineModel:
 def sample_uwb_imu_state(rng: np.random.Generator, lever_arm=None, box: float = 3.0) -> np.ndarray:
     """A random 19-number state ``(p, v, q, b_a, b_g, p_IU)`` (generic values)."""
     x = np.empty(19)
-    x[0:3] = rng.uniform(-box, box, 3)
-    x[3:6] = rng.normal(0, 1.0, 3)
-    x[6:10] = random_quaternion(rng)
-    x[10:13] = rng.normal(0, 0.1, 3)
-    x[13:16] = rng.normal(0, 0.05, 3)
-    x[16:19] = rng.normal(0, 0.2, 3) if lever_arm is None else lever_arm
+    x[ST.P] = rng.uniform(-box, box, 3)
+    x[ST.V] = rng.normal(0, 1.0, 3)
+    x[ST.Q] = random_quaternion(rng)
+    x[ST.BA] = rng.normal(0, 0.1, 3)
+    x[ST.BG] = rng.normal(0, 0.05, 3)
+    x[ST.PIU] = rng.normal(0, 0.2, 3) if lever_arm is None else lever_arm
     return x
 
 

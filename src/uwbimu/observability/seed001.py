@@ -22,6 +22,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from uwbimu.models import state as ST
 from uwbimu.models import reference as ref
 
 AXES = ("x", "y", "z")
@@ -37,7 +38,7 @@ def _blocks_function(n_anchors: int = 3):
     A = ca.SX.sym("a", 3 * n_anchors)
     f0, F = ref.control_affine_fields(x20, ops)
     f0, F = f0[:19], F[:19, :]
-    p, q, bg, l = x[0:3], x[6:10], x[13:16], x[16:19]
+    p, q, bg, l = x[ST.P], x[ST.Q], x[ST.BG], x[ST.PIU]
     R = ref.rotation_matrix(q, ops)
     pU = ref.antenna_position(x20, ops)
     h = ca.vertcat(*[0.5 * ca.sumsqr(A[3 * i : 3 * i + 3] - pU) for i in range(n_anchors)])

@@ -45,7 +45,8 @@ from uwbimu.models.imu import BMI088, ImuNoise
 from uwbimu.models.kernels import phi_left_R, refresh_stale_cache
 from uwbimu.models import kernels as _physics
 from uwbimu.models.quaternion import quat_normalize, quat_slerp, quat_to_rotmat
-from uwbimu.models.state import ERROR_STATE_NAMES
+from uwbimu.models.state import (BA, BG, E_L, E_TD, EBA, EBG, EP, EPIU, ERROR_DIM, ERROR_STATE_NAMES, ETD, ETH,
+                                 EV, P as NP_, PIU, Q, TD, V as NV_)
 from uwbimu.observability.directions import candidates_for, name_directions
 
 #: Typical magnitudes used to make the information dimensionless (per block).
@@ -156,8 +157,8 @@ def trajectory_from_result(result) -> Trajectory:
     """Trajectory of an :class:`uwbimu.estimation.result.EstimationResult`."""
     X = np.asarray(result.states, float)
     return Trajectory(
-        np.asarray(result.t, float), X[:, 0:3], X[:, 3:6], quat_normalize(X[:, 6:10]),
-        X[:, 10:13], X[:, 13:16], np.nanmedian(X[:, 16:19], axis=0), float(np.nanmedian(X[:, 19])),
+        np.asarray(result.t, float), X[:, NP_], X[:, NV_], quat_normalize(X[:, Q]),
+        X[:, BA], X[:, BG], np.nanmedian(X[:, PIU], axis=0), float(np.nanmedian(X[:, TD])),
     )  # fmt: skip
 
 
@@ -191,8 +192,8 @@ def trajectory_from_states_csv(path) -> Trajectory:
         row = int(np.flatnonzero(np.diff(t) <= 0)[0]) + 1
         raise ValueError(f"{path}: row {row + 2} (line in file), column 't': time not increasing")
     return Trajectory(
-        t, X[:, 0:3], X[:, 3:6], quat_normalize(X[:, 6:10]), X[:, 10:13], X[:, 13:16],
-        np.nanmedian(X[:, 16:19], axis=0), float(np.nanmedian(X[:, 19])),
+        t, X[:, NP_], X[:, NV_], quat_normalize(X[:, Q]), X[:, BA], X[:, BG],
+        np.nanmedian(X[:, PIU], axis=0), float(np.nanmedian(X[:, TD])),
     )  # fmt: skip
 
 
@@ -230,14 +231,14 @@ def range_jacobians(p, v, R, omega, lever, anchors) -> tuple[np.ndarray, np.ndar
     d = anchors - pU
     h = np.linalg.norm(d, axis=1)
     e = d / h[:, None]
-    H = np.zeros((len(h), 19))
-    H[:, 0:3] = -e
+    H = np.zeros((len(h), ERROR_DIM))
+    H[:, EP] = -e
     # d pU / d dtheta = -R [l]x  ->  d h / d dtheta = e^T R [l]x
     lx = _skew(lever)
-    H[:, 6:9] = np.einsum("mi,mij->mj", e, R @ lx)
-    H[:, 15:18] = -np.einsum("mi,mij->mj", e, R)
+    H[:, ETH] = np.einsum("mi,mij->mj", e, R @ lx)
+    H[:, EPIU] = -np.einsum("mi,mij->mj", e, R)
     vel_U = v + np.einsum("mij,mj->mi", R, np.cross(omega, lever))
-    H[:, 18] = -np.sum(e * vel_U, axis=1)
+    H[:, ETD] = -np.sum(e * vel_U, axis=1)
     return h, H
 
 
@@ -260,33 +261,34 @@ def _window_information(R, f, w, dt, rng_idx, Hr, sig2, qdiag, use_noise):
     """
     K = R.shape[0]
     M = Hr.shape[0]
-    Phi = np.eye(19)
-    P = np.zeros((15, 15))
-    PT = np.zeros((15, 15))
+    # E_L: size of the IMU-driven core (p, v, theta, b_a, b_g); E_TD: of the core with the lever arm
+    Phi = np.eye(ERROR_DIM)
+    P = np.zeros((E_L, E_L))
+    PT = np.zeros((E_L, E_L))
     B = np.zeros((7, 3, 3))
     W = np.zeros((6, 3, 3))
-    col = np.zeros(15)
-    info = np.zeros((19, 19))
+    col = np.zeros(E_L)
+    info = np.zeros((ERROR_DIM, ERROR_DIM))
     j = 0
-    row = np.empty(19)
+    row = np.empty(ERROR_DIM)
     for k in range(K):
         while j < M and rng_idx[j] == k:
             s2 = sig2[j]
             if use_noise:
-                for a in range(15):
+                for a in range(E_L):
                     ha = Hr[j, a]
                     if ha != 0.0:
-                        for b in range(15):
+                        for b in range(E_L):
                             s2 += ha * P[a, b] * Hr[j, b]
-            for c in range(19):
+            for c in range(ERROR_DIM):
                 s = 0.0
-                for a in range(18):
+                for a in range(E_TD):
                     s += Hr[j, a] * Phi[a, c]
                 row[c] = s
-            row[18] += Hr[j, 18]  # t_d is a constant: its column of Phi is e_18
-            for a in range(19):
+            row[E_TD] += Hr[j, E_TD]  # t_d is a constant: its column of Phi is e_td
+            for a in range(ERROR_DIM):
                 ra = row[a] / s2
-                for b in range(a, 19):
+                for b in range(a, ERROR_DIM):
                     info[a, b] += ra * row[b]
             j += 1
         if k == K - 1:
@@ -294,15 +296,15 @@ def _window_information(R, f, w, dt, rng_idx, Hr, sig2, qdiag, use_noise):
         _step_rows(Phi, R[k], f[k], w[k], dt[k], B, W, col)
         if use_noise:
             _step_rows(P, R[k], f[k], w[k], dt[k], B, W, col)  # F P
-            for a in range(15):
-                for b in range(15):
+            for a in range(E_L):
+                for b in range(E_L):
                     PT[a, b] = P[b, a]
             _step_rows(PT, R[k], f[k], w[k], dt[k], B, W, col)  # F (F P)^T = F P F^T
-            for a in range(15):
-                for b in range(15):
+            for a in range(E_L):
+                for b in range(E_L):
                     P[a, b] = PT[a, b]
                 P[a, a] += qdiag[a] * dt[k]
-    for a in range(19):
+    for a in range(ERROR_DIM):
         for b in range(a):
             info[a, b] = info[b, a]
     return info
@@ -320,7 +322,7 @@ def _propagate_cov(P, PT, R, f, w, dt, qdiag, B, W, col):
     for a in range(n):
         for b in range(n):
             P[a, b] = 0.5 * (PT[a, b] + PT[b, a])
-    for a in range(15):
+    for a in range(E_L):
         P[a, a] += qdiag[a] * dt
 
 
@@ -341,24 +343,24 @@ def _window_pcrb(R, f, w, dt, rng_idx, Hr, sig2, qdiag, P0):
     M = Hr.shape[0]
     P = P0.copy()
     Pn = P0.copy()
-    PT = np.zeros((19, 19))
+    PT = np.zeros((ERROR_DIM, ERROR_DIM))
     B = np.zeros((7, 3, 3))
     W = np.zeros((6, 3, 3))
-    col = np.zeros(15)
-    Ph = np.empty(19)
+    col = np.zeros(E_L)
+    Ph = np.empty(ERROR_DIM)
     j = 0
     for k in range(K):
         while j < M and rng_idx[j] == k:
             s2 = sig2[j]
-            for a in range(19):
+            for a in range(ERROR_DIM):
                 acc = 0.0
-                for b in range(19):
+                for b in range(ERROR_DIM):
                     acc += P[a, b] * Hr[j, b]
                 Ph[a] = acc
-            for a in range(19):
+            for a in range(ERROR_DIM):
                 s2 += Hr[j, a] * Ph[a]
-            for a in range(19):
-                for b in range(19):
+            for a in range(ERROR_DIM):
+                for b in range(ERROR_DIM):
                     P[a, b] -= Ph[a] * Ph[b] / s2
             j += 1
         if k == K - 1:
@@ -370,10 +372,10 @@ def _window_pcrb(R, f, w, dt, rng_idx, Hr, sig2, qdiag, P0):
 
 @njit(cache=True)
 def _transition(R, f, w, dt):
-    Phi = np.eye(19)
+    Phi = np.eye(ERROR_DIM)
     B = np.zeros((7, 3, 3))
     W = np.zeros((6, 3, 3))
-    col = np.zeros(15)
+    col = np.zeros(E_L)
     for k in range(R.shape[0] - 1):
         _step_rows(Phi, R[k], f[k], w[k], dt[k], B, W, col)
     return Phi
@@ -428,10 +430,11 @@ def analyse_information(info: np.ndarray, scales: dict, x_ref=None, anchors=None
     label = None
     if x_ref is not None and anchors is not None:
         # name in scaled coordinates: map the generator candidates through D^-1
-        cands = candidates_for("uwb_imu", names[:18], x_ref, anchors)
+        cands = candidates_for("uwb_imu", names[:ETD], x_ref, anchors)
         for c in cands:
-            c.basis = c.basis / D[:18, None]
-        named = name_directions(weakest[:18, None] if abs(weakest[18]) < 0.5 else np.zeros((18, 0)), cands, names[:18])
+            c.basis = c.basis / D[:ETD, None]
+        named = name_directions(weakest[:ETD, None] if abs(weakest[ETD]) < 0.5 else np.zeros((ETD, 0)), cands,
+                                names[:ETD])
         if named and not named[0]["name"].startswith("unnamed"):
             label = named[0]["name"]
     if label is None:
@@ -496,12 +499,12 @@ def _prepare(ds, tr: Trajectory, opts: WindowOptions):
 def _noise_model(ds, opts: "WindowOptions"):
     sigma = opts.range_sigma or (ds.meta.range_sigma if ds.meta.range_sigma else 0.1)
     noise = opts.imu_noise or (ds.meta.imu_noise if ds.meta.imu_noise is not None else BMI088)
-    qd = np.zeros(15)
-    qd[3:6] = noise.accel_noise_density**2
-    qd[6:9] = noise.gyro_noise_density**2
-    qd[9:12] = noise.accel_bias_rw**2
-    qd[12:15] = noise.gyro_bias_rw**2
-    return sigma, noise, (qd if opts.include_imu_noise else np.zeros(15))
+    qd = np.zeros(E_L)  # white-noise densities of the IMU-driven core (p, v, theta, b_a, b_g)
+    qd[EV] = noise.accel_noise_density**2
+    qd[ETH] = noise.gyro_noise_density**2
+    qd[EBA] = noise.accel_bias_rw**2
+    qd[EBG] = noise.gyro_bias_rw**2
+    return sigma, noise, (qd if opts.include_imu_noise else np.zeros(E_L))
 
 
 def posterior_crb(ds, trajectory: Optional[Trajectory] = None, t_start: Optional[float] = None,
@@ -598,8 +601,8 @@ def window_observability(ds, trajectory: Optional[Trajectory] = None, options: O
             P_chain = P_end
             # marginal precision the window's ranges add, in units of the prior precision
             prec = lambda P, i: 1.0 / max(P[i, i], 1e-300)  # noqa: E731
-            row["lever_arm_info_gain"] = float(min((prec(P_end, i) - prec(P_prior, i)) * prior_sd[i] ** 2 for i in (15, 16, 17)))
-            row["time_offset_info_gain"] = float((prec(P_end, 18) - prec(P_prior, 18)) * prior_sd[18] ** 2)
+            row["lever_arm_info_gain"] = float(min((prec(P_end, i) - prec(P_prior, i)) * prior_sd[i] ** 2 for i in range(EPIU.start, EPIU.stop)))
+            row["time_offset_info_gain"] = float((prec(P_end, ETD) - prec(P_prior, ETD)) * prior_sd[ETD] ** 2)
         if nr < opts.min_ranges or k1 - k0 < 2:
             row.update({"min_eigenvalue": 0.0, "condition_number": float("inf"), "weakest_direction": "no data"})
             if opts.bound == "pcrb":

@@ -45,6 +45,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from uwbimu.models import state as ST
+from uwbimu.models.kernels import refresh_stale_cache
+from uwbimu.models.state import E_BA, E_BG, E_P, E_TH, E_V, ERROR_DIM
 from uwbimu.models.quaternion import skew
 
 
@@ -62,14 +65,14 @@ def range_jacobian(kin_meas: dict[str, np.ndarray], anchors: np.ndarray, lever_a
     ant = kin_meas["p"] + Rl
     d = anchors - ant
     u = d / np.linalg.norm(d, axis=1, keepdims=True)
-    H = np.zeros((len(u), 19))
-    H[:, 0:3] = -u
+    H = np.zeros((len(u), ST.ERROR_DIM))
+    H[:, ST.EP] = -u
     uR = np.einsum("mi,mij->mj", u, R)  # u^T R
-    H[:, 6:9] = uR @ skew(l)
-    H[:, 15:18] = -uR
+    H[:, ST.ETH] = uR @ skew(l)
+    H[:, ST.EPIU] = -uR
     w_l = np.cross(kin_meas["w"], l)  # [w]x l (body)
     v_ant = kin_meas["v"] + np.einsum("mij,mj->mi", R, w_l)
-    H[:, 18] = -np.sum(u * v_ant, axis=1)
+    H[:, ST.ETD] = -np.sum(u * v_ant, axis=1)
     return H
 
 
@@ -78,8 +81,8 @@ def _cov_run(P0, R, f, w, dt, qa, qg, qba, qbg, meas_step, H, sigma2):
     """Covariance recursion; updates for measurements assigned to each step after its prediction."""
     n = R.shape[0]
     P = P0.copy()
-    F = np.zeros((19, 19))
-    I19 = np.eye(19)
+    F = np.zeros((ERROR_DIM, ERROR_DIM))
+    I19 = np.eye(ERROR_DIM)
     m = 0
     M = meas_step.shape[0]
     for k in range(n):
@@ -88,8 +91,8 @@ def _cov_run(P0, R, f, w, dt, qa, qg, qba, qbg, meas_step, H, sigma2):
             h = H[m]
             Ph = P @ h
             s = h @ Ph + sigma2
-            for i in range(19):
-                for j in range(19):
+            for i in range(ERROR_DIM):
+                for j in range(ERROR_DIM):
                     P[i, j] -= Ph[i] * Ph[j] / s
             m += 1
         if k == n - 1:
@@ -99,27 +102,27 @@ def _cov_run(P0, R, f, w, dt, qa, qg, qba, qbg, meas_step, H, sigma2):
         wk = w[k]
         F[:, :] = 0.0
         for i in range(3):
-            F[i, 3 + i] = 1.0
+            F[E_P + i, E_V + i] = 1.0
         # -R [f]x
         Sf = np.array([[0.0, -fk[2], fk[1]], [fk[2], 0.0, -fk[0]], [-fk[1], fk[0], 0.0]])
         RSf = Rk @ Sf
         for i in range(3):
             for j in range(3):
-                F[3 + i, 6 + j] = -RSf[i, j]
-                F[3 + i, 9 + j] = -Rk[i, j]
+                F[E_V + i, E_TH + j] = -RSf[i, j]
+                F[E_V + i, E_BA + j] = -Rk[i, j]
         Sw = np.array([[0.0, -wk[2], wk[1]], [wk[2], 0.0, -wk[0]], [-wk[1], wk[0], 0.0]])
         for i in range(3):
             for j in range(3):
-                F[6 + i, 6 + j] = -Sw[i, j]
-            F[6 + i, 12 + i] = -1.0
+                F[E_TH + i, E_TH + j] = -Sw[i, j]
+            F[E_TH + i, E_BG + i] = -1.0
         Fd = F * dt
         Phi = I19 + Fd + 0.5 * (Fd @ Fd)
         P = Phi @ P @ Phi.T
         for i in range(3):
-            P[3 + i, 3 + i] += qa * dt  # R n_a: isotropic, R drops out
-            P[6 + i, 6 + i] += qg * dt
-            P[9 + i, 9 + i] += qba * dt
-            P[12 + i, 12 + i] += qbg * dt
+            P[E_V + i, E_V + i] += qa * dt  # R n_a: isotropic, R drops out
+            P[E_TH + i, E_TH + i] += qg * dt
+            P[E_BA + i, E_BA + i] += qba * dt
+            P[E_BG + i, E_BG + i] += qbg * dt
         P = 0.5 * (P + P.T)
     return P
 
@@ -174,7 +177,8 @@ def calibration_metrics(P: np.ndarray, scale_lever_arm: float, scale_time_offset
     marginalised, prior included): 1 means a 1-sigma of one scale unit along
     the worst direction.
     """
-    C = P[15:19, 15:19]
+    cal = slice(ST.EPIU.start, ST.ETD + 1)  # lever arm and t_d, adjacent in the error state
+    C = P[cal, cal]
     S = np.diag([1.0 / scale_lever_arm] * 3 + [1.0 / scale_time_offset])
     ev = np.linalg.eigvalsh(S @ C @ S)
     return {
@@ -183,3 +187,7 @@ def calibration_metrics(P: np.ndarray, scale_lever_arm: float, scale_time_offset
         "lambda_min_scaled": float(1.0 / ev[-1]),
         "lambda_max_scaled": float(1.0 / ev[0]),
     }
+
+
+# _cov_run inlines the state layout's offsets: flush its disk cache when models/state.py changes
+refresh_stale_cache(globals(), [])
