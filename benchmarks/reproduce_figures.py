@@ -15,7 +15,8 @@ docs/reproducibility.md::
     python benchmarks/reproduce_figures.py seed-ocp-sweep   # seed OCP: grid, weights, LQR gains
     python benchmarks/reproduce_figures.py pointmass    # uwbimu plan point-mass, 4 objectives
     python benchmarks/reproduce_figures.py predictor    # predicted vs ESKF sd, calibration-flight
-    python benchmarks/reproduce_figures.py place-extra  # room_pdop_only, crane_fewer, *_geometric, bridge
+    python benchmarks/reproduce_figures.py place-extra  # room_pdop_only, crane_fewer, *_geometric, bridge, crane_axis_aligned
+    python benchmarks/reproduce_figures.py crane-readings  # benchmarks/crane_readings.py (R0 fits, attribution; ~4 min)
 
 ``--json`` prints one JSON object instead of a table.  The BLAS/CPU spread of the
 same figures is measured by ``benchmarks/reproduce_blas_spread.py``.
@@ -330,6 +331,7 @@ def place_extra() -> dict:
             "crane_geometric",
             "bridge",
             "bridge_geometric",
+            "crane_axis_aligned",
         ):
             _uwbimu("place", f"examples/placement/{name}.yaml", "--out", f"{d}/{name}")
             j = json.loads(Path(f"{d}/{name}/placement.json").read_text())
@@ -340,6 +342,8 @@ def place_extra() -> dict:
             if "hull_outside" in j:
                 out[f"place.{name}.outside_hull_pct"] = 100 * j["hull_outside"]
             out[f"place.{name}.n1_pdop_p95"] = j["worst_single_failure"]["pdop_p95"]
+            if "coverage_with_ray_casting" in j:
+                out[f"place.{name}.ray_cast_coverage_pct"] = 100 * j["coverage_with_ray_casting"]
             for r in j.get("table", []):
                 if "coverage" in r and "our PSO" in str(r.get("layout")):
                     out[f"place.{name}.seed_style_coverage_pct"] = 100 * r["coverage"]
@@ -350,7 +354,25 @@ def place_extra() -> dict:
     return out
 
 
-GROUPS = {"seed-ocp": seed_ocp, "room": room, "crane": crane, "calib": calib, "boundary": boundary, "delay": delay,
+def crane_readings() -> dict:
+    """docs/placement.md, crane readings: ``python benchmarks/crane_readings.py`` (same functions)."""
+    from uwbimu.design.crane import attribute_gain, fit_seed_range
+
+    out = {}
+    for rd in ("diagonal", "axis-aligned"):
+        f = fit_seed_range(rd)
+        g = attribute_gain(f.range_m, rd)
+        out[f"crane_readings.{rd}.r0_m"] = f.range_m
+        keys = ("seed_setup", "reoriented", "ours_same_variables", "ours_per_station", "ours_per_station_from_best_angle")
+        for k in keys:
+            out[f"crane_readings.{rd}.{k}_pct"] = 100 * getattr(g, k)
+        out[f"crane_readings.{rd}.best_angle_deg"] = g.best_angle_deg
+        for a, v in g.orientation.items():
+            out[f"crane_readings.{rd}.rot{a:g}_pct"] = 100 * v
+    return out
+
+
+GROUPS = {"seed-ocp": seed_ocp, "crane-readings": crane_readings, "room": room, "crane": crane, "calib": calib, "boundary": boundary, "delay": delay,
           "pcrb": pcrb, "demo": demo, "seed-ocp-sweep": seed_ocp_sweep, "pointmass": pointmass,
           "predictor": predictor, "place-extra": place_extra}  # fmt: skip
 

@@ -36,6 +36,7 @@ CMD = {
     "pointmass": f"{RF} pointmass",
     "predictor": f"{RF} predictor",
     "place-extra": f"{RF} place-extra",
+    "crane-readings": "python benchmarks/crane_readings.py",
 }
 R, O, P, T = (
     "README.md",
@@ -157,6 +158,25 @@ CATALOGUE += [
     (T, "3. predicted ratios", "figure-8 / designed, t_d", "2.79", "calib", "calib.ratio_figure8_over_designed.td"),
     (T, "3. predicted ratios", "figure-8 excited / designed, lever arm", "1.00", "calib", "calib.ratio_figure8_excited_over_designed.lever"),
     (T, "3. predicted ratios", "figure-8 excited / designed, t_d", "4.39", "calib", "calib.ratio_figure8_excited_over_designed.td"),
+]
+# issue 16 item 3: the crane's two station readings (added after the table above was measured)
+CR = "4. crane readings"
+for _rd, _vals in (("diagonal", ("26.58", "91.32", "97.00", "91.26", "98.83", "99.23")),
+                   ("axis-aligned", ("22.43", "91.32", "91.32", "91.09", "94.92", "94.92"))):
+    for _k, _lab, _q in zip(("r0_m", "seed_setup_pct", "reoriented_pct", "ours_same_variables_pct", "ours_per_station_pct",
+                             "ours_per_station_from_best_angle_pct"),
+                            ("fitted R0 [m]", "seed set-up [%]", "best common rotation [%]", "ours, 10 variables [%]",
+                             "ours, 30 variables [%]", "ours from the best rotation [%]"), _vals):
+        CATALOGUE.append((P, CR, f"{_rd}: {_lab}", _q, "crane-readings", f"crane_readings.{_rd}.{_k}"))
+    for _a, _q in zip(("0", "15", "22.5", "30", "45"),
+                      (("91.32", "91.99", "94.18", "95.97", "97.00") if _rd == "diagonal"
+                       else ("91.32", "88.83", "86.02", "83.26", "81.12"))):
+        CATALOGUE.append((P, CR, f"{_rd}: common rotation {_a} deg [%]", _q, "crane-readings", f"crane_readings.{_rd}.rot{_a}_pct"))
+CATALOGUE += [
+    (P, CR, "crane_axis_aligned.yaml: ours [%]", "94.92", "place-extra", "place.crane_axis_aligned.coverage_pct"),
+    (P, CR, "crane_axis_aligned.yaml: seed set-up [%]", "91.32", "place-extra", "place.crane_axis_aligned.seed_style_coverage_pct"),
+    (P, CR, "crane_axis_aligned.yaml: geometric coverage [%]", "17.18", "place-extra", "place.crane_axis_aligned.geometric_coverage_pct"),
+    (P, "Bridge", "ray casting: coverage [%]", "98.14", "place-extra", "place.bridge.ray_cast_coverage_pct"),
 ]
 
 # fmt: on

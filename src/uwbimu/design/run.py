@@ -35,6 +35,8 @@ __all__ = ["builtin_example", "EXAMPLES", "run_placement", "write_outputs", "lin
 SEED_COVERAGE = 0.913  # the seed's published jib-crane coverage with 40 modules
 GEOMETRIC_PDOP_MAX = 5.0  # room "geometric coverage": k-covered AND PDOP <= this
 CRANE_R0_CALIBRATED = 26.7  # see docs/placement.md: seed set-up (PSO) reproduces ~91 % at this range
+# R0 fitted per reading of the crane's stations (benchmarks/crane_readings.py; docs/placement.md section 4)
+CRANE_R0_FITTED = {"diagonal": CRANE_R0_CALIBRATED, "axis-aligned": 22.43}
 
 EXAMPLES: dict[str, dict] = {
     "room": {
@@ -415,11 +417,14 @@ def _radio_note(sc) -> str:
     """Plain statement of where the structure's range came from (printed by the CLI, stored in the JSON)."""
     note = (f"radio model: cos^n anchor antennas ({sc.beamwidth_deg:g} deg half-power beamwidth), omni tag, "
             f"0 dBi LOS range R0 = {sc.range_m:g} m")
-    if sc.name == "jib-crane" and abs(sc.range_m - CRANE_R0_CALIBRATED) < 1e-9:
-        note += (" -- R0 is FITTED (one unknown: the seed does not give its measured range model) so that the "
-                 "seed's own set-up (10 variables, PSO) reproduces the seed's 91.3 %; it is not a measurement")
+    fitted = CRANE_R0_FITTED.get(sc.reading)
+    if sc.name == "jib-crane" and abs(sc.range_m - fitted) < 1e-9:
+        note += (f" -- R0 is FITTED for the {sc.reading} reading of the stations (one unknown: the seed gives neither "
+                 "its measured range model nor which way a station's anchors face) so that the seed's own set-up "
+                 "(10 variables, PSO) reproduces the seed's 91.3 %; it is not a measurement")
     elif sc.name == "jib-crane":
-        note += " -- not the calibrated value (26.7 m), so the seed's 91.3 % is not directly comparable"
+        note += (f" -- not the value fitted for the {sc.reading} reading ({fitted:g} m), so the seed's 91.3 % is "
+                 "not directly comparable")
     return note + ". Every row of the table uses this same radio model."
 
 
