@@ -14,7 +14,7 @@ console = Console()
 
 
 def _print_result(res: dict) -> None:
-    meas = " (TDoA: PDOP and N-1 from time differences, >= 4 anchors in range)" if res.get("measurement") == "tdoa" else ""
+    meas = " (TDoA PDOP)" if res.get("measurement") == "tdoa" else ""
     t = Table(title="layouts compared" + meas if res["mode"] == "room" else f"{res.get('structure')}: coverage")
     if res["mode"] == "room":
         t.add_column("layout", overflow="fold", min_width=21)
