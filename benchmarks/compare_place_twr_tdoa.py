@@ -97,7 +97,8 @@ def main(argv=None) -> int:
     for r in rows:
         print(f"| {r['layout']} | {r['twr_pdop_p95']:.3f} | {r['tdoa_pdop_p95']:.3f} | {r['twr_n1_pdop_p95']:.3f} "
               f"| {r['tdoa_n1_pdop_p95']:.3f} | {r['twr_objective']:.3f} | {r['tdoa_objective']:.3f} "
-              f"| {100 * r['twr_coverage']:.1f} % / {100 * r['tdoa_coverage']:.1f} % | {100 * r['hull_outside']:.1f} % |")
+              f"| {100 * r['twr_coverage']:.1f} % / {100 * r['tdoa_coverage']:.1f} % "
+              f"| {100 * r['hull_outside']:.1f} % |")
     if args.json:
         out = {"seed": c0.seed, "maxiter": c0.optimizer.maxiter, "runs": runs, "rows": rows}
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)

@@ -118,7 +118,8 @@ def test_coplanar_anchors_singular_vertical_under_tdoa_not_under_twr():
     assert np.median(np.abs(v[:, 2, 0])) > 0.95
     assert np.median(g[:, 2, 2] / information_matrix(pts, CEILING6)[:, 2, 2]) < 0.3
     # Off-plane anchors (Bitcraze-style 3 high / 3 low) keep it.
-    bc = np.array([[0.2, 0.2, 2.8], [5.0, 0.2, 0.2], [9.8, 0.2, 2.8], [9.8, 7.8, 0.2], [5.0, 7.8, 2.8], [0.2, 7.8, 0.2]])
+    bc = np.array([[0.2, 0.2, 2.8], [5.0, 0.2, 0.2], [9.8, 0.2, 2.8],
+                   [9.8, 7.8, 0.2], [5.0, 7.8, 2.8], [0.2, 7.8, 0.2]])
     assert np.percentile(tdoa_pdop(pts, bc), 95) < 0.25 * np.percentile(tdoa_pdop(pts, CEILING6), 95)
 
 

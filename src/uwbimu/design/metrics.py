@@ -153,6 +153,17 @@ def information_matrix(points, anchors, sigma: float = 1.0, links=None, clock: b
     return np.einsum("pn,pni,pnj->pij", w, u, u) / float(sigma) ** 2
 
 
+def _dop_from(g: np.ndarray) -> np.ndarray:
+    """``sqrt(trace(g^-1))`` per matrix of (P, d, d); ``inf`` where ``g`` is singular."""
+    out = np.full(g.shape[0], np.inf)
+    # Relative conditioning test: a geometry whose smallest eigenvalue is ~0 is unobservable.
+    ev = np.linalg.eigvalsh(g)
+    ok = ev[:, 0] > 1e-10 * np.maximum(ev[:, -1], 1e-300)
+    if ok.any():
+        out[ok] = np.sqrt(np.sum(1.0 / ev[ok], axis=1))
+    return out
+
+
 def dop(points, anchors, links=None, clock: bool = False) -> np.ndarray:
     """Dilution of precision ``sqrt(trace((H^T H)^-1))`` per point (A-optimality).
 
@@ -160,15 +171,7 @@ def dop(points, anchors, links=None, clock: bool = False) -> np.ndarray:
     an unknown clock term.  Points with a singular geometry (fewer than 3 (4)
     closing links, coplanar/collinear geometry) get ``inf``.
     """
-    g = information_matrix(points, anchors, 1.0, links, clock)
-    out = np.full(g.shape[0], np.inf)
-    # Relative conditioning test: a geometry whose smallest eigenvalue is ~0 is unobservable.
-    ev = np.linalg.eigvalsh(g)
-    ok = ev[:, 0] > 1e-10 * np.maximum(ev[:, -1], 1e-300)
-    if ok.any():
-        inv_tr = np.sum(1.0 / ev[ok], axis=1)
-        out[ok] = np.sqrt(inv_tr)
-    return out
+    return _dop_from(information_matrix(points, anchors, 1.0, links, clock))
 
 
 def pdop(points, anchors, links=None) -> np.ndarray:
@@ -233,15 +236,6 @@ def tdoa_information_explicit(point, anchors, sigma: float = 1.0, ref: int = 0) 
     H = u[others] - u[ref][None, :]
     R = 0.5 * float(sigma) ** 2 * (np.eye(n - 1) + np.ones((n - 1, n - 1)))
     return H.T @ np.linalg.solve(R, H)
-
-
-def _dop_from(g: np.ndarray) -> np.ndarray:
-    out = np.full(g.shape[0], np.inf)
-    ev = np.linalg.eigvalsh(g)
-    ok = ev[:, 0] > 1e-10 * np.maximum(ev[:, -1], 1e-300)
-    if ok.any():
-        out[ok] = np.sqrt(np.sum(1.0 / ev[ok], axis=1))
-    return out
 
 
 def tdoa_pdop(points, anchors, links=None) -> np.ndarray:
