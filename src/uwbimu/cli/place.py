@@ -14,7 +14,8 @@ console = Console()
 
 
 def _print_result(res: dict) -> None:
-    t = Table(title="layouts compared" if res["mode"] == "room" else f"{res.get('structure')}: coverage")
+    meas = " (TDoA PDOP)" if res.get("measurement") == "tdoa" else ""
+    t = Table(title="layouts compared" + meas if res["mode"] == "room" else f"{res.get('structure')}: coverage")
     if res["mode"] == "room":
         t.add_column("layout", overflow="fold", min_width=21)
         for c in ("N", "cov. %", "PDOP p50", "PDOP p95", "N-1 p95", "out of hull %"):

@@ -5,6 +5,7 @@ A minimal room config::
     mode: room
     seed: 0
     n_anchors: 6
+    measurement: twr                  # or tdoa (differences to a reference anchor)
     radio: {preset: dw1000-indoor, antenna: {type: omni}, range_sigma: 0.1, k: 3}
     room:
       box: [10, 8, 3]                 # or polygon: [[x, y], ...] + height
@@ -17,6 +18,7 @@ See ``docs/placement.md`` for every field.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -61,7 +63,13 @@ class AntennaConfig(_M):
 
 
 class RadioConfig(_M):
-    """Link budget: preset or explicit 0 dBi LOS range, antennas, NLOS loss, noise, k."""
+    """Link budget: preset or explicit 0 dBi LOS range, antennas, NLOS loss, noise, k.
+
+    ``range_sigma`` is the sd of one two-way range; ``tdoa_sigma`` the sd of one TDoA
+    (one difference ``r_i - r_ref``), default ``sqrt(2) range_sigma`` (the same per-anchor
+    timing noise as the ranges, as in the filter's ``tdoa_sigma``).  ``k`` defaults to 3
+    links for ``measurement: twr`` and 4 for ``tdoa`` (3 differences for a 3-D fix).
+    """
 
     preset: Literal["dw1000-indoor", "dw1000-long-range", "outdoor-high-power"] = "dw1000-indoor"
     max_range: Optional[float] = Field(None, gt=0, description="overrides the preset's 0 dBi LOS range, m")
@@ -69,7 +77,15 @@ class RadioConfig(_M):
     tag_gain_dbi: float = 0.0
     nlos_loss_db: float = Field(10.0, ge=0)
     range_sigma: float = Field(0.1, gt=0, description="range noise sd, m")
-    k: int = Field(3, ge=1, description="links needed for a point to count as covered")
+    tdoa_sigma: Optional[float] = Field(
+        None, gt=0, description="sd of one TDoA measurement (r_i - r_ref), m; None: sqrt(2) range_sigma")
+    k: Optional[int] = Field(
+        None, ge=1, description="links needed for a point to count as covered; None: 3 (twr), 4 (tdoa)")
+
+    @property
+    def tdoa_sigma_m(self) -> float:
+        """The TDoA sd in use [m]: ``tdoa_sigma``, else ``sqrt(2) range_sigma``."""
+        return float(self.tdoa_sigma) if self.tdoa_sigma is not None else math.sqrt(2.0) * self.range_sigma
 
 
 class ObstacleConfig(_M):
@@ -188,6 +204,7 @@ class PlacementConfig(_M):
     mode: Literal["room", "structure"] = "room"
     seed: int = 0
     n_anchors: int = Field(6, ge=1)
+    measurement: Literal["twr", "tdoa"] = "twr"  # two-way ranges, or TDoA to a reference anchor (room mode)
     radio: RadioConfig = Field(default_factory=RadioConfig)
     room: Optional[RoomConfig] = None
     structure: Optional[StructureConfig] = None
@@ -205,6 +222,14 @@ class PlacementConfig(_M):
             raise ValueError("mode 'room' needs a 'room' section")
         if self.mode == "structure" and self.structure is None:
             raise ValueError("mode 'structure' needs a 'structure' section")
+        if self.measurement == "tdoa" and self.mode != "room":
+            raise ValueError("measurement 'tdoa' is supported in room mode only (structure mode evaluates "
+                             "two-way ranges); use measurement: twr")
+        if self.radio.k is None:
+            self.radio.k = 4 if self.measurement == "tdoa" else 3
+        elif self.measurement == "tdoa" and self.radio.k < 4:
+            raise ValueError(f"radio.k = {self.radio.k} with measurement 'tdoa': a 3-D TDoA fix needs >= 4 anchors "
+                             "in range (3 differences); set radio.k >= 4 or leave it out (default 4 for tdoa)")
         return self
 
 

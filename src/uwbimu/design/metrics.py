@@ -19,6 +19,31 @@ The Fisher information of the tag position from all closing links is::
   (pseudorange / TDoA systems);
 * D-optimal: ``log det J``;  E-optimal: ``lambda_min(J)``.
 
+TDoA Fisher information
+-----------------------
+A TDoA system measures differences to a reference anchor ``ref`` among the ``n``
+anchors in range, ``d_i = r_i - r_ref + e_i - e_ref`` (``i != ref``), with independent
+arrival noises ``e ~ N(0, s^2)``.  The ``n - 1`` differences share ``e_ref``, so
+their covariance is ``R = s^2 (I + 1 1^T)`` (correlated through the reference anchor)
+and the marginal sd of one TDoA is ``sigma_tdoa = sqrt(2) s``.  With ``H`` rows
+``(u_i - u_ref)^T``, ``H = D U`` for the differencing matrix ``D = [-1 | I]`` (reference
+column first), and ``D^T (D D^T)^-1 D = I - 1 1^T / n`` is the projector onto the
+complement of ``1`` (it does not depend on which anchor is the reference), hence::
+
+    J_tdoa = H^T R^-1 H = (1 / s^2) U^T (I - 1 1^T / n) U
+           = (1 / s^2) (sum_i u_i u_i^T - n ubar ubar^T),   ubar = mean_i u_i
+
+— the range information minus the rank-1 direction of a common offset: it is the
+Schur complement of the clock in the GDOP information of ``[u_i^T, 1]``.  TDoA PDOP is
+``sqrt(trace((U^T P U)^-1))``, the position sd per metre of *arrival* noise ``s`` (so it
+is directly comparable with the two-way PDOP for the same per-anchor timing noise, and
+never smaller); it needs ``n >= 4`` anchors in range.  Coplanar anchors (all on the
+ceiling) are weak in the direction normal to their plane: the normal components
+``u_i . nrm = h / r_i`` (``h`` the tag's distance from the plane) differ only through
+the ranges, and the centred vectors have none when the tag is equidistant from all
+anchors (on the axis of anchors on a circle) — singular under TDoA, while two-way ranges
+still see ``h / r > 0``.
+
 The seed's observability determinant and how it relates
 --------------------------------------------------------
 The seed (Balaji & Sreekar) uses squared ranges ``Y_i = |p - a_i|^2`` and drops the
@@ -56,6 +81,11 @@ __all__ = [
     "dop",
     "pdop",
     "gdop",
+    "tdoa_gram",
+    "tdoa_information_matrix",
+    "tdoa_information_explicit",
+    "tdoa_pdop",
+    "measurement_information",
     "logdet_information",
     "min_eig_information",
     "seed_observability_matrix",
@@ -123,6 +153,17 @@ def information_matrix(points, anchors, sigma: float = 1.0, links=None, clock: b
     return np.einsum("pn,pni,pnj->pij", w, u, u) / float(sigma) ** 2
 
 
+def _dop_from(g: np.ndarray) -> np.ndarray:
+    """``sqrt(trace(g^-1))`` per matrix of (P, d, d); ``inf`` where ``g`` is singular."""
+    out = np.full(g.shape[0], np.inf)
+    # Relative conditioning test: a geometry whose smallest eigenvalue is ~0 is unobservable.
+    ev = np.linalg.eigvalsh(g)
+    ok = ev[:, 0] > 1e-10 * np.maximum(ev[:, -1], 1e-300)
+    if ok.any():
+        out[ok] = np.sqrt(np.sum(1.0 / ev[ok], axis=1))
+    return out
+
+
 def dop(points, anchors, links=None, clock: bool = False) -> np.ndarray:
     """Dilution of precision ``sqrt(trace((H^T H)^-1))`` per point (A-optimality).
 
@@ -130,15 +171,7 @@ def dop(points, anchors, links=None, clock: bool = False) -> np.ndarray:
     an unknown clock term.  Points with a singular geometry (fewer than 3 (4)
     closing links, coplanar/collinear geometry) get ``inf``.
     """
-    g = information_matrix(points, anchors, 1.0, links, clock)
-    out = np.full(g.shape[0], np.inf)
-    # Relative conditioning test: a geometry whose smallest eigenvalue is ~0 is unobservable.
-    ev = np.linalg.eigvalsh(g)
-    ok = ev[:, 0] > 1e-10 * np.maximum(ev[:, -1], 1e-300)
-    if ok.any():
-        inv_tr = np.sum(1.0 / ev[ok], axis=1)
-        out[ok] = np.sqrt(inv_tr)
-    return out
+    return _dop_from(information_matrix(points, anchors, 1.0, links, clock))
 
 
 def pdop(points, anchors, links=None) -> np.ndarray:
@@ -151,16 +184,96 @@ def gdop(points, anchors, links=None) -> np.ndarray:
     return dop(points, anchors, links, clock=True)
 
 
-def logdet_information(points, anchors, sigma: float = 1.0, links=None, floor: float = 1e-12) -> np.ndarray:
+TDOA_MIN_LINKS = 4  # anchors in range for a 3-D TDoA fix (3 independent differences)
+
+
+def tdoa_gram(points, anchors, links=None) -> np.ndarray:
+    """Centred geometry matrix ``U^T (I - 1 1^T / n) U`` of the anchors in range, (P, 3, 3).
+
+    ``= sum_i u_i u_i^T - n ubar ubar^T`` over the ``n`` closing links of each point
+    (zero where ``n < 2``); the TDoA information for unit arrival noise (module docstring).
+    """
+    u, _ = unit_los(points, anchors)
+    w = np.ones(u.shape[:2]) if links is None else np.asarray(links, dtype=float)
+    if w.shape != u.shape[:2]:
+        raise ValueError(f"links must have shape {u.shape[:2]}, got {w.shape}")
+    g = np.einsum("pn,pni,pnj->pij", w, u, u)
+    s = np.einsum("pn,pni->pi", w, u)
+    n = w.sum(axis=1)
+    return g - np.einsum("pi,pj->pij", s, s) / np.maximum(n, 1.0)[:, None, None]
+
+
+def tdoa_information_matrix(points, anchors, sigma: float = 1.0, links=None) -> np.ndarray:
+    """TDoA Fisher information per tag point [1/m^2], (P, 3, 3).
+
+    Parameters
+    ----------
+    points : (P, 3) tag positions [m]
+    anchors : (N, 3) anchor positions [m]
+    sigma : sd of one TDoA measurement ``r_i - r_ref`` [m] (``sqrt(2)`` times the arrival
+        noise ``s``; the differences' covariance is ``(sigma^2 / 2) (I + 1 1^T)``)
+    links : optional (P, N) bool, which anchors are in range (the others give nothing)
+
+    Returns ``J = (2 / sigma^2) U^T (I - 1 1^T / n) U`` — equal to the explicit
+    ``H^T R^-1 H`` of :func:`tdoa_information_explicit` for any reference anchor.
+    """
+    return tdoa_gram(points, anchors, links) * (2.0 / float(sigma) ** 2)
+
+
+def tdoa_information_explicit(point, anchors, sigma: float = 1.0, ref: int = 0) -> np.ndarray:
+    """TDoA information ``H^T R^-1 H`` of one point from differences to anchor ``ref``, (3, 3).
+
+    The plain formula (reference for :func:`tdoa_information_matrix`): rows of ``H`` are
+    ``(u_i - u_ref)^T`` for every ``i != ref``, ``R = (sigma^2 / 2) (I + 1 1^T)`` with
+    ``sigma`` the sd of one TDoA [m].  ``anchors`` (N, 3) are the anchors in range.
+    """
+    u, _ = unit_los(point, anchors)
+    u = u[0]
+    n = len(u)
+    if not 0 <= ref < n:
+        raise ValueError(f"ref must index one of the {n} anchors, got {ref}")
+    others = [i for i in range(n) if i != ref]
+    H = u[others] - u[ref][None, :]
+    R = 0.5 * float(sigma) ** 2 * (np.eye(n - 1) + np.ones((n - 1, n - 1)))
+    return H.T @ np.linalg.solve(R, H)
+
+
+def tdoa_pdop(points, anchors, links=None) -> np.ndarray:
+    """TDoA position DOP ``sqrt(trace((U^T P U)^-1))`` per point, ``(P,)``.
+
+    The position sd per metre of arrival noise (``tdoa_sigma / sqrt(2)``); equals the
+    position part of :func:`gdop`.  ``inf`` where fewer than 4 anchors are in range or the
+    geometry is singular (relative test as :func:`dop`).
+    """
+    g = tdoa_gram(points, anchors, links)
+    out = _dop_from(g)
+    n = np.full(len(g), _as_anchors(anchors).shape[0]) if links is None else np.asarray(links).sum(axis=1)
+    out[n < TDOA_MIN_LINKS] = np.inf
+    return out
+
+
+def measurement_information(points, anchors, measurement: str = "twr", sigma: float = 1.0, links=None) -> np.ndarray:
+    """Fisher information (P, 3, 3) for ``measurement`` ``twr`` (range sd ``sigma``) or
+    ``tdoa`` (sd of one TDoA ``sigma``), both [m]."""
+    if measurement == "twr":
+        return information_matrix(points, anchors, sigma, links)
+    if measurement == "tdoa":
+        return tdoa_information_matrix(points, anchors, sigma, links)
+    raise ValueError(f"measurement must be 'twr' or 'tdoa', got {measurement!r}")
+
+
+def logdet_information(points, anchors, sigma: float = 1.0, links=None, floor: float = 1e-12,
+                       measurement: str = "twr") -> np.ndarray:
     """D-optimality ``log det J`` per point; ``-inf``-like ``log(floor)`` sums when singular."""
-    g = information_matrix(points, anchors, sigma, links)
+    g = measurement_information(points, anchors, measurement, sigma, links)
     ev = np.linalg.eigvalsh(g)
     return np.sum(np.log(np.maximum(ev, floor)), axis=1)
 
 
-def min_eig_information(points, anchors, sigma: float = 1.0, links=None) -> np.ndarray:
+def min_eig_information(points, anchors, sigma: float = 1.0, links=None, measurement: str = "twr") -> np.ndarray:
     """E-optimality ``lambda_min(J)`` per point [1/m^2]."""
-    return np.maximum(np.linalg.eigvalsh(information_matrix(points, anchors, sigma, links))[:, 0], 0.0)
+    g = measurement_information(points, anchors, measurement, sigma, links)
+    return np.maximum(np.linalg.eigvalsh(g)[:, 0], 0.0)
 
 
 def seed_observability_matrix(point, anchors, velocity=None, order: int = 0) -> np.ndarray:
@@ -222,15 +335,17 @@ def percentiles(values, qs=(50, 95), cap: float | None = None) -> dict[str, floa
     return out
 
 
-def region_metrics(points, anchors, sigma: float = 0.1, links=None, qs=(50, 95), pdop_cap: float = 100.0) -> dict:
+def region_metrics(points, anchors, sigma: float = 0.1, links=None, qs=(50, 95), pdop_cap: float = 100.0,
+                   measurement: str = "twr") -> dict:
     """All metrics per point plus their percentiles over the region.
 
     Returns a dict with per-point arrays ``pdop``, ``logdet``, ``min_eig``,
     ``seed_det`` and a ``summary`` dict of percentiles (PDOP capped at ``pdop_cap``).
+    ``measurement="tdoa"``: TDoA PDOP and information (``sigma`` = sd of one TDoA, m).
     """
-    pd_ = pdop(points, anchors, links)
-    ld = logdet_information(points, anchors, sigma, links)
-    me = min_eig_information(points, anchors, sigma, links)
+    pd_ = tdoa_pdop(points, anchors, links) if measurement == "tdoa" else pdop(points, anchors, links)
+    ld = logdet_information(points, anchors, sigma, links, measurement=measurement)
+    me = min_eig_information(points, anchors, sigma, links, measurement=measurement)
     sd = seed_observability_det(points, anchors, links)
     summary = {
         "pdop": percentiles(pd_, qs, cap=pdop_cap),

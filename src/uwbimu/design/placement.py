@@ -26,6 +26,16 @@ hull term turns the practitioner rule "tags inside the anchors' hull", which
 
 with PDOP evaluated on the links that close and capped at ``pdop_cap`` where the
 position is not observable (fewer than 3 links or a degenerate geometry).
+
+**TDoA** (``LayoutEvaluator(measurement="tdoa")``): every PDOP, the N-1 worst case and the
+information term use the TDoA information of :mod:`uwbimu.design.metrics` (differences to a
+reference anchor, correlated through it): ``J = sum u u^T - s s^T / n`` with ``s = sum u``
+over the ``n`` anchors in range, which needs >= 4 of them (the cap applies below 4).  The
+per-anchor terms then carry ``u`` next to ``u u^T`` (9 packed columns) so that sums and
+leave-one-out differences stay linear.  The greedy stage maximises
+``sum_p log det(eps I + sum [u; 1] [u; 1]^T)`` (the clock-augmented 4x4 information,
+still submodular), whose determinant is ``n det(J_tdoa)`` at ``eps -> 0`` (Schur
+complement of the clock entry ``n``).
 """
 
 from __future__ import annotations
@@ -49,6 +59,7 @@ __all__ = [
     "refine_de",
     "pareto_front",
     "pdop_from_g6",
+    "info6_from_sums",
 ]
 
 
@@ -237,6 +248,22 @@ def _outer6(u) -> np.ndarray:
                      u[..., 0] * u[..., 2], u[..., 1] * u[..., 2]], axis=-1)
 
 
+def info6_from_sums(G, counts) -> np.ndarray:
+    """Packed unit-noise information ``(..., 6)`` from summed per-anchor terms.
+
+    ``G`` (..., 6): two-way ranges, returned as is (``sum u u^T``).  ``G`` (..., 9) with
+    ``u`` in the last three columns: TDoA, ``sum u u^T - s s^T / n`` with ``s = sum u`` and
+    ``n = counts`` (anchors in range); pinned to :func:`uwbimu.design.metrics.tdoa_gram`.
+    """
+    G = np.asarray(G)
+    if G.shape[-1] == 6:
+        return G
+    if G.shape[-1] != 9:
+        raise ValueError(f"packed terms must have 6 (twr) or 9 (tdoa) columns, got {G.shape[-1]}")
+    n = np.maximum(np.asarray(counts, dtype=G.dtype), 1)
+    return G[..., :6] - _outer6(G[..., 6:9]) / n[..., None]
+
+
 def _pct(v, q) -> float:
     return float(np.percentile(v, q, method="higher"))
 
@@ -251,15 +278,34 @@ class LayoutEvaluator:
     percentile: float = 95.0
     pdop_cap: float = 20.0
     weights: dict = field(default_factory=lambda: {"coverage": 10.0, "pdop": 1.0, "n1_pdop": 0.25})
-    sigma: float = 0.1  # range noise sd [m], scales the information term
+    sigma: float = 0.1  # sd of one range (twr) or of one TDoA (tdoa) [m], scales the information term
+    measurement: str = "twr"  # "twr" two-way ranges | "tdoa" differences to a reference anchor
+
+    def __post_init__(self):
+        if self.measurement not in ("twr", "tdoa"):
+            raise ValueError(f"measurement must be 'twr' or 'tdoa', got {self.measurement!r}")
+
+    @property
+    def min_links(self) -> int:
+        """Anchors in range needed for a 3-D fix: 3 (twr), 4 (tdoa)."""
+        return 4 if self.measurement == "tdoa" else 3
+
+    @property
+    def arrival_sigma(self) -> float:
+        """Noise sd per link [m]: the range sd (twr) or the arrival sd ``sigma / sqrt(2)`` (tdoa)."""
+        return self.sigma / np.sqrt(2.0) if self.measurement == "tdoa" else self.sigma
 
     def per_anchor(self, anchors, boresights):
-        """Per-anchor packed outer products (N, P, 6) masked by closing links, and links (N, P)."""
+        """Per-anchor packed terms (N, P, 6) — ``u u^T`` — or (N, P, 9) — ``u u^T`` and ``u``
+        (tdoa) — masked by closing links, and the links (N, P)."""
         a = np.atleast_2d(anchors)
         d = self.points[None, :, :] - a[:, None, :]
         u = d / np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-9)
         links = self.link.links(self.points, a, boresights).T
-        return _outer6(u) * links[..., None], links
+        terms = _outer6(u)
+        if self.measurement == "tdoa":
+            terms = np.concatenate([terms, u], axis=-1)
+        return terms * links[..., None], links
 
     def components(self, O, M, n1: bool | None = None, anchors=None) -> dict:
         """Coverage, PDOP percentiles and (optionally) the N-1 worst case from per-anchor terms.
@@ -278,8 +324,9 @@ class LayoutEvaluator:
             Cs = np.concatenate([cnt[None], cnt[None] - M], axis=0)
         else:
             Gs, Cs = G[None], cnt[None]
-        pd_ = pdop_from_g6(Gs, self.pdop_cap)
-        pd_[Cs < 3] = self.pdop_cap
+        Js = info6_from_sums(Gs, Cs)  # unit-noise information, full set first
+        pd_ = pdop_from_g6(Js, self.pdop_cap)
+        pd_[Cs < self.min_links] = self.pdop_cap
         n = pd_.shape[1]
         # "higher" percentile = the element of rank ceil(q/100 (n-1)) in sorted order
         ks = sorted({int(np.ceil(q / 100.0 * (n - 1))) for q in (50.0, 95.0, self.percentile)})
@@ -295,8 +342,9 @@ class LayoutEvaluator:
             "pdop_q": float(at(self.percentile)[0]),
             "pdop_p95": float(at(95.0)[0]),
         }
-        # Information percentile: the (100 - q) % lower tail of log det J, J = G / sigma^2.
-        ld = np.log(np.maximum(det_g6(G), 1e-12)) - 6.0 * np.log(self.sigma)
+        # Information percentile: the (100 - q) % lower tail of log det J, J = J_unit / s^2
+        # (s: range sd, or arrival sd = TDoA sd / sqrt(2)).
+        ld = np.log(np.maximum(det_g6(Js[0]), 1e-12)) - 6.0 * np.log(self.arrival_sigma)
         out["logdet_low"] = float(np.percentile(ld, 100.0 - self.percentile, method="lower"))
         if anchors is not None:
             out["hull_outside"] = float(np.mean(hull_outside_mask(anchors, self.points)))
@@ -354,14 +402,19 @@ class CandidateSet:
 def lazy_greedy_logdet(cs: CandidateSet, n: int, eps: float = 1e-3, callback=None) -> dict:
     """Lazy greedy maximisation of ``sum_p log det(eps I + G_p)`` over the candidates.
 
+    ``G_p = sum u u^T`` (twr) or, for a TDoA evaluator, the clock-augmented
+    ``sum [u; 1] [u; 1]^T`` (4x4; its Schur complement is the TDoA information).
     Returns ``{"idx": chosen indices in order, "gains": marginal log-det gains,
     "curve": components after each addition}``.
     """
-    P = cs.U.shape[1]
-    Minv = np.tile(np.eye(3) / eps, (P, 1, 1))
+    U = cs.U
+    if cs.ev.measurement == "tdoa":
+        U = np.concatenate([U, np.ones(U.shape[:2] + (1,))], axis=2)
+    P, dim = U.shape[1], U.shape[2]
+    Minv = np.tile(np.eye(dim) / eps, (P, 1, 1))
 
     def gain(c):
-        u = cs.U[c]
+        u = U[c]
         q = np.einsum("pi,pij,pj->p", u, Minv, u)
         return float(np.sum(np.log1p(cs.M[c] * q)))
 
@@ -376,7 +429,7 @@ def lazy_greedy_logdet(cs: CandidateSet, n: int, eps: float = 1e-3, callback=Non
             continue
         chosen.append(c)
         gains.append(g)
-        u = cs.U[c] * cs.M[c][:, None]
+        u = U[c] * cs.M[c][:, None]
         Mu = np.einsum("pij,pj->pi", Minv, u)
         Minv = Minv - np.einsum("pi,pj->pij", Mu, Mu) / (1.0 + np.einsum("pi,pi->p", u, Mu))[:, None, None]
         curve.append(cs.components(chosen, n1=False))

@@ -17,6 +17,7 @@ import pandas as pd
 from uwbimu.design.config import PlacementConfig
 from uwbimu.design.lint import lint_layout
 from uwbimu.design.metrics import pdop as metrics_pdop
+from uwbimu.design.metrics import tdoa_pdop
 from uwbimu.design.placement import (
     CandidateSet,
     LayoutEvaluator,
@@ -30,7 +31,8 @@ from uwbimu.design.placement import (
 )
 from uwbimu.design.radio import CosN, LinkModel, Omni, RANGE_PRESETS, count_links_grid, load_pattern_csv
 
-__all__ = ["builtin_example", "EXAMPLES", "run_placement", "write_outputs", "link_model_from_config"]
+__all__ = ["builtin_example", "EXAMPLES", "run_placement", "write_outputs", "link_model_from_config",
+           "room_evaluator", "room_setup"]
 
 SEED_COVERAGE = 0.913  # the seed's published jib-crane coverage with 40 modules
 GEOMETRIC_PDOP_MAX = 5.0  # room "geometric coverage": k-covered AND PDOP <= this
@@ -156,7 +158,21 @@ def _single_failures(ev: LayoutEvaluator, anchors, bores, ids) -> tuple[dict, li
 
 
 # --------------------------------------------------------------------------- room mode
-def _run_room(cfg: PlacementConfig, progress: bool) -> dict:
+def room_evaluator(cfg: PlacementConfig, points, link: LinkModel, measurement: str | None = None) -> LayoutEvaluator:
+    """The room objective of ``cfg`` over ``points`` for ``measurement`` (default: the config's).
+
+    ``twr`` uses ``radio.range_sigma``, ``tdoa`` ``radio.tdoa_sigma`` (default sqrt(2) range
+    sd); ``k`` is ``radio.k`` (at least 4 for TDoA, where a 3-D fix needs 4 anchors in range).
+    """
+    m = cfg.measurement if measurement is None else measurement
+    oc = cfg.objective
+    sigma = cfg.radio.tdoa_sigma_m if m == "tdoa" else cfg.radio.range_sigma
+    k = max(cfg.radio.k, 4) if m == "tdoa" else cfg.radio.k
+    return LayoutEvaluator(points, link, k, oc.percentile, oc.pdop_cap, dict(oc.weights), sigma, m)
+
+
+def room_setup(cfg: PlacementConfig) -> tuple[Room, np.ndarray, LinkModel, list]:
+    """Room, tag samples (P, 3) [m], link model and obstacles of a room-mode config."""
     rc = cfg.room
     obstacles = obstacles_from_config(rc.obstacles)
     if rc.box is not None:
@@ -168,8 +184,14 @@ def _run_room(cfg: PlacementConfig, progress: bool) -> dict:
     points = room.flight_points(fv.lo if fv else None, fv.hi if fv else None, rc.grid_step)
     if len(points) < 4:
         raise ValueError(f"flight volume holds only {len(points)} tag samples; enlarge it or lower room.grid_step")
+    return room, points, link, obstacles
+
+
+def _run_room(cfg: PlacementConfig, progress: bool) -> dict:
+    rc = cfg.room
+    room, points, link, obstacles = room_setup(cfg)
     oc = cfg.objective
-    ev = LayoutEvaluator(points, link, cfg.radio.k, oc.percentile, oc.pdop_cap, dict(oc.weights), cfg.radio.range_sigma)
+    ev = room_evaluator(cfg, points, link)
     timings = {}
     if rc.candidates is not None:
         pos = np.asarray(rc.candidates, float)
@@ -248,13 +270,15 @@ def _run_room(cfg: PlacementConfig, progress: bool) -> dict:
                       "pdop_p95": c["pdop_p95"], "n1_pdop_p95": c.get("n1_pdop_q"),
                       "hull_outside": c["hull_outside"], "anchors": len(la)})
     links = link.links(points, anchors, bores)
-    pd_all = metrics_pdop(points, anchors, links)
+    pd_all = (tdoa_pdop if cfg.measurement == "tdoa" else metrics_pdop)(points, anchors, links)
     geo = float(np.mean((links.sum(axis=1) >= cfg.radio.k) & (pd_all <= GEOMETRIC_PDOP_MAX)))
     lint = lint_layout(anchors, points, room.surface_distance,
                        single_failure={**worst, "coverage_all": comp["coverage"]}, ids=ids,
                        space_extent=[*np.ptp(room.polygon, axis=0), room.height])
     return {
         "mode": "room",
+        "measurement": cfg.measurement,
+        "noise_sigma_m": ev.sigma,
         "anchors": anchors,
         "boresights": bores,
         "ids": ids,
@@ -267,7 +291,9 @@ def _run_room(cfg: PlacementConfig, progress: bool) -> dict:
         "single_failures": n1_rows,
         "objective": comp["objective"],
         "objective_name": "weighted: " + ", ".join(f"{k}={v:g}" for k, v in oc.weights.items())
-        + f" (PDOP p{oc.percentile:g}, cap {oc.pdop_cap:g})",
+        + f" (PDOP p{oc.percentile:g}, cap {oc.pdop_cap:g})"
+        + (f"; TDoA information (>= {ev.min_links} anchors in range, TDoA sd {ev.sigma:g} m)"
+           if cfg.measurement == "tdoa" else ""),
         "seed": cfg.seed,
         "table": table,
         "marginal": marginal,
