@@ -624,5 +624,49 @@ def tdoa_jacobian(xt, u_tau, anchor_a, anchor_b, bias_idx, delta, h, work):
     return pred
 
 
+
+@njit(cache=True)
+def _range_jacobians_batch(p, v, q, omega, lever, anchors, H, h):
+    # one call of the estimator's range_jacobian per row (no time mapping, no bias)
+    xt = np.zeros(NOMINAL_DIM)
+    u = np.zeros(6)
+    for m in range(p.shape[0]):
+        for i in range(3):
+            xt[N_P + i] = p[m, i]
+            xt[N_V + i] = v[m, i]
+            xt[N_L + i] = lever[i]
+            u[3 + i] = omega[m, i]
+        for i in range(4):
+            xt[N_Q + i] = q[m, i]
+        h[m] = range_jacobian(xt, u, anchors[m], -1, 0.0, H[m])
+
+
+def range_jacobians(p, v, q, omega, lever, anchors):
+    """Ranges and their Jacobians w.r.t. the 19-dim error state along a trajectory (batched).
+
+    The estimator's :func:`range_jacobian` evaluated row by row (no time mapping, no bias), so the
+    observability windows and the manoeuvre predictor use the very Jacobian the filter uses.
+
+    Parameters
+    ----------
+    p, v : (M, 3) IMU position / velocity at the ranges' instants (world) [m, m/s].
+    q : (M, 4) attitude quaternions ``[qw, qx, qy, qz]`` (body -> world).
+    omega : (M, 3) body rate ``w_m - b_g`` [rad/s].
+    lever : (3,) ``p_IU`` [m]; anchors : (M, 3) anchor of each range [m].
+
+    Returns
+    -------
+    h : (M,) predicted ranges [m]; H : (M, 19) ``d h / d dx`` (``t_d`` column: ``d h / d t_d`` of a
+    range that observes the motion at IMU time ``t + t_d``).
+    """
+    p = np.ascontiguousarray(p, dtype=float)
+    M = p.shape[0]
+    H = np.zeros((M, ERROR_DIM))
+    h = np.zeros(M)
+    _range_jacobians_batch(p, np.ascontiguousarray(v, dtype=float), np.ascontiguousarray(q, dtype=float),
+                           np.ascontiguousarray(omega, dtype=float), np.ascontiguousarray(lever, dtype=float),
+                           np.ascontiguousarray(anchors, dtype=float), H, h)
+    return h, H
+
 # this module's own kernels inline the state layout's offsets (models/state.py)
 refresh_stale_cache(globals(), [])

@@ -44,8 +44,8 @@ from numba import njit
 from uwbimu.models.imu import BMI088, ImuNoise
 from uwbimu.models.kernels import phi_left_R, refresh_stale_cache
 from uwbimu.models import kernels as _physics
-from uwbimu.models.quaternion import quat_normalize, quat_slerp, quat_to_rotmat
-from uwbimu.models.state import (BA, BG, E_L, E_TD, EBA, EBG, EP, EPIU, ERROR_DIM, ERROR_STATE_NAMES, ETD, ETH,
+from uwbimu.models.quaternion import quat_normalize, quat_slerp, quat_to_rotmat, rotmat_to_quat
+from uwbimu.models.state import (BA, BG, E_L, E_TD, EBA, EBG, EPIU, ERROR_DIM, ERROR_STATE_NAMES, ETD, ETH,
                                  EV, P as NP_, PIU, Q, TD, V as NV_)
 from uwbimu.observability.directions import candidates_for, name_directions
 
@@ -224,26 +224,11 @@ def range_jacobians(p, v, R, omega, lever, anchors) -> tuple[np.ndarray, np.ndar
     Returns
     -------
     h : (M,) ranges [m]; H : (M, 19) ``d h / d dx`` with ``dx`` as in
-    :mod:`uwbimu.models.state` (the ``t_d`` column is ``d h / d t_d`` of a range
-    that observes the motion at IMU time ``t + t_d``).
+    :mod:`uwbimu.models.state`.  The estimator's Jacobian
+    (:func:`uwbimu.models.kernels.range_jacobians`), written once.
     """
-    pU = p + R @ lever
-    d = anchors - pU
-    h = np.linalg.norm(d, axis=1)
-    e = d / h[:, None]
-    H = np.zeros((len(h), ERROR_DIM))
-    H[:, EP] = -e
-    # d pU / d dtheta = -R [l]x  ->  d h / d dtheta = e^T R [l]x
-    lx = _skew(lever)
-    H[:, ETH] = np.einsum("mi,mij->mj", e, R @ lx)
-    H[:, EPIU] = -np.einsum("mi,mij->mj", e, R)
-    vel_U = v + np.einsum("mij,mj->mi", R, np.cross(omega, lever))
-    H[:, ETD] = -np.sum(e * vel_U, axis=1)
-    return h, H
-
-
-def _skew(w):
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    q = np.array([rotmat_to_quat(Ri) for Ri in np.asarray(R, float).reshape(-1, 3, 3)]).reshape(-1, 4)
+    return _physics.range_jacobians(p, v, q, omega, lever, anchors)
 
 
 #: ``M <- Phi M`` on rows 0:15 with the estimator's transition (written once, in models.kernels)
@@ -476,11 +461,10 @@ def _prepare(ds, tr: Trajectory, opts: WindowOptions):
     ids = ids[known]
     A = np.array([anchors_pos[i] for i in ids]).reshape(-1, 3)
     pr, vr, qr, _, bgr = _interp_traj(tr, uwb_t)
-    Rr = quat_to_rotmat(qr)
     # body rate at the IMU time that the range observes
     t_imu = uwb_t + tr.t_d
     wr = np.column_stack([np.interp(t_imu, imu_t, u[:, 3 + i]) for i in range(3)]) - bgr
-    hpred, H = range_jacobians(pr, vr, Rr, wr, tr.lever_arm, A)
+    hpred, H = _physics.range_jacobians(pr, vr, qr, wr, tr.lever_arm, A)
     # consistency of trajectory and ranges (a ground truth in another frame
     # would make every Jacobian meaningless): median |measured - predicted|
     meas = uwb["range"].to_numpy(float)[known]

@@ -27,8 +27,12 @@ predicted 1-sigma; its inverse is the Fisher information of the calibration
 block with the 15 navigation states marginalised (Schur complement), whose
 smallest eigenvalue (after scaling by ``scale_lever_arm``,
 ``scale_time_offset``) is the E-optimality criterion.  The range Jacobian
-is pinned to :func:`uwbimu.models.reference.range_measurement` by a test and
-cross-checked against :func:`uwbimu.observability.window.range_jacobians`.
+is the estimator's own (:func:`uwbimu.models.kernels.range_jacobians`, pinned to
+:func:`uwbimu.models.reference.range_measurement` by tests).  The transition below is
+this module's own second-order discretisation (``I + F dt + (F dt)^2 / 2``), agreeing
+with the estimator's to about 1e-8 over a design's horizon; the design optimiser
+(Powell from a few starts) is sensitive enough to that difference to land on another
+local optimum, so the predictor keeps it (docs/trajectory_design.md).
 
 Why not the observability engine's per-window information
 (:mod:`uwbimu.observability.window`)?  It works on a dataset, window by
@@ -46,34 +50,23 @@ import numpy as np
 from numba import njit
 
 from uwbimu.models import state as ST
-from uwbimu.models.kernels import refresh_stale_cache
+from uwbimu.models.kernels import range_jacobians, refresh_stale_cache
 from uwbimu.models.state import E_BA, E_BG, E_P, E_TH, E_V, ERROR_DIM
-from uwbimu.models.quaternion import skew
+from uwbimu.models.quaternion import rotmat_to_quat
 
 
 def range_jacobian(kin_meas: dict[str, np.ndarray], anchors: np.ndarray, lever_arm: np.ndarray) -> np.ndarray:
-    """Range Jacobians w.r.t. the 19-dim error state, one row per range.
+    """Range Jacobians w.r.t. the 19-dim error state, one row per range (the estimator's, written once).
 
     Parameters
     ----------
-    kin_meas : truth at the range instants (``p, v, R, w``: (M, ...)).
+    kin_meas : truth at the range instants (``p, v, w`` and ``q`` or ``R``: (M, ...)).
     anchors : (M, 3) anchor of each range [m]; lever_arm : (3,) [m] (IMU frame).
     """
-    R = kin_meas["R"]
-    l = np.asarray(lever_arm, dtype=float)
-    Rl = R @ l
-    ant = kin_meas["p"] + Rl
-    d = anchors - ant
-    u = d / np.linalg.norm(d, axis=1, keepdims=True)
-    H = np.zeros((len(u), ST.ERROR_DIM))
-    H[:, ST.EP] = -u
-    uR = np.einsum("mi,mij->mj", u, R)  # u^T R
-    H[:, ST.ETH] = uR @ skew(l)
-    H[:, ST.EPIU] = -uR
-    w_l = np.cross(kin_meas["w"], l)  # [w]x l (body)
-    v_ant = kin_meas["v"] + np.einsum("mij,mj->mi", R, w_l)
-    H[:, ST.ETD] = -np.sum(u * v_ant, axis=1)
-    return H
+    q = kin_meas.get("q")
+    if q is None:
+        q = np.array([rotmat_to_quat(R) for R in kin_meas["R"]])
+    return range_jacobians(kin_meas["p"], kin_meas["v"], q, kin_meas["w"], lever_arm, anchors)[1]
 
 
 @njit(cache=True)
