@@ -30,9 +30,12 @@ smallest eigenvalue (after scaling by ``scale_lever_arm``,
 is the estimator's own (:func:`uwbimu.models.kernels.range_jacobians`, pinned to
 :func:`uwbimu.models.reference.range_measurement` by tests).  The transition below is
 this module's own second-order discretisation (``I + F dt + (F dt)^2 / 2``), agreeing
-with the estimator's to about 1e-8 over a design's horizon; the design optimiser
-(Powell from a few starts) is sensitive enough to that difference to land on another
-local optimum, so the predictor keeps it (docs/trajectory_design.md).
+with the estimator's (``models.kernels.phi_left_R``) to about 1e-5 relative in the
+predicted sd of a given manoeuvre.  The design optimiser (random starts, then Powell) is
+path-dependent enough that swapping in the estimator's kernel moves the designed
+optimum from lever sd 4.3 / 5.6 / 4.7 mm to 13.1 / 12.5 / 8.7 mm (measured with
+``python benchmarks/reproduce_figures.py calib``), so the predictor keeps its own
+transition until the optimiser is made robust (multi-start).
 
 Why not the observability engine's per-window information
 (:mod:`uwbimu.observability.window`)?  It works on a dataset, window by
