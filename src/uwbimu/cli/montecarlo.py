@@ -87,7 +87,8 @@ def register(app: typer.Typer) -> None:
         """Monte Carlo study: scenarios x seeds x estimators -> montecarlo.csv, summary.json, plots."""
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-        from uwbimu.studies import MonteCarloError, config_from_dict, load_config, run_study
+        from uwbimu.errors import UsageError
+        from uwbimu.studies import config_from_dict, load_config, run_study
         from uwbimu.studies.examples import EXAMPLES, example_config
 
         console = Console()
@@ -95,37 +96,28 @@ def register(app: typer.Typer) -> None:
             console = Console(width=140)
         err = Console(stderr=True)
         if (config is None) == (example is None):
-            err.print("[red]error:[/] give a CONFIG file or --example NAME "
-                      f"(examples: {', '.join(sorted(EXAMPLES))})")
-            raise typer.Exit(code=2)
+            raise UsageError(f"give a CONFIG file or --example NAME (examples: {', '.join(sorted(EXAMPLES))})")
         if scheduler and dask_local:
-            err.print("[red]error:[/] --scheduler and --dask-local are exclusive")
-            raise typer.Exit(code=2)
+            raise UsageError("--scheduler and --dask-local are exclusive")
         if workers is not None and workers < 1:
-            err.print("[red]error:[/] --workers must be at least 1")
-            raise typer.Exit(code=2)
-        try:
-            if example is not None:
-                try:
-                    cfg = config_from_dict(example_config(example), f"example {example}")
-                except KeyError as exc:
-                    err.print(f"[red]error:[/] {exc.args[0]}")
-                    raise typer.Exit(code=2) from None
-            else:
-                cfg = load_config(config)
-            n_runs = runs if runs is not None else cfg.runs
-            with Progress(TextColumn("[bold]runs"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                          console=console, transient=False) as bar:
-                task = bar.add_task("runs", total=n_runs * len(cfg.scenarios))
+            raise UsageError("--workers must be at least 1")
+        if example is not None:
+            try:
+                cfg = config_from_dict(example_config(example), f"example {example}")
+            except KeyError as exc:
+                raise UsageError(str(exc.args[0])) from None
+        else:
+            cfg = load_config(config)
+        n_runs = runs if runs is not None else cfg.runs
+        with Progress(TextColumn("[bold]runs"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                      console=console, transient=False) as bar:
+            task = bar.add_task("runs", total=n_runs * len(cfg.scenarios))
 
-                def progress(done: int, total: int) -> None:
-                    bar.update(task, completed=done, total=total)
+            def progress(done: int, total: int) -> None:
+                bar.update(task, completed=done, total=total)
 
-                summary = run_study(cfg, out, runs=runs, workers=workers, scheduler=scheduler,
-                                    dask_local=dask_local, progress=progress, plots=not no_plots)
-        except MonteCarloError as exc:
-            err.print(f"[red]error:[/] {exc}")
-            raise typer.Exit(code=1) from None
+            summary = run_study(cfg, out, runs=runs, workers=workers, scheduler=scheduler,
+                                dask_local=dask_local, progress=progress, plots=not no_plots)
         console.print(summary_table(summary))
         ct = crlb_table(summary)
         if ct is not None:

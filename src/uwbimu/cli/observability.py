@@ -21,13 +21,11 @@ obs_app = typer.Typer(
 )
 
 
-def _fail(console: Console, msg: str) -> None:
-    # soft_wrap: an error message (file names, field paths) is never cut or folded
-    # at the terminal width, so it can be copied and searched as a whole.
-    from rich.markup import escape
+def _fail(msg: str) -> None:
+    """A bad option value: one stderr line through the CLI wrapper, exit code 2."""
+    from uwbimu.errors import UsageError
 
-    console.print(f"[red]error:[/red] {escape(msg)}", soft_wrap=True)
-    raise typer.Exit(code=2)
+    raise UsageError(msg)
 
 
 def _jsonable(obj):
@@ -53,14 +51,10 @@ def structural(
     as_json: bool = typer.Option(False, "--json", help="print the verdict as JSON"),
 ) -> None:
     """Lie-derivative observability rank test of a configuration."""
-    from uwbimu.observability.config import ConfigError
     from uwbimu.observability.structural import structural_verdict
 
     console = Console()
-    try:
-        v = structural_verdict(config)
-    except ConfigError as e:
-        _fail(console, str(e))
+    v = structural_verdict(config)  # a bad configuration: ConfigError, exit 2 (cli.main wrapper)
     if as_json:
         keys = ["rank", "dimension", "observable", "verdict", "lie_order", "singular_values", "unobservable_directions", "conditions"]
         extra = ["name", "model", "measurement", "search_verdict", "search_rank", "lie_order_setting", "order_search", "stop_reason",
@@ -133,14 +127,10 @@ def delay(
     as_json: bool = typer.Option(False, "--json", help="print the verdict as JSON"),
 ) -> None:
     """Time-offset identifiability (seed 001 Theorem 1, T1-T3) with a numeric check."""
-    from uwbimu.observability.config import ConfigError
     from uwbimu.observability.delay import delay_verdict
 
     console = Console()
-    try:
-        v = delay_verdict(config)
-    except (ConfigError, ValueError) as e:
-        _fail(console, str(e))
+    v = delay_verdict(config)  # a bad configuration: ConfigError, exit 2 (cli.main wrapper)
     if as_json:
         keys = ["identifiable", "conditions", "theorem1", "numeric", "first_order", "explanation", "basis", "agree",
                 "n_points", "name", "measurement"]  # fmt: skip
@@ -212,14 +202,14 @@ def log(
 
     console = Console()
     if window <= 0:
-        _fail(console, f"--window must be positive, got {window}")
+        _fail(f"--window must be positive, got {window}")
     if bound not in ("pcrb", "gramian"):
-        _fail(console, f"--bound must be pcrb or gramian, got {bound}")
+        _fail(f"--bound must be pcrb or gramian, got {bound}")
     if not 0 < excited_ratio < 1:
-        _fail(console, f"--excited-sd-ratio must be in (0, 1), got {excited_ratio}")
+        _fail(f"--excited-sd-ratio must be in (0, 1), got {excited_ratio}")
     csv_path, png_path = out / "observability.csv", out / "observability.png"
     if not force and (csv_path.exists() or png_path.exists()):
-        _fail(console, f"{out} already holds observability outputs; pass --force to replace them")
+        _fail(f"{out} already holds observability outputs; pass --force to replace them")
     from uwbimu.errors import InputError
     from uwbimu.io.loader import load_dataset
 

@@ -64,7 +64,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Simulate a UWB-IMU flight (scenario YAML or built-in) into a dataset folder."""
         from uwbimu.io.dataset import write_dataset
-        from uwbimu.sim import ScenarioError, TrajectoryFileError, builtin_scenario, list_scenarios, load_scenario
+        from uwbimu.errors import UsageError
+        from uwbimu.sim import builtin_scenario, list_scenarios, load_scenario
         from uwbimu.sim.simulate import simulate
 
         console = Console()
@@ -73,32 +74,21 @@ def register(app: typer.Typer) -> None:
             _scenario_table(console)
             return
         if scenario is None or out is None:
-            err.print("[red]error:[/] give a SCENARIO (YAML file or built-in name) and --out DIR, or --list")
-            raise typer.Exit(code=2)
+            raise UsageError("give a SCENARIO (YAML file or built-in name) and --out DIR, or --list")
         if fmt not in ("csv", "parquet"):
-            err.print(f"[red]error:[/] --format must be csv or parquet, got {fmt!r}")
-            raise typer.Exit(code=2)
+            raise UsageError(f"--format must be csv or parquet, got {fmt!r}")
         from uwbimu.io.atomic import check_output_target, output_folder
 
         path = Path(scenario)
         protect = [path] if path.is_file() else []
         check_output_target(out, force=force, protect=protect, replace=True)
-
-        path = Path(scenario)
-        try:
-            if path.suffix.lower() in (".yaml", ".yml") or path.is_file():
-                sc = load_scenario(path)
-            elif scenario in list_scenarios():
-                sc = builtin_scenario(scenario)
-            else:
-                err.print(
-                    f"[red]error:[/] {scenario!r} is neither a scenario file nor a built-in name; "
-                    f"built-ins: {', '.join(list_scenarios())}"
-                )
-                raise typer.Exit(code=2)
-        except (ScenarioError, TrajectoryFileError) as exc:
-            err.print(f"[red]error:[/] {exc}")
-            raise typer.Exit(code=1) from None
+        if path.suffix.lower() in (".yaml", ".yml") or path.is_file():
+            sc = load_scenario(path)  # ScenarioError (exit 2) / TrajectoryFileError (exit 1) name file and field
+        elif scenario in list_scenarios():
+            sc = builtin_scenario(scenario)
+        else:
+            raise UsageError(f"{scenario!r} is neither a scenario file nor a built-in name; "
+                             f"built-ins: {', '.join(list_scenarios())}")
 
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -111,11 +101,7 @@ def register(app: typer.Typer) -> None:
             def progress(stage: str, frac: float) -> None:
                 bar.update(task, completed=frac, description=f"simulating {sc.name}: {stage}")
 
-            try:
-                ds = simulate(sc, progress=progress)
-            except TrajectoryFileError as exc:
-                err.print(f"[red]error:[/] {exc}")
-                raise typer.Exit(code=1) from None
+            ds = simulate(sc, progress=progress)
             bar.update(task, description=f"writing {out}")
             with output_folder(out, force=force, protect=protect, replace=True) as tmp:
                 write_dataset(ds, tmp, overwrite=True, fmt=fmt)

@@ -18,6 +18,7 @@ respect to each *excited* input channel by central differences.
 
 from __future__ import annotations
 
+import os
 import time
 from typing import Any, Union
 
@@ -173,7 +174,11 @@ def delay_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[str, An
     t0 = time.perf_counter()
     cfg = load_config(config)
     if cfg.model != "uwb_imu":
-        raise ValueError("the delay analysis needs model: uwb_imu (the point mass has no time offset)")
+        from uwbimu.errors import ConfigError
+
+        where = str(config) if isinstance(config, (str, os.PathLike)) else cfg.name
+        raise ConfigError(f"{where}: field 'model': the delay analysis needs model: uwb_imu "
+                          "(the point mass has no time offset)")
     A = np.asarray(cfg.anchors, float)
     acc, gyr = cfg.accel_axes(), cfg.gyro_axes()
     excited = [_AXES.index(a) for a in acc] + [3 + _AXES.index(g) for g in gyr]
