@@ -70,10 +70,8 @@ def register(app: typer.Typer) -> None:
         from uwbimu.io.atomic import check_output_target, output_folder
 
         console = Console()
-        try:
-            opts = CalibrationOptions.from_yaml(config) if config is not None else CalibrationOptions()
-        except (OSError, ValueError) as exc:
-            raise UsageError(f"--config {config}: {exc}") from None
+        # a bad --config: ConfigError naming file, line and field (exit 2)
+        opts = CalibrationOptions.from_yaml(config) if config is not None else CalibrationOptions()
         if estimate_anchors is not None:
             ids = [a.strip() for a in estimate_anchors.split(",") if a.strip()]
             if not ids:
