@@ -6,6 +6,8 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+
+from uwbimu.cli.conventions import FORCE_HELP
 from rich.console import Console
 from rich.table import Table
 
@@ -57,7 +59,7 @@ def register(app: typer.Typer) -> None:
             help="comma-separated anchor ids whose positions are estimated (self-survey; weak prior around "
                  "anchors.csv, none for rows marked surveyed: false); adds to the config's estimate_anchors"),
         plots: bool = typer.Option(True, "--plots/--no-plots", help="td_profile.png"),
-        force: bool = typer.Option(False, "--force", help="write over files uwbimu did not write in the output folder"),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         load_options=None,
     ) -> None:
         """Batch MAP calibration over the whole log: lever arm, time offset (profile + verdict), anchor biases."""

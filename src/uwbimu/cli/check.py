@@ -8,6 +8,8 @@ from typing import Optional
 
 import typer
 
+from uwbimu.cli.conventions import FORCE_HELP
+
 from uwbimu.cli.dataset_options import ACCEL_UNITS, GYRO_UNITS, with_load_options  # noqa: F401 (re-export)
 
 
@@ -22,7 +24,7 @@ def register(app: typer.Typer) -> None:
         csv: Optional[Path] = typer.Option(None, "--csv", help="Also write the per-anchor residual table here."),
         fix: Optional[Path] = typer.Option(None, "--fix", help="Write a repaired copy of the dataset (the repairs "
                                            "asked for with --sort, --drop-duplicates, units, ...) to this folder."),
-        force: bool = typer.Option(False, "--force", help="Replace an existing --csv file / --fix folder."),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         load_options=None,
     ) -> None:
         """Validate a dataset (refusing bad input) and print rates, gaps, anchors and range residuals."""

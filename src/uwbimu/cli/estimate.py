@@ -7,6 +7,8 @@ from typing import Optional
 
 import numpy as np
 import typer
+
+from uwbimu.cli.conventions import FORCE_HELP
 from rich.console import Console
 
 from uwbimu.cli.dataset_options import with_load_options
@@ -92,7 +94,7 @@ def register(app: typer.Typer) -> None:
         config: Optional[Path] = typer.Option(None, "--config", "-c", help="estimator options YAML (see examples/estimator.yaml)"),
         preset: Optional[str] = typer.Option(None, "--preset", help="shipped estimator options: default, real, isas-walk"),
         plots: bool = typer.Option(True, "--plots/--no-plots", help="PNG plots when ground truth exists"),
-        force: bool = typer.Option(False, "--force", help="write over files uwbimu did not write in the output folder"),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         estimator: str = typer.Option(
             "eskf", "--estimator", help="eskf (19-state ESKF) or pointmass (seed 002's 6-state EKF)"
         ),

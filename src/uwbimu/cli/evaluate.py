@@ -7,6 +7,8 @@ from typing import Optional
 
 import typer
 
+from uwbimu.cli.conventions import FORCE_HELP
+
 
 #: Files ``uwbimu evaluate`` writes into the estimator output folder.
 EVALUATION_FILES = ("evaluation.json", "evaluation_errors.csv", "evaluation_trajectory.png", "evaluation_errors.png")
@@ -36,7 +38,7 @@ def register(app: typer.Typer) -> None:
             None, "--attitude/--no-attitude",
             help="Compare attitudes (default: yes, unless the dataset.yaml next to the ground truth marks its body "
                  "frame as not the IMU frame, as ISAS-Walk's)."),
-        force: bool = typer.Option(False, "--force", help="Replace evaluation files in OUT that uwbimu did not write."),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
     ) -> None:
         """Score OUT/trajectory.csv against ground truth (ATE after alignment, RPE); writes OUT/evaluation.json."""
         from rich.console import Console

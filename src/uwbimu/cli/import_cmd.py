@@ -21,13 +21,13 @@ from typing import Callable, Optional
 
 import typer
 
+from uwbimu.cli.conventions import FORCE_HELP
+
 import_app = typer.Typer(
     name="import",
     help="Convert third-party recordings (INRoL, ...) into the uwbimu dataset format.",
     no_args_is_help=True,
 )
-
-FORCE_HELP = "Replace DST if it exists and is not empty."
 
 
 def run_import(do_import: Callable[..., object], with_progress: bool = False, dst: Optional[Path] = None,

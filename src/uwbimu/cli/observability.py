@@ -9,6 +9,8 @@ from typing import Optional
 
 import typer
 
+from uwbimu.cli.conventions import FORCE_HELP
+
 from uwbimu.cli.dataset_options import with_load_options
 from rich.console import Console
 from rich.table import Table
@@ -188,7 +190,7 @@ def log(
     trajectory: Optional[Path] = typer.Option(
         None, "--trajectory", help="linearise about an estimator's states.csv (or its output folder) instead of the ground truth"
     ),
-    force: bool = typer.Option(False, "--force", help="replace existing outputs in OUT"),
+    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
     load_options=None,
 ) -> None:
     """Per-window posterior Cramer-Rao bound, information gained and excitation flags of a log."""

@@ -9,6 +9,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from uwbimu.cli.conventions import FORCE_HELP
+
 plan_app = typer.Typer(
     help="Observability-aware trajectory design (seed OCP, point-mass planning, calibration manoeuvres).",
     no_args_is_help=True,
@@ -28,7 +30,6 @@ CALIBRATION_FILES = {
     *(f"{k}_{s}" for k in ("designed", "figure8", "figure8_excited") for s in ("trajectory.csv", "scenario.yaml")),
     "design.json", "calibration_design.png", "proof",
 }  # fmt: skip
-FORCE_HELP = "write into a folder that holds other files (files of the same names are replaced)"
 
 
 def _check_out(out: Path, ours: set, force: bool) -> None:

@@ -7,6 +7,8 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+
+from uwbimu.cli.conventions import FORCE_HELP
 from rich.console import Console
 from rich.table import Table
 
@@ -58,7 +60,7 @@ def register(app: typer.Typer) -> None:
     def simulate_cmd(
         scenario: Optional[str] = typer.Argument(None, help="scenario YAML file, or a built-in name (see --list)"),
         out: Optional[Path] = typer.Option(None, "--out", "-o", help="output dataset folder"),
-        force: bool = typer.Option(False, "--force", help="replace a non-empty output folder"),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         list_: bool = typer.Option(False, "--list", help="list the built-in scenarios and exit"),
         fmt: str = typer.Option("csv", "--format", help="table format: csv or parquet"),
     ) -> None:
