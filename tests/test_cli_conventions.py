@@ -107,3 +107,33 @@ def test_force_has_one_help_text():
             if "--force" in getattr(p, "opts", ()) and path != ["place"]:  # place's options are frozen this round
                 texts[" ".join(path)] = p.help
     assert len(texts) >= 10 and set(texts.values()) == {FORCE_HELP}, texts
+
+
+def _clipped_table_lines(text: str) -> list[str]:
+    """Table lines cut at the console edge, or cells shortened with an ellipsis."""
+    return [ln for ln in text.splitlines()
+            if (ln[:1] in "┏┃┡│└" and ln[-1:] not in "┓┃┩│┘") or ("…" in ln and ln[:1] in "┃│")]
+
+
+def test_tables_fit_80_columns(tmp_path):
+    """COLUMNS=80: every table of these verbs fits (headers wrap; no number or column is cut)."""
+    from pathlib import Path
+
+    examples = Path(__file__).resolve().parents[1] / "examples"
+    ds, est = tmp_path / "ds", tmp_path / "est"
+    runs = [
+        ["simulate", "calibration-flight", "-o", str(ds)],
+        ["check", str(ds)],  # the Streams table
+        ["estimate", str(ds), "-o", str(est)],
+        ["evaluate", str(est), "-g", str(ds)],
+        ["repeatability", str(ds), "-o", str(est), "-k", "2"],
+        ["observability", "structural", str(examples / "observability" / "theorem2_generic.yaml")],
+        ["observability", "log", str(ds), "-o", str(tmp_path / "obs"), "--window", "20"],
+        ["plan", "seed-ocp", "-o", str(tmp_path / "seed")],  # its headers were cut ("1/det…")
+        ["place", "--example", "room", "-o", str(tmp_path / "room"), "--no-plots"],  # out-of-hull column
+    ]
+    for args in runs:
+        r = runner.invoke(app, args, env={"COLUMNS": "80"})
+        assert r.exit_code == 0, (args, r.output)
+        assert max(len(ln) for ln in r.stdout.splitlines()) <= 80, args
+        assert not _clipped_table_lines(r.stdout), (args, _clipped_table_lines(r.stdout))

@@ -103,6 +103,8 @@ def print_check(console, ds, result) -> None:
     from rich.markup import escape
     from rich.table import Table
 
+    from uwbimu.cli.conventions import fit_table
+
     rep = ds.report
     console.print(f"[bold]{ds.meta.name}[/bold] ({ds.path}): [green]valid[/green]")
     if rep is not None:
@@ -125,7 +127,7 @@ def print_check(console, ds, result) -> None:
     for name, r in result.streams.iterrows():
         t.add_row(name, str(int(r["samples"])), _f(r["t_start"]), _f(r["t_end"]), _f(r["duration"], ".2f"),
                   _f(r["rate_hz"], ".1f"), _f(r["median_dt"], ".4f"), _f(r["max_gap"]), str(int(r["n_gaps"])))
-    console.print(t)
+    console.print(fit_table(console, t))
 
     a = Table(title="Anchors (world frame, m) and ranges", collapse_padding=True)
     a.add_column("id", justify="right", overflow="fold")

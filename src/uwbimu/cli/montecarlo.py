@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Optional
 
@@ -92,8 +93,8 @@ def register(app: typer.Typer) -> None:
         from uwbimu.studies.examples import EXAMPLES, example_config
 
         console = Console()
-        if not console.is_terminal:  # a log file: do not squeeze the table's numbers into 80 columns
-            console = Console(width=140)
+        if not console.is_terminal and "COLUMNS" not in os.environ:
+            console = Console(width=140)  # a log file: do not squeeze the numbers (COLUMNS=80 still wraps)
         err = Console(stderr=True)
         if (config is None) == (example is None):
             raise UsageError(f"give a CONFIG file or --example NAME (examples: {', '.join(sorted(EXAMPLES))})")

@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from uwbimu.cli.conventions import FORCE_HELP
+from uwbimu.cli.conventions import FORCE_HELP, fit_table
 
 from uwbimu.cli.dataset_options import with_load_options
 from rich.console import Console
@@ -258,7 +258,7 @@ def log(
             str(r.weakest_direction)[:40], f"{sdl:.3g}", f"{r.sd_td:.3g}",
             "ok" if r.lever_arm_excited else "[yellow]weak[/yellow]", "ok" if r.time_offset_excited else "[yellow]weak[/yellow]",
         )  # fmt: skip
-    console.print(t)
+    console.print(fit_table(console, t, fold=("weakest",)))
     dropped = meta["ranges_unknown_anchor"] + meta["ranges_outside_imu_span"] + meta["ranges_other_tags"]
     if dropped:
         console.print(

@@ -12,11 +12,13 @@ from rich.table import Table
 
 
 def _print_result(console: Console, res: dict) -> None:
-    t = Table(title="layouts compared" if res["mode"] == "room" else f"{res.get('structure')}: coverage")
+    # numbers never break (one word each); headers wrap, so the table fits 80 columns
+    t = Table(title="layouts compared" if res["mode"] == "room" else f"{res.get('structure')}: coverage",
+              collapse_padding=True)
     if res["mode"] == "room":
         t.add_column("layout", overflow="fold", min_width=21)
         for c in ("N", "cov. %", "PDOP p50", "PDOP p95", "N-1 p95", "out of hull %"):
-            t.add_column(c, no_wrap=True)
+            t.add_column(c)
         for r in res["table"]:
             n1 = r.get("n1_pdop_p95")
             hull = r.get("hull_outside")

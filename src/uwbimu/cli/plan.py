@@ -77,7 +77,7 @@ def seed_ocp(
         rows[f"{m.name}_det"] = det_observability(m.x[:, :3], np.asarray(cfg.beacons))
     write_csv(out / "trajectories.csv", pd.DataFrame(rows), float_format="%.9g")
     figs = save_seed_figures(res, out)
-    tab = Table(title="Seed OCP: J = int 1/det(O)^2 + |p-p_d|^2/2 + |u|^2/2 dt")
+    tab = Table(title="Seed OCP: J = int 1/det(O)^2 + |p-p_d|^2/2 + |u|^2/2 dt", collapse_padding=True)
     for col in ("method", "J", "1/det^2", "track", "control", "det mean", "ms", "iter", "max|H_u|"):
         tab.add_column(col, justify="right", no_wrap=col in ("method", "J"))
     short = {"pd": "PD", "indirect": "indirect", "indirect_continuous": "ind. ODE", "direct": "direct", "direct_fixed_final": "fixed-end"}

@@ -67,8 +67,10 @@ def register(app: typer.Typer) -> None:
         """Calibrate K windows of a log and compare the spread of lever arm / time offset with the filter's sigma."""
         from rich.console import Console
         from rich.progress import Progress
+        from rich.markup import escape
         from rich.table import Table
 
+        from uwbimu.cli.conventions import fit_table
         from uwbimu.cli.dataset_options import apply_dataset_properties, estimator_options, load, print_load_warnings
         from uwbimu.eval.repeatability import repeatability
         from uwbimu.io.atomic import check_output_target, output_folder, write_json
@@ -91,9 +93,9 @@ def register(app: typer.Typer) -> None:
             t.add_column(c, justify="right")
         for name, p in rep["parameters"].items():
             sc, u = (1000.0, "ms") if name == "td" else (100.0, "cm")
-            t.add_row(f"{name} [{u}]", f"{p['mean'] * sc:.2f}", f"{p['std'] * sc:.2f}", f"{p['rms_sd'] * sc:.2f}",
+            t.add_row(escape(f"{name} [{u}]"), f"{p['mean'] * sc:.2f}", f"{p['std'] * sc:.2f}", f"{p['rms_sd'] * sc:.2f}",
                       f"{p['ratio']:.2f}", f"{p['chi2']:.1f}/{p['dof']}", f"{p['p_value']:.3f}", p["verdict"])
-        console.print(t)
+        console.print(fit_table(console, t))
         for w in rep["windows"]:
             if "error" in w:
                 console.print(f"[yellow]window {w['i'] + 1} failed:[/yellow] {w['error']}")
