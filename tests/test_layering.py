@@ -13,7 +13,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "uwbimu"
 
 # lower number = lower layer; a package may import its own layer or lower ones
 LAYER = {
-    "errors": 0, "optional": 0, "models": 0, "_worker_env": 0,
+    "errors": 0, "optional": 0, "typed": 0, "models": 0, "_worker_env": 0,
     "io": 1,
     "sim": 2, "estimation": 2, "observability": 2, "metrics": 2,
     "calibration": 3, "design": 3, "eval": 3, "studies": 3,

@@ -20,6 +20,7 @@ Everything is written atomically; works for any :class:`EstimationResult`.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Optional
 
@@ -84,7 +85,7 @@ def residual_table(result) -> pd.DataFrame:
 
 
 def _plain(obj: Any) -> Any:
-    if isinstance(obj, dict):
+    if isinstance(obj, Mapping):  # dicts and the typed results (uwbimu.typed.MappingResult)
         return {str(k): _plain(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [_plain(v) for v in obj]

@@ -83,6 +83,8 @@ def _json_default(o):
         return o.item()
     if isinstance(o, np.bool_):
         return bool(o)
+    if hasattr(o, "to_dict"):  # the typed results (uwbimu.typed.MappingResult)
+        return o.to_dict()
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 

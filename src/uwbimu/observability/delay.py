@@ -26,6 +26,7 @@ import numpy as np
 
 from uwbimu.models import reference as ref
 from uwbimu.observability.config import ObservabilityConfig, load_config
+from uwbimu.observability.verdicts import DelayVerdict
 from uwbimu.observability.structural import evaluation_points
 
 #: Legacy absolute cut-off [m per unit input] (no longer used for the verdict;
@@ -149,7 +150,7 @@ def first_order_criterion(x20: np.ndarray, anchors: np.ndarray, accel_axes, gyro
     return out
 
 
-def delay_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[str, Any]:
+def delay_verdict(config: Union[str, dict, ObservabilityConfig]) -> DelayVerdict:
     """Time-offset identifiability of a configuration (the ``delay`` verb).
 
     The numeric criterion (seed eq. 12: the delayed input appears in the range)
@@ -217,7 +218,7 @@ def delay_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[str, An
     num_all = all(pt["numeric_nonzero"] for pt in points)
     identifiable = all(pt["theorem1"] or pt["numeric_nonzero"] for pt in points)
     basis = "Theorem 1" if thm_all else ("input-output sensitivity (eq. 12, k=0)" if num_all else "none")
-    return {
+    return DelayVerdict.from_dict({
         "name": cfg.name,
         "measurement": cfg.measurement,
         "identifiable": bool(identifiable),
@@ -240,7 +241,7 @@ def delay_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[str, An
         "weakest_point": iw,
         "points": points,
         "elapsed_s": time.perf_counter() - t0,
-    }
+    })
 
 
 def _explain(pt: dict, acc, gyr) -> str:
