@@ -3,17 +3,15 @@
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Optional
 
 import typer
-
-from uwbimu.cli.conventions import FORCE_HELP, fit_table
-
-from uwbimu.cli.dataset_options import with_load_options
 from rich.console import Console
 from rich.table import Table
+
+from uwbimu.cli.conventions import FORCE_HELP, fit_table
+from uwbimu.cli.dataset_options import with_load_options
 
 obs_app = typer.Typer(
     name="observability",
@@ -31,20 +29,9 @@ def _fail(msg: str) -> None:
 
 
 def _jsonable(obj):
-    import numpy as np
+    from uwbimu.io.atomic import to_plain
 
-    if isinstance(obj, dict):
-        return {k: _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        f = float(obj)
-        return f if math.isfinite(f) else str(f)
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
+    return to_plain(obj, nonfinite=str)  # --json: NaN / inf as "nan" / "inf" text
 
 
 @obs_app.command("structural")

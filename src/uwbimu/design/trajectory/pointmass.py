@@ -54,7 +54,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from uwbimu.design.trajectory.platform import MultirotorLimits, Platform
-from uwbimu.design.trajectory.seed_ocp import _weights
+from uwbimu.design.trajectory.seed_ocp import TimeGrid, _weights
 from uwbimu.models.reference import GRAVITY
 
 
@@ -85,7 +85,7 @@ class Obstacle(BaseModel):
         return np.sum((d / s) ** 8, axis=-1) - 1.0
 
 
-class PointMassPlanConfig(BaseModel):
+class PointMassPlanConfig(TimeGrid, BaseModel):
     """Options of the general point-mass planner (SI units, world frame)."""
 
     model_config = ConfigDict(extra="forbid")
@@ -133,14 +133,6 @@ class PointMassPlanConfig(BaseModel):
         if self.box_min is not None and any(lo >= hi for lo, hi in zip(self.box_min, self.box_max)):
             raise ValueError("box_min must be below box_max on every axis")
         return self
-
-    @property
-    def h(self) -> float:
-        return self.tf / self.n_steps
-
-    @property
-    def t(self) -> np.ndarray:
-        return np.linspace(0.0, self.tf, self.n_steps + 1)
 
 
 # --------------------------------------------------------------------------

@@ -72,7 +72,21 @@ PD_KP = PD_OMEGA**2
 PD_KD = 2.0 * PD_OMEGA
 
 
-class SeedOcpConfig(BaseModel):
+class TimeGrid:
+    """Uniform time grid of an OCP config with fields ``tf`` [s] and ``n_steps`` (mixin)."""
+
+    @property
+    def h(self) -> float:
+        """Grid step [s]."""
+        return self.tf / self.n_steps
+
+    @property
+    def t(self) -> np.ndarray:
+        """Grid instants ``0, h, ..., tf`` [s], (n_steps + 1,)."""
+        return np.linspace(0.0, self.tf, self.n_steps + 1)
+
+
+class SeedOcpConfig(TimeGrid, BaseModel):
     """Options of the seed OCP (defaults = seed 002 section XII).
 
     Units: metres, seconds, m/s^2.  Beacons are world-frame positions.
@@ -119,14 +133,6 @@ class SeedOcpConfig(BaseModel):
         if len(v) != 3:
             raise ValueError("goal must be [x, y, z]")
         return v
-
-    @property
-    def h(self) -> float:
-        return self.tf / self.n_steps
-
-    @property
-    def t(self) -> np.ndarray:
-        return np.linspace(0.0, self.tf, self.n_steps + 1)
 
 
 # --------------------------------------------------------------------------
