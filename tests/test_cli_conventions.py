@@ -57,7 +57,7 @@ def test_errors_go_to_stderr_as_one_line_plus_hint(tmp_path):
     r = runner.invoke(app, ["simulate", str(bad), "--out", str(tmp_path / "o")])
     assert r.exit_code == 2 and r.stdout == ""
     lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("uwbimu: usage error: ")
+    assert len(lines) == 1 and lines[0].startswith("uwbimu: invalid configuration: ")  # ConfigError, exit 2
     assert "bad.yaml" in lines[0] and "line 3, field 'uwb.sigma'" in lines[0]
     # an output refusal: exit 4 with a hint naming --force
     out = tmp_path / "out"
