@@ -137,3 +137,27 @@ def test_tables_fit_80_columns(tmp_path):
         assert r.exit_code == 0, (args, r.output)
         assert max(len(ln) for ln in r.stdout.splitlines()) <= 80, args
         assert not _clipped_table_lines(r.stdout), (args, _clipped_table_lines(r.stdout))
+
+
+def test_evaluate_out_is_the_output_folder(tmp_path):
+    ds, est = tmp_path / "ds", tmp_path / "est"
+    sc = tmp_path / "s.yaml"
+    sc.write_text("duration: 20\n")
+    assert runner.invoke(app, ["simulate", str(sc), "-o", str(ds)]).exit_code == 0
+    assert runner.invoke(app, ["estimate", str(ds), "-o", str(est), "--no-plots"]).exit_code == 0
+    r = runner.invoke(app, ["evaluate", str(est), "-g", str(ds), "-o", str(tmp_path / "ev"), "--no-plots"])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "ev" / "evaluation.json").is_file() and not (est / "evaluation.json").exists()
+
+
+def test_import_takes_its_destination_as_dst_or_out(tmp_path):
+    from pathlib import Path
+
+    excerpt = Path(__file__).resolve().parent / "data" / "inrol_excerpt"
+    if not excerpt.is_dir():
+        pytest.skip("no INRoL excerpt in tests/data")
+    r = runner.invoke(app, ["import", "inrol", str(excerpt), "-o", str(tmp_path / "a")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "a" / "imu.csv").is_file()
+    r = runner.invoke(app, ["import", "inrol", str(excerpt), str(tmp_path / "b"), "-o", str(tmp_path / "c")])
+    assert r.exit_code == 2 and "once" in r.stderr

@@ -38,6 +38,8 @@ def register(app: typer.Typer) -> None:
             None, "--attitude/--no-attitude",
             help="Compare attitudes (default: yes, unless the dataset.yaml next to the ground truth marks its body "
                  "frame as not the IMU frame, as ISAS-Walk's)."),
+        folder: Optional[Path] = typer.Option(None, "--out", "-o",
+                                              help="Output folder for evaluation.json (default: the estimator output folder)."),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
     ) -> None:
         """Score OUT/trajectory.csv against ground truth (ATE after alignment, RPE); writes OUT/evaluation.json."""
@@ -56,10 +58,11 @@ def register(app: typer.Typer) -> None:
         dist = _parse_distances(distances)
         names = list(EVALUATION_FILES)
         gt_folder = groundtruth  # a file is protected itself, a dataset folder as a whole
-        check_output_target(out, names, force, protect=[gt_folder])
+        target = folder if folder is not None else out
+        check_output_target(target, names, force, protect=[gt_folder])
         try:
             # Scores of empty sets are NaN by design (n/a); the finiteness rule guards estimates.
-            with output_folder(out, force, protect=[gt_folder], names=names, finite=False) as tmp:
+            with output_folder(target, force, protect=[gt_folder], names=names, finite=False) as tmp:
                 s = evaluate_output(tmp, groundtruth, align=align, distances=dist, max_gap=max_gap,
                                     skip_initial=skip_initial, plots=not no_plots, compare_attitude=attitude,
                                     trajectory=out / "trajectory.csv")
@@ -68,7 +71,7 @@ def register(app: typer.Typer) -> None:
                 raise
             raise InputError(str(exc)) from None
         print_summary(console, s)
-        console.print(f"wrote {out / 'evaluation.json'}")
+        console.print(f"wrote {target / 'evaluation.json'}")
 
 
 def print_summary(console, s: dict) -> None:
