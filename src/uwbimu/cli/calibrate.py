@@ -50,15 +50,15 @@ def register(app: typer.Typer) -> None:
     @app.command("calibrate")
     @with_load_options
     def calibrate_cmd(
-        dataset: Path = typer.Argument(..., help="dataset folder (imu.csv, uwb.csv, anchors.csv)"),
-        out: Path = typer.Option(..., "--out", "-o", help="output folder"),
-        config: Optional[Path] = typer.Option(None, "--config", "-c", help="calibrate.yaml (see docs/calibrate.md)"),
-        eskf_config: Optional[Path] = typer.Option(None, "--eskf-config", help="options of the initialising ESKF"),
+        dataset: Path = typer.Argument(..., help="Dataset folder (imu.csv, uwb.csv, anchors.csv)"),
+        out: Path = typer.Option(..., "--out", "-o", help="Output folder"),
+        config: Optional[Path] = typer.Option(None, "--config", "-c", help="Calibration options YAML (see docs/calibrate.md)."),
+        eskf_config: Optional[Path] = typer.Option(None, "--eskf-config", help="Options of the initialising ESKF"),
         estimate_anchors: Optional[str] = typer.Option(
             None, "--estimate-anchors",
-            help="comma-separated anchor ids whose positions are estimated (self-survey; weak prior around "
+            help="Comma-separated anchor ids whose positions are estimated (self-survey; weak prior around "
                  "anchors.csv, none for rows marked surveyed: false); adds to the config's estimate_anchors"),
-        plots: bool = typer.Option(True, "--plots/--no-plots", help="td_profile.png"),
+        plots: bool = typer.Option(True, "--plots/--no-plots", help="Write the plots (td_profile.png, ...)."),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         load_options=None,
     ) -> None:

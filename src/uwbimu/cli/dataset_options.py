@@ -32,7 +32,7 @@ _PARAMS = [
                                              help="At a backward clock jump keep the longer monotonic part "
                                                   "(reported) instead of refusing.")),
     ("tdoa_margin", float, typer.Option(1.0, "--tdoa-margin",
-                                        help="|tdoa| may exceed the anchors' separation by this much [m].")),
+                                        help="How far |tdoa| may exceed the anchors' separation [m].")),
 ]
 NAMES = [p[0] for p in _PARAMS]
 

@@ -207,9 +207,9 @@ def register(app: typer.Typer) -> None:
     def demo(
         out: Optional[Path] = typer.Option(
             None, "--out", "-o",
-            help="output folder (replaced if a previous demo wrote it); default: a new temporary folder, printed"),
+            help="Output folder (replaced if a previous demo wrote it); default: a new temporary folder, printed"),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
-        duration: float = typer.Option(None, "--duration", help="flight duration in s (default: the scenario's 60 s)"),
+        duration: float = typer.Option(None, "--duration", help="Flight duration [s] (default: the scenario's 60 s)"),
     ) -> None:
         """Simulate a calibration flight, validate it, analyse, estimate and write the report."""
         console = Console()

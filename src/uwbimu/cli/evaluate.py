@@ -28,7 +28,7 @@ def register(app: typer.Typer) -> None:
     @app.command("evaluate")
     def evaluate(
         out: Path = typer.Argument(..., help="Estimator output folder (holds trajectory.csv)."),
-        groundtruth: Path = typer.Option(..., "--groundtruth", "-g", help="groundtruth.csv (dataset format) or a dataset folder."),
+        groundtruth: Path = typer.Option(..., "--groundtruth", "-g", help="Ground truth: groundtruth.csv (dataset format) or a dataset folder."),
         align: str = typer.Option("se3", "--align", help="Alignment to ground truth: none | position | se3."),
         distances: str = typer.Option("1,2,5", "--distances", help="RPE path lengths in m, comma-separated."),
         max_gap: float = typer.Option(0.5, "--max-gap", help="Longest ground-truth gap bridged by interpolation [s]."),

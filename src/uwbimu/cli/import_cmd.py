@@ -140,7 +140,7 @@ def _register_util(app: typer.Typer) -> None:
         src: Path = typer.Argument(..., help="UTIL flight CSV, e.g. csv-data/const1/const1-trial1-tdoa2.csv."),
         dst: Optional[Path] = typer.Argument(None, help="Output dataset folder (or give it with -o/--out)."),
         out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output dataset folder (instead of DST)."),
-        anchors: Optional[Path] = typer.Option(None, "--anchors", help="anchor survey (anchor_constN.npz or "
+        anchors: Optional[Path] = typer.Option(None, "--anchors", help="Anchor survey (anchor_constN.npz or "
                                                "_survey.txt); default: survey-results/anchor_constN.* found "
                                                "next to or above SRC."),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
@@ -159,7 +159,7 @@ def _register_cf_usdlog(app: typer.Typer) -> None:
         log: Path = typer.Argument(..., help="Crazyflie uSD-card event log (binary, e.g. log00)."),
         dst: Optional[Path] = typer.Argument(None, help="Output dataset folder (or give it with -o/--out)."),
         out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output dataset folder (instead of DST)."),
-        anchors: Path = typer.Option(..., "--anchors", help="anchors.csv (anchor, x, y, z [, qw, qx, qy, qz]); ids "
+        anchors: Path = typer.Option(..., "--anchors", help="Anchor positions, anchors.csv (anchor, x, y, z [, qw, qx, qy, qz]); ids "
                                                             "as the Loco nodes' (0-7)."),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         ignore_crc: bool = typer.Option(False, "--ignore-crc", help="Decode a log whose CRC does not match "

@@ -76,14 +76,14 @@ def crlb_table(summary: dict) -> Optional[Table]:
 def register(app: typer.Typer) -> None:
     @app.command("montecarlo")
     def montecarlo_cmd(
-        config: Optional[Path] = typer.Argument(None, help="study YAML (scenarios, estimators, seed_base)"),
-        out: Path = typer.Option(..., "--out", "-o", help="output folder (a rerun with the same folder resumes)"),
-        runs: Optional[int] = typer.Option(None, "--runs", "-n", help="seeds per scenario (default: the config's)"),
-        workers: Optional[int] = typer.Option(None, "--workers", "-j", help="processes / Dask workers (default: all cores)"),
+        config: Optional[Path] = typer.Argument(None, help="Study YAML (scenarios, estimators, seed_base)"),
+        out: Path = typer.Option(..., "--out", "-o", help="Output folder (a rerun with the same folder resumes)"),
+        runs: Optional[int] = typer.Option(None, "--runs", "-n", help="Seeds per scenario (default: the config's)"),
+        workers: Optional[int] = typer.Option(None, "--workers", "-j", help="Processes / Dask workers (default: all cores)"),
         scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address, e.g. tcp://host:8786"),
-        dask_local: bool = typer.Option(False, "--dask-local", help="run on a loopback Dask LocalCluster"),
-        example: Optional[str] = typer.Option(None, "--example", help="a built-in study instead of CONFIG (seed-anchor-planes)"),
-        no_plots: bool = typer.Option(False, "--no-plots", help="skip the figures"),
+        dask_local: bool = typer.Option(False, "--dask-local", help="Run on a loopback Dask LocalCluster"),
+        example: Optional[str] = typer.Option(None, "--example", help="A built-in study instead of CONFIG (seed-anchor-planes)"),
+        no_plots: bool = typer.Option(False, "--no-plots", help="Skip the figures"),
     ) -> None:
         """Monte Carlo study: scenarios x seeds x estimators -> montecarlo.csv, summary.json, plots."""
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn

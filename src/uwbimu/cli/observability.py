@@ -36,8 +36,8 @@ def _jsonable(obj):
 
 @obs_app.command("structural")
 def structural(
-    config: Path = typer.Argument(..., help="configuration YAML (see examples/observability/)"),
-    as_json: bool = typer.Option(False, "--json", help="print the verdict as JSON"),
+    config: Path = typer.Argument(..., help="Configuration YAML (see examples/observability/)"),
+    as_json: bool = typer.Option(False, "--json", help="Print the verdict as JSON"),
 ) -> None:
     """Lie-derivative observability rank test of a configuration."""
     from uwbimu.observability.structural import structural_verdict
@@ -112,8 +112,8 @@ def print_structural(console: Console, v: dict) -> None:
 
 @obs_app.command("delay")
 def delay(
-    config: Path = typer.Argument(..., help="configuration YAML (model uwb_imu)"),
-    as_json: bool = typer.Option(False, "--json", help="print the verdict as JSON"),
+    config: Path = typer.Argument(..., help="Configuration YAML (model uwb_imu)"),
+    as_json: bool = typer.Option(False, "--json", help="Print the verdict as JSON"),
 ) -> None:
     """Time-offset identifiability (seed 001 Theorem 1, T1-T3) with a numeric check."""
     from uwbimu.observability.delay import delay_verdict
@@ -163,19 +163,19 @@ def delay(
 @obs_app.command("log")
 @with_load_options
 def log(
-    dataset: Path = typer.Argument(..., help="dataset folder"),
-    window: float = typer.Option(20.0, "--window", help="window length (s)"),
-    out: Path = typer.Option(..., "--out", "-o", help="output folder (observability.csv, observability.png)"),
-    range_sigma: Optional[float] = typer.Option(None, "--range-sigma", help="range sd (m) (default: dataset meta, else 0.1)"),
-    no_imu_noise: bool = typer.Option(False, "--no-imu-noise", help="ignore IMU noise (noise-free IMU)"),
-    bound: str = typer.Option("pcrb", "--bound", help="pcrb (posterior CRB from the window-start prior, IMU noise as "
+    dataset: Path = typer.Argument(..., help="Dataset folder"),
+    window: float = typer.Option(20.0, "--window", help="Window length [s]"),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (observability.csv, observability.png)"),
+    range_sigma: Optional[float] = typer.Option(None, "--range-sigma", help="Range sd [m] (default: dataset meta, else 0.1)"),
+    no_imu_noise: bool = typer.Option(False, "--no-imu-noise", help="Ignore IMU noise (noise-free IMU)"),
+    bound: str = typer.Option("pcrb", "--bound", help="Bound: pcrb (posterior CRB from the window-start prior, IMU noise as "
                               "process noise) or gramian (former approximate Gramian, no prior)"),
-    excited_ratio: float = typer.Option(0.5, "--excited-sd-ratio", help="excited when the window brings the bound to "
+    excited_ratio: float = typer.Option(0.5, "--excited-sd-ratio", help="Excited when the window brings the bound to "
                                         "at most this fraction of the prior sd"),
-    lever_sd: Optional[float] = typer.Option(None, "--lever-sd-threshold", help="also require this lever-arm bound (m)"),
-    td_sd: Optional[float] = typer.Option(None, "--td-sd-threshold", help="also require this time-offset bound (s)"),
+    lever_sd: Optional[float] = typer.Option(None, "--lever-sd-threshold", help="Also require this lever-arm bound [m]"),
+    td_sd: Optional[float] = typer.Option(None, "--td-sd-threshold", help="Also require this time-offset bound [s]"),
     trajectory: Optional[Path] = typer.Option(
-        None, "--trajectory", help="linearise about an estimator's states.csv (or its output folder) instead of the ground truth"
+        None, "--trajectory", help="Linearise about an estimator's states.csv (or its output folder) instead of the ground truth"
     ),
     force: bool = typer.Option(False, "--force", help=FORCE_HELP),
     load_options=None,

@@ -47,7 +47,7 @@ def _check_out(out: Path, ours: set, force: bool) -> None:
 
 @plan_app.command("seed-ocp")
 def seed_ocp(
-    out: Path = typer.Option(..., "--out", "-o", help="output folder (plots + plan.json)"),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (plots + plan.json)"),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding SeedOcpConfig fields"),
     force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
@@ -110,7 +110,7 @@ def seed_ocp(
 @plan_app.command("point-mass")
 def point_mass(
     config: Path = typer.Argument(..., help="PointMassPlanConfig YAML (see examples/plan/pointmass.yaml)"),
-    out: Path = typer.Option(..., "--out", "-o", help="output folder"),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder"),
     force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Observability-aware point-mass path (log-det / E / A-optimal information, IPOPT) vs minimum effort."""
@@ -180,8 +180,8 @@ def _report_violations(console: Console, violations: list) -> None:
 
 @plan_app.command("calibration")
 def calibration(
-    config: Path = typer.Argument(..., help="calibration design YAML (see docs/trajectory_design.md)"),
-    out: Path = typer.Option(..., "--out", "-o", help="output folder"),
+    config: Path = typer.Argument(..., help="Calibration design YAML (see docs/trajectory_design.md)"),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder"),
     force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Design a calibration manoeuvre (lever arm + time offset, E-optimal) for the 19-state model."""

@@ -58,11 +58,11 @@ def _summary(console: Console, ds, out: Path, seconds: float) -> None:
 def register(app: typer.Typer) -> None:
     @app.command("simulate")
     def simulate_cmd(
-        scenario: Optional[str] = typer.Argument(None, help="scenario YAML file, or a built-in name (see --list)"),
-        out: Optional[Path] = typer.Option(None, "--out", "-o", help="output dataset folder"),
+        scenario: Optional[str] = typer.Argument(None, help="Scenario YAML file, or a built-in name (see --list)"),
+        out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output dataset folder"),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
-        list_: bool = typer.Option(False, "--list", help="list the built-in scenarios and exit"),
-        fmt: str = typer.Option("csv", "--format", help="table format: csv or parquet"),
+        list_: bool = typer.Option(False, "--list", help="List the built-in scenarios and exit"),
+        fmt: str = typer.Option("csv", "--format", help="Table format: csv or parquet"),
     ) -> None:
         """Simulate a UWB-IMU flight (scenario YAML or built-in) into a dataset folder."""
         from uwbimu.io.dataset import write_dataset
