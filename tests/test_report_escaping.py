@@ -34,3 +34,17 @@ def test_templates_ship_with_the_package():
     assert {p.name for p in folder.glob("*.j2")} == {"report.html.j2", "blocks.html.j2"}
     pyproject = (Path(__file__).resolve().parents[1] / "pyproject.toml").read_text()
     assert '"eval/templates/*.j2"' in pyproject and '"jinja2' in pyproject
+
+
+def test_convergence_reads_the_columns_the_estimator_writes(tmp_path):
+    """The report reads lx, ly, lz, td (+ sd_) from the states.csv of `uwbimu estimate`, no guessed names."""
+    import uwbimu
+    from uwbimu.eval.report import CAL_COLUMNS
+
+    ds = uwbimu.simulate(uwbimu.builtin_scenario("calibration-flight").model_copy(update={"duration": 20.0}))
+    res = uwbimu.run_eskf(ds, uwbimu.EskfOptions())
+    uwbimu.write_estimate(res, ds, tmp_path / "est", plots=False)
+    states = pd.read_csv(tmp_path / "est" / "states.csv", nrows=2)
+    assert set(CAL_COLUMNS) | {f"sd_{c}" for c in CAL_COLUMNS} <= set(states.columns)
+    html = render_report(tmp_path / "est")
+    assert 'id="fig-convergence"' in html

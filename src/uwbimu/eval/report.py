@@ -11,7 +11,7 @@ Sections (``<section id=...>``; a section whose input is missing says so):
 ``calibration``    lever arm and time offset ± 1 sigma (and the documented/true
                    value with its z-score when known), IMU biases
 ``convergence``    lever arm and time offset over time with ±3 sigma bands
-                   (``states.csv`` or ``trajectory.csv`` columns ``lx, ly, lz, td`` + ``sd_*``)
+                   (``states.csv`` columns ``lx, ly, lz, td`` + ``sd_*``, as ``uwbimu estimate`` writes them)
 ``residuals``      per-anchor innovation table: median, MAD, rejected %, flags
 ``nis``            histogram of the range NIS against the chi-square(1) density
 ``trajectory``     top view (and errors with ±3 sigma when ground truth exists)
@@ -38,14 +38,11 @@ from markupsafe import Markup
 
 from uwbimu.eval.files import EvalInputError, load_yaml
 from uwbimu.io.atomic import write_text
+from uwbimu.models.state import NOMINAL_STATE_NAMES
 
-#: Accepted column names of the calibration history in trajectory.csv (first match wins).
-CAL_COLUMNS = {
-    "lx": ("lx", "lever_x", "p_iu_x", "piu_x", "lever_arm_x"),
-    "ly": ("ly", "lever_y", "p_iu_y", "piu_y", "lever_arm_y"),
-    "lz": ("lz", "lever_z", "p_iu_z", "piu_z", "lever_arm_z"),
-    "td": ("td", "t_d", "time_offset"),
-}
+#: Columns of the calibration history: the lever-arm and time-offset states as ``uwbimu estimate``
+#: writes them into ``states.csv`` (with ``sd_<name>``), named once in :mod:`uwbimu.models.state`.
+CAL_COLUMNS = NOMINAL_STATE_NAMES[16:20]  # lx, ly, lz, td
 SECTION_TITLES = {
     "calibration": "Calibration",
     "convergence": "Convergence",
@@ -118,16 +115,8 @@ def _missing(text: Any) -> Markup:
     return _block("missing", text)
 
 
-def _find_col(df: pd.DataFrame, names: Sequence[str]) -> Optional[str]:
-    lower = {c.lower(): c for c in df.columns}
-    for n in names:
-        if n.lower() in lower:
-            return lower[n.lower()]
-    return None
-
-
 def _sd_col(df: pd.DataFrame, col: str) -> Optional[str]:
-    return _find_col(df, (f"sd_{col}", f"{col}_sd", f"sigma_{col}"))
+    return f"sd_{col}" if f"sd_{col}" in df.columns else None
 
 
 def _read_csv(path: Path) -> Optional[pd.DataFrame]:
@@ -158,7 +147,6 @@ class ReportInputs:
         self.residuals = _read_csv(out_dir / "residuals.csv")
         # calibration history: states.csv of `uwbimu estimate` (lx, ly, lz, td + sd_*)
         self.states = _read_csv(out_dir / "states.csv")
-        self.cal_history = _read_csv(out_dir / "calibration_history.csv")
         self.observability = _read_csv(out_dir / "observability.csv")
         self.eval_errors = _read_csv(out_dir / "evaluation_errors.csv")
         self.evaluation = None
@@ -288,11 +276,11 @@ def _calibration_section(inp: ReportInputs) -> Markup:
 
 
 def _calibration_history(inp: ReportInputs) -> tuple[Optional[pd.DataFrame], dict]:
-    for df in (inp.trajectory, inp.states, inp.cal_history):
+    for df in (inp.states, inp.trajectory):
         if df is None or "t" not in df.columns:
             continue
-        cols = {k: _find_col(df, names) for k, names in CAL_COLUMNS.items()}
-        if any(v is not None for v in cols.values()):
+        cols = {k: k for k in CAL_COLUMNS if k in df.columns}
+        if cols:
             return df, cols
     return None, {}
 
