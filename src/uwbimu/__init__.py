@@ -51,6 +51,8 @@ _EXPORTS = {
     "placement_example": "uwbimu.design.run:builtin_example",
     "place": "uwbimu.design.run:run_placement",
     "design_calibration": "uwbimu.design.trajectory.calibration:design_calibration",
+    "plan_point_mass": "uwbimu.design.trajectory.pointmass:plan_point_mass",
+    "solve_seed_ocp": "uwbimu.design.trajectory.seed_ocp:solve_seed_ocp",
     # studies and evaluation
     "run_study": "uwbimu.studies.runner:run_study",
     "evaluate": "uwbimu.eval.evaluate:evaluate_output",
