@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import os
 import time
-from typing import Any, Union
+from typing import Union
 
 import numpy as np
 
