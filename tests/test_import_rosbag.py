@@ -134,7 +134,7 @@ def test_clear_errors_list_topics_and_fields(tmp_path):
         convert(bag, _mapping(tmp_path, ranges={"type": "other_msgs/msg/Range"}))
     with pytest.raises(RosbagImportError, match="imu topic '/uwb' has type"):
         convert(bag, _mapping(tmp_path, imu={"topic": "/uwb"}))
-    with pytest.raises(RosbagImportError, match="invalid mapping: ranges.range_field"):
+    with pytest.raises(RosbagImportError, match=r"(?s)invalid rosbag mapping.*line \d+, field .ranges.range_field."):
         bad = tmp_path / "bad.yaml"
         bad.write_text(yaml.safe_dump({"imu": {"topic": "/imu/data"}, "ranges": {"topic": "/uwb", "anchor_field": "a"},
                                        "anchors": "anchors.csv"}))

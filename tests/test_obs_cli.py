@@ -80,7 +80,7 @@ def test_bad_config_is_a_readable_error(tmp_path):
     assert res.exit_code == 2
     assert "bad.yaml" in res.output and "anchors" in res.output and "lie_order" in res.output
     assert "Traceback" not in res.output
-    with pytest.raises(ConfigError, match="no such configuration file"):
+    with pytest.raises(ConfigError, match="configuration file not found"):
         load_config(tmp_path / "missing.yaml")
     res = runner.invoke(app, ["observability", "delay", str(EXAMPLES / "pointmass_4_beacons.yaml")])
     assert res.exit_code == 2 and "uwb_imu" in res.output

@@ -78,7 +78,7 @@ def test_place_room_writes_outputs(tmp_path):
     assert set(ds.uwb["anchor"]) <= set(df["anchor"])
     # same seed -> same layout (reproducible); existing output is not overwritten without --force
     r2 = runner.invoke(app, ["place", str(cfg), "--out", str(out), "--no-plots"])
-    assert r2.exit_code == 2 and "--force" in r2.output
+    assert r2.exit_code == 4 and "--force" in r2.output  # OutputError
     r3 = runner.invoke(app, ["place", str(cfg), "--out", str(out), "--no-plots", "--force"])
     assert r3.exit_code == 0
     assert json.loads((out / "placement.json").read_text())["anchors"] == js["anchors"]
@@ -118,7 +118,7 @@ def test_cli_errors_are_readable(tmp_path):
     ds_dir.mkdir()
     (ds_dir / "anchors.csv").write_text("anchor,x,y,z\nmine,1,2,3\n")
     r = runner.invoke(app, ["place", "--example", "room", "--out", str(ds_dir)])
-    assert r.exit_code == 2 and "anchors.csv" in r.output and "--force" in r.output
+    assert r.exit_code == 4 and "anchors.csv" in r.output and "--force" in r.output  # OutputError
     assert (ds_dir / "anchors.csv").read_text() == "anchor,x,y,z\nmine,1,2,3\n"
     bad.write_text("mode: room\nroom: {box: [10, 8, 3]}\ncompare: {ceiling: [[1, 2]]}\n")
     r = runner.invoke(app, ["place", str(bad), "--out", str(tmp_path / "o")])

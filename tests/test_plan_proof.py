@@ -55,3 +55,29 @@ def test_the_estimator_sees_no_truth():
     assert opt.lever_arm.prior == [0.0, 0.0, 0.0] and opt.lever_arm.mode == "estimate"
     assert opt.time_offset.prior is None  # from the ESKF's own grid search on the data
     assert not np.allclose(opt.lever_arm.prior, sc.lever_arm)
+
+
+def test_proof_runs_through_the_studies_executor_with_the_serial_numbers(tmp_path, monkeypatch):
+    """run_proof hands its runs to uwbimu.studies.executors.execute; the rows (pool of 2) are the
+    ones the serial loop run_one(file, seed) gives, in seed-major order, whatever the finish order."""
+    from uwbimu.design.trajectory import proof
+    from uwbimu.design.trajectory.calibration import CalibrationDesignConfig, design_and_write
+    from uwbimu.studies import executors
+
+    cfg = CalibrationDesignConfig(
+        duration=8.0, ramp=1.5, design={"n_harmonics": 1, "period": 4.0, "dt": 0.05}, optimizer={"n_random": 2, "max_evals": 2}
+    )
+    design_and_write(cfg, tmp_path / "design")
+    calls = []
+    real = executors.execute
+    monkeypatch.setattr(executors, "execute", lambda *a, **k: calls.append(k["workers"]) or real(*a, **k))
+    summary = proof.run_proof(tmp_path / "design", n_seeds=2, workers=2, out=tmp_path / "proof")
+    assert calls == [2]
+    runs = pd.read_csv(tmp_path / "proof" / "proof_runs.csv")
+    names = [n for n in proof.TRAJS if (tmp_path / "design" / f"{n}_scenario.yaml").is_file()]
+    expected = [run_one(str(tmp_path / "design" / f"{n}_scenario.yaml"), s) for s in range(2) for n in names]
+    assert list(runs["scenario"]) == [e["scenario"] for e in expected]
+    assert list(runs["seed"]) == [e["seed"] for e in expected]
+    for col in ("lever_err_x", "lever_err_y", "lever_err_z", "td_err", "lever_sd_x", "td_sd"):
+        np.testing.assert_allclose(runs[col], [e[col] for e in expected], rtol=1e-8, atol=0)
+    assert summary["designed"]["n_runs"] == 2

@@ -195,8 +195,9 @@ def test_cli_refuses_a_folder_with_other_files(tmp_path):
     out.mkdir()
     (out / "notes.txt").write_text("mine")
     for args in (["plan", "seed-ocp", "--out", str(out)], ["plan", "calibration", "--out", str(out), str(tmp_path / "c.yaml")]):
+        # an output refusal: exit code 4 (uwbimu.errors.OutputError), nothing written
         if args[1] == "calibration":
             (tmp_path / "c.yaml").write_text("duration: 12.0\nramp: 1.5\n")
         res = CliRunner().invoke(app, args)
-        assert res.exit_code == 2 and "notes.txt" in res.output, res.output
+        assert res.exit_code == 4 and "notes.txt" in res.output, res.output
     assert (out / "notes.txt").read_text() == "mine" and sorted(p.name for p in out.iterdir()) == ["notes.txt"]

@@ -215,7 +215,7 @@ def test_cli_yaml_file_and_errors(tmp_path):
 
     bad = write_yaml(tmp_path, {"duration": 5, "uwb": {"sigma": "x"}}, "bad.yaml")
     res = runner.invoke(app, ["simulate", str(bad), "--out", str(tmp_path / "o")])
-    assert res.exit_code == 1 and "bad.yaml" in res.output and "uwb.sigma" in res.output
+    assert res.exit_code == 2 and "bad.yaml" in res.output and "uwb.sigma" in res.output
     assert "Traceback" not in res.output
     res = runner.invoke(app, ["simulate", "not-a-scenario", "--out", str(tmp_path / "o")])
     assert res.exit_code == 2 and "neither a scenario file nor a built-in" in res.output

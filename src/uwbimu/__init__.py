@@ -35,6 +35,9 @@ _EXPORTS = {
     "run_eskf": "uwbimu.estimation.eskf:run_eskf",
     "Eskf": "uwbimu.estimation.streaming:Eskf",
     "write_estimate": "uwbimu.estimation.outputs:write_outputs",
+    "EstimationResult": "uwbimu.estimation.result:EstimationResult",
+    "CalibrationEstimate": "uwbimu.estimation.result:CalibrationEstimate",
+    "Event": "uwbimu.estimation.result:Event",
     "CalibrationOptions": "uwbimu.calibration:CalibrationOptions",
     "calibrate": "uwbimu.calibration:calibrate",
     # analysis
@@ -42,10 +45,14 @@ _EXPORTS = {
     "structural_verdict": "uwbimu.observability.structural:structural_verdict",
     "delay_verdict": "uwbimu.observability.delay:delay_verdict",
     "window_observability": "uwbimu.observability.window:window_observability",
+    "StructuralVerdict": "uwbimu.observability.verdicts:StructuralVerdict",
+    "DelayVerdict": "uwbimu.observability.verdicts:DelayVerdict",
     # design
     "placement_example": "uwbimu.design.run:builtin_example",
     "place": "uwbimu.design.run:run_placement",
     "design_calibration": "uwbimu.design.trajectory.calibration:design_calibration",
+    "plan_point_mass": "uwbimu.design.trajectory.pointmass:plan_point_mass",
+    "solve_seed_ocp": "uwbimu.design.trajectory.seed_ocp:solve_seed_ocp",
     # studies and evaluation
     "run_study": "uwbimu.studies.runner:run_study",
     "evaluate": "uwbimu.eval.evaluate:evaluate_output",

@@ -9,8 +9,9 @@ line on stderr (plus a hint when the error carries one) and exits with its
 code  class                  meaning
 ====  =====================  ==============================================
 0     -                      success
-1     :class:`InputError`    refused input (dataset, configuration content)
-2     :class:`UsageError`    bad command-line usage (option values, paths)
+1     :class:`InputError`    refused input (dataset or data file content)
+2     :class:`UsageError`    bad command-line usage (option values, paths);
+                             :class:`ConfigError`: a configuration file that cannot be used
 3     :class:`CheckFlagged`  ``uwbimu check --strict`` flagged the dataset
 4     :class:`OutputError`   output refused or not writable (nothing written)
 5     :class:`EstimationError`  the estimator failed or produced non-finite values
@@ -24,6 +25,7 @@ from typing import Optional
 __all__ = [
     "UwbimuError",
     "InputError",
+    "ConfigError",
     "UsageError",
     "CheckFlagged",
     "OutputError",
@@ -56,6 +58,17 @@ class InputError(UwbimuError, ValueError):
     exit_code = 1
 
 
+class ConfigError(InputError):
+    """A configuration file or mapping that cannot be used; the message names file, line and field (exit 2).
+
+    Raised by :func:`uwbimu.io.yamlconfig.load_yaml_model`, the one YAML configuration loader.  A
+    configuration is part of how the command was called, so the command line exits with the usage
+    code 2, as for a bad option value.
+    """
+
+    exit_code = 2
+
+
 class UsageError(UwbimuError, ValueError):
     """Command-line usage error: a bad option value or an impossible combination (exit 2)."""
 
@@ -83,8 +96,8 @@ class EstimationError(UwbimuError, RuntimeError):
 #: Exit code -> meaning, for documentation and ``--help`` texts.
 EXIT_CODES = {
     0: "success",
-    1: "refused input (dataset or configuration content)",
-    2: "usage error (bad option value or path)",
+    1: "refused input (dataset or data file content)",
+    2: "usage error (bad option value, path or configuration file)",
     3: "check flagged the dataset (--strict)",
     4: "output refused or not writable (nothing written)",
     5: "estimation failed or produced non-finite values",

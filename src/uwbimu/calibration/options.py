@@ -58,9 +58,7 @@ class CalibrationOptions(BaseModel):
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "CalibrationOptions":
-        import yaml
+        """Load options from a YAML file; errors (:class:`uwbimu.errors.ConfigError`) name file, line and field."""
+        from uwbimu.io.yamlconfig import load_yaml_model
 
-        data = yaml.safe_load(Path(path).read_text()) or {}
-        if not isinstance(data, dict):
-            raise ValueError(f"{path}: expected a mapping of calibration options")
-        return cls.model_validate(data)
+        return load_yaml_model(path, cls, what="calibration options")

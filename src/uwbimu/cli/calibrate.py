@@ -6,6 +6,8 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+
+from uwbimu.cli.conventions import FORCE_HELP
 from rich.console import Console
 from rich.table import Table
 
@@ -48,16 +50,16 @@ def register(app: typer.Typer) -> None:
     @app.command("calibrate")
     @with_load_options
     def calibrate_cmd(
-        dataset: Path = typer.Argument(..., help="dataset folder (imu.csv, uwb.csv, anchors.csv)"),
-        out: Path = typer.Option(..., "--out", "-o", help="output folder"),
-        config: Optional[Path] = typer.Option(None, "--config", "-c", help="calibrate.yaml (see docs/calibrate.md)"),
-        eskf_config: Optional[Path] = typer.Option(None, "--eskf-config", help="options of the initialising ESKF"),
+        dataset: Path = typer.Argument(..., help="Dataset folder (imu.csv, uwb.csv, anchors.csv)"),
+        out: Path = typer.Option(..., "--out", "-o", help="Output folder"),
+        config: Optional[Path] = typer.Option(None, "--config", "-c", help="Calibration options YAML (see docs/calibrate.md)."),
+        eskf_config: Optional[Path] = typer.Option(None, "--eskf-config", help="Options of the initialising ESKF"),
         estimate_anchors: Optional[str] = typer.Option(
             None, "--estimate-anchors",
-            help="comma-separated anchor ids whose positions are estimated (self-survey; weak prior around "
+            help="Comma-separated anchor ids whose positions are estimated (self-survey; weak prior around "
                  "anchors.csv, none for rows marked surveyed: false); adds to the config's estimate_anchors"),
-        plots: bool = typer.Option(True, "--plots/--no-plots", help="td_profile.png"),
-        force: bool = typer.Option(False, "--force", help="write over files uwbimu did not write in the output folder"),
+        plots: bool = typer.Option(True, "--plots/--no-plots", help="Write the plots (td_profile.png, ...)."),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         load_options=None,
     ) -> None:
         """Batch MAP calibration over the whole log: lever arm, time offset (profile + verdict), anchor biases."""
@@ -70,10 +72,8 @@ def register(app: typer.Typer) -> None:
         from uwbimu.io.atomic import check_output_target, output_folder
 
         console = Console()
-        try:
-            opts = CalibrationOptions.from_yaml(config) if config is not None else CalibrationOptions()
-        except (OSError, ValueError) as exc:
-            raise UsageError(f"--config {config}: {exc}") from None
+        # a bad --config: ConfigError naming file, line and field (exit 2)
+        opts = CalibrationOptions.from_yaml(config) if config is not None else CalibrationOptions()
         if estimate_anchors is not None:
             ids = [a.strip() for a in estimate_anchors.split(",") if a.strip()]
             if not ids:

@@ -8,6 +8,8 @@ from typing import Optional
 
 import typer
 
+from uwbimu.cli.conventions import FORCE_HELP
+
 from uwbimu.cli.dataset_options import ACCEL_UNITS, GYRO_UNITS, with_load_options  # noqa: F401 (re-export)
 
 
@@ -22,7 +24,7 @@ def register(app: typer.Typer) -> None:
         csv: Optional[Path] = typer.Option(None, "--csv", help="Also write the per-anchor residual table here."),
         fix: Optional[Path] = typer.Option(None, "--fix", help="Write a repaired copy of the dataset (the repairs "
                                            "asked for with --sort, --drop-duplicates, units, ...) to this folder."),
-        force: bool = typer.Option(False, "--force", help="Replace an existing --csv file / --fix folder."),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         load_options=None,
     ) -> None:
         """Validate a dataset (refusing bad input) and print rates, gaps, anchors and range residuals."""
@@ -101,6 +103,8 @@ def print_check(console, ds, result) -> None:
     from rich.markup import escape
     from rich.table import Table
 
+    from uwbimu.cli.conventions import fit_table
+
     rep = ds.report
     console.print(f"[bold]{ds.meta.name}[/bold] ({ds.path}): [green]valid[/green]")
     if rep is not None:
@@ -123,7 +127,7 @@ def print_check(console, ds, result) -> None:
     for name, r in result.streams.iterrows():
         t.add_row(name, str(int(r["samples"])), _f(r["t_start"]), _f(r["t_end"]), _f(r["duration"], ".2f"),
                   _f(r["rate_hz"], ".1f"), _f(r["median_dt"], ".4f"), _f(r["max_gap"]), str(int(r["n_gaps"])))
-    console.print(t)
+    console.print(fit_table(console, t))
 
     a = Table(title="Anchors (world frame, m) and ranges", collapse_padding=True)
     a.add_column("id", justify="right", overflow="fold")

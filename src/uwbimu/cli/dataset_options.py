@@ -32,7 +32,7 @@ _PARAMS = [
                                              help="At a backward clock jump keep the longer monotonic part "
                                                   "(reported) instead of refusing.")),
     ("tdoa_margin", float, typer.Option(1.0, "--tdoa-margin",
-                                        help="|tdoa| may exceed the anchors' separation by this much [m].")),
+                                        help="How far |tdoa| may exceed the anchors' separation [m].")),
 ]
 NAMES = [p[0] for p in _PARAMS]
 
@@ -96,19 +96,18 @@ def load(path, load_options):
 
 def estimator_options(estimator: str, config, preset):
     """Estimator options from ``--config`` YAML or ``--preset`` NAME (defaults when neither)."""
-    from uwbimu.errors import UsageError
+    from uwbimu.errors import UsageError, UwbimuError
 
     if config is not None and preset is not None:
         raise UsageError("give --config or --preset, not both (copy the preset into your YAML to change it)")
     try:
         if estimator == "pointmass":
-            import yaml
-
             from uwbimu.estimation.pointmass import PointMassOptions
+            from uwbimu.io.yamlconfig import load_yaml_model
 
             if preset is not None:
                 raise UsageError("--preset applies to the eskf estimator only")
-            return (PointMassOptions.model_validate(yaml.safe_load(config.read_text()) or {})
+            return (load_yaml_model(config, PointMassOptions, what="point-mass options")
                     if config is not None else PointMassOptions())
         from uwbimu.estimation import EskfOptions
 
@@ -123,8 +122,8 @@ def estimator_options(estimator: str, config, preset):
             except (KeyError, ValueError, FileNotFoundError) as exc:
                 raise UsageError(f"--preset {preset!r}: {exc}") from None
         return EskfOptions.from_yaml(config) if config is not None else EskfOptions()
-    except UsageError:
-        raise
+    except UwbimuError:
+        raise  # ConfigError (exit 2) names the file, line and field
     except (OSError, ValueError) as exc:
         raise UsageError(f"--config {config}: {exc}") from None
 

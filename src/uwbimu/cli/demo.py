@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 import typer
+
+from uwbimu.cli.conventions import FORCE_HELP
 from rich.console import Console
 from rich.table import Table
 
@@ -205,9 +207,9 @@ def register(app: typer.Typer) -> None:
     def demo(
         out: Optional[Path] = typer.Option(
             None, "--out", "-o",
-            help="output folder (replaced if a previous demo wrote it); default: a new temporary folder, printed"),
-        force: bool = typer.Option(False, "--force", help="replace --out even if another program wrote it"),
-        duration: float = typer.Option(None, "--duration", help="flight duration in s (default: the scenario's 60 s)"),
+            help="Output folder (replaced if a previous demo wrote it); default: a new temporary folder, printed"),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
+        duration: float = typer.Option(None, "--duration", help="Flight duration [s] (default: the scenario's 60 s)"),
     ) -> None:
         """Simulate a calibration flight, validate it, analyse, estimate and write the report."""
         console = Console()

@@ -7,6 +7,8 @@ from typing import Optional
 
 import numpy as np
 import typer
+
+from uwbimu.cli.conventions import FORCE_HELP
 from rich.console import Console
 
 from uwbimu.cli.dataset_options import with_load_options
@@ -87,17 +89,17 @@ def register(app: typer.Typer) -> None:
     @app.command("estimate")
     @with_load_options
     def estimate_cmd(
-        dataset: Path = typer.Argument(..., help="dataset folder (imu.csv, uwb.csv, anchors.csv [, groundtruth.csv])"),
-        out: Path = typer.Option(..., "--out", "-o", help="output folder"),
-        config: Optional[Path] = typer.Option(None, "--config", "-c", help="estimator options YAML (see examples/estimator.yaml)"),
-        preset: Optional[str] = typer.Option(None, "--preset", help="shipped estimator options: default, real, isas-walk"),
+        dataset: Path = typer.Argument(..., help="Dataset folder (imu.csv, uwb.csv, anchors.csv [, groundtruth.csv])"),
+        out: Path = typer.Option(..., "--out", "-o", help="Output folder"),
+        config: Optional[Path] = typer.Option(None, "--config", "-c", help="Estimator options YAML (see examples/estimator.yaml)"),
+        preset: Optional[str] = typer.Option(None, "--preset", help="Shipped estimator options: default, real, isas-walk"),
         plots: bool = typer.Option(True, "--plots/--no-plots", help="PNG plots when ground truth exists"),
-        force: bool = typer.Option(False, "--force", help="write over files uwbimu did not write in the output folder"),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         estimator: str = typer.Option(
-            "eskf", "--estimator", help="eskf (19-state ESKF) or pointmass (seed 002's 6-state EKF)"
+            "eskf", "--estimator", help="Estimator: eskf (19-state ESKF) or pointmass (seed 002's 6-state EKF)"
         ),
         clock_faults: bool = typer.Option(True, "--clock-faults/--no-clock-faults",
-                                          help="test the run's time offset for UWB clock jumps/drift (no re-run "
+                                          help="Test the run's time offset for UWB clock jumps/drift (no re-run "
                                                "on a clean log); correct the UWB stamps and re-run when found"),
         load_options=None,
     ) -> None:

@@ -7,6 +7,8 @@ from typing import Optional
 
 import typer
 
+from uwbimu.cli.conventions import FORCE_HELP
+
 
 #: Files ``uwbimu evaluate`` writes into the estimator output folder.
 EVALUATION_FILES = ("evaluation.json", "evaluation_errors.csv", "evaluation_trajectory.png", "evaluation_errors.png")
@@ -26,7 +28,7 @@ def register(app: typer.Typer) -> None:
     @app.command("evaluate")
     def evaluate(
         out: Path = typer.Argument(..., help="Estimator output folder (holds trajectory.csv)."),
-        groundtruth: Path = typer.Option(..., "--groundtruth", "-g", help="groundtruth.csv (dataset format) or a dataset folder."),
+        groundtruth: Path = typer.Option(..., "--groundtruth", "-g", help="Ground truth: groundtruth.csv (dataset format) or a dataset folder."),
         align: str = typer.Option("se3", "--align", help="Alignment to ground truth: none | position | se3."),
         distances: str = typer.Option("1,2,5", "--distances", help="RPE path lengths in m, comma-separated."),
         max_gap: float = typer.Option(0.5, "--max-gap", help="Longest ground-truth gap bridged by interpolation [s]."),
@@ -36,7 +38,9 @@ def register(app: typer.Typer) -> None:
             None, "--attitude/--no-attitude",
             help="Compare attitudes (default: yes, unless the dataset.yaml next to the ground truth marks its body "
                  "frame as not the IMU frame, as ISAS-Walk's)."),
-        force: bool = typer.Option(False, "--force", help="Replace evaluation files in OUT that uwbimu did not write."),
+        folder: Optional[Path] = typer.Option(None, "--out", "-o",
+                                              help="Output folder for evaluation.json (default: the estimator output folder)."),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
     ) -> None:
         """Score OUT/trajectory.csv against ground truth (ATE after alignment, RPE); writes OUT/evaluation.json."""
         from rich.console import Console
@@ -54,10 +58,11 @@ def register(app: typer.Typer) -> None:
         dist = _parse_distances(distances)
         names = list(EVALUATION_FILES)
         gt_folder = groundtruth  # a file is protected itself, a dataset folder as a whole
-        check_output_target(out, names, force, protect=[gt_folder])
+        target = folder if folder is not None else out
+        check_output_target(target, names, force, protect=[gt_folder])
         try:
             # Scores of empty sets are NaN by design (n/a); the finiteness rule guards estimates.
-            with output_folder(out, force, protect=[gt_folder], names=names, finite=False) as tmp:
+            with output_folder(target, force, protect=[gt_folder], names=names, finite=False) as tmp:
                 s = evaluate_output(tmp, groundtruth, align=align, distances=dist, max_gap=max_gap,
                                     skip_initial=skip_initial, plots=not no_plots, compare_attitude=attitude,
                                     trajectory=out / "trajectory.csv")
@@ -66,7 +71,7 @@ def register(app: typer.Typer) -> None:
                 raise
             raise InputError(str(exc)) from None
         print_summary(console, s)
-        console.print(f"wrote {out / 'evaluation.json'}")
+        console.print(f"wrote {target / 'evaluation.json'}")
 
 
 def print_summary(console, s: dict) -> None:

@@ -21,13 +21,22 @@ from typing import Callable, Optional
 
 import typer
 
+from uwbimu.cli.conventions import FORCE_HELP
+
 import_app = typer.Typer(
     name="import",
     help="Convert third-party recordings (INRoL, ...) into the uwbimu dataset format.",
     no_args_is_help=True,
 )
 
-FORCE_HELP = "Replace DST if it exists and is not empty."
+
+def _destination(dst: Optional[Path], out: Optional[Path]) -> Path:
+    """The output folder, given as DST or as -o/--out (exactly one)."""
+    from uwbimu.errors import UsageError
+
+    if (dst is None) == (out is None):
+        raise UsageError("give the output dataset folder once: as DST or with -o/--out")
+    return dst if dst is not None else out
 
 
 def run_import(do_import: Callable[..., object], with_progress: bool = False, dst: Optional[Path] = None,
@@ -78,11 +87,13 @@ def _register_inrol(app: typer.Typer) -> None:
     def inrol(
         src: Path = typer.Argument(..., help="INRoL parsed_dataset folder (imu.txt, uwb.txt, anchor.txt, "
                                              "imu_pose.txt, LICENSE)."),
-        dst: Path = typer.Argument(..., help="Output dataset folder."),
+        dst: Optional[Path] = typer.Argument(None, help="Output dataset folder (or give it with -o/--out)."),
+        out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output dataset folder (instead of DST)."),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         name: Optional[str] = typer.Option(None, "--name", help="Dataset name (default from SRC)."),
     ) -> None:
         """Convert an INRoL UWB-IMU sequence (GPL-3.0 data; LICENSE and attribution are copied)."""
+        dst = _destination(dst, out)
         from uwbimu.io.importers import inrol as imp
 
         run_import(lambda progress: imp.import_dataset(src, dst, force=force, name=name, progress=progress),
@@ -94,11 +105,13 @@ def _register_isas_walk(app: typer.Typer) -> None:
     def isas_walk(
         src: Path = typer.Argument(..., help="ISAS-Walk CSV folder (imu.csv, uwb_ranges.csv, anchors.csv, "
                                              "groundtruth_vive.csv, LICENSE)."),
-        dst: Path = typer.Argument(..., help="Output dataset folder."),
+        dst: Optional[Path] = typer.Argument(None, help="Output dataset folder (or give it with -o/--out)."),
+        out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output dataset folder (instead of DST)."),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         no_groundtruth: bool = typer.Option(False, "--no-groundtruth", help="Do not import the Vive ground truth."),
     ) -> None:
         """Convert an ISAS-Walk (SFUISE) sequence: fresh ranges only, documented anchor offsets as known biases."""
+        dst = _destination(dst, out)
         from uwbimu.io.importers import isas_walk as imp
 
         run_import(lambda: imp.import_dataset(src, dst, force=force, with_groundtruth=not no_groundtruth),
@@ -109,11 +122,13 @@ def _register_rosbag(app: typer.Typer) -> None:
     @app.command("rosbag")
     def rosbag(
         bag: Path = typer.Argument(..., help="ROS 1 .bag file or ROS 2 bag folder."),
-        dst: Path = typer.Argument(..., help="Output dataset folder."),
+        dst: Optional[Path] = typer.Argument(None, help="Output dataset folder (or give it with -o/--out)."),
+        out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output dataset folder (instead of DST)."),
         topics: Path = typer.Option(..., "--topics", help="Mapping YAML: imu/ranges topics, fields, anchors file."),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
     ) -> None:
         """Convert a ROS 1 or ROS 2 bag (sensor_msgs/Imu + a configurable range message) with a mapping YAML."""
+        dst = _destination(dst, out)
         from uwbimu.io.importers import rosbag as imp
 
         run_import(lambda: imp.import_dataset(bag, dst, topics, force=force), dst=dst, src=bag, force=force)
@@ -123,14 +138,16 @@ def _register_util(app: typer.Typer) -> None:
     @app.command("util")
     def util(
         src: Path = typer.Argument(..., help="UTIL flight CSV, e.g. csv-data/const1/const1-trial1-tdoa2.csv."),
-        dst: Path = typer.Argument(..., help="Output dataset folder."),
-        anchors: Optional[Path] = typer.Option(None, "--anchors", help="anchor survey (anchor_constN.npz or "
+        dst: Optional[Path] = typer.Argument(None, help="Output dataset folder (or give it with -o/--out)."),
+        out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output dataset folder (instead of DST)."),
+        anchors: Optional[Path] = typer.Option(None, "--anchors", help="Anchor survey (anchor_constN.npz or "
                                                "_survey.txt); default: survey-results/anchor_constN.* found "
                                                "next to or above SRC."),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         name: Optional[str] = typer.Option(None, "--name", help="Dataset name (default from SRC)."),
     ) -> None:
         """Convert a UTIL (Zhao et al.) TDoA flight: TDoA, IMU (g, deg/s converted), Vicon pose, anchor survey."""
+        dst = _destination(dst, out)
         from uwbimu.io.importers import util as imp
 
         run_import(lambda: imp.import_dataset(src, dst, anchors, force=force, name=name), dst=dst, src=src, force=force)
@@ -140,8 +157,9 @@ def _register_cf_usdlog(app: typer.Typer) -> None:
     @app.command("cf-usdlog")
     def cf_usdlog(
         log: Path = typer.Argument(..., help="Crazyflie uSD-card event log (binary, e.g. log00)."),
-        dst: Path = typer.Argument(..., help="Output dataset folder."),
-        anchors: Path = typer.Option(..., "--anchors", help="anchors.csv (anchor, x, y, z [, qw, qx, qy, qz]); ids "
+        dst: Optional[Path] = typer.Argument(None, help="Output dataset folder (or give it with -o/--out)."),
+        out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output dataset folder (instead of DST)."),
+        anchors: Path = typer.Option(..., "--anchors", help="Anchor positions, anchors.csv (anchor, x, y, z [, qw, qx, qy, qz]); ids "
                                                             "as the Loco nodes' (0-7)."),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         ignore_crc: bool = typer.Option(False, "--ignore-crc", help="Decode a log whose CRC does not match "
@@ -149,6 +167,7 @@ def _register_cf_usdlog(app: typer.Typer) -> None:
         name: Optional[str] = typer.Option(None, "--name", help="Dataset name (default from LOG)."),
     ) -> None:
         """Convert a Crazyflie uSD event log (estTDOA, estAcceleration in g, estGyroscope in deg/s) to a TDoA dataset."""
+        dst = _destination(dst, out)
         from uwbimu.io.importers import cf_usdlog as imp
 
         run_import(lambda: imp.import_dataset(log, dst, anchors, force=force, ignore_crc=ignore_crc, name=name),

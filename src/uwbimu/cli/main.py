@@ -83,12 +83,13 @@ INTERNAL_ERROR_EXIT = 70
 
 def report_error(exc: BaseException) -> int:
     """Print an error as one line on stderr (plus a hint line) and return its exit code."""
-    from uwbimu.errors import UwbimuError
+    from uwbimu.errors import ConfigError, UwbimuError
 
     text = " ".join(str(exc).split()) or type(exc).__name__
     if isinstance(exc, UwbimuError):
         label = {1: "refused", 2: "usage error", 3: "flagged", 4: "output refused", 5: "estimation failed"}
-        print(f"uwbimu: {label.get(exc.exit_code, 'error')}: {text}", file=sys.stderr)
+        what = "invalid configuration" if isinstance(exc, ConfigError) else label.get(exc.exit_code, "error")
+        print(f"uwbimu: {what}: {text}", file=sys.stderr)
         if exc.hint:
             print(f"hint: {exc.hint}", file=sys.stderr)
         return exc.exit_code

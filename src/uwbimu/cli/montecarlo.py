@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Optional
 
@@ -75,57 +76,49 @@ def crlb_table(summary: dict) -> Optional[Table]:
 def register(app: typer.Typer) -> None:
     @app.command("montecarlo")
     def montecarlo_cmd(
-        config: Optional[Path] = typer.Argument(None, help="study YAML (scenarios, estimators, seed_base)"),
-        out: Path = typer.Option(..., "--out", "-o", help="output folder (a rerun with the same folder resumes)"),
-        runs: Optional[int] = typer.Option(None, "--runs", "-n", help="seeds per scenario (default: the config's)"),
-        workers: Optional[int] = typer.Option(None, "--workers", "-j", help="processes / Dask workers (default: all cores)"),
+        config: Optional[Path] = typer.Argument(None, help="Study YAML (scenarios, estimators, seed_base)"),
+        out: Path = typer.Option(..., "--out", "-o", help="Output folder (a rerun with the same folder resumes)"),
+        runs: Optional[int] = typer.Option(None, "--runs", "-n", help="Seeds per scenario (default: the config's)"),
+        workers: Optional[int] = typer.Option(None, "--workers", "-j", help="Processes / Dask workers (default: all cores)"),
         scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address, e.g. tcp://host:8786"),
-        dask_local: bool = typer.Option(False, "--dask-local", help="run on a loopback Dask LocalCluster"),
-        example: Optional[str] = typer.Option(None, "--example", help="a built-in study instead of CONFIG (seed-anchor-planes)"),
-        no_plots: bool = typer.Option(False, "--no-plots", help="skip the figures"),
+        dask_local: bool = typer.Option(False, "--dask-local", help="Run on a loopback Dask LocalCluster"),
+        example: Optional[str] = typer.Option(None, "--example", help="A built-in study instead of CONFIG (seed-anchor-planes)"),
+        no_plots: bool = typer.Option(False, "--no-plots", help="Skip the figures"),
     ) -> None:
         """Monte Carlo study: scenarios x seeds x estimators -> montecarlo.csv, summary.json, plots."""
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-        from uwbimu.studies import MonteCarloError, config_from_dict, load_config, run_study
+        from uwbimu.errors import UsageError
+        from uwbimu.studies import config_from_dict, load_config, run_study
         from uwbimu.studies.examples import EXAMPLES, example_config
 
         console = Console()
-        if not console.is_terminal:  # a log file: do not squeeze the table's numbers into 80 columns
-            console = Console(width=140)
+        if not console.is_terminal and "COLUMNS" not in os.environ:
+            console = Console(width=140)  # a log file: do not squeeze the numbers (COLUMNS=80 still wraps)
         err = Console(stderr=True)
         if (config is None) == (example is None):
-            err.print("[red]error:[/] give a CONFIG file or --example NAME "
-                      f"(examples: {', '.join(sorted(EXAMPLES))})")
-            raise typer.Exit(code=2)
+            raise UsageError(f"give a CONFIG file or --example NAME (examples: {', '.join(sorted(EXAMPLES))})")
         if scheduler and dask_local:
-            err.print("[red]error:[/] --scheduler and --dask-local are exclusive")
-            raise typer.Exit(code=2)
+            raise UsageError("--scheduler and --dask-local are exclusive")
         if workers is not None and workers < 1:
-            err.print("[red]error:[/] --workers must be at least 1")
-            raise typer.Exit(code=2)
-        try:
-            if example is not None:
-                try:
-                    cfg = config_from_dict(example_config(example), f"example {example}")
-                except KeyError as exc:
-                    err.print(f"[red]error:[/] {exc.args[0]}")
-                    raise typer.Exit(code=2) from None
-            else:
-                cfg = load_config(config)
-            n_runs = runs if runs is not None else cfg.runs
-            with Progress(TextColumn("[bold]runs"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                          console=console, transient=False) as bar:
-                task = bar.add_task("runs", total=n_runs * len(cfg.scenarios))
+            raise UsageError("--workers must be at least 1")
+        if example is not None:
+            try:
+                cfg = config_from_dict(example_config(example), f"example {example}")
+            except KeyError as exc:
+                raise UsageError(str(exc.args[0])) from None
+        else:
+            cfg = load_config(config)
+        n_runs = runs if runs is not None else cfg.runs
+        with Progress(TextColumn("[bold]runs"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                      console=console, transient=False) as bar:
+            task = bar.add_task("runs", total=n_runs * len(cfg.scenarios))
 
-                def progress(done: int, total: int) -> None:
-                    bar.update(task, completed=done, total=total)
+            def progress(done: int, total: int) -> None:
+                bar.update(task, completed=done, total=total)
 
-                summary = run_study(cfg, out, runs=runs, workers=workers, scheduler=scheduler,
-                                    dask_local=dask_local, progress=progress, plots=not no_plots)
-        except MonteCarloError as exc:
-            err.print(f"[red]error:[/] {exc}")
-            raise typer.Exit(code=1) from None
+            summary = run_study(cfg, out, runs=runs, workers=workers, scheduler=scheduler,
+                                dask_local=dask_local, progress=progress, plots=not no_plots)
         console.print(summary_table(summary))
         ct = crlb_table(summary)
         if ct is not None:

@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Optional
 
 import typer
-
-from uwbimu.cli.dataset_options import with_load_options
 from rich.console import Console
 from rich.table import Table
+
+from uwbimu.cli.conventions import FORCE_HELP, fit_table
+from uwbimu.cli.dataset_options import with_load_options
 
 obs_app = typer.Typer(
     name="observability",
@@ -21,46 +21,29 @@ obs_app = typer.Typer(
 )
 
 
-def _fail(console: Console, msg: str) -> None:
-    # soft_wrap: an error message (file names, field paths) is never cut or folded
-    # at the terminal width, so it can be copied and searched as a whole.
-    from rich.markup import escape
+def _fail(msg: str) -> None:
+    """A bad option value: one stderr line through the CLI wrapper, exit code 2."""
+    from uwbimu.errors import UsageError
 
-    console.print(f"[red]error:[/red] {escape(msg)}", soft_wrap=True)
-    raise typer.Exit(code=2)
+    raise UsageError(msg)
 
 
 def _jsonable(obj):
-    import numpy as np
+    from uwbimu.io.atomic import to_plain
 
-    if isinstance(obj, dict):
-        return {k: _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        f = float(obj)
-        return f if math.isfinite(f) else str(f)
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
+    return to_plain(obj, nonfinite=str)  # --json: NaN / inf as "nan" / "inf" text
 
 
 @obs_app.command("structural")
 def structural(
-    config: Path = typer.Argument(..., help="configuration YAML (see examples/observability/)"),
-    as_json: bool = typer.Option(False, "--json", help="print the verdict as JSON"),
+    config: Path = typer.Argument(..., help="Configuration YAML (see examples/observability/)"),
+    as_json: bool = typer.Option(False, "--json", help="Print the verdict as JSON"),
 ) -> None:
     """Lie-derivative observability rank test of a configuration."""
-    from uwbimu.observability.config import ConfigError
     from uwbimu.observability.structural import structural_verdict
 
     console = Console()
-    try:
-        v = structural_verdict(config)
-    except ConfigError as e:
-        _fail(console, str(e))
+    v = structural_verdict(config)  # a bad configuration: ConfigError, exit 2 (cli.main wrapper)
     if as_json:
         keys = ["rank", "dimension", "observable", "verdict", "lie_order", "singular_values", "unobservable_directions", "conditions"]
         extra = ["name", "model", "measurement", "search_verdict", "search_rank", "lie_order_setting", "order_search", "stop_reason",
@@ -129,18 +112,14 @@ def print_structural(console: Console, v: dict) -> None:
 
 @obs_app.command("delay")
 def delay(
-    config: Path = typer.Argument(..., help="configuration YAML (model uwb_imu)"),
-    as_json: bool = typer.Option(False, "--json", help="print the verdict as JSON"),
+    config: Path = typer.Argument(..., help="Configuration YAML (model uwb_imu)"),
+    as_json: bool = typer.Option(False, "--json", help="Print the verdict as JSON"),
 ) -> None:
     """Time-offset identifiability (seed 001 Theorem 1, T1-T3) with a numeric check."""
-    from uwbimu.observability.config import ConfigError
     from uwbimu.observability.delay import delay_verdict
 
     console = Console()
-    try:
-        v = delay_verdict(config)
-    except (ConfigError, ValueError) as e:
-        _fail(console, str(e))
+    v = delay_verdict(config)  # a bad configuration: ConfigError, exit 2 (cli.main wrapper)
     if as_json:
         keys = ["identifiable", "conditions", "theorem1", "numeric", "first_order", "explanation", "basis", "agree",
                 "n_points", "name", "measurement"]  # fmt: skip
@@ -184,21 +163,21 @@ def delay(
 @obs_app.command("log")
 @with_load_options
 def log(
-    dataset: Path = typer.Argument(..., help="dataset folder"),
-    window: float = typer.Option(20.0, "--window", help="window length (s)"),
-    out: Path = typer.Option(..., "--out", "-o", help="output folder (observability.csv, observability.png)"),
-    range_sigma: Optional[float] = typer.Option(None, "--range-sigma", help="range sd (m) (default: dataset meta, else 0.1)"),
-    no_imu_noise: bool = typer.Option(False, "--no-imu-noise", help="ignore IMU noise (noise-free IMU)"),
-    bound: str = typer.Option("pcrb", "--bound", help="pcrb (posterior CRB from the window-start prior, IMU noise as "
+    dataset: Path = typer.Argument(..., help="Dataset folder"),
+    window: float = typer.Option(20.0, "--window", help="Window length [s]"),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (observability.csv, observability.png)"),
+    range_sigma: Optional[float] = typer.Option(None, "--range-sigma", help="Range sd [m] (default: dataset meta, else 0.1)"),
+    no_imu_noise: bool = typer.Option(False, "--no-imu-noise", help="Ignore IMU noise (noise-free IMU)"),
+    bound: str = typer.Option("pcrb", "--bound", help="Bound: pcrb (posterior CRB from the window-start prior, IMU noise as "
                               "process noise) or gramian (former approximate Gramian, no prior)"),
-    excited_ratio: float = typer.Option(0.5, "--excited-sd-ratio", help="excited when the window brings the bound to "
+    excited_ratio: float = typer.Option(0.5, "--excited-sd-ratio", help="Excited when the window brings the bound to "
                                         "at most this fraction of the prior sd"),
-    lever_sd: Optional[float] = typer.Option(None, "--lever-sd-threshold", help="also require this lever-arm bound (m)"),
-    td_sd: Optional[float] = typer.Option(None, "--td-sd-threshold", help="also require this time-offset bound (s)"),
+    lever_sd: Optional[float] = typer.Option(None, "--lever-sd-threshold", help="Also require this lever-arm bound [m]"),
+    td_sd: Optional[float] = typer.Option(None, "--td-sd-threshold", help="Also require this time-offset bound [s]"),
     trajectory: Optional[Path] = typer.Option(
-        None, "--trajectory", help="linearise about an estimator's states.csv (or its output folder) instead of the ground truth"
+        None, "--trajectory", help="Linearise about an estimator's states.csv (or its output folder) instead of the ground truth"
     ),
-    force: bool = typer.Option(False, "--force", help="replace existing outputs in OUT"),
+    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
     load_options=None,
 ) -> None:
     """Per-window posterior Cramer-Rao bound, information gained and excitation flags of a log."""
@@ -212,14 +191,14 @@ def log(
 
     console = Console()
     if window <= 0:
-        _fail(console, f"--window must be positive, got {window}")
+        _fail(f"--window must be positive, got {window}")
     if bound not in ("pcrb", "gramian"):
-        _fail(console, f"--bound must be pcrb or gramian, got {bound}")
+        _fail(f"--bound must be pcrb or gramian, got {bound}")
     if not 0 < excited_ratio < 1:
-        _fail(console, f"--excited-sd-ratio must be in (0, 1), got {excited_ratio}")
+        _fail(f"--excited-sd-ratio must be in (0, 1), got {excited_ratio}")
     csv_path, png_path = out / "observability.csv", out / "observability.png"
     if not force and (csv_path.exists() or png_path.exists()):
-        _fail(console, f"{out} already holds observability outputs; pass --force to replace them")
+        _fail(f"{out} already holds observability outputs; pass --force to replace them")
     from uwbimu.errors import InputError
     from uwbimu.io.loader import load_dataset
 
@@ -266,7 +245,7 @@ def log(
             str(r.weakest_direction)[:40], f"{sdl:.3g}", f"{r.sd_td:.3g}",
             "ok" if r.lever_arm_excited else "[yellow]weak[/yellow]", "ok" if r.time_offset_excited else "[yellow]weak[/yellow]",
         )  # fmt: skip
-    console.print(t)
+    console.print(fit_table(console, t, fold=("weakest",)))
     dropped = meta["ranges_unknown_anchor"] + meta["ranges_outside_imu_span"] + meta["ranges_other_tags"]
     if dropped:
         console.print(

@@ -10,16 +10,16 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-console = Console()
 
-
-def _print_result(res: dict) -> None:
+def _print_result(console: Console, res: dict) -> None:
+    # numbers never break (one word each); headers wrap, so the table fits 80 columns
     meas = " (TDoA PDOP)" if res.get("measurement") == "tdoa" else ""
-    t = Table(title="layouts compared" + meas if res["mode"] == "room" else f"{res.get('structure')}: coverage")
+    t = Table(title="layouts compared" + meas if res["mode"] == "room" else f"{res.get('structure')}: coverage",
+              collapse_padding=True)
     if res["mode"] == "room":
         t.add_column("layout", overflow="fold", min_width=21)
         for c in ("N", "cov. %", "PDOP p50", "PDOP p95", "N-1 p95", "out of hull %"):
-            t.add_column(c, no_wrap=True)
+            t.add_column(c)
         for r in res["table"]:
             n1 = r.get("n1_pdop_p95")
             hull = r.get("hull_outside")
@@ -64,21 +64,21 @@ def register(app: typer.Typer) -> None:
         from uwbimu.design.config import ConfigError, load_config
         from uwbimu.design.radio import PatternError
         from uwbimu.design.run import EXAMPLES, builtin_example, run_placement, write_outputs
+        from uwbimu import errors
 
+        console = Console()
         if (config is None) == (example is None):
-            console.print("[red]error:[/red] give either CONFIG.yaml or --example room|crane|bridge (exactly one)")
-            raise typer.Exit(code=2)
+            raise errors.UsageError("give either CONFIG.yaml or --example room|crane|bridge (exactly one)")
         names = ("placement.json", "anchors.csv", "anchors_scenario.yaml", "anchors_3d.png", "coverage_map.png",
                  "pdop_slices.png", "marginal_value.png")
         existing = [n for n in names if (out / n).exists()]
         if existing and not force:  # e.g. --out pointing at a dataset folder with its own anchors.csv
-            console.print(f"[red]error:[/red] {escape(str(out))} already holds {', '.join(existing)}; "
-                          "use --force to overwrite or pick another --out")
-            raise typer.Exit(code=2)
+            raise errors.OutputError(f"{out} already holds {', '.join(existing)}",
+                                     hint="use --force to overwrite or pick another --out")
         try:
             if example is not None:
                 if example not in EXAMPLES:
-                    raise ValueError(f"unknown example {example!r}; choose one of {', '.join(sorted(EXAMPLES))}")
+                    raise errors.UsageError(f"unknown example {example!r}; choose one of {', '.join(sorted(EXAMPLES))}")
                 cfg = builtin_example(example)
             else:
                 cfg = load_config(config)
@@ -91,10 +91,11 @@ def register(app: typer.Typer) -> None:
                 cfg.optimizer.workers = workers
             res = run_placement(cfg, progress=True)
             write_outputs(res, out, plots=not no_plots)
+        except errors.UwbimuError:
+            raise
         except (ConfigError, PatternError, ValueError) as exc:
             # config/pattern errors already name their file; name the config for the others
             where = "" if isinstance(exc, (ConfigError, PatternError)) or config is None else f"{config}: "
-            console.print(f"[red]error:[/red] {escape(where + str(exc))}")
-            raise typer.Exit(code=2)
-        _print_result(res)
+            raise errors.ConfigError(where + str(exc)) from None
+        _print_result(console, res)
         console.print(f"wrote {out / 'placement.json'}, {out / 'anchors.csv'}" + ("" if no_plots else " and plots"))

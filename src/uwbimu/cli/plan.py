@@ -6,11 +6,10 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-import yaml
 from rich.console import Console
 from rich.table import Table
 
-console = Console()
+from uwbimu.cli.conventions import FORCE_HELP
 
 plan_app = typer.Typer(
     help="Observability-aware trajectory design (seed OCP, point-mass planning, calibration manoeuvres).",
@@ -18,19 +17,11 @@ plan_app = typer.Typer(
 )
 
 
-def _load_yaml(path: Path) -> dict:
-    if not path.is_file():
-        console.print(f"[red]error:[/red] {path}: file not found")
-        raise typer.Exit(code=2)
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
-        console.print(f"[red]error:[/red] {path}: invalid YAML: {exc}")
-        raise typer.Exit(code=2)
-    if not isinstance(data, dict):
-        console.print(f"[red]error:[/red] {path}: top level must be a mapping")
-        raise typer.Exit(code=2)
-    return data
+def _load(path: Path, model, what: str):
+    """The config YAML as ``model``; a bad file is a ConfigError naming file, line and field (exit 2)."""
+    from uwbimu.io.yamlconfig import load_yaml_model
+
+    return load_yaml_model(path, model, what=what)
 
 
 SEED_FILES = {"plan.json", "trajectories.csv", "fig7_trajectories.png", "fig8_det_observability.png", "indirect_convergence.png", "controls.png"}
@@ -39,50 +30,34 @@ CALIBRATION_FILES = {
     *(f"{k}_{s}" for k in ("designed", "figure8", "figure8_excited") for s in ("trajectory.csv", "scenario.yaml")),
     "design.json", "calibration_design.png", "proof",
 }  # fmt: skip
-FORCE_HELP = "write into a folder that holds other files (files of the same names are replaced)"
 
 
 def _check_out(out: Path, ours: set, force: bool) -> None:
     """Refuse an output path that is a file, or a folder holding files this command does not write."""
+    from uwbimu.errors import OutputError
+
     if out.exists() and not out.is_dir():
-        console.print(f"[red]error:[/red] {out}: exists and is not a folder")
-        raise typer.Exit(code=2)
+        raise OutputError(f"{out} is a file, not a folder", hint="give a folder for the outputs")
     if out.is_dir() and not force:
-        other = sorted(p.name for p in out.iterdir() if p.name not in ours)
+        other = sorted(p.name for p in out.iterdir() if p.name not in ours and not p.name.startswith("."))
         if other:
-            console.print(f"[red]refusing:[/red] {out} holds other files ({', '.join(other[:5])}); use --force or another folder")
-            raise typer.Exit(code=2)
-
-
-def _validation_error(path, exc) -> None:
-    from pydantic import ValidationError
-
-    if isinstance(exc, ValidationError):
-        for e in exc.errors():
-            loc = ".".join(str(x) for x in e["loc"])
-            console.print(f"[red]error:[/red] {path}: field '{loc}': {e['msg']}")
-    else:
-        console.print(f"[red]error:[/red] {path}: {exc}")
+            raise OutputError(f"refusing to write into {out}: it holds other files ({', '.join(other[:5])})",
+                              hint="use --force or another output folder")
 
 
 @plan_app.command("seed-ocp")
 def seed_ocp(
-    out: Path = typer.Option(..., "--out", "-o", help="output folder (plots + plan.json)"),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (plots + plan.json)"),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding SeedOcpConfig fields"),
     force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Seed 002 sec. XI-XII: 1/det(O)^2 optimal control by PMP and by IPOPT, vs PD."""
-    from pydantic import ValidationError
-
     from uwbimu.design.trajectory.plots import save_seed_figures
     from uwbimu.design.trajectory.seed_ocp import SeedOcpConfig, solve_seed_ocp
     from uwbimu.io.atomic import write_csv, write_json
 
-    try:
-        cfg = SeedOcpConfig.model_validate(_load_yaml(config)) if config else SeedOcpConfig()
-    except (ValidationError, ValueError) as exc:
-        _validation_error(config, exc)
-        raise typer.Exit(code=2)
+    console = Console()
+    cfg = _load(config, SeedOcpConfig, "seed OCP config") if config else SeedOcpConfig()
     _check_out(out, SEED_FILES, force)
     with console.status("solving PD, indirect (PMP) and direct (IPOPT)..."):
         res = solve_seed_ocp(cfg)
@@ -102,7 +77,7 @@ def seed_ocp(
         rows[f"{m.name}_det"] = det_observability(m.x[:, :3], np.asarray(cfg.beacons))
     write_csv(out / "trajectories.csv", pd.DataFrame(rows), float_format="%.9g")
     figs = save_seed_figures(res, out)
-    tab = Table(title="Seed OCP: J = int 1/det(O)^2 + |p-p_d|^2/2 + |u|^2/2 dt")
+    tab = Table(title="Seed OCP: J = int 1/det(O)^2 + |p-p_d|^2/2 + |u|^2/2 dt", collapse_padding=True)
     for col in ("method", "J", "1/det^2", "track", "control", "det mean", "ms", "iter", "max|H_u|"):
         tab.add_column(col, justify="right", no_wrap=col in ("method", "J"))
     short = {"pd": "PD", "indirect": "indirect", "indirect_continuous": "ind. ODE", "direct": "direct", "direct_fixed_final": "fixed-end"}
@@ -127,30 +102,27 @@ def seed_ocp(
         )
     console.print(f"wrote {out / 'plan.json'}, {out / 'trajectories.csv'} and {len(figs)} figures")
     if not (res.indirect.converged and res.direct.converged):
-        console.print("[red]error:[/red] a method did not converge (see plan.json)")
-        raise typer.Exit(code=1)
+        from uwbimu.errors import EstimationError
+
+        raise EstimationError("a method did not converge (see plan.json)")
 
 
 @plan_app.command("point-mass")
 def point_mass(
     config: Path = typer.Argument(..., help="PointMassPlanConfig YAML (see examples/plan/pointmass.yaml)"),
-    out: Path = typer.Option(..., "--out", "-o", help="output folder"),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder"),
     force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Observability-aware point-mass path (log-det / E / A-optimal information, IPOPT) vs minimum effort."""
     import numpy as np
     import pandas as pd
-    from pydantic import ValidationError
 
     from uwbimu.design.trajectory.plots import save_pointmass_figure
     from uwbimu.design.trajectory.pointmass import PointMassPlanConfig, flight_trajectory, plan_point_mass
     from uwbimu.io.atomic import write_csv, write_json
 
-    try:
-        cfg = PointMassPlanConfig.model_validate(_load_yaml(config))
-    except (ValidationError, ValueError) as exc:
-        _validation_error(config, exc)
-        raise typer.Exit(code=2)
+    console = Console()
+    cfg = _load(config, PointMassPlanConfig, "point-mass plan config")
     _check_out(out, POINTMASS_FILES, force)
     with console.status("solving (IPOPT)..."):
         base = plan_point_mass(cfg.model_copy(update={"objective": "none"}))
@@ -192,12 +164,13 @@ def point_mass(
     if cfg.platform == "multirotor":
         console.print("platform multirotor: fly flight_trajectory.csv with `trajectory: {type: file, path: ..., attitude: flat}`")
     if not res.success:
-        console.print(f"[red]error:[/red] IPOPT did not converge: {res.status}")
-        raise typer.Exit(code=1)
-    _report_violations(violations)
+        from uwbimu.errors import EstimationError
+
+        raise EstimationError(f"IPOPT did not converge: {res.status}")
+    _report_violations(console, violations)
 
 
-def _report_violations(violations: list) -> None:
+def _report_violations(console: Console, violations: list) -> None:
     """Name every multirotor limit the flown trajectory exceeds; exit 3 (check flagged) if any."""
     if violations:
         for v in violations:
@@ -207,21 +180,15 @@ def _report_violations(violations: list) -> None:
 
 @plan_app.command("calibration")
 def calibration(
-    config: Path = typer.Argument(..., help="calibration design YAML (see docs/trajectory_design.md)"),
-    out: Path = typer.Option(..., "--out", "-o", help="output folder"),
+    config: Path = typer.Argument(..., help="Calibration design YAML (see docs/trajectory_design.md)"),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder"),
     force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Design a calibration manoeuvre (lever arm + time offset, E-optimal) for the 19-state model."""
-    from pydantic import ValidationError
-
     from uwbimu.design.trajectory.calibration import CalibrationDesignConfig, design_and_write
 
-    data = _load_yaml(config)
-    try:
-        cfg = CalibrationDesignConfig.model_validate(data)
-    except (ValidationError, ValueError) as exc:
-        _validation_error(config, exc)
-        raise typer.Exit(code=2)
+    console = Console()
+    cfg = _load(config, CalibrationDesignConfig, "calibration design config")
     _check_out(out, CALIBRATION_FILES, force)
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -234,8 +201,9 @@ def calibration(
         try:
             report = design_and_write(cfg, out, progress=cb, config_path=config)
         except ValueError as exc:
-            console.print(f"[red]error:[/red] {config}: {exc}")
-            raise typer.Exit(code=1)
+            from uwbimu.errors import InputError
+
+            raise InputError(f"{config}: {exc}") from None
     tab = Table(title=f"Calibration manoeuvre ({cfg.platform}): predicted 1-sigma (linearised ESKF covariance)")
     tab.add_column("trajectory")
     for col in ("lever x [mm]", "lever y [mm]", "lever z [mm]", "t_d [ms]", "lambda_min (scaled info)"):
@@ -253,7 +221,7 @@ def calibration(
         )
     console.print(f"optimised in {report['design_time_s']:.1f} s ({report['n_evals']} evaluations)")
     console.print(f"wrote {len(report['files'])} files into {out}; fly with: uwbimu simulate {out / 'designed_scenario.yaml'}")
-    _report_violations([f"{name}: {v}" for name in ("designed", "figure8", "figure8_excited") for v in report[f"{name}_flown"].get("limit_violations", [])])
+    _report_violations(console, [f"{name}: {v}" for name in ("designed", "figure8", "figure8_excited") for v in report[f"{name}_flown"].get("limit_violations", [])])
 
 
 def register(app: typer.Typer) -> None:

@@ -7,6 +7,7 @@ from typing import Optional
 
 import typer
 
+from uwbimu.cli.conventions import FORCE_HELP
 from uwbimu.cli.dataset_options import with_load_options
 
 
@@ -17,21 +18,28 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Argument(..., help="Estimator output folder (calibration.yaml, trajectory.csv, residuals.csv)."),
         dataset: Optional[Path] = typer.Option(None, "--dataset", "-d",
                                                help="Dataset folder: adds anchors, documented/true calibration, ground truth."),
-        output: Optional[Path] = typer.Option(None, "--output", "-o", help="HTML file to write (default OUT/report.html)."),
-        force: bool = typer.Option(False, "--force", help="Replace an --output file uwbimu did not write."),
+        folder: Optional[Path] = typer.Option(None, "--out", "-o",
+                                              help="Output folder for report.html (default: the estimator output folder)."),
+        html: Optional[Path] = typer.Option(None, "--html", help="Write the report to this HTML file instead."),
+        output: Optional[Path] = typer.Option(None, "--output", hidden=True, help="Old name of --html."),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         load_options=None,
     ) -> None:
         """Write one self-contained HTML calibration report (plots embedded, opens offline)."""
         from rich.console import Console
 
         from uwbimu.cli.dataset_options import load, print_load_warnings
-        from uwbimu.eval.files import EvalInputError
         from uwbimu.eval.report import write_report
-        from uwbimu.errors import InputError
+        from uwbimu.errors import UsageError
         from uwbimu.io.atomic import check_output_target, output_folder
 
         console = Console()
-        target = output if output is not None else out / "report.html"
+        if html is not None and output is not None:
+            raise UsageError("give --html FILE once (--output is its old name)")
+        html = html if html is not None else output
+        if html is not None and folder is not None:
+            raise UsageError("give --out FOLDER or --html FILE, not both")
+        target = html if html is not None else (folder if folder is not None else out) / "report.html"
         folder = target.parent if str(target.parent) else Path(".")
         protect = [dataset] if dataset is not None else []
         # Never over a file uwbimu did not write, never into (or over) a dataset.
@@ -40,30 +48,29 @@ def register(app: typer.Typer) -> None:
         if dataset is not None:
             ds = load(dataset, load_options)
             print_load_warnings(console, ds)
-        try:
-            with output_folder(folder, force, protect, names=[target.name], finite=False) as tmp:
-                write_report(out, dataset=ds, path=tmp / target.name)
-        except EvalInputError as exc:
-            raise InputError(str(exc)) from None
+        with output_folder(folder, force, protect, names=[target.name], finite=False) as tmp:
+            write_report(out, dataset=ds, path=tmp / target.name)  # EvalInputError: an InputError (exit 1)
         console.print(f"wrote {target}")
 
     @app.command("repeatability")
     @with_load_options
     def repeatability_cmd(
         dataset: Path = typer.Argument(..., help="Dataset folder."),
-        out: Path = typer.Option(..., "--out", help="Folder for repeatability.json (e.g. the estimator output folder)."),
+        out: Path = typer.Option(..., "--out", "-o", help="Folder for repeatability.json (e.g. the estimator output folder)."),
         windows: int = typer.Option(4, "--windows", "-k", min=2, help="Number of windows."),
         config: Optional[Path] = typer.Option(None, "--config", help="Estimator options YAML."),
         preset: Optional[str] = typer.Option(None, "--preset", help="Shipped estimator options: default, real, isas-walk."),
         level: float = typer.Option(0.01, "--level", help="Significance level of the chi-square test."),
-        force: bool = typer.Option(False, "--force", help="Replace a repeatability.json uwbimu did not write."),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         load_options=None,
     ) -> None:
         """Calibrate K windows of a log and compare the spread of lever arm / time offset with the filter's sigma."""
         from rich.console import Console
         from rich.progress import Progress
+        from rich.markup import escape
         from rich.table import Table
 
+        from uwbimu.cli.conventions import fit_table
         from uwbimu.cli.dataset_options import apply_dataset_properties, estimator_options, load, print_load_warnings
         from uwbimu.eval.repeatability import repeatability
         from uwbimu.io.atomic import check_output_target, output_folder, write_json
@@ -86,9 +93,9 @@ def register(app: typer.Typer) -> None:
             t.add_column(c, justify="right")
         for name, p in rep["parameters"].items():
             sc, u = (1000.0, "ms") if name == "td" else (100.0, "cm")
-            t.add_row(f"{name} [{u}]", f"{p['mean'] * sc:.2f}", f"{p['std'] * sc:.2f}", f"{p['rms_sd'] * sc:.2f}",
+            t.add_row(escape(f"{name} [{u}]"), f"{p['mean'] * sc:.2f}", f"{p['std'] * sc:.2f}", f"{p['rms_sd'] * sc:.2f}",
                       f"{p['ratio']:.2f}", f"{p['chi2']:.1f}/{p['dof']}", f"{p['p_value']:.3f}", p["verdict"])
-        console.print(t)
+        console.print(fit_table(console, t))
         for w in rep["windows"]:
             if "error" in w:
                 console.print(f"[yellow]window {w['i'] + 1} failed:[/yellow] {w['error']}")

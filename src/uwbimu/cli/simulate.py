@@ -7,6 +7,8 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+
+from uwbimu.cli.conventions import FORCE_HELP
 from rich.console import Console
 from rich.table import Table
 
@@ -56,15 +58,16 @@ def _summary(console: Console, ds, out: Path, seconds: float) -> None:
 def register(app: typer.Typer) -> None:
     @app.command("simulate")
     def simulate_cmd(
-        scenario: Optional[str] = typer.Argument(None, help="scenario YAML file, or a built-in name (see --list)"),
-        out: Optional[Path] = typer.Option(None, "--out", "-o", help="output dataset folder"),
-        force: bool = typer.Option(False, "--force", help="replace a non-empty output folder"),
-        list_: bool = typer.Option(False, "--list", help="list the built-in scenarios and exit"),
-        fmt: str = typer.Option("csv", "--format", help="table format: csv or parquet"),
+        scenario: Optional[str] = typer.Argument(None, help="Scenario YAML file, or a built-in name (see --list)"),
+        out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output dataset folder"),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
+        list_: bool = typer.Option(False, "--list", help="List the built-in scenarios and exit"),
+        fmt: str = typer.Option("csv", "--format", help="Table format: csv or parquet"),
     ) -> None:
         """Simulate a UWB-IMU flight (scenario YAML or built-in) into a dataset folder."""
         from uwbimu.io.dataset import write_dataset
-        from uwbimu.sim import ScenarioError, TrajectoryFileError, builtin_scenario, list_scenarios, load_scenario
+        from uwbimu.errors import UsageError
+        from uwbimu.sim import builtin_scenario, list_scenarios, load_scenario
         from uwbimu.sim.simulate import simulate
 
         console = Console()
@@ -73,32 +76,21 @@ def register(app: typer.Typer) -> None:
             _scenario_table(console)
             return
         if scenario is None or out is None:
-            err.print("[red]error:[/] give a SCENARIO (YAML file or built-in name) and --out DIR, or --list")
-            raise typer.Exit(code=2)
+            raise UsageError("give a SCENARIO (YAML file or built-in name) and --out DIR, or --list")
         if fmt not in ("csv", "parquet"):
-            err.print(f"[red]error:[/] --format must be csv or parquet, got {fmt!r}")
-            raise typer.Exit(code=2)
+            raise UsageError(f"--format must be csv or parquet, got {fmt!r}")
         from uwbimu.io.atomic import check_output_target, output_folder
 
         path = Path(scenario)
         protect = [path] if path.is_file() else []
         check_output_target(out, force=force, protect=protect, replace=True)
-
-        path = Path(scenario)
-        try:
-            if path.suffix.lower() in (".yaml", ".yml") or path.is_file():
-                sc = load_scenario(path)
-            elif scenario in list_scenarios():
-                sc = builtin_scenario(scenario)
-            else:
-                err.print(
-                    f"[red]error:[/] {scenario!r} is neither a scenario file nor a built-in name; "
-                    f"built-ins: {', '.join(list_scenarios())}"
-                )
-                raise typer.Exit(code=2)
-        except (ScenarioError, TrajectoryFileError) as exc:
-            err.print(f"[red]error:[/] {exc}")
-            raise typer.Exit(code=1) from None
+        if path.suffix.lower() in (".yaml", ".yml") or path.is_file():
+            sc = load_scenario(path)  # ScenarioError (exit 2) / TrajectoryFileError (exit 1) name file and field
+        elif scenario in list_scenarios():
+            sc = builtin_scenario(scenario)
+        else:
+            raise UsageError(f"{scenario!r} is neither a scenario file nor a built-in name; "
+                             f"built-ins: {', '.join(list_scenarios())}")
 
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -111,11 +103,7 @@ def register(app: typer.Typer) -> None:
             def progress(stage: str, frac: float) -> None:
                 bar.update(task, completed=frac, description=f"simulating {sc.name}: {stage}")
 
-            try:
-                ds = simulate(sc, progress=progress)
-            except TrajectoryFileError as exc:
-                err.print(f"[red]error:[/] {exc}")
-                raise typer.Exit(code=1) from None
+            ds = simulate(sc, progress=progress)
             bar.update(task, description=f"writing {out}")
             with output_folder(out, force=force, protect=protect, replace=True) as tmp:
                 write_dataset(ds, tmp, overwrite=True, fmt=fmt)

@@ -323,19 +323,6 @@ def _add_time_offset_verdict(result: EstimationResult, prob: Problem, priors: di
         result.warnings.append(f"time offset not identified: {reason}")
 
 
-def _plain(d: dict[str, Any]) -> dict[str, Any]:
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, np.ndarray):
-            v = v.tolist()
-        elif isinstance(v, (np.floating, np.integer)):
-            v = v.item()
-        elif isinstance(v, dict):
-            v = _plain(v)
-        out[k] = v
-    return out
-
-
 def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[PassResult],
               opts: EskfOptions) -> EstimationResult:
     """Concatenate the passes into an :class:`EstimationResult` and add diagnostics."""

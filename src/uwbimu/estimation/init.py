@@ -24,6 +24,7 @@ from scipy.optimize import least_squares
 from uwbimu.estimation import kernels as K
 from uwbimu.estimation.timeoffset import search_time_offset
 from uwbimu.estimation.filterpass import REC_NIS, REC_S, REC_STATUS, Problem, run_pass
+from uwbimu.errors import EstimationError
 from uwbimu.estimation.options import EskfOptions
 from uwbimu.models import state as S
 from uwbimu.models.quaternion import quat_from_euler, quat_to_rotmat
@@ -41,8 +42,8 @@ class InitialState:
     info: dict[str, Any] = field(default_factory=dict)
 
 
-class InitialisationError(RuntimeError):
-    """Not enough data to initialise (e.g. fewer than 4 anchors heard)."""
+class InitialisationError(EstimationError):
+    """Not enough data to initialise, e.g. fewer than 4 anchors heard (a RuntimeError; exit code 5)."""
 
 
 def multilaterate(prob: Problem, j0: int, window: float) -> tuple[np.ndarray, np.ndarray, float, int]:

@@ -15,7 +15,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal, Optional, Union
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from uwbimu.models.imu import ImuNoise, imu_preset
@@ -179,19 +178,15 @@ class EskfOptions(_Strict):
     @classmethod
     def from_yaml(cls, path: str | Path) -> "EskfOptions":
         """Load options from a YAML file (unknown keys are an error naming the key)."""
-        path = Path(path)
-        try:
-            data = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise ValueError(f"{path}: not valid YAML: {exc}") from exc
-        if not isinstance(data, dict):
-            raise ValueError(f"{path}: expected a mapping of options at top level")
-        if "estimator" in data and isinstance(data["estimator"], dict) and len(data) == 1:
-            data = data["estimator"]
-        try:
-            return cls.model_validate(data)
-        except Exception as exc:  # pydantic ValidationError names the field
-            raise ValueError(f"{path}: invalid estimator options:\n{exc}") from exc
+        from uwbimu.io.yamlconfig import load_yaml_model
+
+        def unwrap(data: dict) -> dict:
+            # a file holding ``estimator: {...}`` (the Monte Carlo / repeatability layout) is accepted too
+            if "estimator" in data and isinstance(data["estimator"], dict) and len(data) == 1:
+                return data["estimator"]
+            return data
+
+        return load_yaml_model(path, cls, what="estimator options", prepare=unwrap)
 
     def resolve_imu_noise(self, dataset_noise: Optional[ImuNoise]) -> ImuNoise:
         """IMU noise densities to use (option > dataset.yaml > BMI088 preset), scaled."""

@@ -84,19 +84,7 @@ def residual_table(result) -> pd.DataFrame:
 
 
 def _plain(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_plain(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _plain(obj.tolist())
-    if isinstance(obj, (np.floating, float)):
-        return None if not np.isfinite(obj) else float(obj)
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
+    return atomic.to_plain(obj)  # NaN / inf -> None (YAML null)
 
 
 def run_summary(result, dataset: Dataset) -> dict[str, Any]:

@@ -19,11 +19,12 @@ from typing import Optional, Sequence
 
 import numpy as np
 import pandas as pd
-import yaml
+
+from uwbimu.errors import InputError
 
 
-class EvalInputError(ValueError):
-    """An input file is missing, unreadable or lacks a required column."""
+class EvalInputError(InputError):
+    """An input file is missing, unreadable or lacks a required column (exit code 1)."""
 
 
 def read_table(path: str | os.PathLike, required: Sequence[str], what: str) -> pd.DataFrame:
@@ -92,15 +93,9 @@ def load_groundtruth(path: str | os.PathLike) -> pd.DataFrame:
 
 def load_yaml(path: str | os.PathLike) -> Optional[dict]:
     """A YAML mapping, or None when the file does not exist."""
+    from uwbimu.io.yamlconfig import read_yaml_mapping
+
     path = Path(path)
     if not path.is_file():
         return None
-    try:
-        obj = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise EvalInputError(f"cannot parse {path}: {exc}") from exc
-    if obj is None:
-        return {}
-    if not isinstance(obj, dict):
-        raise EvalInputError(f"{path}: expected a mapping at top level, got {type(obj).__name__}")
-    return obj
+    return read_yaml_mapping(path, what="YAML", error=EvalInputError)[0]

@@ -11,7 +11,7 @@ Sections (``<section id=...>``; a section whose input is missing says so):
 ``calibration``    lever arm and time offset ± 1 sigma (and the documented/true
                    value with its z-score when known), IMU biases
 ``convergence``    lever arm and time offset over time with ±3 sigma bands
-                   (``states.csv`` or ``trajectory.csv`` columns ``lx, ly, lz, td`` + ``sd_*``)
+                   (``states.csv`` columns ``lx, ly, lz, td`` + ``sd_*``, as ``uwbimu estimate`` writes them)
 ``residuals``      per-anchor innovation table: median, MAD, rejected %, flags
 ``nis``            histogram of the range NIS against the chi-square(1) density
 ``trajectory``     top view (and errors with ±3 sigma when ground truth exists)
@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import base64
 import datetime as _dt
-import html
+import functools
 import io
 import json
 import os
@@ -34,17 +34,15 @@ from typing import Any, Optional, Sequence, Union
 import numpy as np
 import pandas as pd
 
-from uwbimu.eval.files import EvalInputError, load_yaml
-from uwbimu.eval.report_template import PAGE
-from uwbimu.io.atomic import write_text
+from markupsafe import Markup
 
-#: Accepted column names of the calibration history in trajectory.csv (first match wins).
-CAL_COLUMNS = {
-    "lx": ("lx", "lever_x", "p_iu_x", "piu_x", "lever_arm_x"),
-    "ly": ("ly", "lever_y", "p_iu_y", "piu_y", "lever_arm_y"),
-    "lz": ("lz", "lever_z", "p_iu_z", "piu_z", "lever_arm_z"),
-    "td": ("td", "t_d", "time_offset"),
-}
+from uwbimu.eval.files import EvalInputError, load_yaml
+from uwbimu.io.atomic import write_text
+from uwbimu.models.state import NOMINAL_STATE_NAMES
+
+#: Columns of the calibration history: the lever-arm and time-offset states as ``uwbimu estimate``
+#: writes them into ``states.csv`` (with ``sd_<name>``), named once in :mod:`uwbimu.models.state`.
+CAL_COLUMNS = NOMINAL_STATE_NAMES[16:20]  # lx, ly, lz, td
 SECTION_TITLES = {
     "calibration": "Calibration",
     "convergence": "Convergence",
@@ -68,52 +66,57 @@ def figure_data_uri(fig, dpi: int = 90) -> str:
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
 
-def _fig(name: str, fig, caption: str) -> str:
-    return (
-        f'<figure id="fig-{name}"><img alt="{html.escape(caption)}" src="{figure_data_uri(fig)}">'
-        f"<figcaption>{caption}</figcaption></figure>"
-    )
+# HTML is rendered by jinja2 with autoescape from templates shipped as package data
+# (uwbimu/eval/templates): a value is escaped unless the code marks it as markup.  Sentences
+# with inline markup are built with ``Markup("...{}...").format(value)``, which escapes the
+# values (markupsafe, the same escaping jinja2 applies).
+@functools.lru_cache(maxsize=1)
+def _templates():
+    import jinja2
+
+    return jinja2.Environment(loader=jinja2.PackageLoader("uwbimu.eval", "templates"),
+                              autoescape=True, trim_blocks=False, undefined=jinja2.StrictUndefined)
 
 
-def _e(x: Any) -> str:
-    return html.escape(str(x))
+def _block(name: str, *args) -> Markup:
+    """Call the macro ``name`` of ``templates/blocks.html.j2`` (returns markup)."""
+    return Markup(getattr(_templates().get_template("blocks.html.j2").module, name)(*args))
+
+
+def _join(parts) -> Markup:
+    return Markup("").join(parts)
+
+
+def _fig(name: str, fig, caption: str) -> Markup:
+    return _block("figure", name, figure_data_uri(fig), caption)
+
+
+def _span(cls: str, text: Any) -> Markup:
+    return _block("span", cls, text)
 
 
 def _fmt(x: Any, nd: int = 4) -> str:
     try:
         v = float(x)
     except (TypeError, ValueError):
-        return _e(x)
+        return str(x)
     if not np.isfinite(v):
         return "–"
     return f"{v:.{nd}f}"
 
 
-def _table(header: Sequence[str], rows: Sequence[Sequence[str]], row_classes: Optional[Sequence[str]] = None,
-           left: int = 1) -> str:
-    h = "".join(f'<th class="l">{_e(c)}</th>' if i < left else f"<th>{_e(c)}</th>" for i, c in enumerate(header))
-    body = []
-    for k, r in enumerate(rows):
-        cls = f' class="{row_classes[k]}"' if row_classes and row_classes[k] else ""
-        cells = "".join(f'<td class="l">{c}</td>' if i < left else f"<td>{c}</td>" for i, c in enumerate(r))
-        body.append(f"<tr{cls}>{cells}</tr>")
-    return f"<table><thead><tr>{h}</tr></thead><tbody>{''.join(body)}</tbody></table>"
+def _table(header: Sequence[str], rows: Sequence[Sequence[Any]], row_classes: Optional[Sequence[str]] = None,
+           left: int = 1) -> Markup:
+    """An HTML table; cells are escaped unless they are markup (e.g. :func:`_span`)."""
+    return _block("table", list(header), [list(r) for r in rows], list(row_classes or []), left)
 
 
-def _missing(text: str) -> str:
-    return f'<p class="note">Not available: {text}</p>'
-
-
-def _find_col(df: pd.DataFrame, names: Sequence[str]) -> Optional[str]:
-    lower = {c.lower(): c for c in df.columns}
-    for n in names:
-        if n.lower() in lower:
-            return lower[n.lower()]
-    return None
+def _missing(text: Any) -> Markup:
+    return _block("missing", text)
 
 
 def _sd_col(df: pd.DataFrame, col: str) -> Optional[str]:
-    return _find_col(df, (f"sd_{col}", f"{col}_sd", f"sigma_{col}"))
+    return f"sd_{col}" if f"sd_{col}" in df.columns else None
 
 
 def _read_csv(path: Path) -> Optional[pd.DataFrame]:
@@ -144,7 +147,6 @@ class ReportInputs:
         self.residuals = _read_csv(out_dir / "residuals.csv")
         # calibration history: states.csv of `uwbimu estimate` (lx, ly, lz, td + sd_*)
         self.states = _read_csv(out_dir / "states.csv")
-        self.cal_history = _read_csv(out_dir / "calibration_history.csv")
         self.observability = _read_csv(out_dir / "observability.csv")
         self.eval_errors = _read_csv(out_dir / "evaluation_errors.csv")
         self.evaluation = None
@@ -197,10 +199,10 @@ class ReportInputs:
 
 
 # --------------------------------------------------------------------------- sections
-def _calibration_section(inp: ReportInputs) -> str:
+def _calibration_section(inp: ReportInputs) -> Markup:
     c = inp.calibration
     if c is None:
-        return _missing("<code>calibration.yaml</code> not found in the output folder.")
+        return _missing(Markup("<code>calibration.yaml</code> not found in the output folder."))
     ref_l, ref_label = inp.reference_lever_arm()
     ref_td = inp.reference_time_offset()
     rows, classes = [], []
@@ -213,9 +215,9 @@ def _calibration_section(inp: ReportInputs) -> str:
         z = err / s if (err is not None and s and np.isfinite(s) and s > 0) else None
         flag = z is not None and abs(z) > 3
         rows.append([
-            _e(f"{name} [{unit}]"), _fmt(None if v is None else v * scale, nd), _fmt(None if s is None else s * scale, nd),
+            f"{name} [{unit}]", _fmt(None if v is None else v * scale, nd), _fmt(None if s is None else s * scale, nd),
             "–" if ref is None else _fmt(ref * scale, nd), "–" if err is None else _fmt(err * scale, nd),
-            "–" if z is None else f'<span class="{"bad" if flag else "ok"}">{z:+.2f}</span>',
+            "–" if z is None else _span("bad" if flag else "ok", f"{z:+.2f}"),
         ])
         classes.append("flag" if flag else "")
 
@@ -226,31 +228,33 @@ def _calibration_section(inp: ReportInputs) -> str:
     if c.get("time_offset") is not None:
         add("time offset", float(c["time_offset"]), c.get("time_offset_sd"), ref_td, "ms", scale=1000.0, nd=2)
     parts = [_table(header, rows, classes)]
-    mode_bits = [f"{k}: <code>{_e(c[k])}</code>" for k in ("lever_arm_mode", "time_offset_mode", "anchor_bias_mode") if k in c]
+    mode_bits = [Markup("{}: <code>{}</code>").format(k, c[k])
+                 for k in ("lever_arm_mode", "time_offset_mode", "anchor_bias_mode") if k in c]
     if mode_bits:
-        parts.append(f'<p class="note">Modes — {", ".join(mode_bits)}.</p>')
+        parts.append(Markup('<p class="note">Modes — {}.</p>').format(Markup(", ").join(mode_bits)))
     if ref_label:
         note = (inp.dataset.meta.extra or {}).get("lever_arm_note", "")
-        parts.append(f'<p class="note">Reference lever arm: <code>{"truth.lever_arm" if ref_label == "reference" else "tags[0].lever_arm"}</code> '
-                     f'of dataset.yaml (simulation truth, or the value documented by the source for real data). {_e(note)}</p>')
+        parts.append(Markup('<p class="note">Reference lever arm: <code>{}</code> of dataset.yaml (simulation truth, or '
+                            'the value documented by the source for real data). {}</p>').format(
+            "truth.lever_arm" if ref_label == "reference" else "tags[0].lever_arm", note))
     brows = []
     for key, unit in (("accel_bias", "m/s²"), ("gyro_bias", "rad/s")):
         if c.get(key) is not None:
             sd = c.get(f"{key}_sd") or [float("nan")] * 3
-            brows.append([_e(f"{key.replace('_', ' ')} [{unit}]")] + [f"{_fmt(v, 4)} ± {_fmt(s, 4)}" for v, s in zip(c[key], sd)])
+            brows.append([f"{key.replace('_', ' ')} [{unit}]"] + [f"{_fmt(v, 4)} ± {_fmt(s, 4)}" for v, s in zip(c[key], sd)])
     if brows:
         parts.append(_table(["IMU bias", "x", "y", "z"], brows))
     if isinstance(c.get("anchor_bias"), dict):
         sd = c.get("anchor_bias_sd") or {}
         kb = (inp.dataset.meta.known_anchor_bias or {}) if inp.dataset is not None else {}
-        arows = [[_e(a), _fmt(v, 3), _fmt(sd.get(a), 3), _fmt(kb.get(a), 3) if a in kb else "–"] for a, v in c["anchor_bias"].items()]
+        arows = [[a, _fmt(v, 3), _fmt(sd.get(a), 3), _fmt(kb.get(a), 3) if a in kb else "–"] for a, v in c["anchor_bias"].items()]
         parts.append(_table(["anchor", "estimated bias [m]", "± 1σ", "known bias [m]"], arows))
     if inp.metrics:
         def mval(v):
             if isinstance(v, list):
                 return "[" + ", ".join(_fmt(x, 4) for x in v) + "]"
             if isinstance(v, (bool, str)) or v is None:
-                return _e(v)
+                return str(v)
             return _fmt(v, 4)
 
         extra = (inp.dataset.meta.extra or {}) if inp.dataset is not None else {}
@@ -260,28 +264,28 @@ def _calibration_section(inp: ReportInputs) -> str:
         def vs_truth(k: str) -> bool:  # the estimator's unaligned comparisons with ground truth
             return k.startswith(("position_rmse", "orientation_rmse", "velocity_rmse", "nees")) and k not in ("position_rmse_after_skip_s", "nees_dof")
 
-        mrows = [[_e(k), na if (other_frame and vs_truth(k)) else mval(v)] for k, v in inp.metrics.items()
+        mrows = [[k, na if (other_frame and vs_truth(k)) else mval(v)] for k, v in inp.metrics.items()
                  if not isinstance(v, dict) and k != "warnings"]
         if mrows:
-            note = (f"<p>The dataset's ground truth is in another frame (<code>extra.groundtruth_align: "
-                    f"{_e(extra.get('groundtruth_align'))}</code>): the estimator's unaligned comparisons with it are "
-                    f"not meaningful and shown as n/a; see <a href=\"#trajectory\">Trajectory and errors</a> for the "
-                    f"aligned errors.</p>") if other_frame else ""
-            parts.append("<h3>metrics.yaml</h3>" + note + _table(["metric", "value"], mrows))
-    return "".join(parts)
+            note = Markup("<p>The dataset's ground truth is in another frame (<code>extra.groundtruth_align: "
+                          "{}</code>): the estimator's unaligned comparisons with it are "
+                          "not meaningful and shown as n/a; see <a href=\"#trajectory\">Trajectory and errors</a> for "
+                          "the aligned errors.</p>").format(extra.get("groundtruth_align")) if other_frame else ""
+            parts.append(Markup("<h3>metrics.yaml</h3>") + note + _table(["metric", "value"], mrows))
+    return _join(parts)
 
 
 def _calibration_history(inp: ReportInputs) -> tuple[Optional[pd.DataFrame], dict]:
-    for df in (inp.trajectory, inp.states, inp.cal_history):
+    for df in (inp.states, inp.trajectory):
         if df is None or "t" not in df.columns:
             continue
-        cols = {k: _find_col(df, names) for k, names in CAL_COLUMNS.items()}
-        if any(v is not None for v in cols.values()):
+        cols = {k: k for k in CAL_COLUMNS if k in df.columns}
+        if cols:
             return df, cols
     return None, {}
 
 
-def _convergence_section(inp: ReportInputs) -> str:
+def _convergence_section(inp: ReportInputs) -> Markup:
     from matplotlib.figure import Figure
 
     df, cols = _calibration_history(inp)
@@ -366,33 +370,34 @@ def anchor_residual_table(res: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def _residuals_section(inp: ReportInputs) -> str:
+def _residuals_section(inp: ReportInputs) -> Markup:
     res = inp.residuals
     if res is None:
-        return _missing("<code>residuals.csv</code> not found.")
+        return _missing(Markup("<code>residuals.csv</code> not found."))
     need = [c for c in ("anchor", "innovation") if c not in res.columns]
     if need:
-        return _missing(f"<code>residuals.csv</code> lacks column(s) {need}.")
+        return _missing(Markup("<code>residuals.csv</code> lacks column(s) {}.").format(need))
     tab = anchor_residual_table(res)
-    rows = [[_e(r.anchor), str(r.n), str(r.processed), _fmt(r.median, 3), _fmt(r.mad, 3), _fmt(r.robust_sd, 3),
-             _fmt(r.rejected_pct, 1), _e(r.flags) or '<span class="ok">ok</span>'] for r in tab.itertuples()]
+    rows = [[r.anchor, str(r.n), str(r.processed), _fmt(r.median, 3), _fmt(r.mad, 3), _fmt(r.robust_sd, 3),
+             _fmt(r.rejected_pct, 1), r.flags or _span("ok", "ok")] for r in tab.itertuples()]
     classes = ["flag" if r.flags else "" for r in tab.itertuples()]
     n_flag = int((tab["flags"] != "").sum())
-    head = (f'<p class="{"warn" if n_flag else "note"}">{n_flag} of {len(tab)} anchors flagged as suspicious.</p>')
+    head = Markup('<p class="{}">{} of {} anchors flagged as suspicious.</p>').format(
+        "warn" if n_flag else "note", n_flag, len(tab))
     return head + _table(["anchor", "ranges", "processed", "median innov. [m]", "MAD [m]", "robust σ [m]",
-                          "rejected %", "flags"], rows, classes) + (
+                          "rejected %", "flags"], rows, classes) + Markup(
         '<p class="note">Innovation = measured − predicted range over accepted updates. Flags: <i>biased</i> '
         "|median| &gt; max(0.5·overall robust σ, 5 cm); <i>noisy</i> robust σ &gt; 2× overall; <i>rejections</i> "
         "rejection rate &gt; max(2× overall, 10 %).</p>")
 
 
-def _nis_section(inp: ReportInputs) -> str:
+def _nis_section(inp: ReportInputs) -> Markup:
     from matplotlib.figure import Figure
     from scipy.stats import chi2
 
     res = inp.residuals
     if res is None or "nis" not in res.columns:
-        return _missing("<code>residuals.csv</code> with a <code>nis</code> column not found.")
+        return _missing(Markup("<code>residuals.csv</code> with a <code>nis</code> column not found."))
     nis = pd.to_numeric(res["nis"], errors="coerce").to_numpy(float)
     acc = _as_bool(res["accepted"]) if "accepted" in res.columns else np.ones(len(res), bool)
     nis_f = nis[np.isfinite(nis)]
@@ -421,12 +426,12 @@ def _nis_section(inp: ReportInputs) -> str:
     ax.set_ylabel("density")
     ax.legend(fontsize=8)
     ax.grid(True, alpha=0.3)
-    stats = (f"<p>{len(nis_f)} processed ranges: mean NIS {np.mean(nis_f):.2f} (χ²(1): 1.00), median "
+    stats = Markup(f"<p>{len(nis_f)} processed ranges: mean NIS {np.mean(nis_f):.2f} (χ²(1): 1.00), median "
              f"{np.median(nis_f):.2f} (χ²(1): 0.45), {100 * frac:.1f} % above the 95 % bound {bound:.2f} (expected 5 %).</p>")
     return stats + _fig("nis", fig, "Normalised innovation squared of the range updates against the χ²(1) density.")
 
 
-def _trajectory_section(inp: ReportInputs) -> str:
+def _trajectory_section(inp: ReportInputs) -> Markup:
     from matplotlib.figure import Figure
 
     parts = []
@@ -437,14 +442,14 @@ def _trajectory_section(inp: ReportInputs) -> str:
         a = ev["ate_position"]
         ar = ev.get("ate_rotation_deg")
         asc = ev["association"]
-        parts.append(
-            f"<p>Against ground truth after <b>{_e(ev['align']['mode'])}</b> alignment: position ATE RMSE "
-            f"<b>{a['rmse']:.3f} m</b> (mean {a['mean']:.3f}, median {a['median']:.3f}, max {a['max']:.3f} m, n={a['n']})"
-            + (f"; attitude RMSE {ar['rmse']:.2f}°" if ar else "")
-            + (f"; attitude {_e(ev['ate_rotation'])}" if ev.get("ate_rotation") else "")
-            + f". Ground-truth glitches excluded: {asc['n_groundtruth_glitches_excluded']} (position), "
-            f"{asc.get('n_groundtruth_attitude_glitches_excluded', 0)} (attitude).</p>")
-        rrows = [[_e(d), str(v["n_pairs"]), _fmt(v["translation"]["rmse"], 3), _fmt(v.get("translation_percent"), 1),
+        parts.append(Markup(
+            "<p>Against ground truth after <b>{}</b> alignment: position ATE RMSE <b>{:.3f} m</b> (mean {:.3f}, "
+            "median {:.3f}, max {:.3f} m, n={}){}{}. Ground-truth glitches excluded: {} (position), {} (attitude).</p>"
+        ).format(ev["align"]["mode"], a["rmse"], a["mean"], a["median"], a["max"], a["n"],
+                 f"; attitude RMSE {ar['rmse']:.2f}°" if ar else "",
+                 f"; attitude {ev['ate_rotation']}" if ev.get("ate_rotation") else "",
+                 asc["n_groundtruth_glitches_excluded"], asc.get("n_groundtruth_attitude_glitches_excluded", 0)))
+        rrows = [[d, str(v["n_pairs"]), _fmt(v["translation"]["rmse"], 3), _fmt(v.get("translation_percent"), 1),
                   _fmt(v["rotation_deg"]["rmse"], 2)] for d, v in ev.get("rpe", {}).items()]
         if rrows:
             parts.append(_table(["RPE distance [m]", "pairs", "trans. RMSE [m]", "drift %", "rot. RMSE [deg]"], rrows))
@@ -483,9 +488,9 @@ def _trajectory_section(inp: ReportInputs) -> str:
         ax2.legend(fontsize=8, ncol=4)
         ax2.grid(True, alpha=0.3)
         parts.append(_fig("errors", fig2, cap))
-        return "".join(parts)
+        return _join(parts)
     if traj is None or not all(c in traj.columns for c in ("px", "py")):
-        return _missing("<code>trajectory.csv</code> not found.")
+        return _missing(Markup("<code>trajectory.csv</code> not found."))
     fig = Figure(figsize=(6.0, 5.0))
     ax = fig.add_subplot(111)
     ax.plot(traj["px"], traj["py"], "C0-", lw=0.9, label="estimate")
@@ -499,9 +504,10 @@ def _trajectory_section(inp: ReportInputs) -> str:
     ax.set_ylabel("y [m]")
     ax.legend(fontsize=8)
     ax.grid(True, alpha=0.3)
-    parts.append('<p class="note">No ground truth evaluation (run <code>uwbimu evaluate OUT --groundtruth FILE</code>).</p>')
+    parts.append(Markup('<p class="note">No ground truth evaluation (run <code>uwbimu evaluate OUT --groundtruth FILE'
+                        '</code>).</p>'))
     parts.append(_fig("trajectory", fig, "Estimated trajectory, top view."))
-    return "".join(parts)
+    return _join(parts)
 
 
 _REP_INDEX = {"lx": 15, "ly": 16, "lz": 17, "td": 18}
@@ -526,12 +532,13 @@ def _repeatability_bounds(inp: ReportInputs, wins: list) -> dict:
         return {}
 
 
-def _repeatability_section(inp: ReportInputs) -> str:
+def _repeatability_section(inp: ReportInputs) -> Markup:
     from matplotlib.figure import Figure
 
     rep = inp.repeatability
     if rep is None:
-        return _missing("<code>repeatability.json</code> not found (run <code>uwbimu repeatability DATASET --out OUT</code>).")
+        return _missing(Markup("<code>repeatability.json</code> not found (run <code>uwbimu repeatability DATASET --out "
+                               "OUT</code>)."))
     params = rep.get("parameters", {})
     bounds = _repeatability_bounds(inp, rep.get("windows", []))
     rows, classes = [], []
@@ -539,22 +546,22 @@ def _repeatability_section(inp: ReportInputs) -> str:
         scale = 1000.0 if name == "td" else 100.0
         unit = "ms" if name == "td" else "cm"
         verdict = p.get("verdict", "")
-        rows.append([_e(f"{name} [{unit}]"), str(p.get("n", "")), _fmt(p.get("mean", np.nan) * scale, 2),
+        rows.append([f"{name} [{unit}]", str(p.get("n", "")), _fmt(p.get("mean", np.nan) * scale, 2),
                      _fmt(p.get("std", np.nan) * scale, 2), _fmt(p.get("rms_sd", np.nan) * scale, 2),
                      _fmt(bounds[name] * scale, 2) if name in bounds else "–", _fmt(p.get("ratio"), 2), _fmt(p.get("chi2"), 2), str(p.get("dof", "")), _fmt(p.get("p_value"), 3),
-                     f'<span class="{"ok" if verdict == "consistent" else "bad"}">{_e(verdict)}</span>'])
+                     _span("ok" if verdict == "consistent" else "bad", verdict)])
         classes.append("" if verdict == "consistent" else "flag")
-    parts = [f"<p>{rep.get('k', '?')} windows of {_fmt(rep.get('window_s'), 1)} s "
-             f"({len(rep.get('windows', []))} calibrated).</p>",
+    parts = [Markup("<p>{} windows of {} s ({} calibrated).</p>").format(
+                 rep.get("k", "?"), _fmt(rep.get("window_s"), 1), len(rep.get("windows", []))),
              _table(["parameter", "windows", "mean", "spread (sd)", "predicted σ (RMS)", "bound (PCRB, RMS)", "spread/σ",
                      "χ²", "dof", "p", "verdict"], rows, classes),
-             '<p class="note">χ² = Σ (x_k − x̄)² / σ_k² over windows, compared with χ²(K−1): a spread much larger '
+             Markup('<p class="note">χ² = Σ (x_k − x̄)² / σ_k² over windows, compared with χ²(K−1): a spread much larger '
              "than the filter's σ means over-confidence (or a parameter that changes between windows). "
              "Bound: the posterior Cramér-Rao bound of each window on its own (same start prior as the observability "
              "section, ground-truth trajectory). σ close to the bound with a spread well above both means the filter "
              "reports the information in the data but does not reach it on windows this short (initialisation, "
              "linearisation): over-confident here, while the whole-log σ can still match the bound at the end of the "
-             "log (observability section).</p>"]
+             "log (observability section).</p>")]
     wins = rep.get("windows", [])
     if wins:
         fig = Figure(figsize=(9.0, 6.0))
@@ -571,13 +578,13 @@ def _repeatability_section(inp: ReportInputs) -> str:
             ax.grid(True, alpha=0.3)
         fig.axes[-1].set_xlabel("window centre [s]")
         parts.append(_fig("repeatability", fig, "Per-window estimates with ±3σ error bars; the line is the mean."))
-    return "".join(parts)
+    return _join(parts)
 
 
-def _bound_vs_sigma(df: pd.DataFrame, cal: Optional[dict]) -> str:
+def _bound_vs_sigma(df: pd.DataFrame, cal: Optional[dict]) -> Markup:
     """The bound at the end of the log (last window of a chained PCRB) next to the filter's sigma."""
     if not cal or len(df) == 0:
-        return ""
+        return Markup("")
     pairs = []
     sd_l = cal.get("lever_arm_sd") or [None] * 3
     for n, s_f in zip(("lx", "ly", "lz"), sd_l):
@@ -593,14 +600,14 @@ def _bound_vs_sigma(df: pd.DataFrame, cal: Optional[dict]) -> str:
             continue
         cells.append(f"{n} {k * b:.2f} vs {k * float(s_f):.2f} {unit} (σ / bound {float(s_f) / b:.2f})")
     if not cells:
-        return ""
-    return ('<p class="note">Bound at the end of the log (last window; with the chained posterior Cramér-Rao bound '
+        return Markup("")
+    return Markup('<p class="note">Bound at the end of the log (last window; with the chained posterior Cramér-Rao bound '
             "of <code>uwbimu observability log</code> this is the σ a matched filter should reach) vs the estimator's "
-            "σ of the calibration section: " + _e("; ".join(cells)) + ". σ / bound well below 1 means an over-confident "
-            "filter, well above 1 one that does not use all the information.</p>")  # fmt: skip
+            "σ of the calibration section: {}. σ / bound well below 1 means an over-confident "
+            "filter, well above 1 one that does not use all the information.</p>").format("; ".join(cells))  # fmt: skip
 
 
-def _observability_windows(df: pd.DataFrame, cal: Optional[dict] = None) -> str:
+def _observability_windows(df: pd.DataFrame, cal: Optional[dict] = None) -> Markup:
     """Timeline of the per-window table of ``uwbimu observability`` (t_start, t_end, sd_*, flags)."""
     from matplotlib.figure import Figure
 
@@ -650,27 +657,27 @@ def _observability_windows(df: pd.DataFrame, cal: Optional[dict] = None) -> str:
         if "time_offset_excited" in df.columns and not _as_bool(df["time_offset_excited"].iloc[[k]])[0]:
             flags.append("time offset not excited")
         if flags:
-            wd = _e(df["weakest_direction"].iloc[k]) if "weakest_direction" in df.columns else ""
-            rows.append([f"{t0[k]:.1f}–{t1[k]:.1f}", _e(", ".join(flags)), wd])
+            wd = str(df["weakest_direction"].iloc[k]) if "weakest_direction" in df.columns else ""
+            rows.append([f"{t0[k]:.1f}–{t1[k]:.1f}", ", ".join(flags), wd])
     if rows:
         parts.append(_table(["window [s]", "flag", "weakest direction"], rows[:40], left=3))
     else:
-        parts.append('<p class="note">Every window excites the lever arm and the time offset.</p>')
-    return "".join(parts)
+        parts.append(Markup('<p class="note">Every window excites the lever arm and the time offset.</p>'))
+    return _join(parts)
 
 
-def _observability_section(inp: ReportInputs) -> str:
+def _observability_section(inp: ReportInputs) -> Markup:
     from matplotlib.figure import Figure
 
     df = inp.observability
     if df is None:
-        return _missing("<code>observability.csv</code> not found (<code>uwbimu observability ... --out OUT</code>).")
+        return _missing(Markup("<code>observability.csv</code> not found (<code>uwbimu observability ... --out OUT</code>)."))
     if {"t_start", "t_end"} <= set(df.columns):
         return _observability_windows(df, inp.calibration)
     tcol = "t" if "t" in df.columns else df.columns[0]
     num = [c for c in df.columns if c != tcol and pd.api.types.is_numeric_dtype(df[c])][:8]
     if not num:
-        return _missing("<code>observability.csv</code> has no numeric columns.")
+        return _missing(Markup("<code>observability.csv</code> has no numeric columns."))
     t = pd.to_numeric(df[tcol], errors="coerce").to_numpy(float)
     fig = Figure(figsize=(9.0, 1.6 * len(num) + 1.0))
     for n, c in enumerate(num):
@@ -686,10 +693,10 @@ def _observability_section(inp: ReportInputs) -> str:
     return _fig("observability", fig, f"Observability / excitation indicators over time ({', '.join(num)}).")
 
 
-def _warnings_section(inp: ReportInputs) -> str:
+def _warnings_section(inp: ReportInputs) -> Markup:
     if not inp.warnings:
-        return '<p class="note">No warnings recorded.</p>'
-    return "".join(f'<div class="warn">{_e(w)}</div>' for w in inp.warnings)
+        return Markup('<p class="note">No warnings recorded.</p>')
+    return _join(_block("warn", w) for w in inp.warnings)
 
 
 SECTIONS = {
@@ -723,8 +730,9 @@ def render_report(out_dir: Union[str, os.PathLike], dataset=None, title: Optiona
         except EvalInputError:
             raise
         except Exception as exc:  # one broken input must not lose the whole report; say what failed
-            content = f'<div class="warn">This section failed: {_e(type(exc).__name__)}: {_e(exc)}</div>'
-        body.append(f'<section id="{key}"><h2>{SECTION_TITLES[key]}</h2>{content}</section>')
+            content = _block("warn", f"This section failed: {type(exc).__name__}: {exc}")
+        # a section returns markup; a plain string would be escaped by the template (shown, never run)
+        body.append({"key": key, "title": SECTION_TITLES[key], "content": content})
     try:
         from importlib.metadata import version
 
@@ -734,11 +742,9 @@ def render_report(out_dir: Union[str, os.PathLike], dataset=None, title: Optiona
     if title is None:
         name = dataset.meta.name if dataset is not None else out.name
         title = f"uwbimu calibration report — {name}"
-    nav = "".join(f'<a href="#{k}">{SECTION_TITLES[k]}</a>' for k in SECTIONS)
-    return PAGE.substitute(
-        title=_e(title), version=_e(ver), out_dir=_e(out),
-        generated=_dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        nav=nav, sections="\n".join(body),
+    return _templates().get_template("report.html.j2").render(
+        title=title, version=ver, out_dir=str(out),
+        generated=_dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), sections=body,
     )
 
 

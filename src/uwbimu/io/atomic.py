@@ -8,6 +8,7 @@ renamed into place with :func:`os.replace`, which is atomic on POSIX.
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 from contextlib import contextmanager
@@ -74,6 +75,32 @@ def save_figure(path: str | os.PathLike, fig, **kwargs) -> Path:
     return Path(path)
 
 
+def to_plain(obj: Any, nonfinite: Any = None) -> Any:
+    """``obj`` as plain Python for YAML / JSON: NumPy arrays and scalars, tuples and the typed
+    results (:class:`uwbimu.typed.MappingResult`) become lists, floats, ints, bools and dicts
+    (string keys).  A NaN or infinite float becomes ``nonfinite`` (default None; ``str`` gives
+    ``"nan"`` / ``"inf"`` text)."""
+    import numpy as np
+    from collections.abc import Mapping
+
+    if isinstance(obj, Mapping):
+        return {str(k): to_plain(v, nonfinite) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_plain(v, nonfinite) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return to_plain(obj.tolist(), nonfinite)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    if isinstance(obj, (np.floating, float)):
+        f = float(obj)
+        if math.isfinite(f):
+            return f
+        return str(f) if nonfinite is str else nonfinite
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj
+
+
 def _json_default(o):
     import numpy as np
 
@@ -83,6 +110,8 @@ def _json_default(o):
         return o.item()
     if isinstance(o, np.bool_):
         return bool(o)
+    if hasattr(o, "to_dict"):  # the typed results (uwbimu.typed.MappingResult)
+        return o.to_dict()
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 

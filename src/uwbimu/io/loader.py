@@ -38,6 +38,7 @@ from uwbimu.errors import InputError
 from uwbimu.optional import require
 from uwbimu.io.anchor_ranges import parse_range_sd, parse_surveyed
 from uwbimu.io import plausibility
+from uwbimu.io.yamlconfig import yaml_line
 from uwbimu.io.dataset import (
     ANCHOR_COLUMNS,
     ANCHOR_QUAT_COLUMNS,
@@ -712,31 +713,6 @@ def _load_groundtruth(src: _Source, options: LoadOptions, report: LoadReport) ->
 # ---------------------------------------------------------------------------
 # dataset.yaml
 # ---------------------------------------------------------------------------
-def _yaml_line(text: str, loc: tuple) -> Optional[int]:
-    """1-based line of the node at ``loc`` (pydantic error location) in a YAML text."""
-    try:
-        node = yaml.compose(text)
-    except yaml.YAMLError:
-        return None
-    line = None
-    for key in loc:
-        if isinstance(node, yaml.MappingNode):
-            nxt = None
-            for k, v in node.value:
-                if k.value == str(key):
-                    nxt, line = v, k.start_mark.line + 1
-                    break
-            if nxt is None:
-                return line
-            node = nxt
-        elif isinstance(node, yaml.SequenceNode) and isinstance(key, int) and key < len(node.value):
-            node = node.value[key]
-            line = node.start_mark.line + 1
-        else:
-            return line
-    return line
-
-
 def load_meta(path: str | Path) -> DatasetMeta:
     """Read and validate a ``dataset.yaml``; errors name the file, line and key."""
     path = Path(path)
@@ -761,7 +737,7 @@ def load_meta(path: str | Path) -> DatasetMeta:
         for err in exc.errors():
             loc = tuple(err["loc"])
             key = ".".join(str(k) for k in loc)
-            line = _yaml_line(text, loc)
+            line = yaml_line(text, loc)
             if first_key is None:
                 first_line, first_key = line, key
             msg = "unknown key (not allowed here)" if err["type"] == "extra_forbidden" else err["msg"]

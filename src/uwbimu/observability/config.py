@@ -16,18 +16,15 @@ excitation and the points at which the rank test is evaluated.  Example
 from __future__ import annotations
 
 import os
-from pathlib import Path
 from typing import Literal, Optional, Union
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from uwbimu.errors import ConfigError  # re-exported here: a configuration that cannot be used
+from uwbimu.io.yamlconfig import load_yaml_model, validate_model
 
 Axis = Literal["x", "y", "z"]
 Vec3 = list[float]
-
-
-class ConfigError(ValueError):
-    """A configuration file that cannot be used (message names file and field)."""
 
 
 class Excitation(BaseModel):
@@ -146,28 +143,14 @@ def load_config(source: Union[str, os.PathLike, dict, ObservabilityConfig]) -> O
     """Read and validate a configuration (path to YAML, dict or config)."""
     if isinstance(source, ObservabilityConfig):
         return source
-    where = "<dict>"
     if isinstance(source, (str, os.PathLike)):
-        path = Path(source)
-        where = str(path)
-        if not path.is_file():
-            raise ConfigError(f"{path}: no such configuration file")
-        try:
-            data = yaml.safe_load(path.read_text())
-        except yaml.YAMLError as e:
-            raise ConfigError(f"{path}: not valid YAML: {e}") from None
+        where = str(source)
+        cfg = load_yaml_model(source, ObservabilityConfig, what="configuration")
     else:
-        data = source
-    if not isinstance(data, dict):
-        raise ConfigError(f"{where}: expected a mapping at the top level")
-    try:
-        cfg = ObservabilityConfig.model_validate(data)
-    except ValidationError as e:
-        lines = [f"{where}: invalid configuration"]
-        for err in e.errors():
-            loc = ".".join(str(p) for p in err["loc"])
-            lines.append(f"  field '{loc}': {err['msg']}")
-        raise ConfigError("\n".join(lines)) from None
+        where = "<dict>"
+        if not isinstance(source, dict):
+            raise ConfigError(f"{where}: expected a mapping at the top level")
+        cfg = validate_model(source, ObservabilityConfig, source=where, what="configuration")
     n_in = 6 if cfg.model == "uwb_imu" else 3
     if cfg.nominal_input is not None and len(cfg.nominal_input) != n_in:
         raise ConfigError(f"{where}: field 'nominal_input' must have {n_in} numbers for model {cfg.model}")

@@ -18,14 +18,16 @@ respect to each *excited* input channel by central differences.
 
 from __future__ import annotations
 
+import os
 import time
-from typing import Any, Union
+from typing import Union
 
 import numpy as np
 
 from uwbimu.models import state as ST
 from uwbimu.models import reference as ref
 from uwbimu.observability.config import ObservabilityConfig, load_config
+from uwbimu.observability.verdicts import DelayVerdict
 from uwbimu.observability.structural import evaluation_points
 
 #: Legacy absolute cut-off [m per unit input] (no longer used for the verdict;
@@ -149,7 +151,7 @@ def first_order_criterion(x20: np.ndarray, anchors: np.ndarray, accel_axes, gyro
     return out
 
 
-def delay_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[str, Any]:
+def delay_verdict(config: Union[str, dict, ObservabilityConfig]) -> DelayVerdict:
     """Time-offset identifiability of a configuration (the ``delay`` verb).
 
     The numeric criterion (seed eq. 12: the delayed input appears in the range)
@@ -174,7 +176,11 @@ def delay_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[str, An
     t0 = time.perf_counter()
     cfg = load_config(config)
     if cfg.model != "uwb_imu":
-        raise ValueError("the delay analysis needs model: uwb_imu (the point mass has no time offset)")
+        from uwbimu.errors import ConfigError
+
+        where = str(config) if isinstance(config, (str, os.PathLike)) else cfg.name
+        raise ConfigError(f"{where}: field 'model': the delay analysis needs model: uwb_imu "
+                          "(the point mass has no time offset)")
     A = np.asarray(cfg.anchors, float)
     acc, gyr = cfg.accel_axes(), cfg.gyro_axes()
     excited = [_AXES.index(a) for a in acc] + [3 + _AXES.index(g) for g in gyr]
@@ -213,7 +219,7 @@ def delay_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[str, An
     num_all = all(pt["numeric_nonzero"] for pt in points)
     identifiable = all(pt["theorem1"] or pt["numeric_nonzero"] for pt in points)
     basis = "Theorem 1" if thm_all else ("input-output sensitivity (eq. 12, k=0)" if num_all else "none")
-    return {
+    return DelayVerdict.from_dict({
         "name": cfg.name,
         "measurement": cfg.measurement,
         "identifiable": bool(identifiable),
@@ -236,7 +242,7 @@ def delay_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[str, An
         "weakest_point": iw,
         "points": points,
         "elapsed_s": time.perf_counter() - t0,
-    }
+    })
 
 
 def _explain(pt: dict, acc, gyr) -> str:

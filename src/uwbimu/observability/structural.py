@@ -16,6 +16,7 @@ import numpy as np
 
 from uwbimu.models import reference as ref
 from uwbimu.observability.config import ObservabilityConfig, load_config
+from uwbimu.observability.verdicts import StructuralVerdict
 from uwbimu.observability.directions import candidates_for, name_directions
 from uwbimu.observability.models import (
     POINT_MASS_NAMES,
@@ -246,7 +247,7 @@ def _search_orders(cfg, pts, scales):
     return history, results, stop
 
 
-def structural_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[str, Any]:
+def structural_verdict(config: Union[str, dict, ObservabilityConfig]) -> StructuralVerdict:
     """Lie-derivative rank test of a configuration (the ``structural`` verb).
 
     With ``lie_order: auto`` (default) the order is raised until the rank is
@@ -370,7 +371,7 @@ def structural_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[st
         for (x, _), r, rr in zip(pts, reported, reported_rank)
     ]
     margins = [r.margin_decades for r in reported if np.isfinite(r.margin_decades)]
-    return {
+    return StructuralVerdict.from_dict({
         "name": cfg.name,
         "model": cfg.model,
         "measurement": cfg.measurement,
@@ -408,7 +409,7 @@ def structural_verdict(config: Union[str, dict, ObservabilityConfig]) -> dict[st
         "weakest_point": iw,
         "points": points,
         "elapsed_s": time.perf_counter() - t0,
-    }
+    })
 
 
 def config_for_dataset(ds, lie_order="auto", random_points: int = 5, seed: int = 0) -> ObservabilityConfig:

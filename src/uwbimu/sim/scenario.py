@@ -12,8 +12,10 @@ from typing import Literal, Optional, Union
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from uwbimu.errors import ConfigError
+from uwbimu.io.yamlconfig import load_yaml_model, validate_model
 from uwbimu.models.imu import IMU_PRESETS, ImuNoise, imu_preset
 from uwbimu.sim.trajspec import LissajousSpec, TrajectorySpec, Vec3
 
@@ -327,24 +329,13 @@ def _deep_merge(base: dict, over: dict) -> dict:
     return out
 
 
-class ScenarioError(ValueError):
-    """A scenario file that cannot be read (message names the file and the field)."""
-
-
-def _format_validation(err: ValidationError, source: str) -> str:
-    lines = [f"{source}: invalid scenario ({err.error_count()} error(s))"]
-    for e in err.errors():
-        loc = ".".join(str(x) for x in e["loc"]) or "(top level)"
-        lines.append(f"  field '{loc}': {e['msg']}")
-    return "\n".join(lines)
+class ScenarioError(ConfigError):
+    """A scenario file that cannot be read (message names the file, line and field; exit code 1)."""
 
 
 def validate_scenario(data: dict, source: str = "<scenario>") -> Scenario:
     """``Scenario.model_validate`` with errors re-raised as :class:`ScenarioError` naming ``source``."""
-    try:
-        return Scenario.model_validate(data)
-    except ValidationError as err:
-        raise ScenarioError(_format_validation(err, source)) from None
+    return validate_model(data, Scenario, source=source, what="scenario", error=ScenarioError)
 
 
 def load_scenario(path: str | os.PathLike) -> Scenario:
@@ -352,22 +343,18 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
 
     A relative ``trajectory.path`` (type ``file``) is resolved against the
     folder of the scenario file.  Errors raise :class:`ScenarioError` naming
-    the file and the offending field.
+    the file, the line and the offending field.
     """
     path = Path(path)
-    if not path.is_file():
-        raise ScenarioError(f"{path}: scenario file not found")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise ScenarioError(f"{path}: not valid YAML: {exc}") from None
-    if not isinstance(data, dict):
-        raise ScenarioError(f"{path}: expected a mapping of scenario fields, got {type(data).__name__}")
-    traj = data.get("trajectory")
-    if isinstance(traj, dict) and traj.get("type") == "file" and isinstance(traj.get("path"), str):
-        p = Path(traj["path"]).expanduser()
-        if not p.is_absolute():
-            p = (path.parent / p).resolve()
-        data = {**data, "trajectory": {**traj, "path": str(p)}}
-    data.setdefault("name", path.stem)
-    return validate_scenario(data, str(path))
+
+    def prepare(data: dict) -> dict:
+        traj = data.get("trajectory")
+        if isinstance(traj, dict) and traj.get("type") == "file" and isinstance(traj.get("path"), str):
+            p = Path(traj["path"]).expanduser()
+            if not p.is_absolute():
+                p = (path.parent / p).resolve()
+            data = {**data, "trajectory": {**traj, "path": str(p)}}
+        data.setdefault("name", path.stem)
+        return data
+
+    return load_yaml_model(path, Scenario, what="scenario", error=ScenarioError, prepare=prepare)

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from uwbimu.errors import InputError
 from uwbimu.sim.trajectory import SplineTrajectory, quat_to_euler_zyx
 
 POSITION_COLUMNS = ["t", "px", "py", "pz"]
@@ -30,8 +31,8 @@ QUAT_COLUMNS = ["qw", "qx", "qy", "qz"]
 MAX_PITCH = np.deg2rad(85.0)
 
 
-class TrajectoryFileError(ValueError):
-    """A trajectory file that cannot be flown (message names file, row, column)."""
+class TrajectoryFileError(InputError):
+    """A trajectory file that cannot be flown (message names file, row, column; exit code 1)."""
 
 
 def read_trajectory_file(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

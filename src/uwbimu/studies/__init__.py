@@ -15,7 +15,7 @@ a surveyed take-off point).  See ``docs/montecarlo.md``.
 """
 
 from uwbimu.studies.config import (  # noqa: F401
-    CHUNK_DIR, CONFIG_FILE, ROW_COLUMNS, TIMING_COLUMNS, EstimatorEntry, MonteCarloConfig, MonteCarloError,
+    CHUNK_DIR, CONFIG_FILE, ROW_COLUMNS, TIMING_COLUMNS, EstimatorEntry, MonteCarloConfig, MonteCarloError, StudyConfigError,
     ScenarioEntry, config_from_dict, load_config, resolve_scenario, resolved_study, run_seeds,
 )
 from uwbimu.studies.executors import execute  # noqa: F401
@@ -25,7 +25,7 @@ from uwbimu.studies.worker import run_chunk, run_metrics  # noqa: F401
 
 __all__ = [
     "CHUNK_DIR", "CONFIG_FILE", "ROW_COLUMNS", "TIMING_COLUMNS", "EstimatorEntry", "MonteCarloConfig",
-    "MonteCarloError", "ScenarioEntry", "config_from_dict", "load_config", "resolve_scenario", "resolved_study",
+    "MonteCarloError", "StudyConfigError", "ScenarioEntry", "config_from_dict", "load_config", "resolve_scenario", "resolved_study",
     "run_seeds", "execute", "iter_rows_equal_ignoring_timing", "run_study", "chunk_files", "read_done",
     "run_chunk", "run_metrics",
 ]

@@ -15,8 +15,10 @@ from pathlib import Path
 from typing import Any, Literal, Optional
 
 import numpy as np
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from uwbimu.errors import ConfigError, InputError
+from uwbimu.io.yamlconfig import load_yaml_model, validate_model
 
 CONFIG_FILE = "montecarlo_config.json"
 CHUNK_DIR = "chunks"
@@ -35,8 +37,14 @@ ROW_COLUMNS = [
 TIMING_COLUMNS = ("sim_s", "est_s", "sim_cpu_s", "est_cpu_s")
 
 
-class MonteCarloError(ValueError):
-    """A study that cannot run (bad config, OUT started with another config...)."""
+class MonteCarloError(InputError):
+    """A study that cannot run: OUT started with another config, OUT not a study folder... (exit code 1)."""
+
+
+class StudyConfigError(MonteCarloError, ConfigError):
+    """A study configuration that cannot be used; names file, line and field (exit code 2)."""
+
+    exit_code = ConfigError.exit_code
 
 
 # --------------------------------------------------------------------------
@@ -111,29 +119,19 @@ class MonteCarloConfig(_Strict):
 def load_config(path: str | os.PathLike) -> MonteCarloConfig:
     """Read a study YAML; errors name the file and the field."""
     path = Path(path)
-    if not path.is_file():
-        raise MonteCarloError(f"{path}: config file not found")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise MonteCarloError(f"{path}: not valid YAML: {exc}") from None
-    if not isinstance(data, dict):
-        raise MonteCarloError(f"{path}: expected a mapping at top level")
-    for sc in data.get("scenarios") or []:
-        if isinstance(sc, dict) and isinstance(sc.get("file"), str) and not Path(sc["file"]).is_absolute():
-            sc["file"] = str((path.parent / sc["file"]).resolve())
-    return config_from_dict(data, str(path))
+
+    def prepare(data: dict) -> dict:
+        for sc in data.get("scenarios") or []:
+            if isinstance(sc, dict) and isinstance(sc.get("file"), str) and not Path(sc["file"]).is_absolute():
+                sc["file"] = str((path.parent / sc["file"]).resolve())
+        return data
+
+    return load_yaml_model(path, MonteCarloConfig, what="Monte Carlo config", error=StudyConfigError, prepare=prepare)
 
 
 def config_from_dict(data: dict, source: str = "<config>") -> MonteCarloConfig:
-    try:
-        return MonteCarloConfig.model_validate(data)
-    except ValidationError as err:
-        lines = [f"{source}: invalid Monte Carlo config ({err.error_count()} error(s))"]
-        for e in err.errors():
-            loc = ".".join(str(x) for x in e["loc"]) or "(top level)"
-            lines.append(f"  field '{loc}': {e['msg']}")
-        raise MonteCarloError("\n".join(lines)) from None
+    """Validate a study given as a mapping; errors name ``source`` and the field."""
+    return validate_model(data, MonteCarloConfig, source=source, what="Monte Carlo config", error=StudyConfigError)
 
 
 def _deep_merge(base: dict, over: dict) -> dict:
@@ -159,7 +157,7 @@ def resolve_scenario(entry: ScenarioEntry) -> dict:
             base = dict(entry.scenario or {})
         sc = Scenario.model_validate(_deep_merge(base, entry.overrides))
     except (ValidationError, KeyError, ValueError) as exc:
-        raise MonteCarloError(f"scenario {entry.name!r}: {exc}") from None
+        raise StudyConfigError(f"scenario {entry.name!r}: {exc}") from None
     return sc.model_dump(mode="json", exclude_none=True)
 
 

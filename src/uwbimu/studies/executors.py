@@ -20,32 +20,31 @@ from uwbimu.optional import require
 # --------------------------------------------------------------------------
 # Executors
 # --------------------------------------------------------------------------
-_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+# one BLAS thread per worker, set in the workers only (a top-level module: importing it loads no NumPy)
+_WORKER_ENV = "uwbimu._worker_env"
+
+
+def _one_blas_thread() -> None:
+    """Pool initializer where there is no forkserver (runs in the worker, not in the caller)."""
+    for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(k, "1")
 
 
 def _run_pool(fn, tasks: list, workers: int, on_chunk: Callable[[Any], None], describe, preload) -> list[str]:
     import multiprocessing as mp
 
     ctx = mp.get_context("forkserver") if "forkserver" in mp.get_all_start_methods() else None
+    initializer = None
     if ctx is not None:
-        # Workers fork from a server that has already imported the heavy modules.
-        ctx.set_forkserver_preload(list(preload))
+        # Workers fork from a server that has already imported the heavy modules; the server
+        # imports _worker_env first, so the BLAS thread variables are set before NumPy loads.
+        ctx.set_forkserver_preload([_WORKER_ENV, *preload])
+    else:  # spawn (no forkserver): set them in each worker before it runs a task
+        initializer = _one_blas_thread
     failures: list[str] = []
-    # One BLAS thread per worker process, as Dask workers have (same numerics, no oversubscription);
-    # the forkserver and its workers inherit the environment at their start.
-    saved = {k: os.environ.get(k) for k in _THREAD_VARS}
-    for k in _THREAD_VARS:
-        os.environ.setdefault(k, "1")
-    ex = ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
+    ex = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=initializer)
     try:
-        try:
-            pending = {ex.submit(fn, t): t for t in tasks}  # workers start here
-        finally:
-            for k, v in saved.items():
-                if v is None:
-                    os.environ.pop(k, None)
-                else:
-                    os.environ[k] = v
+        pending = {ex.submit(fn, t): t for t in tasks}  # workers start here
         while pending:
             done, _ = wait(pending, return_when=FIRST_COMPLETED)
             for f in done:

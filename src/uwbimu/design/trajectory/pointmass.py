@@ -54,7 +54,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from uwbimu.design.trajectory.platform import MultirotorLimits, Platform
-from uwbimu.design.trajectory.seed_ocp import _weights
+from uwbimu.design.trajectory.seed_ocp import TimeGrid, _weights, double_integrator_opti
 from uwbimu.models.reference import GRAVITY
 
 
@@ -85,7 +85,7 @@ class Obstacle(BaseModel):
         return np.sum((d / s) ** 8, axis=-1) - 1.0
 
 
-class PointMassPlanConfig(BaseModel):
+class PointMassPlanConfig(TimeGrid, BaseModel):
     """Options of the general point-mass planner (SI units, world frame)."""
 
     model_config = ConfigDict(extra="forbid")
@@ -133,14 +133,6 @@ class PointMassPlanConfig(BaseModel):
         if self.box_min is not None and any(lo >= hi for lo, hi in zip(self.box_min, self.box_max)):
             raise ValueError("box_min must be below box_max on every axis")
         return self
-
-    @property
-    def h(self) -> float:
-        return self.tf / self.n_steps
-
-    @property
-    def t(self) -> np.ndarray:
-        return np.linspace(0.0, self.tf, self.n_steps + 1)
 
 
 # --------------------------------------------------------------------------
@@ -331,13 +323,7 @@ def plan_point_mass(cfg: PointMassPlanConfig, x_init=None, u_init=None, verbose:
     n, h = cfg.n_steps, cfg.h
     if x_init is None or u_init is None:
         x_init, u_init = initial_guess(cfg)
-    opti = ca.Opti()
-    X = opti.variable(6, n + 1)
-    U = opti.variable(3, n)
-    Ah = ca.DM(np.block([[np.eye(3), h * np.eye(3)], [np.zeros((3, 3)), np.eye(3)]]))
-    Bh = ca.DM(np.vstack([0.5 * h * h * np.eye(3), h * np.eye(3)]))
-    opti.subject_to(X[:, 0] == ca.DM(cfg.x0))
-    opti.subject_to(X[:, 1:] == ca.mtimes(Ah, X[:, :-1]) + ca.mtimes(Bh, U))
+    opti, X, U = double_integrator_opti(n, h, cfg.x0)
     P = X[:3, :]
     if cfg.box_min is not None:
         opti.subject_to(opti.bounded(ca.DM(cfg.box_min), P, ca.DM(cfg.box_max)))

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any, Optional
 
@@ -77,8 +76,10 @@ def run_one(scenario_file: str, seed: int, lever_prior_sd: float = 0.3) -> dict[
     }
 
 
-def _job(args):
-    return run_one(*args)
+def _job(task):
+    """One Monte Carlo task ``(index, scenario_file, seed)`` -> ``(index, row)`` (picklable)."""
+    i, scenario_file, seed = task
+    return i, run_one(scenario_file, seed)
 
 
 def summarise(df) -> dict[str, Any]:
@@ -120,20 +121,25 @@ def run_proof(design_dir: str | Path, n_seeds: int = 50, workers: int = 1, out: 
         if not files[n].is_file():
             raise FileNotFoundError(f"{files[n]}: missing (run `uwbimu plan calibration` first)")
     names = [n for n in TRAJS if files[n].is_file()]
-    jobs = [(str(files[n]), s) for s in range(n_seeds) for n in names]
+    jobs = [(i, str(files[n]), s) for i, (s, n) in enumerate((s, n) for s in range(n_seeds) for n in names)]
     t0 = time.perf_counter()
-    rows = []
-    if workers > 1:
-        with ProcessPoolExecutor(max_workers=workers) as ex:
-            for i, r in enumerate(ex.map(_job, jobs)):
-                rows.append(r)
-                if progress:
-                    progress(i + 1, len(jobs))
-    else:
-        for i, j in enumerate(jobs):
-            rows.append(_job(j))
-            if progress:
-                progress(i + 1, len(jobs))
+    from uwbimu.studies.executors import execute
+
+    done: dict[int, dict[str, Any]] = {}
+
+    def collect(result) -> None:
+        i, row = result
+        done[i] = row
+        if progress:
+            progress(len(done), len(jobs))
+
+    failed = execute(_job, jobs, collect, workers=max(1, int(workers)),
+                     describe=lambda j: f"{Path(j[1]).stem} seed {j[2]}")
+    if failed:
+        from uwbimu.errors import EstimationError
+
+        raise EstimationError(f"{len(failed)} proof run(s) did not finish: " + "; ".join(failed[:3]))
+    rows = [done[i] for i in range(len(jobs))]  # seed-major job order, whatever order they finished in
     df = pd.DataFrame(rows)
     summary = summarise(df)
     summary["n_seeds"] = n_seeds

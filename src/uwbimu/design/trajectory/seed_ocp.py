@@ -72,7 +72,39 @@ PD_KP = PD_OMEGA**2
 PD_KD = 2.0 * PD_OMEGA
 
 
-class SeedOcpConfig(BaseModel):
+class TimeGrid:
+    """Uniform time grid of an OCP config with fields ``tf`` [s] and ``n_steps`` (mixin)."""
+
+    @property
+    def h(self) -> float:
+        """Grid step [s]."""
+        return self.tf / self.n_steps
+
+    @property
+    def t(self) -> np.ndarray:
+        """Grid instants ``0, h, ..., tf`` [s], (n_steps + 1,)."""
+        return np.linspace(0.0, self.tf, self.n_steps + 1)
+
+
+def double_integrator_opti(n: int, h: float, x0):
+    """CasADi ``Opti`` with the exact zero-order-hold double integrator on ``n`` steps of ``h`` [s].
+
+    Returns ``(opti, X, U)``: states ``X`` (6, n+1) = position [m], velocity [m/s]; controls ``U``
+    (3, n) = acceleration [m/s^2]; ``X[:, 0] = x0`` and ``X[:, k+1] = A X[:, k] + B U[:, k]``.
+    """
+    import casadi as ca
+
+    opti = ca.Opti()
+    X = opti.variable(6, n + 1)
+    U = opti.variable(3, n)
+    Ah = ca.DM(np.block([[np.eye(3), h * np.eye(3)], [np.zeros((3, 3)), np.eye(3)]]))
+    Bh = ca.DM(np.vstack([0.5 * h * h * np.eye(3), h * np.eye(3)]))
+    opti.subject_to(X[:, 0] == ca.DM(x0))
+    opti.subject_to(X[:, 1:] == ca.mtimes(Ah, X[:, :-1]) + ca.mtimes(Bh, U))
+    return opti, X, U
+
+
+class SeedOcpConfig(TimeGrid, BaseModel):
     """Options of the seed OCP (defaults = seed 002 section XII).
 
     Units: metres, seconds, m/s^2.  Beacons are world-frame positions.
@@ -119,14 +151,6 @@ class SeedOcpConfig(BaseModel):
         if len(v) != 3:
             raise ValueError("goal must be [x, y, z]")
         return v
-
-    @property
-    def h(self) -> float:
-        return self.tf / self.n_steps
-
-    @property
-    def t(self) -> np.ndarray:
-        return np.linspace(0.0, self.tf, self.n_steps + 1)
 
 
 # --------------------------------------------------------------------------
@@ -534,13 +558,7 @@ def solve_direct(cfg: SeedOcpConfig, u_init: np.ndarray | None = None, verbose: 
     bea = np.asarray(cfg.beacons, dtype=float)
     goal = ca.DM(cfg.goal)
     w = _weights(n)
-    opti = ca.Opti()
-    X = opti.variable(6, n + 1)
-    U = opti.variable(3, n)
-    Ah = ca.DM(np.block([[np.eye(3), h * np.eye(3)], [np.zeros((3, 3)), np.eye(3)]]))
-    Bh = ca.DM(np.vstack([0.5 * h * h * np.eye(3), h * np.eye(3)]))
-    opti.subject_to(X[:, 0] == ca.DM(cfg.x0))
-    opti.subject_to(X[:, 1:] == ca.mtimes(Ah, X[:, :-1]) + ca.mtimes(Bh, U))
+    opti, X, U = double_integrator_opti(n, h, cfg.x0)
     if fixed_final:
         opti.subject_to(X[:, -1] == ca.DM(list(cfg.goal) + [0.0, 0.0, 0.0]))
     # running cost as a CasADi Function mapped over the nodes (keeps the graph small)

@@ -39,8 +39,7 @@ from typing import Any, Literal, Optional, Union
 
 import numpy as np
 import pandas as pd
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 
 from uwbimu.io.dataset import ANCHOR_COLUMNS, GT_COLUMNS, IMU_COLUMNS, Dataset, DatasetMeta, TagMeta
 from uwbimu.io.importers import ImportResult, write_import
@@ -103,21 +102,18 @@ class RosbagMapping(BaseModel):
 
 def load_mapping(path: Union[str, os.PathLike]) -> RosbagMapping:
     """Read and validate a mapping YAML; errors name the file and the key."""
+    from uwbimu.io.yamlconfig import load_yaml_model
+
     path = Path(path)
-    if not path.is_file():
-        raise RosbagImportError(f"{path}: mapping file not found", file=str(path))
-    try:
-        obj = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise RosbagImportError(f"{path}: not valid YAML: {exc}", file=path.name) from None
-    if not isinstance(obj, dict):
-        raise RosbagImportError(f"{path}: expected a mapping with keys imu, ranges, anchors", file=path.name)
-    obj.setdefault("base_dir", str(path.parent))
-    try:
-        return RosbagMapping.model_validate(obj)
-    except ValidationError as exc:
-        errs = "; ".join(f"{'.'.join(str(x) for x in e['loc'])}: {e['msg']}" for e in exc.errors())
-        raise RosbagImportError(f"{path}: invalid mapping: {errs}", file=path.name) from None
+
+    def error(message: str) -> RosbagImportError:
+        return RosbagImportError(message, file=path.name)
+
+    def prepare(obj: dict) -> dict:
+        obj.setdefault("base_dir", str(path.parent))
+        return obj
+
+    return load_yaml_model(path, RosbagMapping, what="rosbag mapping", error=error, prepare=prepare)
 
 
 # --------------------------------------------------------------------------- field access

@@ -1,0 +1,49 @@
+"""Shared option texts of the ``uwbimu`` verbs (one wording, one meaning everywhere).
+
+* ``-o/--out DIR``: the output folder of a verb (created if missing; outputs written whole or not
+  at all through :func:`uwbimu.io.atomic.output_folder`).
+* ``--force``: write where uwbimu would otherwise refuse -- over files in the output folder that
+  uwbimu did not write (or that were edited since), into a non-empty folder a verb replaces as a
+  whole (``simulate``, ``import``) -- never over a dataset's input files.
+"""
+
+from __future__ import annotations
+
+#: Help of ``--force`` on every verb.
+FORCE_HELP = ("Replace outputs uwbimu did not write (or a non-empty folder the verb replaces whole); "
+              "never a dataset's input files.")
+
+
+def fit_table(console, table, fold=()):
+    """Make a rich ``table`` fit ``console``'s width by wrapping headers, never by cutting numbers.
+
+    When the table is wider than the console, every column gets a fixed width: its longest
+    cell or its longest header word, whichever is larger (headers then wrap at spaces, cells
+    are kept whole); the columns named in ``fold`` (free text) share what is left and wrap.
+    Rich's own shrinking cuts numbers ("0.00…") or whole columns.  Returns the table
+    (changed in place).
+    """
+    from rich.measure import Measurement
+    from rich.text import Text
+
+    if Measurement.get(console, console.options.update_width(10_000), table).maximum <= console.width:
+        return table
+
+    def plain(x) -> str:
+        return x.plain if isinstance(x, Text) else Text.from_markup(str(x)).plain
+
+    # one space between columns (rich miscounts fixed widths under collapse_padding)
+    table.collapse_padding, table.padding, table.pad_edge = False, (0, 0, 0, 1), True
+    cols = table.columns
+    word = [max([len(w) for w in plain(c.header).split()] or [0]) for c in cols]
+    cell = [max([len(line) for x in c._cells for line in plain(x).splitlines()] or [0]) for c in cols]
+    free = [plain(c.header) in fold for c in cols]
+    fixed = sum(max(w, n) for w, n, f in zip(word, cell, free) if not f)
+    room = console.width - fixed - 2 * len(cols) - 1  # borders and one space per column
+    n_free = sum(free)
+    for c, w, n, f in zip(cols, word, cell, free):
+        c.width = max(w, min(n, room // n_free)) if f else max(w, n)
+        c.min_width = None
+        if f:
+            c.overflow = "fold"
+    return table
