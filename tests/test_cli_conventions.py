@@ -165,8 +165,6 @@ def test_import_takes_its_destination_as_dst_or_out(tmp_path):
 
 @pytest.mark.parametrize("path,cmd", _commands(), ids=lambda v: " ".join(v) if isinstance(v, list) else "")
 def test_help_is_in_sentence_case(path, cmd):
-    if path == ["place"]:
-        pytest.skip("the place verb's options are frozen this round (TDoA placement in progress)")
     for p in cmd.params:
         h = getattr(p, "help", None)
         assert not h or h[0].isupper(), f"uwbimu {' '.join(path)} {p.name}: {h!r}"

@@ -10,6 +10,8 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from uwbimu.cli.conventions import FORCE_HELP
+
 
 def _print_result(console: Console, res: dict) -> None:
     # numbers never break (one word each); headers wrap, so the table fits 80 columns
@@ -52,17 +54,16 @@ def _print_result(console: Console, res: dict) -> None:
 def register(app: typer.Typer) -> None:
     @app.command("place")
     def place(
-        config: Optional[Path] = typer.Argument(None, help="placement YAML (see docs/placement.md)"),
-        out: Path = typer.Option(..., "--out", "-o", help="output folder"),
-        example: Optional[str] = typer.Option(None, "--example", help="built-in example: room | crane | bridge"),
-        seed: Optional[int] = typer.Option(None, "--seed", help="override the config's seed"),
-        workers: Optional[int] = typer.Option(None, "--workers", help="processes for differential evolution"),
-        force: bool = typer.Option(False, "--force", help="overwrite an existing OUT/placement.json"),
-        no_plots: bool = typer.Option(False, "--no-plots", help="skip the PNG plots"),
+        config: Optional[Path] = typer.Argument(None, help="Placement YAML (see docs/placement.md)."),
+        out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
+        example: Optional[str] = typer.Option(None, "--example", help="Built-in example: room, crane or bridge."),
+        seed: Optional[int] = typer.Option(None, "--seed", help="Override the config's random seed."),
+        workers: Optional[int] = typer.Option(None, "--workers", help="Processes for differential evolution."),
+        force: bool = typer.Option(False, "--force", help=FORCE_HELP),
+        no_plots: bool = typer.Option(False, "--no-plots", help="Skip the PNG plots."),
     ) -> None:
         """Design UWB anchor positions (room or structure) for coverage, PDOP and N-1 robustness."""
-        from uwbimu.design.config import ConfigError, load_config
-        from uwbimu.design.radio import PatternError
+        from uwbimu.design.config import load_config
         from uwbimu.design.run import EXAMPLES, builtin_example, run_placement, write_outputs
         from uwbimu import errors
 
@@ -70,7 +71,7 @@ def register(app: typer.Typer) -> None:
         if (config is None) == (example is None):
             raise errors.UsageError("give either CONFIG.yaml or --example room|crane|bridge (exactly one)")
         names = ("placement.json", "anchors.csv", "anchors_scenario.yaml", "anchors_3d.png", "coverage_map.png",
-                 "pdop_slices.png", "marginal_value.png")
+                 "pdop_slices.png", "marginal_value.png", "seed_layout.png")
         existing = [n for n in names if (out / n).exists()]
         if existing and not force:  # e.g. --out pointing at a dataset folder with its own anchors.csv
             raise errors.OutputError(f"{out} already holds {', '.join(existing)}",
@@ -93,9 +94,9 @@ def register(app: typer.Typer) -> None:
             write_outputs(res, out, plots=not no_plots)
         except errors.UwbimuError:
             raise
-        except (ConfigError, PatternError, ValueError) as exc:
-            # config/pattern errors already name their file; name the config for the others
-            where = "" if isinstance(exc, (ConfigError, PatternError)) or config is None else f"{config}: "
+        except ValueError as exc:
+            # config and pattern errors are UwbimuErrors naming their file; name the config for the others
+            where = "" if config is None else f"{config}: "
             raise errors.ConfigError(where + str(exc)) from None
         _print_result(console, res)
         console.print(f"wrote {out / 'placement.json'}, {out / 'anchors.csv'}" + ("" if no_plots else " and plots"))

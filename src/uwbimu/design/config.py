@@ -22,8 +22,10 @@ import math
 from pathlib import Path
 from typing import Literal, Optional
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from uwbimu import errors
+from uwbimu.io.yamlconfig import load_yaml_model
 
 __all__ = [
     "AntennaConfig",
@@ -233,33 +235,24 @@ class PlacementConfig(_M):
         return self
 
 
-class ConfigError(ValueError):
-    """A placement config file is missing or invalid (message names file and field)."""
+class ConfigError(errors.ConfigError):
+    """A placement config file is missing or invalid (message names file, line and field; exit 2)."""
+
+
+def _resolve_antenna_csv(path: Path):
+    def prepare(data: dict) -> dict:
+        # relative antenna CSV paths are relative to the config's folder
+        ant = (data.get("radio") or {}).get("antenna") if isinstance(data.get("radio"), dict) else None
+        if isinstance(ant, dict) and isinstance(ant.get("csv"), str) and not Path(ant["csv"]).is_absolute():
+            ant["csv"] = str((path.parent / ant["csv"]).resolve())
+        return data
+
+    return prepare
 
 
 def load_config(path: str | Path) -> PlacementConfig:
-    """Read and validate a placement YAML; errors name the file, line and field."""
+    """Read and validate a placement YAML (:func:`uwbimu.io.yamlconfig.load_yaml_model`); errors name the
+    file, line and field."""
     path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"{path}: config file not found")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise ConfigError(f"{path}:{where}: YAML syntax error: {getattr(exc, 'problem', exc)}") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: top level must be a mapping of fields")
-    try:
-        cfg = PlacementConfig.model_validate(data)
-    except ValidationError as exc:
-        lines = []
-        for e in exc.errors():
-            loc = ".".join(str(x) for x in e["loc"]) or "<top>"
-            lines.append(f"  field '{loc}': {e['msg']}")
-        raise ConfigError(f"{path}: invalid placement config:\n" + "\n".join(lines)) from None
-    # Resolve relative antenna CSV paths against the config's folder.
-    ant = cfg.radio.antenna
-    if ant.csv and not Path(ant.csv).is_absolute():
-        ant.csv = str((path.parent / ant.csv).resolve())
-    return cfg
+    return load_yaml_model(path, PlacementConfig, what="placement config", error=ConfigError,
+                           prepare=_resolve_antenna_csv(path))

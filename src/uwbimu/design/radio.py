@@ -48,6 +48,8 @@ from typing import Sequence
 import numpy as np
 from numba import njit
 
+from uwbimu.errors import InputError
+
 __all__ = [
     "SPEED_OF_LIGHT",
     "RANGE_PRESETS",
@@ -88,8 +90,8 @@ def fspl_db(d, frequency_hz: float = DEFAULT_FREQUENCY_HZ) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- patterns
-class PatternError(ValueError):
-    """A gain pattern file or definition is invalid."""
+class PatternError(InputError):
+    """A gain pattern file or definition is invalid (message names file, line and column; exit 1)."""
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ field, for example::
       line 7, field 'uwb.sigma': Input should be greater than 0
 
 and the exception is a :class:`uwbimu.errors.ConfigError` (or the subclass the
-caller names), an :class:`uwbimu.errors.InputError` with exit code 1.
+caller names), exit code 2 on the command line.
 """
 
 from __future__ import annotations
@@ -126,7 +126,7 @@ def load_yaml_model(path: Union[str, os.PathLike], model: type[M], *, what: str 
     model : the pydantic model class.
     what : what the file holds, for messages.
     error : exception class (or factory ``message -> exception``) raised on refusal;
-        default :class:`uwbimu.errors.ConfigError` (exit code 1).
+        default :class:`uwbimu.errors.ConfigError` (exit code 2).
     prepare : optional ``data -> data`` applied before validation (e.g. resolve paths
         relative to the file); it must keep the keys so line numbers stay right.
 
