@@ -12,6 +12,19 @@ from uwbimu.io.atomic import save_figure
 __all__ = ["plot_layout_3d", "plot_coverage_map", "plot_pdop_slices", "plot_marginal", "plot_structure_coverage"]
 
 
+def _box_3d(ax, lo, hi) -> None:
+    """A 3-D axes showing the box ``lo..hi`` [m] at its true aspect ratio, axes labelled."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    span = np.maximum(hi - lo, 1e-3)
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_zlim(lo[2], hi[2])
+    ax.set_box_aspect(tuple(span / span.max()))
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_zlabel("z [m]")
+
+
 def plot_layout_3d(path, anchors, boresights=None, bars=(), polygon=None, height=None, title="", ids=None,
                    lo=None, hi=None) -> Path:
     """Anchors (with boresight arrows) and the structure's bars or the room outline in 3-D.
@@ -40,13 +53,7 @@ def plot_layout_3d(path, anchors, boresights=None, bars=(), polygon=None, height
     if ids is not None and len(a) <= 16:
         for i, t in enumerate(ids):
             ax.text(a[i, 0], a[i, 1], a[i, 2], t, fontsize=7)
-    ax.set_xlim(lo[0], hi[0])
-    ax.set_ylim(lo[1], hi[1])
-    ax.set_zlim(lo[2], hi[2])
-    ax.set_box_aspect(tuple(span / span.max()))
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_zlabel("z [m]")
+    _box_3d(ax, lo, hi)
     ax.set_title(title or "anchors")
     return save_figure(path, fig)
 
@@ -139,13 +146,7 @@ def plot_structure_coverage(path, anchors, boresights, bars, points, counts, k: 
             ax.scatter(p[idx, 0], p[idx, 1], p[idx, 2], s=1, color="tab:blue", alpha=0.25, depthshade=False)
         b = np.asarray(boresights, float) * 0.06 * float(span.max())
         ax.quiver(a[:, 0], a[:, 1], a[:, 2], b[:, 0], b[:, 1], b[:, 2], color="tab:red", lw=1.0)
-        ax.set_xlim(lo[0], hi[0])
-        ax.set_ylim(lo[1], hi[1])
-        ax.set_zlim(lo[2], hi[2])
-        ax.set_box_aspect(tuple(span / span.max()))
-        ax.set_xlabel("x [m]")
-        ax.set_ylabel("y [m]")
-        ax.set_zlabel("z [m]")
+        _box_3d(ax, lo, hi)
         ax.set_title("anchors (arrow: facing)" if not show_points
                      else f"covered points ({k} links): {100 * cov.mean():.2f} % (subset drawn)", fontsize=9)
     fig.suptitle(title or "structure layout")
