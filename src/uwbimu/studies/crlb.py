@@ -46,10 +46,9 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-try:  # the shared physics layer (core, issue 11); older trees keep it in estimation.kernels
-    from uwbimu.models.kernels import cov_step, range_jacobian
-except ImportError:  # pragma: no cover
-    from uwbimu.estimation.kernels import cov_step, range_jacobian
+from uwbimu.models import state as ST
+from uwbimu.models import kernels as _physics
+from uwbimu.models.kernels import cov_step, range_jacobian, refresh_stale_cache
 from uwbimu.models.reference import G_WORLD
 
 
@@ -96,7 +95,7 @@ def _prior(noise, M: int, packet_var: float) -> np.ndarray:
     P = np.diag(sd**2)
     if M:
         P = np.pad(P, ((0, M), (0, M)))
-        P[19:, 19:] = np.eye(M) * packet_var
+        P[ST.ERROR_DIM:, ST.ERROR_DIM:] = np.eye(M) * packet_var
     return np.maximum(P, 0.0)
 
 
@@ -127,7 +126,7 @@ def posterior_bound(sim_result, scenario) -> dict[str, Any]:
     R = quat_to_rotmat(mo.q)
     f = np.einsum("nji,nj->ni", R, mo.a + G_WORLD)
     X = np.zeros((N, 20))
-    X[:, 0:3], X[:, 3:6], X[:, 6:10], X[:, 16:19], X[:, 19] = mo.p, mo.v, mo.q, lever, t_d
+    X[:, ST.P], X[:, ST.V], X[:, ST.Q], X[:, ST.PIU], X[:, ST.TD] = mo.p, mo.v, mo.q, lever, t_d
     U = np.ascontiguousarray(np.column_stack([f, mo.w]))
     dt = np.diff(mo.t)
     q = np.array([noise.accel_noise_density**2, noise.gyro_noise_density**2, noise.accel_bias_rw**2,
@@ -155,14 +154,14 @@ def posterior_bound(sim_result, scenario) -> dict[str, Any]:
     p, qq = sim_result.trajectory.pose(t_geo)
     s = sim_result.trajectory.sample(t_geo)
     xt = np.zeros((n, 20))
-    xt[:, 0:3], xt[:, 3:6], xt[:, 6:10], xt[:, 16:19], xt[:, 19] = p, s.v, qq, lever, t_d
+    xt[:, ST.P], xt[:, ST.V], xt[:, ST.Q], xt[:, ST.PIU], xt[:, ST.TD] = p, s.v, qq, lever, t_d
     ut = np.column_stack([np.zeros((n, 3)), s.w])
     if tdoa_mode:  # anchor A's distance is taken at its own packet's arrival (as simulated)
         t_a = sim_result.tdoa_t_a
         pa_, qa_ = sim_result.trajectory.pose(t_a)
         sa_ = sim_result.trajectory.sample(t_a)
         xa = np.zeros((n, 20))
-        xa[:, 0:3], xa[:, 3:6], xa[:, 6:10], xa[:, 16:19], xa[:, 19] = pa_, sa_.v, qa_, lever, t_d
+        xa[:, ST.P], xa[:, ST.V], xa[:, ST.Q], xa[:, ST.PIU], xa[:, ST.TD] = pa_, sa_.v, qa_, lever, t_d
         ua = np.column_stack([np.zeros((n, 3)), sa_.w])
     # measurement m is applied after the IMU interval that contains its UWB time; every Jacobian is
     # mapped from its own instant to that application instant (first order, range_jacobian's delta),
@@ -195,9 +194,9 @@ def posterior_bound(sim_result, scenario) -> dict[str, Any]:
     return {
         "t": mo.t,
         "pos_sd": np.sqrt(np.maximum(pos_var, 0.0)),
-        "lever_arm_sd": np.sqrt(np.maximum(np.diag(P)[15:18], 0.0)),
-        "time_offset_sd": float(math.sqrt(max(P[18, 18], 0.0))),
-        "P_final": P[:19, :19].copy(),
+        "lever_arm_sd": np.sqrt(np.maximum(np.diag(P)[ST.EPIU], 0.0)),
+        "time_offset_sd": float(math.sqrt(max(P[ST.ETD, ST.ETD], 0.0))),
+        "P_final": P[:ST.ERROR_DIM, :ST.ERROR_DIM].copy(),
     }
 
 
@@ -232,3 +231,7 @@ def scenario_bound(scenario_dict: dict, seeds: tuple[int, int, int], skip_initia
         "prior": "ESKF init defaults: p 0.3 m, v 0.5 m/s, roll/pitch 5 deg, yaw 15 deg, biases sigma0, "
                  "lever 0.3 m, t_d 0.03 s",
     }
+
+
+# _recursion calls the shared physics kernels: flush its disk cache when they change
+refresh_stale_cache(globals(), [_physics])
