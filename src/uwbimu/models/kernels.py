@@ -373,6 +373,14 @@ def _cov_step(P, x, u, dt, noise, B, W, col):
         _phi_vec(B, dt, col)
         for i in range(15):
             P[r, i] = col[i]
+    _add_process_noise(P, dt, noise)
+
+
+@njit(cache=True)
+def _add_process_noise(P, dt, noise):
+    """The process-noise part of :func:`cov_step`: ``P <- P + Q`` over ``dt`` (Gauss-Markov anchor biases
+    scaled as well; see :func:`cov_step` for ``noise``)."""
+    N = P.shape[0]
     adt = abs(dt)
     for i in range(3):
         P[i, i] += noise[0] * adt**3 / 3.0
@@ -405,6 +413,78 @@ def _cov_step(P, x, u, dt, noise, B, W, col):
             P[r, r] += noise[4] * adt
         for r in range(r0 + n_lev, N):
             P[r, r] += noise[9] * adt
+
+
+@njit(cache=True)
+def _phi_rows(M, B, dt, tmp):
+    """In place ``M[0:15] <- Phi M[0:15]`` for every column of ``M`` (block-sparse ``Phi``, blocks ``B``).
+
+    Element for element the same arithmetic, in the same order, as :func:`_phi_vec` applied to each
+    column (so the results are bit-identical), arranged row by row so that the compiler runs the
+    columns in SIMD lanes.  ``tmp`` (9, >= M.shape[1]) is work space."""
+    nc = M.shape[1]
+    for r in range(9):
+        for c in range(nc):
+            tmp[r, c] = M[6 + r, c]
+    for i in range(3):
+        a0 = B[0, i, 0]
+        a1 = B[0, i, 1]
+        a2 = B[0, i, 2]
+        a3 = B[1, i, 0]
+        a4 = B[1, i, 1]
+        a5 = B[1, i, 2]
+        v0 = B[2, i, 0]
+        v1 = B[2, i, 1]
+        v2 = B[2, i, 2]
+        v3 = B[3, i, 0]
+        v4 = B[3, i, 1]
+        v5 = B[3, i, 2]
+        v6 = B[4, i, 0]
+        v7 = B[4, i, 1]
+        v8 = B[4, i, 2]
+        s0 = B[5, i, 0]
+        s1 = B[5, i, 1]
+        s2 = B[5, i, 2]
+        s3 = B[6, i, 0]
+        s4 = B[6, i, 1]
+        s5 = B[6, i, 2]
+        for c in range(nc):
+            xt0 = tmp[0, c]
+            xt1 = tmp[1, c]
+            xt2 = tmp[2, c]
+            xa0 = tmp[3, c]
+            xa1 = tmp[4, c]
+            xa2 = tmp[5, c]
+            xg0 = tmp[6, c]
+            xg1 = tmp[7, c]
+            xg2 = tmp[8, c]
+            sp = a0 * xt0 + a1 * xt1 + a2 * xt2 + a3 * xa0 + a4 * xa1 + a5 * xa2
+            sv = (v0 * xt0 + v1 * xt1 + v2 * xt2 + v3 * xa0 + v4 * xa1 + v5 * xa2
+                  + v6 * xg0 + v7 * xg1 + v8 * xg2)
+            st = s0 * xt0 + s1 * xt1 + s2 * xt2 + s3 * xg0 + s4 * xg1 + s5 * xg2
+            M[i, c] += dt * M[3 + i, c] + sp
+            M[6 + i, c] = st
+            M[3 + i, c] += sv
+
+
+@njit(cache=True)
+def _cov_step_rows(P, x, u, dt, noise, B, W, T, tmp):
+    """:func:`cov_step` arranged for SIMD: bit-identical to :func:`_cov_step` (the same operations on
+    every element, in the same order), about twice as fast for the 19-state filter.
+
+    ``Phi P`` by rows (:func:`_phi_rows`), then ``(Phi P) Phi^T`` as ``Phi`` applied to the transpose.
+    Work arrays: ``B`` (7, 3, 3), ``W`` (6, 3, 3), ``T`` (15, N), ``tmp`` (9, N)."""
+    N = P.shape[0]
+    _phi_blocks(x, u, dt, B, W)
+    _phi_rows(P, B, dt, tmp)
+    for r in range(N):
+        for c in range(15):
+            T[c, r] = P[r, c]
+    _phi_rows(T, B, dt, tmp)
+    for r in range(N):
+        for c in range(15):
+            P[r, c] = T[c, r]
+    _add_process_noise(P, dt, noise)
 
 
 @njit(cache=True)
