@@ -604,3 +604,36 @@ def advance_python(
         progress(st.k)
 
 
+def _model_update(prob: Problem, x: np.ndarray, P: np.ndarray, k: int, tau: float, model, z: np.ndarray,
+                  force: bool, mask: np.ndarray, o: np.ndarray) -> None:
+    """One measurement through the Python model protocol (:mod:`uwbimu.models.measurements`).
+
+    The model is evaluated at ``tau`` (state integrated back from the filter's sample ``k``, as for a
+    range) and its Jacobian applied at the filter time: ``tau`` lies within one IMU period of it, the
+    first-order time mapping the range kernel applies is neglected here (an error of order dt_imu)."""
+    xt = np.empty_like(x)
+    u_tau = np.empty(6)
+    st = K.state_at(x, prob.imu_t, prob.imu_u, prob.imu_um, k, tau, prob.dt_max, xt, u_tau)
+    o[5] = st
+    if st != K.UPD_OK:
+        o[0:5] = (np.nan, np.nan, np.nan, 0.0, 0.0)
+        o[6] = np.nan
+        return
+    L = prob.state_layout()
+    pred = np.atleast_1d(model.evaluate(xt, u_tau))
+    H = np.atleast_2d(model.jacobian(xt, u_tau, L))
+    r = np.atleast_1d(z) - pred
+    gate_p = 1.0 if prob.gate <= 0 else _gate_probability(prob.gate)
+    res = vector_update(x, P, H, r, np.atleast_2d(model.covariance()), gate_p, force,
+                        prob.robust_c if prob.robust_kind != K.ROBUST_NONE else 0.0, mask, K.inject)
+    o[0], o[1], o[2] = pred[0], r[0], res["nis"]
+    o[3] = 1.0 if res["accepted"] else 0.0
+    o[4] = res["weight"]
+    o[6] = res["S"]
+
+
+def _gate_probability(gate_nis_1dof: float) -> float:
+    """The acceptance probability behind a one-degree-of-freedom NIS threshold (same for any dim)."""
+    from scipy.stats import chi2
+
+    return float(chi2.cdf(gate_nis_1dof, 1))
