@@ -20,7 +20,7 @@ from numba import njit
 
 from uwbimu.models import kernels as _physics
 from uwbimu.models.kernels import (  # noqa: F401  (re-exported)
-    GRAVITY, rotmat, _deriv, _rk4_core, _rk4, rk4_step_mid, rk4_step, propagate_interval, _mm3,
+    GRAVITY, rotmat, _deriv, _rk4_core, _rk4_s, _rk4, rk4_step_mid, rk4_step, propagate_interval, _mm3,
     _skew3, _phi_blocks, phi_blocks, _phi_vec, _cov_step, _cov_step_rows, cov_step, decay_biases, range_jacobian,
     inject, quat_mul, quat_exp, error_transition, tdoa_jacobian, refresh_stale_cache,
 )
@@ -144,6 +144,12 @@ def propagate_until(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_
 
 
 @njit(cache=True)
+def _row6(A, k):
+    """Row ``k`` of an (n, 6) array as a tuple (no array view)."""
+    return A[k, 0], A[k, 1], A[k, 2], A[k, 3], A[k, 4], A[k, 5]
+
+
+@njit(cache=True)
 def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_every,
                   xn, xb, usum, ub, ua, ue, wk, B, W, T, tmp):
     """:func:`propagate_until` for :func:`filter_loop`: work arrays passed in (no allocation) and the
@@ -186,7 +192,7 @@ def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_ev
             usum[i] += (imu_u[k, i] + 4.0 * imu_um[k, i] + imu_u[k + 1, i]) / 6.0
         dts += dt
         cnt += 1
-        _rk4_core(x, imu_u[k], imu_um[k], imu_u[k + 1], dt, xn, wk)
+        _rk4_s(x, _row6(imu_u, k), _row6(imu_um, k), _row6(imu_u, k + 1), dt, xn)
         for i in range(nx):
             x[i] = xn[i]
         decay_biases(x, dt, noise)
