@@ -232,7 +232,7 @@ def test_cov_step_rows_is_bit_identical_to_cov_step(n_extra, gauss_markov):
         noise += [0.01, 0.5]
     noise = np.array(noise)
     B, W = np.empty((7, 3, 3)), np.empty((6, 3, 3))
-    T, tmp = np.empty((15, N)), np.empty((9, N))
+    A, T, U = np.empty((15, N)), np.empty((15, N)), np.empty((15, N))
     for dt in (1e-3, -2e-3, 0.0, 0.3):
         x = rng.normal(size=N + 1)
         x[6:10] /= np.linalg.norm(x[6:10])
@@ -242,7 +242,7 @@ def test_cov_step_rows_is_bit_identical_to_cov_step(n_extra, gauss_markov):
         P0[3, 7] += 1e-3  # not symmetric: the two steps must agree on any matrix
         P1, P2 = P0.copy(), P0.copy()
         MK.cov_step(P1, x, u, dt, noise)
-        MK._cov_step_rows(P2, x, u, dt, noise, B, W, T, tmp)
+        MK._cov_step_rows(P2, x, u, dt, noise, B, W, A, T, U)
         assert np.array_equal(P1, P2) and np.array_equal(np.signbit(P1), np.signbit(P2))
 
 

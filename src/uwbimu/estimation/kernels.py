@@ -151,7 +151,7 @@ def _row6(A, k):
 
 @njit(cache=True)
 def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_every,
-                  xn, xb, usum, ub, ua, ue, wk, B, W, T, tmp):
+                  xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U):
     """:func:`propagate_until` for :func:`filter_loop`: work arrays passed in (no allocation) and the
     SIMD covariance step ``_cov_step_rows``; the same operations in the same order, bit-identical."""
     n = imu_t.shape[0]
@@ -167,7 +167,7 @@ def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_ev
             if cnt > 0:
                 for i in range(6):
                     ub[i] = usum[i] / cnt
-                _cov_step_rows(P, xb, ub, dts, noise, B, W, T, tmp)
+                _cov_step_rows(P, xb, ub, dts, noise, B, W, A, T, U)
                 cnt = 0
                 dts = 0.0
                 for i in range(6):
@@ -179,7 +179,7 @@ def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_ev
                     ua[i] = imu_u[k, i] + (s / m) * (imu_u[k + 1, i] - imu_u[k, i])
                     ue[i] = imu_u[k, i] + ((s + 1) / m) * (imu_u[k + 1, i] - imu_u[k, i])
                     ub[i] = 0.5 * (ua[i] + ue[i])
-                _cov_step_rows(P, x, ub, h, noise, B, W, T, tmp)
+                _cov_step_rows(P, x, ub, h, noise, B, W, A, T, U)
                 _rk4(x, ua, ue, h, x, wk)
                 decay_biases(x, h, noise)
             k += 1
@@ -200,7 +200,7 @@ def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_ev
         if cnt >= cov_every:
             for i in range(6):
                 ub[i] = usum[i] / cnt
-            _cov_step_rows(P, xb, ub, dts, noise, B, W, T, tmp)
+            _cov_step_rows(P, xb, ub, dts, noise, B, W, A, T, U)
             cnt = 0
             dts = 0.0
             for i in range(6):
@@ -208,7 +208,7 @@ def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_ev
     if cnt > 0:
         for i in range(6):
             ub[i] = usum[i] / cnt
-        _cov_step_rows(P, xb, ub, dts, noise, B, W, T, tmp)
+        _cov_step_rows(P, xb, ub, dts, noise, B, W, A, T, U)
     return k
 
 
@@ -541,7 +541,7 @@ _I_BG = 12  # error index of the gyro bias (models.state.EBG.start); nominal b_g
 
 @njit(cache=True)
 def _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_every, gap_idx,
-                    xn, xb, usum, ub, ua, ue, wk, B, W, T, tmp):
+                    xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U):
     """``filterpass._propagate`` up to the first IMU gap that needs an inflation of ``P``.
 
     Returns ``(k, i)``: ``i >= 0`` when the filter stopped at the end of gap ``i`` (``gap_idx[i] + 1``)
@@ -554,12 +554,12 @@ def _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_
         if not (i >= ng or gap_idx[i] + 1 >= n or imu_t[gap_idx[i]] >= t_target):
             g = gap_idx[i]
             k = _propagate_ws(x, P, imu_t, imu_u, imu_um, k, imu_t[g + 1], noise, dt_max, cov_every,
-                              xn, xb, usum, ub, ua, ue, wk, B, W, T, tmp)
+                              xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U)
             if k < g + 1:
                 return k, -1
             return k, i
     k = _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_every,
-                      xn, xb, usum, ub, ua, ue, wk, B, W, T, tmp)
+                      xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U)
     return k, -1
 
 
@@ -636,8 +636,9 @@ def filter_loop(x, P, imu_t, imu_u, imu_um, uwb_t, uwb_a, uwb_b, uwb_r, uwb_tag,
     wk = np.empty((6, max(10, nx)))
     B = np.empty((7, 3, 3))
     W = np.empty((6, 3, 3))
+    A = np.empty((15, N))
     T = np.empty((15, N))
-    tmp = np.empty((9, N))
+    U = np.empty((15, N))
 
     k = ist[IS_K]
     j = ist[IS_J]
@@ -676,7 +677,7 @@ def filter_loop(x, P, imu_t, imu_u, imu_um, uwb_t, uwb_a, uwb_b, uwb_r, uwb_tag,
                         code = LOOP_OUT_FULL
                         break
                     k, g = _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, next_out, noise, dt_max, cov_every,
-                                           gap_idx, xn, xb, usum, ub, ua, ue, wk, B, W, T, tmp)
+                                           gap_idx, xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U)
                     if g >= 0:
                         ist[IS_GAP] = g
                         code = LOOP_GAP
@@ -698,7 +699,7 @@ def filter_loop(x, P, imu_t, imu_u, imu_um, uwb_t, uwb_a, uwb_b, uwb_r, uwb_tag,
                 if code != LOOP_DONE:
                     break
             k, g = _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, tau, noise, dt_max, cov_every, gap_idx,
-                                   xn, xb, usum, ub, ua, ue, wk, B, W, T, tmp)
+                                   xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U)
             if g >= 0:
                 ist[IS_GAP] = g
                 code = LOOP_GAP
@@ -769,7 +770,7 @@ def filter_loop(x, P, imu_t, imu_u, imu_um, uwb_t, uwb_a, uwb_b, uwb_r, uwb_tag,
                         code = LOOP_OUT_FULL
                         break
                     k, g = _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, next_out, noise, dt_max, cov_every,
-                                           gap_idx, xn, xb, usum, ub, ua, ue, wk, B, W, T, tmp)
+                                           gap_idx, xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U)
                     if g >= 0:
                         ist[IS_GAP] = g
                         code = LOOP_GAP
