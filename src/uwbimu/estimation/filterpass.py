@@ -292,19 +292,26 @@ class PassState:
             self.out_P[n] = self.P
         self.n_out = n + 1
 
-    def result(self, rec: np.ndarray, N: int) -> "PassResult":
-        """The pass so far as a :class:`PassResult` (``rec`` indexed by absolute range index)."""
+    def result(self, rec: np.ndarray, N: int, copy: bool = True) -> "PassResult":
+        """The pass so far as a :class:`PassResult` (``rec`` indexed by absolute range index).
+
+        ``copy=False`` returns views of the output arrays (for a pass that is over: nothing writes them
+        any more)."""
         nb = self.x.shape[0]
         n = self.n_out
         if n:
-            t_imu, states, cov_diag = self.out_t[:n].copy(), self.out_x[:n].copy(), self.out_d[:n].copy()
+            t_imu, states, cov_diag = self.out_t[:n], self.out_x[:n], self.out_d[:n]
+            covs = self.out_P[:n] if self.out_P is not None else None
+            if copy:
+                t_imu, states, cov_diag = t_imu.copy(), states.copy(), cov_diag.copy()
+                covs = covs.copy() if covs is not None else None
         else:
-            t_imu, states, cov_diag = np.zeros(0), np.zeros((0, nb)), np.zeros((0, N))
+            t_imu, states, cov_diag, covs = np.zeros(0), np.zeros((0, nb)), np.zeros((0, N)), None
         return PassResult(
             t_imu=t_imu,
             states=states,
             cov_diag=cov_diag,
-            covs=self.out_P[:n].copy() if (n and self.out_P is not None) else None,
+            covs=covs,
             rec=rec[self.j0:self.j],
             j0=self.j0,
             j_end=self.j,
@@ -344,7 +351,7 @@ def run_pass(
     rec[j0:, REC_ACC] = 0.0
     advance(prob, st, rec, final=True, t_uwb_end=t_uwb_end, record=record, to_end=to_end, progress=progress,
             engine=engine)
-    res = st.result(rec, P0.shape[0])
+    res = st.result(rec, P0.shape[0], copy=False)
     if not prob.store_cov:
         res.covs = None
     return res

@@ -30,6 +30,7 @@ re-initialisation need; :func:`uwbimu.estimation.run_eskf` records everything.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from typing import Any, Mapping, Optional, Sequence
 
@@ -312,12 +313,12 @@ class Eskf:
             self._dropped["imu_not_finite"] += int((~finite).sum())
             t, u = t[finite], u[finite]
         last = self._t.a[self._t.n - 1] if self._t.n else -np.inf
-        # strictly increasing stamps (repeated stamps of the batch loader are dropped the same way)
-        keep = np.empty(len(t), dtype=bool)
-        for i, ti in enumerate(t):
-            keep[i] = ti > last
-            if keep[i]:
-                last = ti
+        # strictly increasing stamps (repeated stamps of the batch loader are dropped the same way): a
+        # sample is kept when it is later than every stamp before it (the last kept one is their maximum)
+        if len(t) == 1:
+            keep = np.array([t[0] > last])
+        else:
+            keep = t > np.maximum.accumulate(np.concatenate(([last], t[:-1])))
         if not keep.all():
             self._dropped["imu_not_increasing"] += int((~keep).sum())
             t, u = t[keep], u[keep]
@@ -617,7 +618,18 @@ class Eskf:
                 return
             self._on_divergence()
 
+    #: CPU time [s] spent in the initialiser (``time.process_time``): run_eskf reports the filter passes'
+    #: CPU time without it
+    init_cpu_seconds: float = 0.0
+
     def _try_init(self) -> bool:
+        c0 = time.process_time()
+        try:
+            return self._try_init_timed()
+        finally:
+            self.init_cpu_seconds += time.process_time() - c0
+
+    def _try_init_timed(self) -> bool:
         p = self._prob
         m = self._mt.n
         if math.isnan(p.dt_nom):
@@ -693,7 +705,7 @@ class Eskf:
             self._trim()
 
     def _close_pass(self) -> None:
-        res = self._st.result(self._rec.view(), self._st.P.shape[0])
+        res = self._st.result(self._rec.view(), self._st.P.shape[0], copy=False)  # the pass is over
         if not self._prob.store_cov:
             res.covs = None
         self._passes.append(res)
