@@ -259,6 +259,7 @@ class PassState:
     out_d: Optional[np.ndarray] = None
     out_P: Optional[np.ndarray] = None
     events: list = field(default_factory=list)
+    loop_args: Any = None  # advance's cached arguments of the compiled loop (_LoopArgs)
 
     @classmethod
     def start(cls, prob: "Problem", x0: np.ndarray, P0: np.ndarray, k0: int, j0: int) -> "PassState":
@@ -373,8 +374,48 @@ _NO_ROT_MS = np.zeros(1)
 _EVENT_SLOTS = 64
 
 
-def advance(
-    prob: Problem,
+class _LoopArgs:
+    """The arguments of :func:`kernels.filter_loop` that only depend on the settings of the
+    :class:`Problem` (kept on the :class:`PassState` between :func:`advance` calls: the streaming filter
+    calls it for every pushed sample), and its state and event arrays."""
+
+    def __init__(self, prob: Problem, key: tuple):
+        self.key = key
+        self.gain_mask = prob.gain_mask
+        self.mask_frozen = _frozen_mask(prob)
+        M = max(len(prob.anchor_ids), 1)
+        self.pair_mat = np.full((M, M), -1, dtype=np.int64)
+        for (a_, b_), i_ in prob.pair_index.items():
+            self.pair_mat[a_, b_] = i_
+        self.tag_lever_err = prob.tag_lever_err if prob.tag_lever_err is not None else _NO_INT
+        self.fpar = np.zeros(K.FP_SIZE)
+        self.fpar[[K.FP_DT_MAX, K.FP_GATE, K.FP_ROBUST_C, K.FP_MAX_LOOKBACK, K.FP_OUT_PERIOD, K.FP_R_VAR, K.FP_TDOA_VAR,
+                   K.FP_MAX_POS_VAR, K.FP_LEVER_MIN_RATE]] = key[-9:]
+        self.ipar = np.zeros(K.IP_SIZE, dtype=np.int64)
+        self.ipar[[K.IP_ROBUST, K.IP_REOPEN, K.IP_COV_EVERY, K.IP_ALL_REJECT_RUN, K.IP_SUPERVISE,
+                   K.IP_STORE_COV]] = [prob.robust_kind, prob.reopen_after, prob.cov_every,
+                                       min(prob.all_reject_run, 2**62), prob.supervise, prob.store_cov]
+        self.ist = np.zeros(K.IS_SIZE, dtype=np.int64)
+        self.fst = np.zeros(1)
+        self.ev = np.empty((_EVENT_SLOTS, 3), dtype=np.int64)
+        N = prob.gain_mask.shape[0]
+        self.no_cov = np.empty((0, N, N))  # out_P when covariances are not stored
+
+
+def _loop_args(prob: Problem, st: PassState) -> _LoopArgs:
+    """The :class:`_LoopArgs` of ``st`` for the current settings of ``prob`` (rebuilt when any changed)."""
+    key = (id(prob.gain_mask), id(prob.layout), id(prob.pair_index), len(prob.pair_index), id(prob.tag_lever_err),
+           len(prob.anchor_ids), _EVENT_SLOTS, prob.robust_kind, prob.reopen_after, prob.cov_every,
+           prob.all_reject_run, prob.supervise, prob.store_cov,
+           prob.dt_max, prob.gate, prob.robust_c, prob.max_lookback, prob.out_period, prob.r_var, prob.tdoa_var,
+           prob.max_pos_var, prob.lever_min_rate)
+    a = st.loop_args
+    if a is None or a.key != key or a.gain_mask is not prob.gain_mask:
+        a = st.loop_args = _LoopArgs(prob, key)
+    return a
+
+
+def advance(    prob: Problem,
     st: PassState,
     rec: np.ndarray,
     final: bool,
@@ -408,43 +449,34 @@ def advance(
         raise ValueError(f"advance: engine must be 'compiled' or 'python', got {engine!r}")
     imu_t = prob.imu_t
     x, P = st.x, st.P
-    N = P.shape[0]
     t_last = min(imu_t[-1], prob.t_limit)
     t_out_end = t_last + 1e-12 if (final and to_end) else min(t_last, t_safe)
     gate_lever = prob.lever_min_rate > 0 and prob.rot_ms is not None and prob.gain_mask[S.EPIU.start] > 0
     multi = prob.uwb_tag is not None and prob.tag_lever_err is not None and len(prob.tag_lever_err) > 1
-    M = len(prob.anchor_ids)
-    pair_mat = np.full((max(M, 1), max(M, 1)), -1, dtype=np.int64)
-    for (a_, b_), i_ in prob.pair_index.items():
-        pair_mat[a_, b_] = i_
     store_cov = bool(prob.store_cov)
     if record and t_out_end >= st.next_out:
         st.reserve_outputs(int((t_out_end - st.next_out) / prob.out_period) + 2, store_cov)
     elif st.out_t is None:
         st.reserve_outputs(1, store_cov)
-    fpar = np.array([t_last, t_uwb_end, t_out_end, prob.dt_max, prob.gate, prob.robust_c, prob.max_lookback,
-                     prob.out_period, prob.r_var, prob.tdoa_var, prob.max_pos_var, prob.lever_min_rate])
-    ipar = np.array([prob.robust_kind, prob.reopen_after, prob.cov_every, min(prob.all_reject_run, 2**62),
-                     prob.supervise, gate_lever, multi, record, store_cov,
-                     max(1, int(round(1.0 / prob.out_period))) if progress is not None else 0,
-                     prob.uwb_b is not None], dtype=np.int64)
-    ist = np.zeros(K.IS_SIZE, dtype=np.int64)
-    fst = np.zeros(1)
-    ev = np.empty((_EVENT_SLOTS, 3), dtype=np.int64)
+    a = _loop_args(prob, st)
+    fpar, ipar, ist, fst, ev = a.fpar, a.ipar, a.ist, a.fst, a.ev
+    fpar[K.FP_T_LAST], fpar[K.FP_T_UWB_END], fpar[K.FP_T_OUT_END] = t_last, t_uwb_end, t_out_end
+    ipar[K.IP_GATE_LEVER], ipar[K.IP_MULTI], ipar[K.IP_RECORD] = gate_lever, multi, record
+    ipar[K.IP_PROGRESS_EVERY] = max(1, int(round(1.0 / prob.out_period))) if progress is not None else 0
+    ipar[K.IP_HAS_B] = prob.uwb_b is not None
     uwb_b = prob.uwb_b if prob.uwb_b is not None else _NO_INT
     uwb_tag = prob.uwb_tag if multi else _NO_INT
-    tag_lever_err = prob.tag_lever_err if prob.tag_lever_err is not None else _NO_INT
     rot_mean, rot_ms = (prob.rot_mean, prob.rot_ms) if gate_lever else (_NO_ROT_MEAN, _NO_ROT_MS)
     gap_idx = prob.gap_idx if prob.gap_idx is not None and len(prob.gap_idx) else _NO_GAPS
-    mask_frozen = _frozen_mask(prob)
+    mask_frozen, pair_mat, tag_lever_err = a.mask_frozen, a.pair_mat, a.tag_lever_err
     phase = K.PHASE_ROWS
     while True:
         ist[K.IS_K], ist[K.IS_J], ist[K.IS_ALL_REJ], ist[K.IS_N_FROZEN] = st.k, st.j, st.all_rej, st.n_frozen
         ist[K.IS_N_OUT], ist[K.IS_PHASE], ist[K.IS_N_EV] = st.n_out, phase, 0
         fst[0] = st.next_out
-        out_P = st.out_P if st.out_P is not None else np.empty((0, N, N))
+        out_P = st.out_P if st.out_P is not None else a.no_cov
         code = K.filter_loop(x, P, imu_t, prob.imu_u, prob.imu_um, prob.uwb_t, prob.uwb_a, uwb_b, prob.uwb_r,
-                             uwb_tag, prob.anchors, prob.bias_idx, prob.gain_mask, mask_frozen, tag_lever_err,
+                             uwb_tag, prob.anchors, prob.bias_idx, a.gain_mask, mask_frozen, tag_lever_err,
                              pair_mat, prob.noise, prob.hull_lo, prob.hull_hi, rot_mean, rot_ms, gap_idx,
                              st.consec, rec, st.out_t, st.out_x, st.out_d, out_P, ev, fpar, ipar, ist, fst)
         st.k, st.j, st.all_rej = int(ist[K.IS_K]), int(ist[K.IS_J]), int(ist[K.IS_ALL_REJ])

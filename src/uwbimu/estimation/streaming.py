@@ -62,20 +62,25 @@ class _Buffer:
         self.n = 0
         self.fill = fill
 
-    def extend(self, v: np.ndarray) -> None:
-        m = len(v)
-        if self.n + m > len(self.a):
-            cap = max(2 * len(self.a), self.n + m)
+    def _grow(self, need: int) -> None:
+        if need > len(self.a):
+            cap = max(2 * len(self.a), need)
             b = np.full((cap,) + self.shape_tail, self.fill, dtype=self.a.dtype)
             b[: self.n] = self.a[: self.n]
             self.a = b
+
+    def extend(self, v: np.ndarray) -> None:
+        m = len(v)
+        self._grow(self.n + m)
         self.a[self.n:self.n + m] = v
         self.n += m
 
     def reserve(self, n: int) -> None:
         """Make the length ``n`` (new entries filled), keeping capacity for more."""
         if n > self.n:
-            self.extend(np.full((n - self.n,) + self.shape_tail, self.fill, dtype=self.a.dtype))
+            self._grow(n)
+            self.a[self.n:n] = self.fill
+            self.n = n
 
     def view(self, n: Optional[int] = None) -> np.ndarray:
         return self.a[: self.n if n is None else n]
