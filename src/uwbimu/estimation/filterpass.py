@@ -415,7 +415,22 @@ def _loop_args(prob: Problem, st: PassState) -> _LoopArgs:
     return a
 
 
-def advance(    prob: Problem,
+def _nothing_to_do(prob: Problem, st: PassState, x: np.ndarray, t_last: float, t_uwb_end: float) -> bool:
+    """No measurement can be processed now (the next one is not reached by the IMU yet, or none is left);
+    the caller has checked that no output is due either."""
+    j = st.j
+    if j >= prob.uwb_t.shape[0]:
+        return True
+    tj = prob.uwb_t[j]
+    if tj > t_uwb_end:
+        return True
+    if prob.uwb_b is not None and prob.uwb_b[j] <= -2:
+        return False  # a Python model (its own clock): let the loop decide
+    return tj + x[S.TD] > t_last
+
+
+def advance(
+    prob: Problem,
     st: PassState,
     rec: np.ndarray,
     final: bool,
@@ -451,6 +466,11 @@ def advance(    prob: Problem,
     x, P = st.x, st.P
     t_last = min(imu_t[-1], prob.t_limit)
     t_out_end = t_last + 1e-12 if (final and to_end) else min(t_last, t_safe)
+    if not (record and st.next_out <= t_out_end) and _nothing_to_do(prob, st, x, t_last, t_uwb_end):
+        # (the streaming filter's usual call: a sample arrived and no measurement is due yet)
+        if progress is not None:
+            progress(st.k)
+        return
     gate_lever = prob.lever_min_rate > 0 and prob.rot_ms is not None and prob.gain_mask[S.EPIU.start] > 0
     multi = prob.uwb_tag is not None and prob.tag_lever_err is not None and len(prob.tag_lever_err) > 1
     store_cov = bool(prob.store_cov)
@@ -471,18 +491,17 @@ def advance(    prob: Problem,
     mask_frozen, pair_mat, tag_lever_err = a.mask_frozen, a.pair_mat, a.tag_lever_err
     phase = K.PHASE_ROWS
     while True:
-        ist[K.IS_K], ist[K.IS_J], ist[K.IS_ALL_REJ], ist[K.IS_N_FROZEN] = st.k, st.j, st.all_rej, st.n_frozen
-        ist[K.IS_N_OUT], ist[K.IS_PHASE], ist[K.IS_N_EV] = st.n_out, phase, 0
+        ist[:K.IS_GAP] = (st.k, st.j, st.all_rej, st.n_frozen, st.n_out, phase)
+        ist[K.IS_N_EV] = 0
         fst[0] = st.next_out
         out_P = st.out_P if st.out_P is not None else a.no_cov
         code = K.filter_loop(x, P, imu_t, prob.imu_u, prob.imu_um, prob.uwb_t, prob.uwb_a, uwb_b, prob.uwb_r,
                              uwb_tag, prob.anchors, prob.bias_idx, a.gain_mask, mask_frozen, tag_lever_err,
                              pair_mat, prob.noise, prob.hull_lo, prob.hull_hi, rot_mean, rot_ms, gap_idx,
                              st.consec, rec, st.out_t, st.out_x, st.out_d, out_P, ev, fpar, ipar, ist, fst)
-        st.k, st.j, st.all_rej = int(ist[K.IS_K]), int(ist[K.IS_J]), int(ist[K.IS_ALL_REJ])
-        st.n_frozen, st.n_out, phase = int(ist[K.IS_N_FROZEN]), int(ist[K.IS_N_OUT]), int(ist[K.IS_PHASE])
+        st.k, st.j, st.all_rej, st.n_frozen, st.n_out, phase, gap_i, _, n_ev = ist.tolist()
         st.next_out = float(fst[0])
-        for jj, aa, cc in ev[:ist[K.IS_N_EV]].tolist():
+        for jj, aa, cc in (ev[:n_ev].tolist() if n_ev else ()):
             st.events.append({"t": float(prob.uwb_t[jj]), "kind": "gate_reopened", "anchor": prob.anchor_ids[aa],
                               "after_rejections": int(cc)})
         if code == K.LOOP_DONE:
@@ -490,9 +509,8 @@ def advance(    prob: Problem,
         if code == K.LOOP_OUT_FULL:
             st.reserve_outputs(max(16, st.out_t.shape[0]), store_cov)
         elif code == K.LOOP_GAP:
-            i = int(ist[K.IS_GAP])
-            g = int(gap_idx[i])
-            gap_inflation(P, imu_t[g + 1] - imu_t[g], prob.gap_sd[i, 0], prob.gap_sd[i, 1])
+            g = int(gap_idx[gap_i])
+            gap_inflation(P, imu_t[g + 1] - imu_t[g], prob.gap_sd[gap_i, 0], prob.gap_sd[gap_i, 1])
         elif code == K.LOOP_PROGRESS:
             progress(st.k)
         elif code == K.LOOP_DIVERGED:
