@@ -178,7 +178,8 @@ def speed(args) -> None:
             print(f"filter pass cov_every={cov_every}, {engine:8s}: {dc:.3f} s CPU ({dw:.3f} s wall) -> "
                   f"{n_imu / dc:,.0f} IMU samples per CPU second, {duration / dw:,.0f}x real time")
         a, b = rows[cov_every, "compiled"][1], rows[cov_every, "python"][1]
-        same = all(np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True) for f in ("states", "cov_diag", "rec", "x", "P"))
+        same = all(np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True)
+                   for f in ("states", "cov_diag", "rec", "x", "P"))
         print(f"  compiled / Python loop: {rows[cov_every, 'python'][0] / rows[cov_every, 'compiled'][0]:.2f}x "
               f"faster; outputs bit-identical: {same}")
     full = n_imu / rows[1, "compiled"][0]
@@ -201,7 +202,8 @@ def speed(args) -> None:
           f"{fc:.3f} s CPU ({n_imu / fc:,.0f} IMU samples per filter CPU second, as run.json), initialiser "
           f"{r.extra['init_cpu_seconds']:.3f} s, total {r.extra['total_cpu_seconds']:.3f} s CPU; "
           f"position RMSE after 10 s {100 * m['position_rmse_after']:.1f} cm, lever-arm error "
-          f"{np.round(100 * np.array(m['lever_arm_error']), 2).tolist()} cm, t_d error {1000 * m['time_offset_error']:.2f} ms")
+          f"{np.round(100 * np.array(m['lever_arm_error']), 2).tolist()} cm, t_d error "
+          f"{1000 * m['time_offset_error']:.2f} ms")
     x1 = rows[1, "compiled"][1].x
     x5 = rows[5, "compiled"][1].x
     sd1 = np.sqrt(np.diag(rows[1, "compiled"][1].P))

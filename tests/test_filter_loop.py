@@ -251,7 +251,8 @@ def test_cross_module_numba_calls_are_covered_by_the_cache_refresh():
     another module keeps stale machine code unless the module's ``refresh_stale_cache`` lists it."""
     src = inspect.getsource(K)
     tree = ast.parse(src)
-    calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", "") == "refresh_stale_cache"]
+    calls = [n for n in ast.walk(tree)
+             if isinstance(n, ast.Call) and getattr(n.func, "id", "") == "refresh_stale_cache"]
     assert len(calls) == 1 and tree.body[-1].value is calls[0]  # the module's last statement
     listed = {getattr(K, e.id) for e in calls[0].args[1].elts}
     from numba.core.registry import CPUDispatcher
