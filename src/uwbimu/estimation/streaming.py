@@ -406,7 +406,6 @@ class Eskf:
         self._rec.extend(rec)
         if model.clock == "uwb":
             self._watermark = max(self._watermark, float(t))
-        self._sync()
         self._step()
 
     def finish(self, progress=None) -> None:
@@ -530,7 +529,6 @@ class Eskf:
         rec[:, REC_ACC] = 0.0
         self._rec.extend(rec)
         self._watermark = max(self._watermark, float(t.max()))
-        self._sync()
         self._step()
 
     def _imu_appended(self) -> None:
@@ -547,7 +545,6 @@ class Eskf:
                 self._set_timing()
         else:
             self._extend_timing()
-        self._sync()
 
     def _set_timing(self) -> None:
         set_imu_timing(self._prob, self.options, nominal_period(self._t.view()))
@@ -611,7 +608,7 @@ class Eskf:
                 p.rot_ms = self._rot_ms.view()
 
     def _step(self) -> None:
-        self._sync()
+        self._sync()  # (callers that changed the buffers rely on this)
         for _ in range(2 * self.options.supervisor.max_reinit + 4):
             if self._mode == "init":
                 if not self._try_init():
