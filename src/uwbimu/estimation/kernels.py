@@ -77,70 +77,12 @@ def propagate_until(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_
     before returning so that ``P`` belongs to ``imu_t[k]``.  ``ws`` is unused
     (kept for signature stability).  Returns the new sample index.
     """
-    n = imu_t.shape[0]
     nx = x.shape[0]
-    xn = np.empty(nx)
-    xb = x.copy()
-    usum = np.zeros(6)
-    ub = np.empty(6)
-    ua = np.empty(6)
-    ue = np.empty(6)
-    wk = np.empty((6, max(10, nx)))
-    B = np.empty((7, 3, 3))
-    W = np.empty((6, 3, 3))
-    col = np.empty(P.shape[0])
-    dts = 0.0
-    cnt = 0
-    while k + 1 < n and imu_t[k] < t_target:
-        dt = imu_t[k + 1] - imu_t[k]
-        if dt_max > 0 and dt > dt_max:
-            # IMU gap: sub-steps for the covariance as well
-            if cnt > 0:
-                for i in range(6):
-                    ub[i] = usum[i] / cnt
-                _cov_step(P, xb, ub, dts, noise, B, W, col)
-                cnt = 0
-                dts = 0.0
-                for i in range(6):
-                    usum[i] = 0.0
-            m = int(math.ceil(dt / dt_max))
-            h = dt / m
-            for s in range(m):
-                for i in range(6):
-                    ua[i] = imu_u[k, i] + (s / m) * (imu_u[k + 1, i] - imu_u[k, i])
-                    ue[i] = imu_u[k, i] + ((s + 1) / m) * (imu_u[k + 1, i] - imu_u[k, i])
-                    ub[i] = 0.5 * (ua[i] + ue[i])
-                _cov_step(P, x, ub, h, noise, B, W, col)
-                _rk4(x, ua, ue, h, x, wk)
-                decay_biases(x, h, noise)
-            k += 1
-            continue
-        if cnt == 0:
-            for i in range(nx):
-                xb[i] = x[i]
-        for i in range(6):
-            # Simpson mean of the input over the interval (for the linearisation)
-            usum[i] += (imu_u[k, i] + 4.0 * imu_um[k, i] + imu_u[k + 1, i]) / 6.0
-        dts += dt
-        cnt += 1
-        _rk4_core(x, imu_u[k], imu_um[k], imu_u[k + 1], dt, xn, wk)
-        for i in range(nx):
-            x[i] = xn[i]
-        decay_biases(x, dt, noise)
-        k += 1
-        if cnt >= cov_every:
-            for i in range(6):
-                ub[i] = usum[i] / cnt
-            _cov_step(P, xb, ub, dts, noise, B, W, col)
-            cnt = 0
-            dts = 0.0
-            for i in range(6):
-                usum[i] = 0.0
-    if cnt > 0:
-        for i in range(6):
-            ub[i] = usum[i] / cnt
-        _cov_step(P, xb, ub, dts, noise, B, W, col)
-    return k
+    N = P.shape[0]
+    return _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_every,
+                         np.empty(nx), np.empty(nx), np.zeros(6), np.empty(6), np.empty(6), np.empty(6),
+                         np.empty((6, max(10, nx))), np.empty((7, 3, 3)), np.empty((6, 3, 3)), np.empty((15, N)),
+                         np.empty((15, N)), np.empty((15, N)))
 
 
 @njit(cache=True)
@@ -152,8 +94,9 @@ def _row6(A, k):
 @njit(cache=True)
 def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_every,
                   xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U):
-    """:func:`propagate_until` for :func:`filter_loop`: work arrays passed in (no allocation) and the
-    SIMD covariance step ``_cov_step_rows``; the same operations in the same order, bit-identical."""
+    """:func:`propagate_until` with its work arrays passed in (no allocation: :func:`filter_loop` calls it for
+    every output and measurement); the covariance step is the SIMD form ``_cov_step_rows`` (bit-identical
+    to ``cov_step``)."""
     n = imu_t.shape[0]
     nx = x.shape[0]
     for i in range(6):
@@ -564,6 +507,23 @@ def _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_
 
 
 @njit(cache=True)
+def _output_row(x, P, imu_t, imu_u, imu_um, k, noise, dt_max, cov_every, gap_idx, n_out, next_out, out_period,
+                out_t, out_x, out_d, out_P, store_cov, ist, xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U):
+    """Propagate to the output time ``next_out`` and record the state there.  Returns
+    ``(code, k, n_out, next_out)``: ``LOOP_DONE`` when recorded, ``LOOP_OUT_FULL`` (nothing done) or
+    ``LOOP_GAP`` (stopped at the end of gap ``ist[IS_GAP]``, not recorded yet)."""
+    if n_out >= out_t.shape[0]:
+        return LOOP_OUT_FULL, k, n_out, next_out
+    k, g = _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, next_out, noise, dt_max, cov_every, gap_idx,
+                           xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U)
+    if g >= 0:
+        ist[IS_GAP] = g
+        return LOOP_GAP, k, n_out, next_out
+    _record_output(n_out, k, imu_t, x, P, out_t, out_x, out_d, out_P, store_cov)
+    return LOOP_DONE, k, n_out + 1, next_out + out_period
+
+
+@njit(cache=True)
 def _record_output(n_out, k, imu_t, x, P, out_t, out_x, out_d, out_P, store_cov):
     out_t[n_out] = imu_t[k]
     for i in range(x.shape[0]):
@@ -673,18 +633,12 @@ def filter_loop(x, P, imu_t, imu_u, imu_um, uwb_t, uwb_a, uwb_b, uwb_r, uwb_tag,
                 continue
             if record:
                 while next_out <= tau:
-                    if n_out >= out_t.shape[0]:
-                        code = LOOP_OUT_FULL
+                    code, k, n_out, next_out = _output_row(
+                        x, P, imu_t, imu_u, imu_um, k, noise, dt_max, cov_every, gap_idx, n_out, next_out,
+                        out_period, out_t, out_x, out_d, out_P, store_cov, ist, xn, xb, usum, ub, ua, ue, wk, B, W,
+                        A, T, U)
+                    if code != LOOP_DONE:
                         break
-                    k, g = _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, next_out, noise, dt_max, cov_every,
-                                           gap_idx, xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U)
-                    if g >= 0:
-                        ist[IS_GAP] = g
-                        code = LOOP_GAP
-                        break
-                    _record_output(n_out, k, imu_t, x, P, out_t, out_x, out_d, out_P, store_cov)
-                    n_out += 1
-                    next_out += out_period
                     if supervise:
                         dc = divergence_code(x, P, max_pos_var, hull_lo, hull_hi, all_rej, all_reject_run)
                         if dc != 0:
@@ -766,18 +720,12 @@ def filter_loop(x, P, imu_t, imu_u, imu_um, uwb_t, uwb_a, uwb_b, uwb_r, uwb_tag,
         elif phase == PHASE_TAIL:
             if record:
                 while next_out <= t_out_end:
-                    if n_out >= out_t.shape[0]:
-                        code = LOOP_OUT_FULL
+                    code, k, n_out, next_out = _output_row(
+                        x, P, imu_t, imu_u, imu_um, k, noise, dt_max, cov_every, gap_idx, n_out, next_out,
+                        out_period, out_t, out_x, out_d, out_P, store_cov, ist, xn, xb, usum, ub, ua, ue, wk, B, W,
+                        A, T, U)
+                    if code != LOOP_DONE:
                         break
-                    k, g = _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, next_out, noise, dt_max, cov_every,
-                                           gap_idx, xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U)
-                    if g >= 0:
-                        ist[IS_GAP] = g
-                        code = LOOP_GAP
-                        break
-                    _record_output(n_out, k, imu_t, x, P, out_t, out_x, out_d, out_P, store_cov)
-                    n_out += 1
-                    next_out += out_period
                     if k >= n - 1:
                         break
                 if code != LOOP_DONE:

@@ -24,6 +24,13 @@ Public API (all ``@njit``; arrays are float64, outputs written in place)
 ``tdoa_jacobian(xt, u, anchor_a, anchor_b, bias_idx, delta, h, work)``  predicted
                                    ``|p_U-p_b| - |p_U-p_a|``, ``h`` (N,), ``work`` (N,)
 
+Hot-loop forms (no array views, no work arrays: each view or allocation costs numba a reference count
+or a ``malloc``): ``_quat_R`` (rotation as a 9-tuple), ``_deriv_s`` / ``_rk4_s`` (dynamics and RK4 step on
+scalars and tuples), ``_phi_blocks_s`` (transition blocks from scalars) and ``_cov_step_rows`` (the
+covariance step with ``Phi`` applied 15 rows at a time, columns in SIMD lanes).  They perform the same
+floating-point operations in the same order as the plain forms, so the results are bit-identical
+(``tests/test_filter_loop.py``).
+
 Layout: nominal ``x`` = ``p v q b_a b_g p_IU t_d`` (20) followed by extra
 states; error ``dp dv dtheta db_a db_g dp_IU dt_d`` (19) then extras
 (see :mod:`uwbimu.models.state`).  Attitude error is a right perturbation
