@@ -4,7 +4,9 @@
 numeric settings; :func:`run_pass` runs the filter from a given initial
 state, range index and IMU sample until the data (or a window) ends or the
 supervisor declares divergence.  The initialiser's hypothesis bank and the
-main run both use it.
+main run both use it.  The per-sample work runs in one compiled loop
+(:func:`kernels.filter_loop`, driven by :func:`advance`); :func:`advance_python`
+is the same pass as a Python loop over the kernels (bit-identical results).
 
 Time-offset handling
 --------------------
