@@ -115,6 +115,19 @@ def test_compiled_pass_equals_python_loop_through_reopened_gates_and_divergence(
     _assert_same_result(a, c)
 
 
+def test_compiled_pass_equals_python_loop_when_the_supervisor_stops_a_drift(monkeypatch):
+    """A UWB outage: the position sd grows between outputs until the supervisor's check at an output
+    declares divergence; the filter re-initialises from the ranges after the outage."""
+    ds = _sim("calibration-flight", 45.0)
+    t = ds.uwb["t"].to_numpy()
+    ds.uwb = ds.uwb[(t < 22.0) | (t > 34.0)].reset_index(drop=True)  # position sd about 2 m at its end
+    opts = EskfOptions(store_covariance=False, supervisor={"max_position_sd": 1.0})
+    a, b = _run_both(monkeypatch, lambda: run_eskf(ds, opts))
+    _assert_same_result(a, b)
+    div = [e for e in a.events if e["kind"] == "divergence" and 22.0 < e["t"] < 34.0]
+    assert div and "position sd" in div[0]["reason"]
+
+
 def test_compiled_pass_equals_python_loop_on_late_and_stale_measurements(monkeypatch):
     """Measurements that arrive after the IMU moved on: within max_lookback_s they are processed at their
     own time, beyond it they are marked stale."""
