@@ -4,7 +4,9 @@
 numeric settings; :func:`run_pass` runs the filter from a given initial
 state, range index and IMU sample until the data (or a window) ends or the
 supervisor declares divergence.  The initialiser's hypothesis bank and the
-main run both use it.
+main run both use it.  The per-sample work runs in one compiled loop
+(:func:`kernels.filter_loop`, driven by :func:`advance`); :func:`advance_python`
+is the same pass as a Python loop over the kernels (bit-identical results).
 
 Time-offset handling
 --------------------
@@ -32,15 +34,16 @@ from typing import Any, Callable, Optional
 import numpy as np
 
 from uwbimu.estimation import kernels as K
+from uwbimu.estimation.kernels import (  # noqa: F401  (re-exported)
+    REC_ACC, REC_INNOV, REC_NIS, REC_PRED, REC_S, REC_STATUS, REC_W, STATUS_IN_GAP, STATUS_STALE,
+)
 from uwbimu.models.measurements import vector_update
 from uwbimu.models.state import StateLayout
 from uwbimu.models import state as S
 
-# columns of the per-range output record
-REC_PRED, REC_INNOV, REC_NIS, REC_ACC, REC_W, REC_STATUS, REC_S = range(7)
+# columns of the per-range output record (REC_*) and the statuses beyond the kernels' UPD_* codes
+# (STATUS_STALE, STATUS_IN_GAP) are defined in kernels, with the compiled loop that writes them
 STATUS_NOT_PROCESSED = -1
-STATUS_STALE = 2  # tau older than max_lookback behind the filter
-STATUS_IN_GAP = 3  # tau inside an IMU gap: the motion there is unknown, the range is not used
 
 
 @dataclass
@@ -236,7 +239,11 @@ class PassState:
     """Where a filter pass stands: state, covariance, IMU sample ``k``, next range ``j`` and the
     bookkeeping of the gate and the supervisor.  :func:`advance` moves it on as far as the data in the
     :class:`Problem` allows, so a pass can be resumed when more data arrive (the streaming filter) or
-    run to the end in one call (:func:`run_pass`)."""
+    run to the end in one call (:func:`run_pass`).
+
+    The recorded outputs are the first ``n_out`` rows of ``out_t`` (IMU time), ``out_x`` (states),
+    ``out_d`` (covariance diagonals) and ``out_P`` (covariances; None when not stored), arrays that
+    grow as needed (:meth:`reserve_outputs`)."""
 
     x: np.ndarray
     P: np.ndarray
@@ -248,25 +255,66 @@ class PassState:
     all_rej: int = 0
     n_frozen: int = 0
     diverged: Optional[str] = None
-    out_t: list = field(default_factory=list)
-    out_x: list = field(default_factory=list)
-    out_d: list = field(default_factory=list)
-    out_P: list = field(default_factory=list)
+    n_out: int = 0
+    out_t: Optional[np.ndarray] = None
+    out_x: Optional[np.ndarray] = None
+    out_d: Optional[np.ndarray] = None
+    out_P: Optional[np.ndarray] = None
     events: list = field(default_factory=list)
+    loop_args: Any = None  # advance's cached arguments of the compiled loop (_LoopArgs)
 
     @classmethod
     def start(cls, prob: "Problem", x0: np.ndarray, P0: np.ndarray, k0: int, j0: int) -> "PassState":
         return cls(x=np.array(x0, dtype=float), P=np.array(P0, dtype=float), k=int(k0), j=int(j0), j0=int(j0),
                    next_out=float(prob.imu_t[int(k0)]), consec=np.zeros(len(prob.anchor_ids) + 1, dtype=np.int64))
 
-    def result(self, rec: np.ndarray, N: int) -> "PassResult":
-        """The pass so far as a :class:`PassResult` (``rec`` indexed by absolute range index)."""
+    def reserve_outputs(self, n_more: int, store_cov: bool) -> None:
+        """Room for ``n_more`` further output rows (capacity at least doubled when it grows)."""
+        cap = 0 if self.out_t is None else self.out_t.shape[0]
+        need = self.n_out + int(n_more)
+        if need <= cap:
+            return
+        cap = max(need, 2 * cap, 16)
+        nx, N, n = self.x.shape[0], self.P.shape[0], self.n_out
+        out_t, out_x, out_d = np.empty(cap), np.empty((cap, nx)), np.empty((cap, N))
+        out_P = np.empty((cap, N, N)) if store_cov else None
+        if n:
+            out_t[:n], out_x[:n], out_d[:n] = self.out_t[:n], self.out_x[:n], self.out_d[:n]
+            if out_P is not None and self.out_P is not None:
+                out_P[:n] = self.out_P[:n]
+        self.out_t, self.out_x, self.out_d, self.out_P = out_t, out_x, out_d, out_P
+
+    def push_output(self, t: float, store_cov: bool) -> None:
+        """Record the current state as an output row at IMU time ``t``."""
+        self.reserve_outputs(1, store_cov)
+        n = self.n_out
+        self.out_t[n] = t
+        self.out_x[n] = self.x
+        self.out_d[n] = np.diag(self.P)
+        if self.out_P is not None:
+            self.out_P[n] = self.P
+        self.n_out = n + 1
+
+    def result(self, rec: np.ndarray, N: int, copy: bool = True) -> "PassResult":
+        """The pass so far as a :class:`PassResult` (``rec`` indexed by absolute range index).
+
+        ``copy=False`` returns views of the output arrays (for a pass that is over: nothing writes them
+        any more)."""
         nb = self.x.shape[0]
+        n = self.n_out
+        if n:
+            t_imu, states, cov_diag = self.out_t[:n], self.out_x[:n], self.out_d[:n]
+            covs = self.out_P[:n] if self.out_P is not None else None
+            if copy:
+                t_imu, states, cov_diag = t_imu.copy(), states.copy(), cov_diag.copy()
+                covs = covs.copy() if covs is not None else None
+        else:
+            t_imu, states, cov_diag, covs = np.zeros(0), np.zeros((0, nb)), np.zeros((0, N)), None
         return PassResult(
-            t_imu=np.array(self.out_t),
-            states=np.array(self.out_x).reshape(-1, nb),
-            cov_diag=np.array(self.out_d).reshape(-1, N),
-            covs=np.array(self.out_P).reshape(-1, N, N) if self.out_P else None,
+            t_imu=t_imu,
+            states=states,
+            cov_diag=cov_diag,
+            covs=covs,
             rec=rec[self.j0:self.j],
             j0=self.j0,
             j_end=self.j,
@@ -289,23 +337,98 @@ def run_pass(
     record: bool = True,
     to_end: bool = True,
     progress: Optional[Callable[[int], None]] = None,
+    engine: str = "compiled",
 ) -> PassResult:
     """Run the filter from IMU sample ``k0`` (state ``x0``, ``P0``) and range ``j0`` to the end of the data.
 
     Ranges with stamps beyond ``t_uwb_end`` are left alone.  ``record``
     stores the state and covariance every ``out_period`` seconds; ``to_end``
     propagates (and records) to the end of the IMU stream after the last range.
+    ``engine``: ``"compiled"`` (:func:`advance`) or ``"python"`` (:func:`advance_python`, the pass as a
+    Python loop over the kernels; same results bit for bit, kept as the benchmark's baseline).
     """
     st = PassState.start(prob, x0, P0, k0, j0)
     m = prob.uwb_t.shape[0]
     rec = np.full((m, 7), np.nan)
     rec[j0:, REC_STATUS] = STATUS_NOT_PROCESSED
     rec[j0:, REC_ACC] = 0.0
-    advance(prob, st, rec, final=True, t_uwb_end=t_uwb_end, record=record, to_end=to_end, progress=progress)
-    res = st.result(rec, P0.shape[0])
+    advance(prob, st, rec, final=True, t_uwb_end=t_uwb_end, record=record, to_end=to_end, progress=progress,
+            engine=engine)
+    res = st.result(rec, P0.shape[0], copy=False)
     if not prob.store_cov:
         res.covs = None
     return res
+
+
+def _frozen_mask(prob: Problem) -> np.ndarray:
+    """The gain mask of an update whose lever arms are frozen by the rotation gate (consider mode)."""
+    mask = prob.gain_mask.copy()
+    mask[S.EPIU] = 0.0
+    if prob.layout is not None:
+        mask[prob.layout.err("extra_levers")] = 0.0
+    return mask
+
+
+_NO_INT = np.full(1, -1, dtype=np.int64)  # placeholder of an unused integer array argument
+_NO_GAPS = np.zeros(0, dtype=np.int64)
+_NO_ROT_MEAN = np.zeros((1, 3))
+_NO_ROT_MS = np.zeros(1)
+_EVENT_SLOTS = 64
+
+
+class _LoopArgs:
+    """The arguments of :func:`kernels.filter_loop` that only depend on the settings of the
+    :class:`Problem` (kept on the :class:`PassState` between :func:`advance` calls: the streaming filter
+    calls it for every pushed sample), and its state and event arrays."""
+
+    def __init__(self, prob: Problem, key: tuple):
+        self.key = key
+        self.gain_mask = prob.gain_mask
+        self.mask_frozen = _frozen_mask(prob)
+        M = max(len(prob.anchor_ids), 1)
+        self.pair_mat = np.full((M, M), -1, dtype=np.int64)
+        for (a_, b_), i_ in prob.pair_index.items():
+            self.pair_mat[a_, b_] = i_
+        self.tag_lever_err = prob.tag_lever_err if prob.tag_lever_err is not None else _NO_INT
+        self.fpar = np.zeros(K.FP_SIZE)
+        self.fpar[[K.FP_DT_MAX, K.FP_GATE, K.FP_ROBUST_C, K.FP_MAX_LOOKBACK, K.FP_OUT_PERIOD, K.FP_R_VAR, K.FP_TDOA_VAR,
+                   K.FP_MAX_POS_VAR, K.FP_LEVER_MIN_RATE]] = key[-9:]
+        self.ipar = np.zeros(K.IP_SIZE, dtype=np.int64)
+        self.ipar[[K.IP_ROBUST, K.IP_REOPEN, K.IP_COV_EVERY, K.IP_ALL_REJECT_RUN, K.IP_SUPERVISE,
+                   K.IP_STORE_COV]] = [prob.robust_kind, prob.reopen_after, prob.cov_every,
+                                       min(prob.all_reject_run, 2**62), prob.supervise, prob.store_cov]
+        self.ist = np.zeros(K.IS_SIZE, dtype=np.int64)
+        self.fst = np.zeros(1)
+        self.ev = np.empty((_EVENT_SLOTS, 3), dtype=np.int64)
+        N = prob.gain_mask.shape[0]
+        self.no_cov = np.empty((0, N, N))  # out_P when covariances are not stored
+
+
+def _loop_args(prob: Problem, st: PassState) -> _LoopArgs:
+    """The :class:`_LoopArgs` of ``st`` for the current settings of ``prob`` (rebuilt when any changed)."""
+    key = (id(prob.gain_mask), id(prob.layout), id(prob.pair_index), len(prob.pair_index), id(prob.tag_lever_err),
+           len(prob.anchor_ids), _EVENT_SLOTS, prob.robust_kind, prob.reopen_after, prob.cov_every,
+           prob.all_reject_run, prob.supervise, prob.store_cov,
+           prob.dt_max, prob.gate, prob.robust_c, prob.max_lookback, prob.out_period, prob.r_var, prob.tdoa_var,
+           prob.max_pos_var, prob.lever_min_rate)
+    a = st.loop_args
+    if a is None or a.key != key or a.gain_mask is not prob.gain_mask:
+        a = st.loop_args = _LoopArgs(prob, key)
+    return a
+
+
+def _nothing_to_do(prob: Problem, st: PassState, x: np.ndarray, t_last: float, t_uwb_end: float) -> bool:
+    """No measurement can be processed now (the next one is not reached by the IMU yet, or none is left);
+    the caller has checked that no output is due either."""
+    j = st.j
+    if j >= prob.uwb_t.shape[0]:
+        return True
+    tj = prob.uwb_t[j]
+    if tj > t_uwb_end:
+        return True
+    if prob.uwb_b is not None and prob.uwb_b[j] <= -2:
+        return False  # a Python model (its own clock): let the loop decide
+    return tj + x[S.TD] > t_last
 
 
 def advance(
@@ -318,6 +441,7 @@ def advance(
     to_end: bool = True,
     t_safe: float = -np.inf,
     progress: Optional[Callable[[int], None]] = None,
+    engine: str = "compiled",
 ) -> None:
     """Move the pass ``st`` on (in place) through the ranges and IMU samples of ``prob``.
 
@@ -328,6 +452,102 @@ def advance(
     (IMU clock), the time before which no further range can arrive; the sequence of propagations and
     updates is the same as in one final call over the same data, so chunked and batch runs agree.
     ``rec`` (m, 7) receives the per-range records at the ranges' absolute indices.
+
+    The per-sample work runs in one compiled loop (:func:`kernels.filter_loop`); it comes back here only
+    for what needs Python: a measurement of a Python model (processed by :func:`advance_python`, one
+    row), the covariance inflation at the end of an IMU gap, the supervisor's message, progress reports
+    (``progress`` is called about once per second of data, and at the end), growing the output arrays.
+    ``engine="python"`` runs :func:`advance_python` instead (bit-identical results).
+    """
+    if engine == "python":
+        advance_python(prob, st, rec, final, t_uwb_end, record, to_end, t_safe, progress)
+        return
+    if engine != "compiled":
+        raise ValueError(f"advance: engine must be 'compiled' or 'python', got {engine!r}")
+    imu_t = prob.imu_t
+    x, P = st.x, st.P
+    t_last = min(imu_t[-1], prob.t_limit)
+    t_out_end = t_last + 1e-12 if (final and to_end) else min(t_last, t_safe)
+    if not (record and st.next_out <= t_out_end) and _nothing_to_do(prob, st, x, t_last, t_uwb_end):
+        # (the streaming filter's usual call: a sample arrived and no measurement is due yet)
+        if progress is not None:
+            progress(st.k)
+        return
+    gate_lever = prob.lever_min_rate > 0 and prob.rot_ms is not None and prob.gain_mask[S.EPIU.start] > 0
+    multi = prob.uwb_tag is not None and prob.tag_lever_err is not None and len(prob.tag_lever_err) > 1
+    store_cov = bool(prob.store_cov)
+    if record and t_out_end >= st.next_out:
+        st.reserve_outputs(int((t_out_end - st.next_out) / prob.out_period) + 2, store_cov)
+    elif st.out_t is None:
+        st.reserve_outputs(1, store_cov)
+    a = _loop_args(prob, st)
+    fpar, ipar, ist, fst, ev = a.fpar, a.ipar, a.ist, a.fst, a.ev
+    fpar[K.FP_T_LAST], fpar[K.FP_T_UWB_END], fpar[K.FP_T_OUT_END] = t_last, t_uwb_end, t_out_end
+    ipar[K.IP_GATE_LEVER], ipar[K.IP_MULTI], ipar[K.IP_RECORD] = gate_lever, multi, record
+    ipar[K.IP_PROGRESS_EVERY] = max(1, int(round(1.0 / prob.out_period))) if progress is not None else 0
+    ipar[K.IP_HAS_B] = prob.uwb_b is not None
+    uwb_b = prob.uwb_b if prob.uwb_b is not None else _NO_INT
+    uwb_tag = prob.uwb_tag if multi else _NO_INT
+    rot_mean, rot_ms = (prob.rot_mean, prob.rot_ms) if gate_lever else (_NO_ROT_MEAN, _NO_ROT_MS)
+    gap_idx = prob.gap_idx if prob.gap_idx is not None and len(prob.gap_idx) else _NO_GAPS
+    mask_frozen, pair_mat, tag_lever_err = a.mask_frozen, a.pair_mat, a.tag_lever_err
+    phase = K.PHASE_ROWS
+    while True:
+        ist[:K.IS_GAP] = (st.k, st.j, st.all_rej, st.n_frozen, st.n_out, phase)
+        ist[K.IS_N_EV] = 0
+        fst[0] = st.next_out
+        out_P = st.out_P if st.out_P is not None else a.no_cov
+        code = K.filter_loop(x, P, imu_t, prob.imu_u, prob.imu_um, prob.uwb_t, prob.uwb_a, uwb_b, prob.uwb_r,
+                             uwb_tag, prob.anchors, prob.bias_idx, a.gain_mask, mask_frozen, tag_lever_err,
+                             pair_mat, prob.noise, prob.hull_lo, prob.hull_hi, rot_mean, rot_ms, gap_idx,
+                             st.consec, rec, st.out_t, st.out_x, st.out_d, out_P, ev, fpar, ipar, ist, fst)
+        st.k, st.j, st.all_rej, st.n_frozen, st.n_out, phase, gap_i, _, n_ev = ist.tolist()
+        st.next_out = float(fst[0])
+        for jj, aa, cc in (ev[:n_ev].tolist() if n_ev else ()):
+            st.events.append({"t": float(prob.uwb_t[jj]), "kind": "gate_reopened", "anchor": prob.anchor_ids[aa],
+                              "after_rejections": int(cc)})
+        if code == K.LOOP_DONE:
+            break
+        if code == K.LOOP_OUT_FULL:
+            st.reserve_outputs(max(16, st.out_t.shape[0]), store_cov)
+        elif code == K.LOOP_GAP:
+            g = int(gap_idx[gap_i])
+            gap_inflation(P, imu_t[g + 1] - imu_t[g], prob.gap_sd[gap_i, 0], prob.gap_sd[gap_i, 1])
+        elif code == K.LOOP_PROGRESS:
+            progress(st.k)
+        elif code == K.LOOP_DIVERGED:
+            st.diverged = _diverged(prob, x, P, st.all_rej)
+            break
+        elif code == K.LOOP_MODEL:
+            j = st.j
+            advance_python(prob, st, rec, final, t_uwb_end, record, to_end, t_safe, progress, j_stop=j + 1)
+            if st.diverged is not None:
+                break
+            if st.j == j:  # not reached yet: the measurements end here for now
+                phase = K.PHASE_TAIL
+        # LOOP_EVENTS_FULL: the events were drained above
+    if progress is not None:
+        progress(st.k)
+
+
+def advance_python(
+    prob: Problem,
+    st: PassState,
+    rec: np.ndarray,
+    final: bool,
+    t_uwb_end: float = np.inf,
+    record: bool = True,
+    to_end: bool = True,
+    t_safe: float = -np.inf,
+    progress: Optional[Callable[[int], None]] = None,
+    j_stop: Optional[int] = None,
+) -> None:
+    """:func:`advance` as a Python loop over the kernels (the filter pass before the compiled loop; kept
+    as the reference of ``tests/test_filter_loop.py`` and the baseline of ``benchmarks/bench_eskf.py``,
+    and used by :func:`advance` for the measurements of Python models).
+
+    ``j_stop``: process the measurements before index ``j_stop`` only, then return (no outputs after the
+    last one, no final progress call).
     """
     imu_t = prob.imu_t
     n_imu = imu_t.shape[0]
@@ -336,10 +556,7 @@ def advance(
     m = prob.uwb_t.shape[0]
     o = np.empty(7)
     gate_lever = prob.lever_min_rate > 0 and prob.rot_ms is not None and prob.gain_mask[S.EPIU.start] > 0
-    mask_frozen = prob.gain_mask.copy()
-    mask_frozen[S.EPIU] = 0.0
-    if prob.layout is not None:
-        mask_frozen[prob.layout.err("extra_levers")] = 0.0
+    mask_frozen = _frozen_mask(prob)
     multi = prob.uwb_tag is not None and prob.tag_lever_err is not None and len(prob.tag_lever_err) > 1
     consec = st.consec
     # locals for the per-range loop (attribute lookups cost as much as the kernels' calls here)
@@ -347,17 +564,15 @@ def advance(
     imu_u, imu_um, anchors, bias_idx = prob.imu_u, prob.imu_um, prob.anchors, prob.bias_idx
     i_td, i_bg = S.TD, S.EBG.start
     pair_index = prob.pair_index
+    store_cov = bool(prob.store_cov)
 
     def _record():
-        st.out_t.append(imu_t[st.k])
-        st.out_x.append(x.copy())
-        st.out_d.append(np.diag(P).copy())
-        if prob.store_cov:
-            st.out_P.append(P.copy())
+        st.push_output(imu_t[st.k], store_cov)
 
     t_last = min(imu_t[-1], prob.t_limit)
     j = st.j
-    while j < m and st.diverged is None:
+    m_stop = m if j_stop is None else min(m, j_stop)
+    while j < m_stop and st.diverged is None:
         tj = uwb_t[j]
         if tj > t_uwb_end:
             break
@@ -434,6 +649,8 @@ def advance(
         if prob.supervise and st.all_rej >= prob.all_reject_run:
             st.diverged = _diverged(prob, x, P, st.all_rej)
     st.j = j
+    if j_stop is not None:
+        return
     if st.diverged is None and record:
         t_out_end = t_last + 1e-12 if (final and to_end) else min(t_last, t_safe)
         while st.next_out <= t_out_end:

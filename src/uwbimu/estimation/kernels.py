@@ -20,8 +20,8 @@ from numba import njit
 
 from uwbimu.models import kernels as _physics
 from uwbimu.models.kernels import (  # noqa: F401  (re-exported)
-    GRAVITY, rotmat, _deriv, _rk4_core, _rk4, rk4_step_mid, rk4_step, propagate_interval, _mm3,
-    _skew3, _phi_blocks, phi_blocks, _phi_vec, _cov_step, cov_step, decay_biases, range_jacobian,
+    GRAVITY, rotmat, _deriv, _rk4_core, _rk4_s, _rk4, rk4_step_mid, rk4_step, propagate_interval, _mm3,
+    _skew3, _phi_blocks, phi_blocks, _phi_vec, _cov_step, _cov_step_rows, cov_step, decay_biases, range_jacobian,
     inject, quat_mul, quat_exp, error_transition, tdoa_jacobian, refresh_stale_cache,
 )
 
@@ -77,18 +77,30 @@ def propagate_until(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_
     before returning so that ``P`` belongs to ``imu_t[k]``.  ``ws`` is unused
     (kept for signature stability).  Returns the new sample index.
     """
+    nx = x.shape[0]
+    N = P.shape[0]
+    return _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_every,
+                         np.empty(nx), np.empty(nx), np.zeros(6), np.empty(6), np.empty(6), np.empty(6),
+                         np.empty((6, max(10, nx))), np.empty((7, 3, 3)), np.empty((6, 3, 3)), np.empty((15, N)),
+                         np.empty((15, N)), np.empty((15, N)))
+
+
+@njit(cache=True)
+def _row6(A, k):
+    """Row ``k`` of an (n, 6) array as a tuple (no array view)."""
+    return A[k, 0], A[k, 1], A[k, 2], A[k, 3], A[k, 4], A[k, 5]
+
+
+@njit(cache=True)
+def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_every,
+                  xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U):
+    """:func:`propagate_until` with its work arrays passed in (no allocation: :func:`filter_loop` calls it for
+    every output and measurement); the covariance step is the SIMD form ``_cov_step_rows`` (bit-identical
+    to ``cov_step``)."""
     n = imu_t.shape[0]
     nx = x.shape[0]
-    xn = np.empty(nx)
-    xb = x.copy()
-    usum = np.zeros(6)
-    ub = np.empty(6)
-    ua = np.empty(6)
-    ue = np.empty(6)
-    wk = np.empty((6, max(10, nx)))
-    B = np.empty((7, 3, 3))
-    W = np.empty((6, 3, 3))
-    col = np.empty(P.shape[0])
+    for i in range(6):
+        usum[i] = 0.0
     dts = 0.0
     cnt = 0
     while k + 1 < n and imu_t[k] < t_target:
@@ -98,7 +110,7 @@ def propagate_until(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_
             if cnt > 0:
                 for i in range(6):
                     ub[i] = usum[i] / cnt
-                _cov_step(P, xb, ub, dts, noise, B, W, col)
+                _cov_step_rows(P, xb, ub, dts, noise, B, W, A, T, U)
                 cnt = 0
                 dts = 0.0
                 for i in range(6):
@@ -110,7 +122,7 @@ def propagate_until(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_
                     ua[i] = imu_u[k, i] + (s / m) * (imu_u[k + 1, i] - imu_u[k, i])
                     ue[i] = imu_u[k, i] + ((s + 1) / m) * (imu_u[k + 1, i] - imu_u[k, i])
                     ub[i] = 0.5 * (ua[i] + ue[i])
-                _cov_step(P, x, ub, h, noise, B, W, col)
+                _cov_step_rows(P, x, ub, h, noise, B, W, A, T, U)
                 _rk4(x, ua, ue, h, x, wk)
                 decay_biases(x, h, noise)
             k += 1
@@ -123,7 +135,7 @@ def propagate_until(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_
             usum[i] += (imu_u[k, i] + 4.0 * imu_um[k, i] + imu_u[k + 1, i]) / 6.0
         dts += dt
         cnt += 1
-        _rk4_core(x, imu_u[k], imu_um[k], imu_u[k + 1], dt, xn, wk)
+        _rk4_s(x, _row6(imu_u, k), _row6(imu_um, k), _row6(imu_u, k + 1), dt, xn)
         for i in range(nx):
             x[i] = xn[i]
         decay_biases(x, dt, noise)
@@ -131,7 +143,7 @@ def propagate_until(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_
         if cnt >= cov_every:
             for i in range(6):
                 ub[i] = usum[i] / cnt
-            _cov_step(P, xb, ub, dts, noise, B, W, col)
+            _cov_step_rows(P, xb, ub, dts, noise, B, W, A, T, U)
             cnt = 0
             dts = 0.0
             for i in range(6):
@@ -139,7 +151,7 @@ def propagate_until(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_
     if cnt > 0:
         for i in range(6):
             ub[i] = usum[i] / cnt
-        _cov_step(P, xb, ub, dts, noise, B, W, col)
+        _cov_step_rows(P, xb, ub, dts, noise, B, W, A, T, U)
     return k
 
 
@@ -435,6 +447,301 @@ def divergence_code(x, P, max_pos_var, hull_lo, hull_hi, all_rej, all_reject_run
     if all_rej >= all_reject_run:
         return 5
     return 0
+
+
+
+# ---------------------------------------------------------------------------------------------------
+# The compiled filter pass (filterpass.advance): per-sample work in one loop, Python only for events
+
+# columns of the per-measurement record (filterpass.REC_*) and the statuses the pass writes there
+REC_PRED, REC_INNOV, REC_NIS, REC_ACC, REC_W, REC_STATUS, REC_S = range(7)
+STATUS_STALE = 2  # tau older than max_lookback behind the filter
+STATUS_IN_GAP = 3  # tau inside an IMU gap: the motion there is unknown, the range is not used
+
+# why filter_loop returned
+LOOP_DONE = 0  # nothing left to do with the data at hand
+LOOP_MODEL = 1  # row ist[IS_J] is a Python-model measurement: Python processes that row, then calls again
+LOOP_GAP = 2  # the filter reached the end of IMU gap ist[IS_GAP]: Python inflates P, then calls again
+LOOP_DIVERGED = 3  # the supervisor's code is in ist[IS_DIV]
+LOOP_PROGRESS = 4  # ipar[IP_PROGRESS_EVERY] outputs recorded since the call: report progress, call again
+LOOP_OUT_FULL = 5  # the output arrays are full: grow them, call again
+LOOP_EVENTS_FULL = 6  # the event buffer is full: drain it, call again
+
+# ipar: integer settings
+(IP_ROBUST, IP_REOPEN, IP_COV_EVERY, IP_ALL_REJECT_RUN, IP_SUPERVISE, IP_GATE_LEVER, IP_MULTI, IP_RECORD,
+ IP_STORE_COV, IP_PROGRESS_EVERY, IP_HAS_B, IP_SIZE) = range(12)
+# fpar: float settings
+(FP_T_LAST, FP_T_UWB_END, FP_T_OUT_END, FP_DT_MAX, FP_GATE, FP_ROBUST_C, FP_MAX_LOOKBACK, FP_OUT_PERIOD,
+ FP_R_VAR, FP_TDOA_VAR, FP_MAX_POS_VAR, FP_LEVER_MIN_RATE, FP_SIZE) = range(13)
+# ist: integer state (in and out)
+IS_K, IS_J, IS_ALL_REJ, IS_N_FROZEN, IS_N_OUT, IS_PHASE, IS_GAP, IS_DIV, IS_N_EV, IS_SIZE = range(10)
+# phases of a pass: measurements in time order, then the outputs after the last one, then done
+PHASE_ROWS, PHASE_TAIL, PHASE_DONE = range(3)
+
+_I_TD = 19  # nominal index of t_d (models.state.TD)
+_I_BG = 12  # error index of the gyro bias (models.state.EBG.start); nominal b_g at _I_BG + 1
+
+
+@njit(cache=True)
+def _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_every, gap_idx,
+                    xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U):
+    """``filterpass._propagate`` up to the first IMU gap that needs an inflation of ``P``.
+
+    Returns ``(k, i)``: ``i >= 0`` when the filter stopped at the end of gap ``i`` (``gap_idx[i] + 1``)
+    and ``P`` must get ``filterpass.gap_inflation`` before propagating on; ``-1`` when it reached
+    ``t_target`` (or the end of the data)."""
+    n = imu_t.shape[0]
+    ng = gap_idx.shape[0]
+    if ng > 0:
+        i = np.searchsorted(gap_idx, k)
+        if not (i >= ng or gap_idx[i] + 1 >= n or imu_t[gap_idx[i]] >= t_target):
+            g = gap_idx[i]
+            k = _propagate_ws(x, P, imu_t, imu_u, imu_um, k, imu_t[g + 1], noise, dt_max, cov_every,
+                              xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U)
+            if k < g + 1:
+                return k, -1
+            return k, i
+    k = _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_every,
+                      xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U)
+    return k, -1
+
+
+@njit(cache=True)
+def _output_row(x, P, imu_t, imu_u, imu_um, k, noise, dt_max, cov_every, gap_idx, n_out, next_out, out_period,
+                out_t, out_x, out_d, out_P, store_cov, ist, xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U):
+    """Propagate to the output time ``next_out`` and record the state there.  Returns
+    ``(code, k, n_out, next_out)``: ``LOOP_DONE`` when recorded, ``LOOP_OUT_FULL`` (nothing done) or
+    ``LOOP_GAP`` (stopped at the end of gap ``ist[IS_GAP]``, not recorded yet)."""
+    if n_out >= out_t.shape[0]:
+        return LOOP_OUT_FULL, k, n_out, next_out
+    k, g = _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, next_out, noise, dt_max, cov_every, gap_idx,
+                           xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U)
+    if g >= 0:
+        ist[IS_GAP] = g
+        return LOOP_GAP, k, n_out, next_out
+    _record_output(n_out, k, imu_t, x, P, out_t, out_x, out_d, out_P, store_cov)
+    return LOOP_DONE, k, n_out + 1, next_out + out_period
+
+
+@njit(cache=True)
+def _record_output(n_out, k, imu_t, x, P, out_t, out_x, out_d, out_P, store_cov):
+    out_t[n_out] = imu_t[k]
+    for i in range(x.shape[0]):
+        out_x[n_out, i] = x[i]
+    N = P.shape[0]
+    for i in range(N):
+        out_d[n_out, i] = P[i, i]
+    if store_cov:
+        for i in range(N):
+            for c in range(N):
+                out_P[n_out, i, c] = P[i, c]
+
+
+@njit(cache=True)
+def filter_loop(x, P, imu_t, imu_u, imu_um, uwb_t, uwb_a, uwb_b, uwb_r, uwb_tag, anchors, bias_idx,
+                gain_mask, mask_frozen, tag_lever_err, pair_mat, noise, hull_lo, hull_hi, rot_mean, rot_ms,
+                gap_idx, consec, rec, out_t, out_x, out_d, out_P, ev, fpar, ipar, ist, fst):
+    """The filter pass of ``filterpass.advance`` as one compiled loop: IMU propagation (covariance every
+    ``cov_every`` samples), the range and TDoA updates in time order with the gate, the robust loss, the
+    rotation gate of the lever arm, the supervisor, and the outputs recorded into preallocated arrays.
+
+    The same kernels, called in the same order with the same arguments as the Python loop
+    (``filterpass.advance_python``), so the results are bit-identical (``tests/test_filter_loop.py``).
+    It returns to Python with a ``LOOP_*`` code for what only Python does: a measurement of a Python model
+    (``LOOP_MODEL``), the covariance inflation at the end of an IMU gap (``LOOP_GAP``), the supervisor's
+    verdict (``LOOP_DIVERGED``), progress reports, full output or event buffers; the state (``x``,
+    ``P``, ``consec``, ``ist``, ``fst``) is then consistent and a new call resumes where it stopped.
+
+    Arrays: the :class:`filterpass.Problem` ones (``uwb_b``/``uwb_tag``/``rot_*`` may be dummies when
+    ``ipar`` says they are not used), ``mask_frozen`` the gain mask of a frozen lever arm, ``pair_mat``
+    (M, M) the error index of each TDoA pair's bias (or -1), ``rec`` (m, 7) the per-measurement records,
+    ``out_*`` the output rows (``out_P`` only when ``ipar[IP_STORE_COV]``), ``ev`` (cap, 3) the
+    reopened-gate events ``(row, anchor, rejections before)``; ``fpar``/``ipar`` the settings
+    (``FP_*``/``IP_*``), ``ist`` (``IS_*``) and ``fst`` (``[next_out]``) the pass's state.
+    """
+    n = imu_t.shape[0]
+    m = uwb_t.shape[0]
+    nx = x.shape[0]
+    N = P.shape[0]
+    robust_kind = ipar[IP_ROBUST]
+    reopen_after = ipar[IP_REOPEN]
+    cov_every = ipar[IP_COV_EVERY]
+    all_reject_run = ipar[IP_ALL_REJECT_RUN]
+    supervise = ipar[IP_SUPERVISE] != 0
+    gate_lever = ipar[IP_GATE_LEVER] != 0
+    multi = ipar[IP_MULTI] != 0
+    record = ipar[IP_RECORD] != 0
+    store_cov = ipar[IP_STORE_COV] != 0
+    progress_every = ipar[IP_PROGRESS_EVERY]
+    has_b = ipar[IP_HAS_B] != 0
+    t_last = fpar[FP_T_LAST]
+    t_uwb_end = fpar[FP_T_UWB_END]
+    t_out_end = fpar[FP_T_OUT_END]
+    dt_max = fpar[FP_DT_MAX]
+    gate = fpar[FP_GATE]
+    robust_c = fpar[FP_ROBUST_C]
+    max_lookback = fpar[FP_MAX_LOOKBACK]
+    out_period = fpar[FP_OUT_PERIOD]
+    r_var = fpar[FP_R_VAR]
+    tdoa_var = fpar[FP_TDOA_VAR]
+    max_pos_var = fpar[FP_MAX_POS_VAR]
+    lever_min_rate = fpar[FP_LEVER_MIN_RATE]
+    # work arrays of the propagation
+    xn = np.empty(nx)
+    xb = np.empty(nx)
+    usum = np.zeros(6)
+    ub = np.empty(6)
+    ua = np.empty(6)
+    ue = np.empty(6)
+    wk = np.empty((6, max(10, nx)))
+    B = np.empty((7, 3, 3))
+    W = np.empty((6, 3, 3))
+    A = np.empty((15, N))
+    T = np.empty((15, N))
+    U = np.empty((15, N))
+
+    k = ist[IS_K]
+    j = ist[IS_J]
+    all_rej = ist[IS_ALL_REJ]
+    n_frozen = ist[IS_N_FROZEN]
+    n_out = ist[IS_N_OUT]
+    phase = ist[IS_PHASE]
+    n_ev = ist[IS_N_EV]
+    next_out = fst[0]
+    n_rec = 0
+    code = LOOP_DONE
+    while True:
+        if phase == PHASE_ROWS:
+            if j >= m:
+                phase = PHASE_TAIL
+                continue
+            if n_ev >= ev.shape[0]:
+                code = LOOP_EVENTS_FULL
+                break
+            tj = uwb_t[j]
+            if tj > t_uwb_end:
+                phase = PHASE_TAIL
+                continue
+            b = uwb_b[j] if has_b else -1
+            if b <= -2:
+                code = LOOP_MODEL
+                break
+            # a UWB-clock stamp sees the IMU-clock state t_d later
+            tau = tj + x[_I_TD]
+            if tau > t_last:
+                phase = PHASE_TAIL
+                continue
+            if record:
+                while next_out <= tau:
+                    code, k, n_out, next_out = _output_row(
+                        x, P, imu_t, imu_u, imu_um, k, noise, dt_max, cov_every, gap_idx, n_out, next_out,
+                        out_period, out_t, out_x, out_d, out_P, store_cov, ist, xn, xb, usum, ub, ua, ue, wk, B, W,
+                        A, T, U)
+                    if code != LOOP_DONE:
+                        break
+                    if supervise:
+                        dc = divergence_code(x, P, max_pos_var, hull_lo, hull_hi, all_rej, all_reject_run)
+                        if dc != 0:
+                            ist[IS_DIV] = dc
+                            code = LOOP_DIVERGED
+                            break
+                    if progress_every > 0:
+                        n_rec += 1
+                        if n_rec >= progress_every:
+                            code = LOOP_PROGRESS
+                            break
+                if code != LOOP_DONE:
+                    break
+            k, g = _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, tau, noise, dt_max, cov_every, gap_idx,
+                                   xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U)
+            if g >= 0:
+                ist[IS_GAP] = g
+                code = LOOP_GAP
+                break
+            if imu_t[k] - tau > max_lookback:
+                rec[j, REC_STATUS] = STATUS_STALE
+                j += 1
+                continue
+            if k > 0 and imu_t[k] - imu_t[k - 1] > dt_max and imu_t[k - 1] < tau < imu_t[k]:
+                rec[j, REC_STATUS] = STATUS_IN_GAP
+                j += 1
+                continue
+            a = uwb_a[j]
+            if a < 0:
+                a = consec.shape[0] - 1
+            force = consec[a] >= reopen_after
+            # no rotation, no lever-arm information: Schmidt (consider) update for the lever arm only
+            frozen = False
+            if gate_lever:
+                kk = min(k, rot_ms.shape[0] - 1)
+                m0 = rot_mean[kk, 0]
+                m1 = rot_mean[kk, 1]
+                m2 = rot_mean[kk, 2]
+                b0 = x[_I_BG + 1]
+                b1 = x[_I_BG + 2]
+                b2 = x[_I_BG + 3]
+                ms = rot_ms[kk] - 2.0 * (m0 * b0 + m1 * b1 + m2 * b2) + (b0 * b0 + b1 * b1 + b2 * b2)
+                rms = math.sqrt(ms) if ms > 0.0 else 0.0
+                pv = P[_I_BG, _I_BG] + P[_I_BG + 1, _I_BG + 1] + P[_I_BG + 2, _I_BG + 2]
+                if 0.0 > pv:  # Python's max(pv, 0.0), NaN kept
+                    pv = 0.0
+                frozen = rms - math.sqrt(pv) < lever_min_rate
+            mask = mask_frozen if frozen else gain_mask
+            lev = tag_lever_err[uwb_tag[j]] if multi else 15
+            o = rec[j]
+            if b < 0:
+                range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchors[a], bias_idx[a], uwb_r[j], r_var, gate,
+                             force, robust_kind, robust_c, mask, dt_max, o, lev)
+            else:
+                tdoa_update(x, P, imu_t, imu_u, imu_um, k, tau, anchors[a], anchors[b], bias_idx[a], bias_idx[b],
+                            uwb_r[j], tdoa_var, gate, force, robust_kind, robust_c, mask, dt_max, o, lev,
+                            pair_mat[a, b])
+            if o[REC_ACC] > 0:
+                if frozen:
+                    n_frozen += 1
+                if force:
+                    # a reopened gate does not prove the filter healthy: keep counting towards divergence
+                    ev[n_ev, 0] = j
+                    ev[n_ev, 1] = a
+                    ev[n_ev, 2] = consec[a]
+                    n_ev += 1
+                    all_rej += 1
+                else:
+                    all_rej = 0
+                consec[a] = 0
+            elif o[REC_STATUS] == UPD_OK:
+                consec[a] += 1
+                all_rej += 1
+            j += 1
+            if supervise and all_rej >= all_reject_run:
+                ist[IS_DIV] = divergence_code(x, P, max_pos_var, hull_lo, hull_hi, all_rej, all_reject_run)
+                code = LOOP_DIVERGED
+                break
+        elif phase == PHASE_TAIL:
+            if record:
+                while next_out <= t_out_end:
+                    code, k, n_out, next_out = _output_row(
+                        x, P, imu_t, imu_u, imu_um, k, noise, dt_max, cov_every, gap_idx, n_out, next_out,
+                        out_period, out_t, out_x, out_d, out_P, store_cov, ist, xn, xb, usum, ub, ua, ue, wk, B, W,
+                        A, T, U)
+                    if code != LOOP_DONE:
+                        break
+                    if k >= n - 1:
+                        break
+                if code != LOOP_DONE:
+                    break
+            phase = PHASE_DONE
+        else:
+            break
+    ist[IS_K] = k
+    ist[IS_J] = j
+    ist[IS_ALL_REJ] = all_rej
+    ist[IS_N_FROZEN] = n_frozen
+    ist[IS_N_OUT] = n_out
+    ist[IS_PHASE] = phase
+    ist[IS_N_EV] = n_ev
+    fst[0] = next_out
+    return code
 
 
 refresh_stale_cache(globals(), [_physics])

@@ -30,6 +30,7 @@ re-initialisation need; :func:`uwbimu.estimation.run_eskf` records everything.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from typing import Any, Mapping, Optional, Sequence
 
@@ -61,20 +62,25 @@ class _Buffer:
         self.n = 0
         self.fill = fill
 
-    def extend(self, v: np.ndarray) -> None:
-        m = len(v)
-        if self.n + m > len(self.a):
-            cap = max(2 * len(self.a), self.n + m)
+    def _grow(self, need: int) -> None:
+        if need > len(self.a):
+            cap = max(2 * len(self.a), need)
             b = np.full((cap,) + self.shape_tail, self.fill, dtype=self.a.dtype)
             b[: self.n] = self.a[: self.n]
             self.a = b
+
+    def extend(self, v: np.ndarray) -> None:
+        m = len(v)
+        self._grow(self.n + m)
         self.a[self.n:self.n + m] = v
         self.n += m
 
     def reserve(self, n: int) -> None:
         """Make the length ``n`` (new entries filled), keeping capacity for more."""
         if n > self.n:
-            self.extend(np.full((n - self.n,) + self.shape_tail, self.fill, dtype=self.a.dtype))
+            self._grow(n)
+            self.a[self.n:n] = self.fill
+            self.n = n
 
     def view(self, n: Optional[int] = None) -> np.ndarray:
         return self.a[: self.n if n is None else n]
@@ -312,12 +318,12 @@ class Eskf:
             self._dropped["imu_not_finite"] += int((~finite).sum())
             t, u = t[finite], u[finite]
         last = self._t.a[self._t.n - 1] if self._t.n else -np.inf
-        # strictly increasing stamps (repeated stamps of the batch loader are dropped the same way)
-        keep = np.empty(len(t), dtype=bool)
-        for i, ti in enumerate(t):
-            keep[i] = ti > last
-            if keep[i]:
-                last = ti
+        # strictly increasing stamps (repeated stamps of the batch loader are dropped the same way): a
+        # sample is kept when it is later than every stamp before it (the last kept one is their maximum)
+        if len(t) == 1:
+            keep = np.array([t[0] > last])
+        else:
+            keep = t > np.maximum.accumulate(np.concatenate(([last], t[:-1])))
         if not keep.all():
             self._dropped["imu_not_increasing"] += int((~keep).sum())
             t, u = t[keep], u[keep]
@@ -400,7 +406,6 @@ class Eskf:
         self._rec.extend(rec)
         if model.clock == "uwb":
             self._watermark = max(self._watermark, float(t))
-        self._sync()
         self._step()
 
     def finish(self, progress=None) -> None:
@@ -524,7 +529,6 @@ class Eskf:
         rec[:, REC_ACC] = 0.0
         self._rec.extend(rec)
         self._watermark = max(self._watermark, float(t.max()))
-        self._sync()
         self._step()
 
     def _imu_appended(self) -> None:
@@ -541,7 +545,6 @@ class Eskf:
                 self._set_timing()
         else:
             self._extend_timing()
-        self._sync()
 
     def _set_timing(self) -> None:
         set_imu_timing(self._prob, self.options, nominal_period(self._t.view()))
@@ -605,7 +608,7 @@ class Eskf:
                 p.rot_ms = self._rot_ms.view()
 
     def _step(self) -> None:
-        self._sync()
+        self._sync()  # (callers that changed the buffers rely on this)
         for _ in range(2 * self.options.supervisor.max_reinit + 4):
             if self._mode == "init":
                 if not self._try_init():
@@ -617,7 +620,18 @@ class Eskf:
                 return
             self._on_divergence()
 
+    #: CPU time [s] spent in the initialiser (``time.process_time``): run_eskf reports the filter passes'
+    #: CPU time without it
+    init_cpu_seconds: float = 0.0
+
     def _try_init(self) -> bool:
+        c0 = time.process_time()
+        try:
+            return self._try_init_timed()
+        finally:
+            self.init_cpu_seconds += time.process_time() - c0
+
+    def _try_init_timed(self) -> bool:
         p = self._prob
         m = self._mt.n
         if math.isnan(p.dt_nom):
@@ -693,7 +707,7 @@ class Eskf:
             self._trim()
 
     def _close_pass(self) -> None:
-        res = self._st.result(self._rec.view(), self._st.P.shape[0])
+        res = self._st.result(self._rec.view(), self._st.P.shape[0], copy=False)  # the pass is over
         if not self._prob.store_cov:
             res.covs = None
         self._passes.append(res)
