@@ -51,14 +51,14 @@ def flip_outputs(states: np.ndarray, covs: Optional[np.ndarray]) -> tuple[np.nda
     body perturbation and does not change.  Returns new arrays.
     """
     X = states.copy()
-    X[:, 0:3] *= FLIP_X
-    X[:, 3:6] *= FLIP_X
-    X[:, 6:10] = quat_multiply(np.broadcast_to(Q_FLIP_X, X[:, 6:10].shape), X[:, 6:10])
+    X[:, S.P] *= FLIP_X
+    X[:, S.V] *= FLIP_X
+    X[:, S.Q] = quat_multiply(np.broadcast_to(Q_FLIP_X, X[:, S.Q].shape), X[:, S.Q])
     if covs is None:
         return X, None
     d = np.ones(covs.shape[1])
-    d[0:3] = FLIP_X
-    d[3:6] = FLIP_X
+    d[S.EP] = FLIP_X
+    d[S.EV] = FLIP_X
     return X, covs * d[None, :, None] * d[None, None, :]
 
 

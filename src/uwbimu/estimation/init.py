@@ -182,8 +182,8 @@ def assemble(prob: Problem, pr: Prior, yaw: float, yaw_sd: float, td: float, td_
     L = prob.state_layout()
     x = np.zeros(L.n_nom)
     dt = prob.imu_t[k0] - td - t0_uwb  # UWB-time elapsed since the fix
-    x[0:3] = pr.p + v_t0 * dt
-    x[3:6] = pr.v
+    x[S.P] = pr.p + v_t0 * dt
+    x[S.V] = pr.v
     q = quat_from_euler(pr.roll, pr.pitch, yaw)
     x[S.Q] = q
     x[S.BA] = pr.ba
@@ -196,17 +196,17 @@ def assemble(prob: Problem, pr: Prior, yaw: float, yaw_sd: float, td: float, td_
         x[L.nom("extra_levers")] = np.asarray(pr.extra_levers, dtype=float).reshape(-1)
         el = L.err("extra_levers")
         P[el, el] = np.diag(np.tile(pr.sd_lever**2, L.n_tags - 1))
-    P[0:3, 0:3] = np.eye(3) * pr.sd_p**2
-    P[3:6, 3:6] = np.eye(3) * pr.sd_v**2
+    P[S.EP, S.EP] = np.eye(3) * pr.sd_p**2
+    P[S.EV, S.EV] = np.eye(3) * pr.sd_v**2
     # roll/pitch/yaw uncertainty is about world axes; the error state is a body
     # (right) perturbation, dtheta_body = R^T dtheta_world
     R = quat_to_rotmat(q)
     Cw = np.diag([pr.sd_rp**2, pr.sd_rp**2, yaw_sd**2])
-    P[6:9, 6:9] = R.T @ Cw @ R
-    P[9:12, 9:12] = np.eye(3) * pr.sd_ba**2
-    P[12:15, 12:15] = np.eye(3) * pr.sd_bg**2
-    P[15:18, 15:18] = np.diag(pr.sd_lever**2)
-    P[18, 18] = td_sd**2
+    P[S.ETH, S.ETH] = R.T @ Cw @ R
+    P[S.EBA, S.EBA] = np.eye(3) * pr.sd_ba**2
+    P[S.EBG, S.EBG] = np.eye(3) * pr.sd_bg**2
+    P[S.EPIU, S.EPIU] = np.diag(pr.sd_lever**2)
+    P[S.ETD, S.ETD] = td_sd**2
     ab = L.err("anchor_bias")
     P[ab, ab] = np.eye(L.n_anchor_bias) * pr.sd_bias**2
     hb = L.err("height_bias")

@@ -11,31 +11,32 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import expm
 
+from uwbimu.models import state as S
 from uwbimu.models.quaternion import quat_to_rotmat, skew
 
 
 def error_F(x: np.ndarray, u: np.ndarray, n_err: int = 19) -> np.ndarray:
     """Continuous-time error-state Jacobian ``F`` (n_err x n_err) at state ``x`` and input ``u``."""
-    R = quat_to_rotmat(x[6:10])
-    a = u[0:3] - x[10:13]
-    w = u[3:6] - x[13:16]
+    R = quat_to_rotmat(x[S.Q])
+    a = u[0:3] - x[S.BA]
+    w = u[3:6] - x[S.BG]
     F = np.zeros((n_err, n_err))
-    F[0:3, 3:6] = np.eye(3)
-    F[3:6, 6:9] = -R @ skew(a)
-    F[3:6, 9:12] = -R
-    F[6:9, 6:9] = -skew(w)
-    F[6:9, 12:15] = -np.eye(3)
+    F[S.EP, S.EV] = np.eye(3)
+    F[S.EV, S.ETH] = -R @ skew(a)
+    F[S.EV, S.EBA] = -R
+    F[S.ETH, S.ETH] = -skew(w)
+    F[S.ETH, S.EBG] = -np.eye(3)
     return F
 
 
 def error_G(x: np.ndarray, n_err: int = 19) -> np.ndarray:
     """Continuous-time noise Jacobian ``G`` (n_err x 12) for ``[n_a, n_g, n_ba, n_bg]``."""
-    R = quat_to_rotmat(x[6:10])
-    G = np.zeros((n_err, 12))
-    G[3:6, 0:3] = -R
-    G[6:9, 3:6] = -np.eye(3)
-    G[9:12, 6:9] = np.eye(3)
-    G[12:15, 9:12] = np.eye(3)
+    R = quat_to_rotmat(x[S.Q])
+    G = np.zeros((n_err, 12))  # noise columns: n_a, n_g, n_ba, n_bg
+    G[S.EV, 0:3] = -R
+    G[S.ETH, 3:6] = -np.eye(3)
+    G[S.EBA, 6:9] = np.eye(3)
+    G[S.EBG, 9:12] = np.eye(3)
     return G
 
 

@@ -19,6 +19,7 @@ import numpy as np
 from numba import njit
 
 from uwbimu.models import kernels as _physics
+from uwbimu.models.state import E_L, ERROR_DIM, N_L, NOMINAL_DIM
 from uwbimu.models.kernels import (  # noqa: F401  (re-exported)
     GRAVITY, rotmat, _deriv, _rk4_core, _rk4_s, _rk4, rk4_step_mid, rk4_step, propagate_interval, _mm3,
     _skew3, _phi_blocks, phi_blocks, _phi_vec, _cov_step, _cov_step_rows, cov_step, decay_biases, range_jacobian,
@@ -223,19 +224,19 @@ def robust_weight(e, kind, c):
 @njit(cache=True)
 def _other_tag(xt, lever_err):
     """``xt`` with the lever arm of the tag whose lever block starts at error index ``lever_err`` in the
-    first tag's place (nominal 16:19), so the one-tag Jacobians apply; see :func:`_move_lever_rows`."""
+    first tag's place (nominal ``N_L``), so the one-tag Jacobians apply; see :func:`_move_lever_rows`."""
     x2 = xt.copy()
     for i in range(3):
-        x2[16 + i] = xt[lever_err + 1 + i]
+        x2[N_L + i] = xt[lever_err + (NOMINAL_DIM - ERROR_DIM) + i]  # nominal = error index + 1 after q
     return x2
 
 
 @njit(cache=True)
 def _move_lever_rows(h, lever_err):
-    """Move the lever-arm columns of ``h`` (15:18) to the tag's block ``lever_err .. lever_err + 2``."""
+    """Move the lever-arm columns of ``h`` (``E_L``) to the tag's block ``lever_err .. lever_err + 2``."""
     for i in range(3):
-        h[lever_err + i] += h[15 + i]
-        h[15 + i] = 0.0
+        h[lever_err + i] += h[E_L + i]
+        h[E_L + i] = 0.0
 
 
 @njit(cache=True)

@@ -192,8 +192,9 @@ def _plots(result, dataset: Dataset, out: Path) -> list[Path]:
     lever_true = truth.lever_arm if truth is not None else None
     for i, c in enumerate("xyz"):
         ax = fig.add_subplot(4, 1, i + 1)
-        ax.plot(t, X[:, 16 + i], "C0-", lw=0.8, label="estimate")
-        ax.fill_between(t, X[:, 16 + i] - 3 * sd[:, 15 + i], X[:, 16 + i] + 3 * sd[:, 15 + i], color="C0", alpha=0.2,
+        li, le = S.PIU.start + i, S.EPIU.start + i
+        ax.plot(t, X[:, li], "C0-", lw=0.8, label="estimate")
+        ax.fill_between(t, X[:, li] - 3 * sd[:, le], X[:, li] + 3 * sd[:, le], color="C0", alpha=0.2,
                         label="±3σ")
         if lever_true is not None:
             ax.axhline(lever_true[i], color="k", ls="--", lw=1, label="truth")

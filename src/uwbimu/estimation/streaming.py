@@ -449,7 +449,7 @@ class Eskf:
             p, v = p * _FLIP, v * _FLIP
             q = quat_multiply(_Q_FLIP, q)
             d = np.ones(P.shape[0])
-            d[0:6] = np.concatenate([_FLIP, _FLIP])
+            d[S.EP], d[S.EV] = _FLIP, _FLIP
             Pc = P * d[:, None] * d[None, :]
         L = self._prob.state_layout()
         nb = L.n_anchor_bias

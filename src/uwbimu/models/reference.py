@@ -118,7 +118,7 @@ def gravity(ops: Ops = NUMPY):
 
 def split_state(x):
     """Return the blocks ``(p, v, q, b_a, b_g, p_IU, t_d)`` of a nominal state."""
-    return x[0:3], x[3:6], x[6:10], x[10:13], x[13:16], x[16:19], x[19]
+    return x[S.P], x[S.V], x[S.Q], x[S.BA], x[S.BG], x[S.PIU], x[S.TD]
 
 
 # --------------------------------------------------------------------------
