@@ -193,10 +193,10 @@ def calibration(
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn(), console=console) as prog:
-        task = prog.add_task("optimising manoeuvre", total=cfg.optimizer.max_evals)
+        task = prog.add_task("optimising manoeuvre", total=cfg.optimizer.total_evals)
 
         def cb(n_evals: int) -> None:
-            prog.update(task, completed=min(n_evals, cfg.optimizer.max_evals))
+            prog.update(task, completed=min(n_evals, cfg.optimizer.total_evals))
 
         try:
             report = design_and_write(cfg, out, progress=cb, config_path=config)

@@ -115,7 +115,21 @@ class DesignOptions(_Strict):
 class OptimizerOptions(_Strict):
     seed: int = Field(0, ge=0)
     n_random: int = Field(12, ge=1, description="random shapes tried before the local search")
-    max_evals: int = Field(800, ge=1, description="total objective evaluations")
+    starts: int = Field(3, ge=1, description="Powell searches, one from each of the `starts` best random shapes (at most n_random)")
+    max_evals: int = Field(
+        800,
+        ge=1,
+        description=(
+            "objective evaluations of ONE search: the n_random random shapes plus one Powell start; every "
+            "Powell start gets max_evals - n_random, so the total is n_random + starts * (max_evals - n_random)"
+        ),
+    )
+
+    @property
+    def total_evals(self) -> int:
+        """Objective evaluations of the whole design (the random shapes once, then every start's budget)."""
+        n_rand = min(self.n_random, self.max_evals)
+        return n_rand + min(self.starts, n_rand) * (self.max_evals - n_rand)
 
 
 class Figure8Options(_Strict):
@@ -359,23 +373,32 @@ def _objective_factory(cfg: CalibrationDesignConfig, counter: list, progress: Op
 def design_calibration(cfg: CalibrationDesignConfig, progress: Optional[Callable[[int], None]] = None) -> dict[str, Any]:
     """Optimise the manoeuvre; returns the designed and figure-8 manoeuvres with their metrics.
 
-    Seeded: ``n_random`` random coefficient sets (standard normal) are scored, the
-    best starts a Powell search for the rest of ``max_evals``.
+    Seeded: ``n_random`` random coefficient sets (standard normal) are scored, then
+    a Powell search starts from each of the ``starts`` best of them, each with a
+    budget of ``max_evals - n_random`` evaluations (so ``starts = 1`` is one search
+    of ``max_evals`` evaluations in all); the best manoeuvre seen by any search is
+    the design.  The objective is flat and the searches path-dependent, so several
+    starts make the design both better and less sensitive to round-off.
     """
     from scipy.optimize import minimize
 
     t0 = time.perf_counter()
-    rng = np.random.default_rng(cfg.optimizer.seed)
+    opt = cfg.optimizer
+    rng = np.random.default_rng(opt.seed)
     K = cfg.design.n_harmonics
     counter = [0]
     f, man, best = _objective_factory(cfg, counter, progress)
-    n_rand = min(cfg.optimizer.n_random, cfg.optimizer.max_evals)
+    n_rand = min(opt.n_random, opt.max_evals)
     n_chan = 4 if cfg.flat else 6  # multirotor: x, y, z, yaw
+    cands = []
     for _ in range(n_rand):
-        f(rng.standard_normal(n_chan * K * 2))
-    left = cfg.optimizer.max_evals - counter[0]
-    if left > 0:
-        minimize(f, best["theta"], method="Powell", options={"maxfev": left, "xtol": 1e-3, "ftol": 1e-4})
+        theta = rng.standard_normal(n_chan * K * 2)
+        cands.append((f(theta), len(cands), theta))
+    cands.sort(key=lambda c: (c[0], c[1]))  # stable: ties keep the draw order
+    per_start = opt.max_evals - n_rand
+    if per_start > 0:
+        for _, _, theta in cands[: opt.starts]:
+            minimize(f, theta, method="Powell", options={"maxfev": per_start, "xtol": 1e-3, "ftol": 1e-4})
     designed = man(best["theta"])
     fig8 = naive_figure8(cfg)
     # a stronger (non-naive) reference: the same figure-8 with its attitude

@@ -54,9 +54,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from uwbimu.models import kernels as _physics
 from uwbimu.models import state as ST
-from uwbimu.models.kernels import range_jacobians, refresh_stale_cache
-from uwbimu.models.state import E_BA, E_BG, E_P, E_TH, E_V, ERROR_DIM
+from uwbimu.models.kernels import phi_left_R, range_jacobians, refresh_stale_cache
+from uwbimu.models.state import E_BA, E_BG, E_L, E_TH, E_V, ERROR_DIM
 from uwbimu.models.quaternion import rotmat_to_quat
 
 
@@ -76,11 +77,18 @@ def range_jacobian(kin_meas: dict[str, np.ndarray], anchors: np.ndarray, lever_a
 
 @njit(cache=True)
 def _cov_run(P0, R, f, w, dt, qa, qg, qba, qbg, meas_step, H, sigma2):
-    """Covariance recursion; updates for measurements assigned to each step after its prediction."""
+    """Covariance recursion; updates for measurements assigned to each step after its prediction.
+
+    The prediction ``Phi P Phi^T`` is the estimator's (:func:`uwbimu.models.kernels.phi_left_R`,
+    applied to the rows, then to the rows of the transpose); the process noise is the diagonal
+    ``Q_d`` of the module docstring.
+    """
     n = R.shape[0]
     P = P0.copy()
-    F = np.zeros((ERROR_DIM, ERROR_DIM))
-    I19 = np.eye(ERROR_DIM)
+    PT = np.zeros((ERROR_DIM, ERROR_DIM))
+    B = np.zeros((7, 3, 3))
+    W = np.zeros((6, 3, 3))
+    col = np.zeros(E_L)
     m = 0
     M = meas_step.shape[0]
     for k in range(n):
@@ -95,27 +103,10 @@ def _cov_run(P0, R, f, w, dt, qa, qg, qba, qbg, meas_step, H, sigma2):
             m += 1
         if k == n - 1:
             break
-        Rk = R[k]
-        fk = f[k]
-        wk = w[k]
-        F[:, :] = 0.0
-        for i in range(3):
-            F[E_P + i, E_V + i] = 1.0
-        # -R [f]x
-        Sf = np.array([[0.0, -fk[2], fk[1]], [fk[2], 0.0, -fk[0]], [-fk[1], fk[0], 0.0]])
-        RSf = Rk @ Sf
-        for i in range(3):
-            for j in range(3):
-                F[E_V + i, E_TH + j] = -RSf[i, j]
-                F[E_V + i, E_BA + j] = -Rk[i, j]
-        Sw = np.array([[0.0, -wk[2], wk[1]], [wk[2], 0.0, -wk[0]], [-wk[1], wk[0], 0.0]])
-        for i in range(3):
-            for j in range(3):
-                F[E_TH + i, E_TH + j] = -Sw[i, j]
-            F[E_TH + i, E_BG + i] = -1.0
-        Fd = F * dt
-        Phi = I19 + Fd + 0.5 * (Fd @ Fd)
-        P = Phi @ P @ Phi.T
+        phi_left_R(P, R[k], f[k], w[k], dt, B, W, col)  # Phi P
+        PT[:, :] = P.T
+        phi_left_R(PT, R[k], f[k], w[k], dt, B, W, col)  # Phi (Phi P)^T = (Phi P Phi^T)^T
+        P[:, :] = PT
         for i in range(3):
             P[E_V + i, E_V + i] += qa * dt  # R n_a: isotropic, R drops out
             P[E_TH + i, E_TH + i] += qg * dt
@@ -187,5 +178,6 @@ def calibration_metrics(P: np.ndarray, scale_lever_arm: float, scale_time_offset
     }
 
 
-# _cov_run inlines the state layout's offsets: flush its disk cache when models/state.py changes
-refresh_stale_cache(globals(), [])
+# _cov_run inlines the state layout's offsets and the estimator's transition kernel: flush its
+# disk cache when models/state.py or models/kernels.py changes
+refresh_stale_cache(globals(), [_physics])
