@@ -15,8 +15,10 @@ body rate of the truth::
     dth' = -[w]x dth - db_g + n_g
     db_a' = n_ba,  db_g' = n_bg,  dp_IU' = 0,  dt_d' = 0
 
-``Phi = I + F dt + (F dt)^2 / 2``; ``Q_d = G Q_c G^T dt``.  Range Jacobian of
-``h = |a - p - R Exp(dth) p_IU|`` at IMU time ``t + t_d`` (``u`` the unit
+``Phi`` is the estimator's transition (:func:`uwbimu.models.kernels.phi_left_R`: second-order
+series with the exact attitude rotation, the blocks of the ESKF's covariance step);
+``Q_d = G Q_c G^T dt`` (diagonal: the accelerometer noise is isotropic, so ``R`` drops out).
+Range Jacobian of ``h = |a - p - R Exp(dth) p_IU|`` at IMU time ``t + t_d`` (``u`` the unit
 vector from the antenna to the anchor)::
 
     dh/dp = -u^T,  dh/dth = u^T R [p_IU]x,  dh/dp_IU = -u^T R,
@@ -26,18 +28,11 @@ The posterior covariance's calibration block (``dp_IU``, ``dt_d``) gives the
 predicted 1-sigma; its inverse is the Fisher information of the calibration
 block with the 15 navigation states marginalised (Schur complement), whose
 smallest eigenvalue (after scaling by ``scale_lever_arm``,
-``scale_time_offset``) is the E-optimality criterion.  The range Jacobian
-is the estimator's own (:func:`uwbimu.models.kernels.range_jacobians`, pinned to
-:func:`uwbimu.models.reference.range_measurement` by tests).  The transition below is
-this module's own second-order discretisation (``I + F dt + (F dt)^2 / 2``), agreeing
-with the estimator's (``models.kernels.phi_left_R``) to about 1e-5 relative in the
-predicted sd of a given manoeuvre.  The design optimiser (random starts, then Powell) is
-path-dependent on this flat objective: with the estimator's kernel the same seeded search
-on ``examples/plan/calibration_handheld.yaml`` ends at -log(lambda_min) 1.588 instead of
-1.465 (t_d sd 2.21 vs 2.08 ms; the E-optimal criterion is dominated by t_d there, and the
-lever-arm sd, which it barely weighs, moves from 4.3 / 5.6 / 4.7 to 13.1 / 12.5 / 8.7 mm);
-three Powell starts give 1.580 (own) / 1.562 (estimator's kernel).  The predictor keeps its
-own transition so that the documented designs stay as measured.
+``scale_time_offset``) is the E-optimality criterion.  The physics is the
+estimator's kernels: the range Jacobian is
+:func:`uwbimu.models.kernels.range_jacobians` and the transition
+:func:`uwbimu.models.kernels.phi_left_R`, both pinned to :mod:`uwbimu.models.reference`
+by tests; only the recursion (and its diagonal process noise) is written here.
 
 Why not the observability engine's per-window information
 (:mod:`uwbimu.observability.window`)?  It works on a dataset, window by
