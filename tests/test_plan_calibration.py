@@ -34,6 +34,21 @@ def _random_maneuver(seed=0, K=2, T=12.0):
     return fit_to_bounds(m, cfg.motion_bounds()), cfg
 
 
+LEVER = np.array([0.12, -0.08, 0.14])
+P0_DIAG = np.diag([0.3] * 3 + [0.5] * 3 + [0.1] * 3 + [0.05] * 3 + [0.01] * 3 + [0.3] * 3 + [0.03]) ** 2
+
+
+def _short_run(seed: int, dt: float, t_end: float, first: int, every: int):
+    """Truth on a grid over [0, t_end] [s] of a random manoeuvre, range steps (round-robin anchors), their Jacobians."""
+    m, cfg = _random_maneuver(seed, T=6.0)
+    tg = np.arange(0.0, t_end + 0.5 * dt, dt)
+    kin = m.kinematics(tg)
+    A = cfg.anchor_array()
+    idx = np.arange(first, len(tg), every)
+    km = {k: v[idx] for k, v in kin.items()}
+    return tg, kin, idx, range_jacobian(km, A[np.arange(len(idx)) % len(A)], LEVER)
+
+
 def test_envelope_and_channel_derivatives():
     T = 10.0
     w, w1, w2 = envelope(np.array([0.0, T]), T, 2.0)
@@ -96,17 +111,10 @@ def test_range_jacobian_matches_reference_model():
 def test_covariance_recursion_equals_batch_information_without_process_noise():
     """With no process noise the KF posterior is (P0^-1 + sum (H Phi)^T (H Phi) / s^2)^-1, Phi from the
     reference dynamics (RK4 on boxplus-perturbed states), so F is pinned to the reference model."""
-    m, cfg = _random_maneuver(3, T=6.0)
     dt = 0.01
-    tg = np.arange(0.0, 3.0 + 0.5 * dt, dt)
-    kin = m.kinematics(tg)
-    lever = np.array([0.12, -0.08, 0.14])
-    A = cfg.anchor_array()
-    idx = np.arange(5, len(tg), 5)
-    anchors = A[np.arange(len(idx)) % len(A)]
-    km = {k: v[idx] for k, v in kin.items()}
-    H = range_jacobian(km, anchors, lever)
-    P0 = np.diag([0.3] * 3 + [0.5] * 3 + [0.1] * 3 + [0.05] * 3 + [0.01] * 3 + [0.3] * 3 + [0.03]) ** 2
+    tg, kin, idx, H = _short_run(3, dt, 3.0, 5, 5)
+    lever = LEVER
+    P0 = P0_DIAG
     sigma = 0.05
     P = _cov_run(P0, kin["R"], kin["f"], kin["w"], dt, 0.0, 0.0, 0.0, 0.0, idx.astype(np.int64), H, sigma**2)
     # transition of the error state by finite differences of the reference propagation
@@ -140,18 +148,10 @@ def test_covariance_recursion_is_the_estimators_transition():
     models.kernels.error_transition (19x19), updates as the scalar Kalman update."""
     from uwbimu.models.kernels import error_transition
 
-    m, cfg = _random_maneuver(5, T=6.0)
     dt = 0.02
-    tg = np.arange(0.0, 2.0 + 0.5 * dt, dt)
-    kin = m.kinematics(tg)
-    lever = np.array([0.12, -0.08, 0.14])
-    A = cfg.anchor_array()
-    idx = np.arange(3, len(tg), 4)
-    km = {k: v[idx] for k, v in kin.items()}
-    H = range_jacobian(km, A[np.arange(len(idx)) % len(A)], lever)
-    rng = np.random.default_rng(7)
-    L = rng.standard_normal((19, 19)) * 0.1
-    P0 = L @ L.T + np.diag([0.3] * 3 + [0.5] * 3 + [0.1] * 3 + [0.05] * 3 + [0.01] * 3 + [0.3] * 3 + [0.03]) ** 2
+    tg, kin, idx, H = _short_run(5, dt, 2.0, 3, 4)
+    L = np.random.default_rng(7).standard_normal((19, 19)) * 0.1
+    P0 = L @ L.T + P0_DIAG  # a full (correlated) prior
     qa, qg, qba, qbg, s2 = 2e-4, 3e-6, 1e-7, 1e-9, 0.05**2
     P = _cov_run(P0, kin["R"], kin["f"], kin["w"], dt, qa, qg, qba, qbg, idx.astype(np.int64), H, s2)
     Pe = P0.copy()
@@ -168,7 +168,7 @@ def test_covariance_recursion_is_the_estimators_transition():
             m_i += 1
         if k == len(tg) - 1:
             break
-        x = S.make_state(p=kin["p"][k], v=kin["v"][k], q=kin["q"][k], p_IU=lever)
+        x = S.make_state(p=kin["p"][k], v=kin["v"][k], q=kin["q"][k], p_IU=LEVER)
         error_transition(x, np.concatenate([kin["f"][k], kin["w"][k]]), dt, Phi)
         Pe = Phi @ Pe @ Phi.T + Qd
         Pe = 0.5 * (Pe + Pe.T)
