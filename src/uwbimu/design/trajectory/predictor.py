@@ -41,7 +41,7 @@ design needs the information accumulated over a whole *candidate* (no
 dataset; hundreds of candidates) with the IMU noise correlations through the
 shared navigation states, which is exactly the filter's covariance
 recursion.  On the built-in calibration flight the prediction matches the
-ESKF's reported sd to 1 % (``benchmarks/bench_plan.py``).
+ESKF's reported sd to 1 % on the lever arm and 2 % on t_d (``benchmarks/bench_plan.py``).
 """
 
 from __future__ import annotations
