@@ -121,13 +121,14 @@ class OptimizerOptions(_Strict):
         ge=1,
         description=(
             "objective evaluations of ONE search: the n_random random shapes plus one Powell start; every "
-            "Powell start gets max_evals - n_random, so the total is n_random + starts * (max_evals - n_random)"
+            "Powell start gets max_evals - n_random, so the total is at most n_random + starts * (max_evals - n_random)"
         ),
     )
 
     @property
     def total_evals(self) -> int:
-        """Objective evaluations of the whole design (the random shapes once, then every start's budget)."""
+        """Evaluation budget of the whole design (the random shapes once, then every start's budget; a converged
+        Powell search stops earlier)."""
         n_rand = min(self.n_random, self.max_evals)
         return n_rand + min(self.starts, n_rand) * (self.max_evals - n_rand)
 
