@@ -122,3 +122,21 @@ def test_calibrate_accepts_tdoa():
     td = cal["time_offset"]
     assert abs(td["value"] - ds.meta.truth.time_offset) < 3 * td["sd"]
     assert set(r.residuals["kind"]) == {"tdoa"} and (r.residuals["anchor_b"] != "").all()
+
+
+def test_profile_minimum_at_the_grid_edge_is_held_at_prior(tmp_path):
+    """True t_d 30 ms, grid 0.2..0.4 s: the minimum is the grid's first point; nothing is reported as found,
+    t_d stays at the prior and the advice says to widen the grid."""
+    import yaml
+
+    ds = _flight("calibration-flight", 4, 8.0)
+    opts = CalibrationOptions.model_validate({"time_offset_prior": 0.3,
+                                              "td_profile": {"half_width": 0.1, "step": 0.05}})
+    res = calibrate(ds, opts)
+    td = res.calibration["time_offset"]
+    assert res.profile.verdict == "at_grid_edge" and res.profile.best == pytest.approx(0.2)
+    assert td["held_at_prior"] and td["value"] == 0.3 and td["sd"] is None and td["sd_curvature"] is None
+    assert "widen td_profile.half_width" in td["advice"]
+    write_calibration(res, tmp_path)
+    written = yaml.safe_load((tmp_path / "calibration.yaml").read_text())["time_offset"]
+    assert written["verdict"] == "at_grid_edge" and written["sd"] is None and written["value"] == 0.3

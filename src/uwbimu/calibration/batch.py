@@ -14,7 +14,7 @@ import pandas as pd
 from uwbimu.calibration import anchors as AN
 from uwbimu.calibration import graph as G
 from uwbimu.calibration.options import CalibrationOptions
-from uwbimu.calibration.profile import TdProfile, motion_advice, profile_verdict
+from uwbimu.calibration.profile import TdProfile, confidence_interval, motion_advice, profile_verdict
 
 
 @dataclass
@@ -118,10 +118,15 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
         prof = run_profile(pb, imf, values, free_td, progress)
         if prof.identified:
             graph, values, assoc, iters = _solve(pb, imf, G.with_td(values, prof.vertex), prof.vertex, None)
-        else:
+            lo, hi = confidence_interval(prof.grid, prof.chi2, prof.confidence_chi2)
+            td_ref = float(values.atVector(T(0))[0])
+            if not lo <= td_ref <= hi:
+                # The free optimum contradicts its own profile: report nothing as found.
+                prof.verdict = "refinement_left_confidence_set"
+        if not prof.identified:
             td_free = False
             events.append({"kind": "time_offset_not_identified", "verdict": prof.verdict,
-                           "advice": motion_advice(eskf)})
+                           "advice": motion_advice(eskf, prof.verdict, prof.grid)})
             graph, values, assoc, iters = _solve(pb, imf, G.without_td(values), o.time_offset_prior,
                                                  o.time_offset_prior)
     if progress is not None:
@@ -251,7 +256,11 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
                         "sd_curvature": (float(prof.sigma_curvature) if prof is not None and prof.identified
                                          else None),
                         "verdict": (prof.verdict if prof is not None else "not_profiled"),
-                        "held_at_prior": not td_free},
+                        "held_at_prior": not td_free,
+                        "profile_confidence_interval": (
+                            [float(v) for v in confidence_interval(prof.grid, prof.chi2, prof.confidence_chi2)]
+                            if prof is not None and prof.identified else None),
+                        "profile_grid": ([float(prof.grid[0]), float(prof.grid[-1])] if prof is not None else None)},
         "anchor_bias": bias,
         "anchor_bias_sd": {a: float(sd[offs + j]) for j, a in enumerate(pb.anchor_ids)},
         "correlations": {"names": names, "matrix": [[round(float(c), 4) for c in row] for row in corr]},
