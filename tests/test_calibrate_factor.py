@@ -211,3 +211,91 @@ def test_inter_anchor_factor_jacobians():
             minus = pair_error(pa - d, pb, 4.0) if which == 0 else pair_error(pa, pb - d, 4.0)
             num.append((plus - minus) / (2 * h))
         np.testing.assert_allclose(J, num, atol=1e-8)
+
+
+def _group_case(rng, n=7):
+    """Several ranges after one keyframe (two anchors), their deltas and a GTSAM Values."""
+    t, u = _imu(rng)
+    b_a, b_g = np.array([0.05, -0.03, 0.02]), np.array([0.01, -0.02, 0.005])
+    s0 = np.sort(rng.uniform(0.01, 0.18, n))
+    _k, deltas = imu_deltas(t, u, b_a, b_g, np.array([0.0]), s0)
+    anchors = np.array([[4.0, -1.0, 2.5], [-3.0, 2.0, 0.3]])
+    col = np.arange(n) % 2
+    rho = np.linalg.norm(anchors[col] - [1.0, 2.0, 1.5], axis=1) + rng.normal(0, 0.05, n)
+    return deltas, anchors, col, rho
+
+
+@pytest.mark.parametrize("td_fixed", [None, 0.031])
+def test_group_factor_equals_the_per_range_factors(td_fixed):
+    """The vectorised per-keyframe factor: same residuals as range_error, same whitened Jacobians and the same
+    error (sum of Huber losses) as one Robust(Huber) CustomFactor per range, with an outlier among the rows."""
+    gtsam = pytest.importorskip("gtsam")
+    from gtsam.symbol_shorthand import A, L, T, V, X
+
+    from uwbimu.calibration.range_factor import RangeGroup, make_gtsam_group_factor
+
+    rng = np.random.default_rng(3)
+    deltas, anchors, col, rho = _group_case(rng)
+    sigma, k, td0 = 0.1, 1.345, 0.02
+    R = so3_exp(np.array([0.2, -0.4, 1.1]))
+    td = 0.027 if td_fixed is None else td_fixed
+    state = (R, np.array([1.0, 2.0, 1.5]), np.array([0.4, -0.3, 0.2]), np.array([0.12, -0.08, 0.14]), td,
+             np.array([0.03, -0.05]))
+    # ranges consistent with the state up to 0.5 sigma, and one outlier (|z| > 6 > huber_k)
+    rho = RangeGroup(deltas, anchors[col], np.zeros(len(col)), col, td0).evaluate(*state)
+    rho += rng.uniform(-0.05, 0.05, len(rho))
+    rho[3] += 0.6
+    vals = gtsam.Values()
+    vals.insert(X(0), gtsam.Pose3(gtsam.Rot3(R), np.array([1.0, 2.0, 1.5])))
+    vals.insert(V(0), np.array([0.4, -0.3, 0.2]))
+    vals.insert(L(0), np.array([0.12, -0.08, 0.14]))
+    if td_fixed is None:
+        vals.insert(T(0), np.array([0.027]))
+    vals.insert(A(0), np.array([0.03]))
+    vals.insert(A(1), np.array([-0.05]))
+    tkey = [T(0)] if td_fixed is None else []
+    grp = RangeGroup(deltas, anchors[col], rho, col, td0)
+    fg = make_gtsam_group_factor([X(0), V(0), L(0)] + tkey + [A(0), A(1)], grp, sigma, k, td_fixed=td_fixed)
+    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(k),
+                                           gtsam.noiseModel.Isotropic.Sigma(1, sigma))
+    singles = [make_gtsam_factor([X(0), V(0), L(0)] + tkey + [A(int(c))], anchors[c], r, d, td0, noise,
+                                 td_fixed=td_fixed) for d, c, r in zip(deltas, col, rho)]
+    e = grp.evaluate(*state)
+    assert np.sum(np.abs(e) / sigma > k) == 1
+    np.testing.assert_allclose(e, [f.unwhitenedError(vals)[0] for f in singles], atol=1e-12)
+    assert fg.error(vals) == pytest.approx(sum(f.error(vals) for f in singles), rel=1e-12)
+    Ag, bg = fg.linearize(vals).jacobian()
+    for i, f in enumerate(singles):
+        A1, b1 = f.linearize(vals).jacobian()
+        row = np.concatenate([A1[0][:-1], np.zeros(2)])
+        row[len(row) - 2 + col[i]] = A1[0][-1]
+        if i == 3:  # the outlier: same gradient J^T b, Gauss-Newton weight k/(2|z|-k) instead of k/|z|
+            np.testing.assert_allclose(Ag[i] * bg[i], row * b1[0], rtol=1e-9)
+            continue
+        np.testing.assert_allclose(Ag[i], row, atol=1e-9)
+        assert bg[i] == pytest.approx(b1[0], abs=1e-12)
+
+
+def test_group_factor_jacobians_match_finite_differences():
+    from uwbimu.calibration.range_factor import RangeGroup
+
+    rng = np.random.default_rng(5)
+    deltas, anchors, col, rho = _group_case(rng)
+    grp = RangeGroup(deltas, anchors[col], rho, col, 0.02)
+    R, p, v = so3_exp(np.array([0.3, 0.1, -0.7])), np.array([1.0, 2.0, 1.5]), np.array([0.4, -0.3, 0.2])
+    lev, td, b = np.array([0.12, -0.08, 0.14]), 0.033, np.array([0.03, -0.05])
+    _e, Jp, Jv, Jl, Jt = grp.evaluate(R, p, v, lev, td, b, jacobians=True)
+    h = 1e-6
+    for i in range(3):
+        dx = np.zeros(3)
+        dx[i] = h
+        fd = (grp.evaluate(R @ so3_exp(dx), p, v, lev, td, b) - grp.evaluate(R @ so3_exp(-dx), p, v, lev, td, b)) / 2 / h
+        np.testing.assert_allclose(Jp[:, i], fd, atol=1e-6)
+        fd = (grp.evaluate(R, p + R @ dx, v, lev, td, b) - grp.evaluate(R, p - R @ dx, v, lev, td, b)) / 2 / h
+        np.testing.assert_allclose(Jp[:, 3 + i], fd, atol=1e-6)
+        fd = (grp.evaluate(R, p, v + dx, lev, td, b) - grp.evaluate(R, p, v - dx, lev, td, b)) / 2 / h
+        np.testing.assert_allclose(Jv[:, i], fd, atol=1e-6)
+        fd = (grp.evaluate(R, p, v, lev + dx, td, b) - grp.evaluate(R, p, v, lev - dx, td, b)) / 2 / h
+        np.testing.assert_allclose(Jl[:, i], fd, atol=1e-6)
+    fd = (grp.evaluate(R, p, v, lev, td + h, b) - grp.evaluate(R, p, v, lev, td - h, b)) / 2 / h
+    np.testing.assert_allclose(Jt, fd, atol=1e-6)

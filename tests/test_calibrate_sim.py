@@ -140,3 +140,17 @@ def test_profile_minimum_at_the_grid_edge_is_held_at_prior(tmp_path):
     write_calibration(res, tmp_path)
     written = yaml.safe_load((tmp_path / "calibration.yaml").read_text())["time_offset"]
     assert written["verdict"] == "at_grid_edge" and written["sd"] is None and written["value"] == 0.3
+
+
+def test_grouped_range_factors_match_the_per_range_graph(seeded_runs):
+    """The vectorised per-keyframe range factors (default) and one CustomFactor per range reach the same
+    optimum (same cost and gradient) and marginals within 2 % (Gauss-Newton weight of down-weighted rows)."""
+    ds, res = seeded_runs[0]
+    per = calibrate(ds, CalibrationOptions(td_profile={"enabled": False}, group_range_factors=False), eskf=res.eskf)
+    a, b = res.calibration, per.calibration
+    sd = np.append(b["lever_arm_sd"], b["time_offset"]["sd"])
+    diff = np.append(np.subtract(a["lever_arm"], b["lever_arm"]), a["time_offset"]["value"] - b["time_offset"]["value"])
+    assert np.all(np.abs(diff) < 0.02 * sd), diff / sd
+    np.testing.assert_allclose(np.append(a["lever_arm_sd"], a["time_offset"]["sd"]), sd, rtol=0.02)
+    assert a["solver"]["final_cost"] == pytest.approx(b["solver"]["final_cost"], rel=1e-6)
+    np.testing.assert_allclose(res.residuals["residual"], per.residuals["residual"], atol=2e-4)

@@ -89,18 +89,24 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
 
     Parameters
     ----------
-    dataset : :class:`uwbimu.io.dataset.Dataset` with IMU, ranges and anchors (one tag).
+    dataset : :class:`uwbimu.io.dataset.Dataset` with IMU, ranges and anchors (one tag).  A z-down
+        anchors' frame (``anchor_frame_up: -z``) and ``known_anchor_bias`` are handled by
+        :mod:`uwbimu.calibration.frames`: the outputs are in the anchors' frame, the ranges in
+        ``residuals`` have the documented biases removed.
     options : graph settings; defaults when None.
-    eskf : an ESKF result to initialise from; ``run_eskf(dataset, eskf_options)`` when None.
+    eskf : an ESKF result (anchors' frame) to initialise from; ``run_eskf(dataset, eskf_options)`` when None.
     progress : called with a fraction in [0, 1].
     """
     from uwbimu.estimation import EskfOptions, run_eskf
 
+    from uwbimu.calibration.frames import from_graph_frame, to_graph_frame
+
     t_start = time.perf_counter()
     o = options or CalibrationOptions()
+    dataset, eskf_options, eskf, frame = to_graph_frame(dataset, eskf_options or EskfOptions(), eskf)
     setup = AN.plan_anchors(dataset, o)
     events = list(setup.events)
-    eo = eskf_options or EskfOptions()
+    eo = eskf_options
     if not setup.any_estimated:
         eskf = eskf if eskf is not None else run_eskf(dataset, eo)
     else:
@@ -138,8 +144,11 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
     cal["events"] = [{k: v for k, v in ev.items()} for ev in events]
     if progress is not None:
         progress(1.0)
-    return CalibrationResult(calibration=cal, trajectory=traj, residuals=res, profile=prof, eskf=eskf,
-                             runtime_s=time.perf_counter() - t_start, events=events, anchors=anchors)
+    out = CalibrationResult(calibration=cal, trajectory=traj, residuals=res, profile=prof, eskf=eskf,
+                            events=events, anchors=anchors)
+    from_graph_frame(out, frame)
+    out.runtime_s = time.perf_counter() - t_start
+    return out
 
 
 def _bootstrap(dataset, o: CalibrationOptions, setup, eo, eskf, events: list):
@@ -229,13 +238,10 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
     lever = values.atVector(L(0))
     td = float(values.atVector(T(0))[0]) if td_free else pb.options.time_offset_prior
     # Residuals of the final graph's range factors, in the order of assoc.used.
-    n_fixed = graph.size() - len(assoc.used)
-    rows = []
-    for idx, m in enumerate(assoc.used):
-        f = graph.at(n_fixed + idx)
-        e = float(f.unwhitenedError(values)[0])
-        rows.append((pb.t_range[m], pb.anchor_ids[pb.anchor_j[m]], pb.rho[m], pb.rho[m] + e, e))
-    res = pd.DataFrame(rows, columns=["t", "anchor", "range", "predicted", "residual"])
+    e = G.range_residuals(graph, assoc, values, td)
+    used = assoc.used
+    res = pd.DataFrame({"t": pb.t_range[used], "anchor": np.array(pb.anchor_ids, dtype=object)[pb.anchor_j[used]],
+                        "range": pb.rho[used], "predicted": pb.rho[used] + e, "residual": e})
     sig = np.full(len(res), pb.range_sigma)
     if pb.anchor_b is not None:
         # TDoA rows: "anchor" is anchor_a, "range" the measured TDoA [m]

@@ -22,7 +22,7 @@ import numpy as np
 
 from uwbimu.calibration.anchors import GAUGE_SIGMA, AnchorSetup
 from uwbimu.calibration.options import CalibrationOptions
-from uwbimu.calibration.range_factor import imu_deltas, make_gtsam_factor
+from uwbimu.calibration.range_factor import RangeGroup, imu_deltas, make_gtsam_factor, make_gtsam_group_factor
 from uwbimu.calibration.tdoa_factor import make_gtsam_tdoa_factor
 from uwbimu.models.reference import GRAVITY
 
@@ -195,6 +195,10 @@ class Association:
     used: np.ndarray  # indices into the problem's ranges
     key: np.ndarray
     deltas: list
+    # filled by build_graph: per used row, (graph factor index, row within that factor's residual);
+    # groups: graph factor index -> RangeGroup of the grouped (per-keyframe) range factors
+    slots: Optional[np.ndarray] = None
+    groups: dict = field(default_factory=dict)
 
 
 def associate(pb: Problem, td0: float, imu_bias=None) -> Association:
@@ -239,8 +243,34 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
     if pb.anchor_b is not None:
         tnoise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(o.huber_k),
                                                 gtsam.noiseModel.Isotropic.Sigma(1, pb.tdoa_sigma))
-    # The range factors come last: _report reads them as the graph's final len(assoc.used) factors.
-    for m, k, d in zip(assoc.used, assoc.key, assoc.deltas):
+    # assoc.slots records where each used row's residual lives (_report reads it back).
+    slots = np.zeros((len(assoc.used), 2), np.int64)
+    assoc.groups = {}
+    grouped = np.zeros(len(assoc.used), bool)
+    if o.group_range_factors:
+        plain = np.array([not pb.is_tdoa(m) and not pb.estimated(int(pb.anchor_j[m])) for m in assoc.used], bool)
+        rows = np.flatnonzero(plain)
+        if len(rows):
+            keys_of = np.asarray(assoc.key)[rows]
+            order = rows[np.argsort(keys_of, kind="stable")]
+            bounds = np.flatnonzero(np.diff(np.asarray(assoc.key)[order])) + 1
+            for chunk in np.split(order, bounds):
+                k = int(assoc.key[chunk[0]])
+                ms = assoc.used[chunk]
+                js = pb.anchor_j[ms].astype(np.int64)
+                ujs, col = np.unique(js, return_inverse=True)
+                grp = RangeGroup([assoc.deltas[i] for i in chunk], pb.anchor_pos[js], pb.rho[ms], col, assoc.td0)
+                keys = [X(k), V(k), L(0)] + ([T(0)] if td_fixed is None else []) + [A(int(j)) for j in ujs]
+                fi = g.size()
+                g.add(make_gtsam_group_factor(keys, grp, pb.range_sigma, o.huber_k, td_fixed=td_fixed))
+                assoc.groups[fi] = grp
+                slots[chunk, 0] = fi
+                slots[chunk, 1] = np.arange(len(chunk))
+            grouped[rows] = True
+    for i, (m, k, d) in enumerate(zip(assoc.used, assoc.key, assoc.deltas)):
+        if grouped[i]:
+            continue
+        slots[i] = (g.size(), 0)
         j = int(pb.anchor_j[m])
         if pb.is_tdoa(m):
             jb = int(pb.anchor_b[m])
@@ -252,7 +282,28 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
         keys = [X(k), V(k), L(0)] + ([T(0)] if td_fixed is None else []) + [A(j)] + ([P(j)] if est else [])
         g.add(make_gtsam_factor(keys, pb.anchor_pos[j], pb.rho[m], d, assoc.td0, noise, td_fixed=td_fixed,
                                 anchor_variable=est))
+    assoc.slots = slots
     return g
+
+
+def range_residuals(graph, assoc: Association, values, td: float) -> np.ndarray:
+    """Unwhitened residual [m] of every used row (``assoc.used`` order) of a graph built by :func:`build_graph`."""
+    X, V, B, L, T, A = _keys()
+    out = np.empty(len(assoc.used))
+    lever = values.atVector(L(0))
+    for fi, grp in assoc.groups.items():
+        f = graph.at(int(fi))
+        ks = f.keys()
+        pose = values.atPose3(ks[0])
+        nb_off = len(ks) - (int(grp.bias_col.max()) + 1)
+        biases = np.array([values.atVector(ks[nb_off + i])[0] for i in range(len(ks) - nb_off)])
+        e = grp.evaluate(pose.rotation().matrix(), pose.translation(), values.atVector(ks[1]), lever, td, biases)
+        rows = np.flatnonzero(assoc.slots[:, 0] == fi)
+        out[rows] = e[assoc.slots[rows, 1]]
+    single = np.flatnonzero(~np.isin(assoc.slots[:, 0], list(assoc.groups)))
+    for i in single:
+        out[i] = float(graph.at(int(assoc.slots[i, 0])).unwhitenedError(values)[0])
+    return out
 
 
 def pair_error(pa: np.ndarray, pb_: np.ndarray, r: float, jacobians: bool = False):

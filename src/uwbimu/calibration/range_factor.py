@@ -183,3 +183,129 @@ def make_gtsam_factor(keys, anchor, rho, d: RangeDelta, td0: float, noise, td_fi
         return np.array([e])
 
     return gtsam.CustomFactor(noise, gtsam.KeyVector(keys), error)
+
+
+def so3_exp_batch(w: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotation matrices ``Exp(w_i)`` (Rodrigues) of (N, 3) rotation vectors [rad]."""
+    w = np.asarray(w, float)
+    th = np.linalg.norm(w, axis=1)
+    K = np.zeros((len(w), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+    small = th < 1e-8
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 1.0, np.sin(ths) / ths)
+    b = np.where(small, 0.5, (1.0 - np.cos(ths)) / ths**2)
+    return np.eye(3)[None] + a[:, None, None] * K + b[:, None, None] * (K @ K)
+
+
+class RangeGroup:
+    """The ranges attached to one keyframe, evaluated together (vectorised :func:`range_error`).
+
+    Same model, residual and Jacobians as :func:`range_error` for every row (pinned by
+    ``tests/test_calibrate_factor.py``); one GTSAM callback per keyframe instead of one per range.
+
+    Parameters
+    ----------
+    deltas : the rows' :class:`RangeDelta` (same keyframe).
+    anchors : (N, 3) anchor positions [m] (world).
+    rho : (N,) measured ranges [m].
+    bias_col : (N,) index of each row's anchor-bias key among the group's bias keys.
+    td0 : the association's time offset [s].
+    """
+
+    def __init__(self, deltas, anchors, rho, bias_col, td0: float):
+        self.tau = np.array([d.tau for d in deltas])
+        self.dR = np.array([d.dR for d in deltas])
+        self.dv = np.array([d.dv for d in deltas])
+        self.dp = np.array([d.dp for d in deltas])
+        self.acc = np.array([d.acc for d in deltas])
+        self.omega = np.array([d.omega for d in deltas])
+        self.dRacc = np.einsum("nij,nj->ni", self.dR, self.acc)
+        self.anchor = np.asarray(anchors, float).reshape(-1, 3)
+        self.rho = np.asarray(rho, float)
+        self.bias_col = np.asarray(bias_col, np.int64)
+        self.td0 = float(td0)
+
+    def __len__(self) -> int:
+        return len(self.rho)
+
+    def evaluate(self, R_k, p_k, v_k, lever, td: float, biases, jacobians: bool = False):
+        """Residuals ``e`` (N,) [m] and, on request, Jacobians ``(J_pose (N, 6), J_vel (N, 3),
+        J_lever (N, 3), J_td (N,))`` on the GTSAM tangents (see :func:`range_error`)."""
+        g = G_WORLD
+        delta = td - self.td0
+        tau = self.tau[:, None]
+        R_s0 = R_k[None] @ self.dR
+        v_s0 = v_k - g * tau + self.dv @ R_k.T
+        a_s0 = np.einsum("nij,nj->ni", R_s0, self.acc) - g
+        p_s0 = p_k + v_k * tau - 0.5 * g * tau**2 + self.dp @ R_k.T
+        M = self.dR @ so3_exp_batch(self.omega * delta)
+        R_s = R_k[None] @ M
+        p_U = p_s0 + v_s0 * delta + 0.5 * a_s0 * delta**2 + R_s @ lever
+        u = p_U - self.anchor
+        r = np.linalg.norm(u, axis=1)
+        e = r + np.asarray(biases, float)[self.bias_col] - self.rho
+        if not jacobians:
+            return e
+        n = u / r[:, None]
+        m = n @ R_k  # R_k^T n
+        body = self.dp + delta * self.dv + 0.5 * delta**2 * self.dRacc + M @ lever
+        J_pose = np.hstack([np.cross(body, m), m])
+        J_vel = n * (tau + delta)
+        J_lever = np.einsum("nij,ni->nj", R_s, n)
+        J_td = np.einsum("ni,ni->n", n, v_s0 + a_s0 * delta
+                         + np.einsum("nij,nj->ni", R_s, np.cross(self.omega, lever)))
+        return e, J_pose, J_vel, J_lever, J_td
+
+
+def huber_sqrt(z: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
+    """``s = sign(z) sqrt(2 rho(z))`` of the Huber loss (``rho = z^2/2`` for ``|z| <= k``, else
+    ``k|z| - k^2/2``) and ``ds/dz``: ``s^2 / 2`` is GTSAM's Huber loss exactly, and so is its gradient."""
+    a = np.abs(z)
+    out = a > k
+    s = np.where(out, np.sign(z) * np.sqrt(np.maximum(2.0 * k * a - k * k, 0.0)), z)
+    ds = np.where(out, k / np.where(out, np.abs(s), 1.0), 1.0)
+    return s, ds
+
+
+def make_gtsam_group_factor(keys, group: RangeGroup, sigma: float, huber_k: float, td_fixed: float | None = None):
+    """A ``gtsam.CustomFactor`` on ``[pose, velocity, lever arm, (t_d), bias_0, bias_1, ...]`` of a keyframe's ranges.
+
+    The robust loss is applied per range inside the factor: the returned residual is
+    ``huber_sqrt(e / sigma)`` with a unit noise model, so the factor's error is the sum of the
+    rows' Huber losses (equal to one ``Robust(Huber(k), Isotropic(sigma))`` factor per range) with
+    the same gradient; its Gauss-Newton weight of a down-weighted row is ``k / (2|z| - k)`` where
+    GTSAM's iteratively reweighted one is ``k / |z|`` (equal at the threshold).
+    """
+    import gtsam
+
+    has_td = td_fixed is None
+    nb = len(keys) - (4 if has_td else 3)
+    n = len(group)
+    onehot = np.zeros((n, nb))
+    onehot[np.arange(n), group.bias_col] = 1.0
+
+    def error(this, values, H):
+        ks = this.keys()
+        pose = values.atPose3(ks[0])
+        td = values.atVector(ks[3])[0] if has_td else td_fixed
+        off = 4 if has_td else 3
+        biases = np.array([values.atVector(ks[off + i])[0] for i in range(nb)])
+        res = group.evaluate(pose.rotation().matrix(), pose.translation(), values.atVector(ks[1]),
+                             values.atVector(ks[2]), td, biases, jacobians=H is not None)
+        if H is None:
+            return huber_sqrt(res / sigma, huber_k)[0]
+        e, Jp, Jv, Jl, Jt = res
+        s, ds = huber_sqrt(e / sigma, huber_k)
+        w = (ds / sigma)[:, None]
+        H[0] = w * Jp
+        H[1] = w * Jv
+        H[2] = w * Jl
+        if has_td:
+            H[3] = w * Jt[:, None]
+        for i in range(nb):
+            H[off + i] = w * onehot[:, i:i + 1]
+        return s
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(n), gtsam.KeyVector(keys), error)
