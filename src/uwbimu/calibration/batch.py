@@ -249,6 +249,10 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
         res["kind"] = np.where(b >= 0, "tdoa", "range")
         res["anchor_b"] = np.where(b >= 0, np.array(pb.anchor_ids, dtype=object)[np.maximum(b, 0)], "")
         sig[b >= 0] = pb.tdoa_sigma
+    if pb.drift_knot is not None:
+        # the slowly varying bias of each row (already inside "predicted" and "residual")
+        res["bias_drift"] = [float(values.atVector(G.drift_key(j, n))[0])
+                             for j, n in zip(pb.anchor_j[used], pb.drift_knot[used])]
     res["z"] = res["residual"] / sig
     res["outlier"] = np.abs(res["z"]) > pb.options.huber_k
     offs = 3 + (1 if td_free else 0)
@@ -275,6 +279,11 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
                    "expected_downweighted": float(len(res) * erfc(pb.options.huber_k / np.sqrt(2.0))),
                    "outliers_3sigma": int((np.abs(res["z"]) > 3.0).sum()), "huber_k": pb.options.huber_k,
                    "range_sigma": pb.range_sigma},
+        "range_model": {"white_sd": pb.range_sigma, "huber_k": pb.options.huber_k,
+                        "constant_bias_prior_sd": pb.options.anchor_bias_prior_sd if pb.options.estimate_anchor_bias
+                        else None,
+                        "drift": (pb.options.range_bias_drift.model_dump() | {"knots_per_anchor": pb.n_knots}
+                                  if pb.options.range_bias_drift is not None else None)},
         "solver": {"keyframes": int(len(pb.key_idx)), "iterations": int(iters),
                    "final_cost": float(graph.error(values))},
     }
@@ -335,7 +344,7 @@ def _anchor_report(pb, values, sd_p: dict, dataset):
 
 
 #: Tangent dimension of every variable, by the GTSAM symbol letter (see graph.py).
-_DIMS = {"x": 6, "v": 3, "b": 6, "l": 3, "t": 1, "a": 1, "p": 3}
+_DIMS = {"x": 6, "v": 3, "b": 6, "l": 3, "t": 1, "a": 1, "p": 3, "d": 1}
 
 
 class SparseMarginals:

@@ -38,6 +38,39 @@ def _keys():
     return X, V, B, L, T, A
 
 
+def drift_key(j: int, n: int) -> int:
+    """Key of knot ``n`` of anchor ``j``'s slowly varying bias (``d``, 1-vector, m)."""
+    import gtsam
+
+    return gtsam.symbol("d", int(j) * 1_000_000 + int(n))
+
+
+def drift_factors(pb) -> list:
+    """Gauss-Markov chain of every anchor's slowly varying bias (linear, C++ ``JacobianFactor``s; cached)."""
+    import gtsam
+
+    if pb._drift_factors is not None:
+        return pb._drift_factors
+    dr = pb.options.range_bias_drift
+    phi = float(np.exp(-dr.knot_spacing / dr.correlation_time))
+    q = dr.sd * np.sqrt(1.0 - phi**2)
+    zero = gtsam.Values()
+    for j in range(len(pb.anchor_ids)):
+        for n in range(pb.n_knots):
+            zero.insert(drift_key(j, n), np.zeros(1))
+    out = []
+    one = np.ones((1, 1))
+    for j in range(len(pb.anchor_ids)):
+        jf = gtsam.JacobianFactor(drift_key(j, 0), one, np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, dr.sd))
+        out.append(gtsam.LinearContainerFactor(jf, zero))
+        for n in range(pb.n_knots - 1):
+            jf = gtsam.JacobianFactor(drift_key(j, n), -phi * one, drift_key(j, n + 1), one, np.zeros(1),
+                                      gtsam.noiseModel.Isotropic.Sigma(1, q))
+            out.append(gtsam.LinearContainerFactor(jf, zero))
+    pb._drift_factors = out
+    return out
+
+
 def _P():
     """Key of an estimated anchor position (``P(j)``, ``Point3``, world frame)."""
     from gtsam.symbol_shorthand import P
@@ -68,6 +101,10 @@ class Problem:
     # rho[m] = |p_U - p_b| - |p_U - p_a| with a = anchor_j[m], b = anchor_b[m]; None: ranges only
     anchor_b: Optional[np.ndarray] = None
     tdoa_sigma: float = 0.0
+    # slowly varying bias (options.range_bias_drift): knot index of every row, number of knots per anchor
+    drift_knot: Optional[np.ndarray] = None
+    n_knots: int = 0
+    _drift_factors: Optional[list] = None
 
     def is_tdoa(self, m: int) -> bool:
         return self.anchor_b is not None and int(self.anchor_b[m]) >= 0
@@ -144,7 +181,17 @@ def build_problem(dataset, eskf, options: CalibrationOptions, anchors: Optional[
         t_r, rho, aj, bj = t_r[order], rho[order], aj[order], bj[order]
         base = options.range_sigma or dataset.meta.range_sigma or 0.1
         tsig = float(options.tdoa_sigma or (dataset.meta.extra or {}).get("tdoa_sigma") or np.sqrt(2.0) * base)
-    return Problem(t_imu=t_imu, u_imu=u_imu, key_idx=key_idx, t_range=t_r,
+    knot, n_knots = None, 0
+    dr = options.range_bias_drift
+    if dr is not None:
+        from uwbimu.errors import UsageError
+
+        if bj is not None or (anchors is not None and any(anchors.estimated)) or not options.group_range_factors:
+            raise UsageError("calibrate: range_bias_drift works with ranges to fixed anchors and grouped range "
+                             "factors only (not with TDoA, --estimate-anchors or group_range_factors: false)")
+        knot = np.rint((t_r - t_r.min()) / dr.knot_spacing).astype(np.int64)
+        n_knots = int(knot.max()) + 1
+    return Problem(t_imu=t_imu, u_imu=u_imu, key_idx=key_idx, t_range=t_r, drift_knot=knot, n_knots=n_knots,
                    rho=rho, anchor_j=aj, anchor_b=bj, tdoa_sigma=tsig,
                    anchor_ids=ids, anchor_pos=np.array([pos[a] for a in ids]), init_states=init,
                    lever0=np.asarray(eskf.calibration["lever_arm"], float),
@@ -236,6 +283,9 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
     if pb.anchors is not None:
         for f in anchor_factors(pb):
             g.add(f)
+    if pb.drift_knot is not None:
+        for f in drift_factors(pb):
+            g.add(f)
     noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(o.huber_k),
                                            gtsam.noiseModel.Isotropic.Sigma(1, pb.range_sigma))
     P = _P()
@@ -259,8 +309,18 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
                 ms = assoc.used[chunk]
                 js = pb.anchor_j[ms].astype(np.int64)
                 ujs, col = np.unique(js, return_inverse=True)
-                grp = RangeGroup([assoc.deltas[i] for i in chunk], pb.anchor_pos[js], pb.rho[ms], col, assoc.td0)
-                keys = [X(k), V(k), L(0)] + ([T(0)] if td_fixed is None else []) + [A(int(j)) for j in ujs]
+                bkeys = [A(int(j)) for j in ujs]
+                bmat = None
+                if pb.drift_knot is not None:
+                    dk = np.array([drift_key(j, n) for j, n in zip(js, pb.drift_knot[ms])], dtype=np.uint64)
+                    udk, dcol = np.unique(dk, return_inverse=True)
+                    bmat = np.zeros((len(ms), len(ujs) + len(udk)))
+                    bmat[np.arange(len(ms)), col] = 1.0
+                    bmat[np.arange(len(ms)), len(ujs) + dcol] = 1.0
+                    bkeys += [int(x) for x in udk]
+                grp = RangeGroup([assoc.deltas[i] for i in chunk], pb.anchor_pos[js], pb.rho[ms], col, assoc.td0,
+                                 bias_matrix=bmat)
+                keys = [X(k), V(k), L(0)] + ([T(0)] if td_fixed is None else []) + bkeys
                 fi = g.size()
                 g.add(make_gtsam_group_factor(keys, grp, pb.range_sigma, o.huber_k, td_fixed=td_fixed))
                 assoc.groups[fi] = grp
@@ -295,7 +355,7 @@ def range_residuals(graph, assoc: Association, values, td: float) -> np.ndarray:
         f = graph.at(int(fi))
         ks = f.keys()
         pose = values.atPose3(ks[0])
-        nb_off = len(ks) - (int(grp.bias_col.max()) + 1)
+        nb_off = len(ks) - grp.n_bias
         biases = np.array([values.atVector(ks[nb_off + i])[0] for i in range(len(ks) - nb_off)])
         e = grp.evaluate(pose.rotation().matrix(), pose.translation(), values.atVector(ks[1]), lever, td, biases)
         rows = np.flatnonzero(assoc.slots[:, 0] == fi)
@@ -382,6 +442,8 @@ def initial_values(pb: Problem, with_td: bool = True):
         vals.insert(T(0), np.array([pb.td0]))
     for j in range(len(pb.anchor_ids)):
         vals.insert(A(j), np.zeros(1))
+        for n in range(pb.n_knots if pb.drift_knot is not None else 0):
+            vals.insert(drift_key(j, n), np.zeros(1))
         if pb.estimated(j):
             vals.insert(_P()(j), np.asarray(pb.anchor_pos[j], float).copy())
     return vals

@@ -20,6 +20,23 @@ class TdProfileOptions(BaseModel):
                                "(9 = 3 sigma for one parameter)")
 
 
+class RangeBiasDrift(BaseModel):
+    """Slowly varying part of each anchor's range bias: a first-order Gauss-Markov process per anchor.
+
+    Real two-way ranges carry errors that stay correlated for seconds (antenna pattern and multipath
+    change slowly with the line of sight); a white model then averages them as independent and is
+    over-confident.  Each anchor's bias is ``c_j + d_j(t)``: ``c_j`` the constant bias (prior
+    ``anchor_bias_prior_sd``), ``d_j`` piecewise constant on knots ``knot_spacing`` apart with
+    ``d_0 ~ N(0, sd^2)`` and ``d_{n+1} = phi d_n + w``, ``phi = exp(-knot_spacing / correlation_time)``,
+    ``w ~ N(0, sd^2 (1 - phi^2))`` (stationary sd ``sd``).  ``range_sigma`` is then the white part only.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    sd: float = Field(..., gt=0, description="stationary sd of the slowly varying bias [m]")
+    correlation_time: float = Field(2.0, gt=0, description="[s]")
+    knot_spacing: float = Field(0.5, gt=0, description="[s] (UWB clock); at most correlation_time / 2 is sensible")
+
+
 class CalibrationOptions(BaseModel):
     """Factor-graph settings; noise defaults come from ``dataset.yaml`` when it documents them."""
 
@@ -40,6 +57,9 @@ class CalibrationOptions(BaseModel):
     time_offset_prior_sd: float = Field(0.5, gt=0, description="[s]")
     anchor_bias_prior_sd: float = Field(0.3, gt=0, description="per-anchor constant range bias prior sd [m]")
     estimate_anchor_bias: bool = True
+    range_bias_drift: Optional[RangeBiasDrift] = Field(
+        None, description="slowly varying per-anchor bias (correlated range errors of real data); none: white "
+                          "range noise plus a constant bias per anchor")
     estimate_anchors: list[str] = Field(
         default_factory=list, description="anchor ids whose positions are estimated (self-survey; anchors marked "
                                           "surveyed: false in anchors.csv are always estimated)")

@@ -212,9 +212,11 @@ class RangeGroup:
     rho : (N,) measured ranges [m].
     bias_col : (N,) index of each row's anchor-bias key among the group's bias keys.
     td0 : the association's time offset [s].
+    bias_matrix : optional (N, nb) 0/1 matrix: row m's bias is ``bias_matrix[m] @ biases`` (a constant
+        bias plus a slowly varying one); default the one-hot matrix of ``bias_col``.
     """
 
-    def __init__(self, deltas, anchors, rho, bias_col, td0: float):
+    def __init__(self, deltas, anchors, rho, bias_col, td0: float, bias_matrix=None):
         self.tau = np.array([d.tau for d in deltas])
         self.dR = np.array([d.dR for d in deltas])
         self.dv = np.array([d.dv for d in deltas])
@@ -226,6 +228,15 @@ class RangeGroup:
         self.rho = np.asarray(rho, float)
         self.bias_col = np.asarray(bias_col, np.int64)
         self.td0 = float(td0)
+        if bias_matrix is None:
+            bias_matrix = np.zeros((len(self.rho), int(self.bias_col.max()) + 1))
+            bias_matrix[np.arange(len(self.rho)), self.bias_col] = 1.0
+        self.bias_matrix = np.asarray(bias_matrix, float)
+
+    @property
+    def n_bias(self) -> int:
+        """Number of bias keys of the group."""
+        return int(self.bias_matrix.shape[1])
 
     def __len__(self) -> int:
         return len(self.rho)
@@ -245,7 +256,7 @@ class RangeGroup:
         p_U = p_s0 + v_s0 * delta + 0.5 * a_s0 * delta**2 + R_s @ lever
         u = p_U - self.anchor
         r = np.linalg.norm(u, axis=1)
-        e = r + np.asarray(biases, float)[self.bias_col] - self.rho
+        e = r + self.bias_matrix @ np.asarray(biases, float) - self.rho
         if not jacobians:
             return e
         n = u / r[:, None]
@@ -283,8 +294,8 @@ def make_gtsam_group_factor(keys, group: RangeGroup, sigma: float, huber_k: floa
     has_td = td_fixed is None
     nb = len(keys) - (4 if has_td else 3)
     n = len(group)
-    onehot = np.zeros((n, nb))
-    onehot[np.arange(n), group.bias_col] = 1.0
+    onehot = group.bias_matrix
+    assert onehot.shape[1] == nb, "one key per column of the group's bias matrix"
 
     def error(this, values, H):
         ks = this.keys()
