@@ -42,18 +42,23 @@ class CalibrationResult:
     anchors: Optional[pd.DataFrame] = None
 
 
-def _solve(pb, imf, values, td0: float, td_fixed: Optional[float]):
-    """Solve with ranges attached about ``td0``; re-attach while free t_d moves > half a keyframe step."""
+def _solve(pb, imf, values, td0: float, td_fixed: Optional[float], assoc=None):
+    """Solve with ranges attached about ``td0``; re-attach while free t_d moves > half a keyframe step.
+
+    ``assoc``: an association to reuse for the first solve (profile points within half a keyframe
+    step of its ``td0``: the factor's second-order extrapolation in ``t_d - td0`` covers them).
+    """
     X, V, B, L, T, A = G._keys()
     half = 0.5 / pb.options.keyframe_hz
     for _ in range(pb.options.reassociate_max + 1):
-        assoc = G.associate(pb, td0)
+        if assoc is None or abs(assoc.td0 - td0) > half:
+            assoc = G.associate(pb, td0)
         graph = G.build_graph(pb, assoc, td_fixed=td_fixed, imu_factors=imf)
         values, iters = G.optimize(graph, values, pb.options.max_iterations)
         if td_fixed is not None:
             break
         td = float(values.atVector(T(0))[0])
-        if abs(td - td0) <= half:
+        if abs(td - assoc.td0) <= half:
             break
         td0 = td
     return graph, values, assoc, iters
@@ -72,8 +77,9 @@ def run_profile(pb, imf, free_values, centre: float, progress=None) -> TdProfile
     done = 0
     for direction in (range(start, len(grid)), range(start - 1, -1, -1)):
         vals = base
+        assoc = None
         for i in direction:
-            graph, vals, _, iters[i] = _solve(pb, imf, vals, float(grid[i]), float(grid[i]))
+            graph, vals, assoc, iters[i] = _solve(pb, imf, vals, float(grid[i]), float(grid[i]), assoc)
             chi2[i] = 2.0 * graph.error(vals) + ((grid[i] - o.time_offset_prior) / o.time_offset_prior_sd) ** 2
             done += 1
             if progress is not None:
