@@ -299,3 +299,53 @@ def test_group_factor_jacobians_match_finite_differences():
         np.testing.assert_allclose(Jl[:, i], fd, atol=1e-6)
     fd = (grp.evaluate(R, p, v, lev, td + h, b) - grp.evaluate(R, p, v, lev, td - h, b)) / 2 / h
     np.testing.assert_allclose(Jt, fd, atol=1e-6)
+
+
+def test_group_factor_over_several_keyframes():
+    """Rows attached to three keyframes in one factor: each row's pose/velocity Jacobian lands on its own
+    keyframe's keys, and residuals, error and whitened Jacobians equal one factor per range."""
+    gtsam = pytest.importorskip("gtsam")
+    from gtsam.symbol_shorthand import A, L, T, V, X
+
+    from uwbimu.calibration.range_factor import RangeGroup, make_gtsam_group_factor
+
+    rng = np.random.default_rng(11)
+    t, u = _imu(rng)
+    t_key = np.array([0.0, 0.06, 0.12])
+    s0 = np.sort(rng.uniform(0.0, 0.19, 9))
+    kk, deltas = imu_deltas(t, u, np.zeros(3), np.zeros(3), t_key, s0)
+    anchors = np.array([[4.0, -1.0, 2.5], [-3.0, 2.0, 0.3], [0.5, 5.0, 2.8]])
+    col = np.arange(9) % 3
+    R = [so3_exp(rng.normal(size=3) * 0.5) for _ in range(3)]
+    P = [np.array([1.0, 2.0, 1.5]) + 0.05 * i for i in range(3)]
+    Vv = [np.array([0.4, -0.3, 0.2]) * (1 + 0.1 * i) for i in range(3)]
+    lev, td, td0, b = np.array([0.12, -0.08, 0.14]), 0.027, 0.02, np.array([0.03, -0.05, 0.01])
+    grp0 = RangeGroup(deltas, anchors[col], np.zeros(9), col, td0, kf=kk)
+    rho = grp0.evaluate(np.array(R), np.array(P), np.array(Vv), lev, td, b) + rng.uniform(-0.05, 0.05, 9)
+    grp = RangeGroup(deltas, anchors[col], rho, col, td0, kf=kk)
+    keys = [X(0), V(0), X(1), V(1), X(2), V(2), L(0), T(0), A(0), A(1), A(2)]
+    fg = make_gtsam_group_factor(keys, grp, 0.1, 1.345)
+    vals = gtsam.Values()
+    for i in range(3):
+        vals.insert(X(i), gtsam.Pose3(gtsam.Rot3(R[i]), P[i]))
+        vals.insert(V(i), Vv[i])
+        vals.insert(A(i), np.array([b[i]]))
+    vals.insert(L(0), lev)
+    vals.insert(T(0), np.array([td]))
+    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(1.345),
+                                           gtsam.noiseModel.Isotropic.Sigma(1, 0.1))
+    singles = [make_gtsam_factor([X(int(k)), V(int(k)), L(0), T(0), A(int(c))], anchors[c], r, d, td0, noise)
+               for k, d, c, r in zip(kk, deltas, col, rho)]
+    assert fg.error(vals) == pytest.approx(sum(f.error(vals) for f in singles), rel=1e-12)
+    Ag, _ = fg.linearize(vals).jacobian()
+    dims = [6, 3] * 3 + [3, 1, 1, 1, 1]
+    starts = np.concatenate([[0], np.cumsum(dims)])
+    for i, f in enumerate(singles):
+        A1, _ = f.linearize(vals).jacobian()
+        row = np.zeros(Ag.shape[1])
+        k, c = int(kk[i]), int(col[i])
+        for blk, (lo, n) in enumerate([(starts[2 * k], 6), (starts[2 * k + 1], 3), (starts[6], 3), (starts[7], 1),
+                                       (starts[8 + c], 1)]):
+            row[lo:lo + n] = A1[0][[0, 6, 9, 12, 13][blk]:[0, 6, 9, 12, 13][blk] + n]
+        np.testing.assert_allclose(Ag[i], row, atol=1e-9)
+    assert set(kk) == {0, 1, 2}

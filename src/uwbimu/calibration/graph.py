@@ -22,7 +22,7 @@ import numpy as np
 
 from uwbimu.calibration.anchors import GAUGE_SIGMA, AnchorSetup
 from uwbimu.calibration.options import CalibrationOptions
-from uwbimu.calibration.range_factor import RangeGroup, imu_deltas, make_gtsam_factor, make_gtsam_group_factor
+from uwbimu.calibration.range_factor import RangeGroup, imu_cumulative, imu_deltas, make_gtsam_factor, make_gtsam_group_factor
 from uwbimu.calibration.tdoa_factor import make_gtsam_tdoa_factor
 from uwbimu.models.reference import GRAVITY
 
@@ -105,6 +105,7 @@ class Problem:
     drift_knot: Optional[np.ndarray] = None
     n_knots: int = 0
     _drift_factors: Optional[list] = None
+    _imu_cum: Optional[dict] = None  # imu_cumulative at the first keyframe's ESKF bias (cached)
 
     def is_tdoa(self, m: int) -> bool:
         return self.anchor_b is not None and int(self.anchor_b[m]) >= 0
@@ -253,7 +254,12 @@ def associate(pb: Problem, td0: float, imu_bias=None) -> Association:
     used = np.flatnonzero((s0 >= pb.t_key[0]) & (s0 < pb.t_imu[-1]))
     # Short deltas use the ESKF bias of the earliest keyframe (a fixed linearisation point).
     b = pb.init_states[0, 10:16] if imu_bias is None else imu_bias
-    k, deltas = imu_deltas(pb.t_imu, pb.u_imu, b[:3], b[3:], pb.t_key, s0[used])
+    cum = None
+    if imu_bias is None:
+        if pb._imu_cum is None:
+            pb._imu_cum = imu_cumulative(pb.t_imu, pb.u_imu, b[:3], b[3:], pb.t_key)
+        cum = pb._imu_cum
+    k, deltas = imu_deltas(pb.t_imu, pb.u_imu, b[:3], b[3:], pb.t_key, s0[used], cum=cum)
     return Association(td0=td0, used=used, key=k, deltas=deltas)
 
 
@@ -303,9 +309,10 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
         if len(rows):
             keys_of = np.asarray(assoc.key)[rows]
             order = rows[np.argsort(keys_of, kind="stable")]
-            bounds = np.flatnonzero(np.diff(np.asarray(assoc.key)[order])) + 1
+            gk = np.asarray(assoc.key)[order] // o.range_group_keyframes
+            bounds = np.flatnonzero(np.diff(gk)) + 1
             for chunk in np.split(order, bounds):
-                k = int(assoc.key[chunk[0]])
+                kfs, kf = np.unique(np.asarray(assoc.key)[chunk], return_inverse=True)
                 ms = assoc.used[chunk]
                 js = pb.anchor_j[ms].astype(np.int64)
                 ujs, col = np.unique(js, return_inverse=True)
@@ -319,8 +326,9 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
                     bmat[np.arange(len(ms)), len(ujs) + dcol] = 1.0
                     bkeys += [int(x) for x in udk]
                 grp = RangeGroup([assoc.deltas[i] for i in chunk], pb.anchor_pos[js], pb.rho[ms], col, assoc.td0,
-                                 bias_matrix=bmat)
-                keys = [X(k), V(k), L(0)] + ([T(0)] if td_fixed is None else []) + bkeys
+                                 bias_matrix=bmat, kf=kf)
+                keys = [key for k in kfs for key in (X(int(k)), V(int(k)))] + [L(0)] + \
+                    ([T(0)] if td_fixed is None else []) + bkeys
                 fi = g.size()
                 g.add(make_gtsam_group_factor(keys, grp, pb.range_sigma, o.huber_k, td_fixed=td_fixed))
                 assoc.groups[fi] = grp
@@ -354,10 +362,11 @@ def range_residuals(graph, assoc: Association, values, td: float) -> np.ndarray:
     for fi, grp in assoc.groups.items():
         f = graph.at(int(fi))
         ks = f.keys()
-        pose = values.atPose3(ks[0])
+        poses = [values.atPose3(ks[2 * i]) for i in range(grp.n_kf)]
         nb_off = len(ks) - grp.n_bias
         biases = np.array([values.atVector(ks[nb_off + i])[0] for i in range(len(ks) - nb_off)])
-        e = grp.evaluate(pose.rotation().matrix(), pose.translation(), values.atVector(ks[1]), lever, td, biases)
+        e = grp.evaluate(np.array([q.rotation().matrix() for q in poses]), np.array([q.translation() for q in poses]),
+                         np.array([values.atVector(ks[2 * i + 1]) for i in range(grp.n_kf)]), lever, td, biases)
         rows = np.flatnonzero(assoc.slots[:, 0] == fi)
         out[rows] = e[assoc.slots[rows, 1]]
     single = np.flatnonzero(~np.isin(assoc.slots[:, 0], list(assoc.groups)))

@@ -75,6 +75,9 @@ class CalibrationOptions(BaseModel):
     group_range_factors: bool = Field(
         True, description="one vectorised factor per keyframe for the ranges to fixed anchors (same model, ~10x "
                           "faster); false: one GTSAM CustomFactor per range (the reference implementation)")
+    range_group_keyframes: int = Field(
+        5, ge=1, le=50, description="consecutive keyframes whose ranges share one vectorised factor (fewer, larger "
+                                    "Python callbacks; same model)")
     max_iterations: int = Field(50, ge=1)
     reassociate_max: int = Field(3, ge=0, description="re-attach ranges when t_d moved > half a keyframe step")
     td_profile: TdProfileOptions = Field(default_factory=TdProfileOptions)
