@@ -1,13 +1,14 @@
 """Batch calibration on a shared real sequence: accuracy, t_d verdict, repeatability, CPU time.
 
     python benchmarks/check_calibrate_real.py DATASET --kind inrol|isas [--config calibrate.yaml]
-        [--windows 4] [--no-full] [--no-repeatability] [--json OUT.json]
+        [--noise-from-preset] [--windows 4] [--no-full] [--no-repeatability] [--json OUT.json]
 
 DATASET: an imported folder (``uwbimu import inrol ../shared/datasets/inrol_uwb_imu DIR`` or
 ``uwbimu import isas-walk ../shared/datasets/isas_walk DIR``).  The ESKF that initialises the graph
 runs with the shipped real-data preset (``examples/estimator_real.yaml`` for INRoL,
 ``examples/estimator_isas.yaml`` for ISAS-Walk); ``--config`` is the calibrator's options (default:
-the defaults, i.e. white range noise).  Printed, all measured in this run:
+the defaults, i.e. white range noise); ``--noise-from-preset`` adds the preset's noise model (its
+white ``range_sigma``, its Gauss-Markov anchor bias as ``range_bias_drift``, its IMU densities).  Printed, all measured in this run:
 
 * full log: CPU seconds of ``calibrate`` (``time.process_time``, this process, one core; the
   initialising ESKF included) and wall seconds; lever arm ± sigma vs the documented value; t_d
@@ -37,6 +38,27 @@ REPO = Path(__file__).resolve().parents[1]
 PRESET = {"inrol": REPO / "examples" / "estimator_real.yaml", "isas": REPO / "examples" / "estimator_isas.yaml"}
 ALIGN = {"inrol": "none", "isas": "se3"}
 EPOCH = {"inrol": 0.1, "isas": 0.0}  # as benchmarks/real_data.py
+
+
+def options_from_eskf_preset(path: Path, base: dict | None = None):
+    """CalibrationOptions with the noise model of a shipped ESKF preset: its white ``range_sigma``, its
+    Gauss-Markov anchor bias (``anchor_bias.prior_sd``, ``correlation_time``) as ``range_bias_drift`` and its
+    IMU densities when it sets them.  Nothing is fitted here; the preset documents where its values come from."""
+    import yaml
+
+    from uwbimu.calibration import CalibrationOptions
+
+    pre = yaml.safe_load(Path(path).read_text()) or {}
+    d = dict(base or {})
+    if "range_sigma" in pre:
+        d["range_sigma"] = float(pre["range_sigma"])
+    ab = pre.get("anchor_bias") or {}
+    if ab.get("mode") == "estimate" and ab.get("correlation_time"):
+        d["range_bias_drift"] = {"sd": float(ab["prior_sd"]), "correlation_time": float(ab["correlation_time"])}
+    for k in ("accel_noise_density", "gyro_noise_density", "accel_bias_rw", "gyro_bias_rw"):
+        if k in (pre.get("imu_noise") or {}):
+            d[k] = float(pre["imu_noise"][k])
+    return CalibrationOptions.model_validate(d)
 
 
 def flat_calibration(res) -> dict:
@@ -81,9 +103,59 @@ def full_log(ds, kind: str, opts, eo) -> dict:
            "eskf_lever_arm_sd": e.calibration["lever_arm_sd"], "eskf_td": e.calibration["time_offset"],
            "eskf_td_sd": e.calibration["time_offset_sd"], "residuals_per_anchor": per_anchor,
            "downweighted": c["ranges"]["downweighted"], "expected_downweighted": c["ranges"]["expected_downweighted"]}
+    out["direction"] = direction_table(res, ds)
     if res.profile is not None:
         out["profile"] = {"grid": [float(x) for x in res.profile.grid],
                           "delta_chi2": [float(x) for x in res.profile.chi2 - np.nanmin(res.profile.chi2)]}
+    return out
+
+
+def direction_table(res, ds, bins: int = 8) -> dict:
+    """Residual against the line of sight, per anchor: what a constant bias (+ drift) leaves.
+
+    For every range the unit line of sight anchor -> tag from the batch-smoothed trajectory (no ground
+    truth): its azimuth in the world frame (seen from the anchor) and its azimuth in the IMU body frame
+    (seen from the tag antenna).  Per anchor and per ``bins`` azimuth sectors: the median residual
+    [cm] (sectors with >= 30 ranges); ``spread`` = max - min of those medians; ``r2`` = share of the
+    residual variance explained by the sector medians.  Also the residuals' autocorrelation at 1 s lag.
+    """
+    from scipy.spatial.transform import Rotation, Slerp
+
+    r = res.residuals
+    tr = res.trajectory
+    t = r["t"].to_numpy(float)
+    P = np.column_stack([np.interp(t, tr.t, tr[c]) for c in ("px", "py", "pz")])
+    q = tr[["qx", "qy", "qz", "qw"]].to_numpy(float)
+    rot = Slerp(tr.t.to_numpy(float), Rotation.from_quat(q))(np.clip(t, tr.t.iloc[0], tr.t.iloc[-1]))
+    pos = res.anchors.set_index("anchor")[["x", "y", "z"]]
+    A = pos.loc[r["anchor"].astype(str)].to_numpy(float)
+    los = P + rot.apply(np.asarray(res.calibration["lever_arm"])) - A
+    los /= np.linalg.norm(los, axis=1, keepdims=True)
+    body = rot.inv().apply(-los)  # tag -> anchor, IMU frame
+    az_w = np.degrees(np.arctan2(los[:, 1], los[:, 0]))
+    az_b = np.degrees(np.arctan2(body[:, 1], body[:, 0]))
+    e = r["residual"].to_numpy(float)
+    out = {}
+    edges = np.linspace(-180, 180, bins + 1)
+    for a in sorted(r["anchor"].astype(str).unique(), key=str):
+        m = (r["anchor"].astype(str) == a).to_numpy()
+        row = {}
+        for name, az in (("world_azimuth", az_w), ("body_azimuth", az_b)):
+            sec = np.clip(np.digitize(az[m], edges) - 1, 0, bins - 1)
+            med = np.full(bins, np.nan)
+            for b in range(bins):
+                if np.sum(sec == b) >= 30:
+                    med[b] = np.median(e[m][sec == b])
+            fit = np.where(np.isfinite(med[sec]), med[sec], np.median(e[m]))
+            r2 = 1.0 - np.var(e[m] - fit) / np.var(e[m])
+            row[name] = {"median_cm": [None if not np.isfinite(x) else round(100 * float(x), 1) for x in med],
+                         "spread_cm": (100 * float(np.nanmax(med) - np.nanmin(med)) if np.isfinite(med).sum() >= 2
+                                       else float("nan")), "r2": float(r2)}
+        ta, ea = t[m], e[m]
+        j = np.searchsorted(ta, ta + 1.0)
+        ok = j < len(ta)
+        row["autocorr_1s"] = float(np.corrcoef(ea[ok], ea[j[ok]])[0, 1]) if ok.sum() > 10 else float("nan")
+        out[a] = row
     return out
 
 
@@ -102,6 +174,8 @@ def main(argv=None) -> int:
     ap.add_argument("dataset")
     ap.add_argument("--kind", choices=sorted(PRESET), required=True)
     ap.add_argument("--config", help="calibrate.yaml (CalibrationOptions)")
+    ap.add_argument("--noise-from-preset", action="store_true",
+                    help="range/IMU noise model of the ESKF preset (white part + Gauss-Markov drift), on top of --config")
     ap.add_argument("--windows", type=int, default=4)
     ap.add_argument("--no-full", action="store_true")
     ap.add_argument("--no-repeatability", action="store_true")
@@ -114,8 +188,12 @@ def main(argv=None) -> int:
 
     ds = load_dataset(a.dataset)
     opts = CalibrationOptions.from_yaml(a.config) if a.config else CalibrationOptions()
+    if a.noise_from_preset:
+        opts = options_from_eskf_preset(PRESET[a.kind], opts.model_dump(exclude_unset=True))
     eo = EskfOptions.from_yaml(PRESET[a.kind])
-    report = {"dataset": a.dataset, "kind": a.kind, "config": a.config, "load_before": os.getloadavg()}
+    report = {"dataset": a.dataset, "kind": a.kind, "config": a.config, "options": opts.model_dump(exclude_unset=True),
+              "load_before": os.getloadavg()}
+    print(f"options: {report['options']}")
     if not a.no_full:
         f = full_log(ds, a.kind, opts, eo)
         report["full"] = f
@@ -131,6 +209,12 @@ def main(argv=None) -> int:
               f"{f['ate_multilateration']:.3f} m ({ALIGN[a.kind]})")
         print("  residual median / MAD per anchor [cm]: " + ", ".join(
             f"{k}: {v['median_cm']:+.1f}/{v['mad_cm']:.1f}" for k, v in f["residuals_per_anchor"].items()))
+        print("  residual vs line of sight per anchor (spread of 45-deg sector medians [cm], share of variance; "
+              "autocorrelation at 1 s):")
+        for k, v in f["direction"].items():
+            print(f"    {k}: world azimuth {v['world_azimuth']['spread_cm']:.1f} cm ({v['world_azimuth']['r2']:.2f}), "
+                  f"body azimuth {v['body_azimuth']['spread_cm']:.1f} cm ({v['body_azimuth']['r2']:.2f}), "
+                  f"autocorr {v['autocorr_1s']:.2f}")
     if not a.no_repeatability:
         rep = windows(ds, opts, eo, a.windows)
         report["repeatability"] = rep

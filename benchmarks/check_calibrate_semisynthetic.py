@@ -1,7 +1,7 @@
 """Semi-synthetic checks of the batch calibrator on the shared INRoL sequence (issue 12, item 6).
 
     python benchmarks/check_calibrate_semisynthetic.py DATASET [--config calibrate.yaml] [--window S]
-        [--shifts 0.05,-0.05,0.1,-0.1] [--offset 0.15,-0.10,0.05] [--json OUT.json]
+        [--noise-from-preset] [--shifts 0.05,-0.05,0.1,-0.1] [--offset 0.15,-0.10,0.05] [--json OUT.json]
 
 DATASET: ``uwbimu import inrol ../shared/datasets/inrol_uwb_imu DIR``.  ESKF initialisation with
 ``examples/estimator_real.yaml``; ``--config``: the calibrator's options (default: defaults).
@@ -82,6 +82,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("dataset")
     ap.add_argument("--config")
+    ap.add_argument("--noise-from-preset", action="store_true", help="as in check_calibrate_real.py")
     ap.add_argument("--window", type=float, default=None, help="first seconds of the log (default: all)")
     ap.add_argument("--shifts", default="0.05,-0.05,0.1,-0.1")
     ap.add_argument("--offset", default="0.15,-0.10,0.05")
@@ -94,6 +95,13 @@ def main(argv=None) -> int:
 
     ds = window(load_dataset(a.dataset), a.window)
     opts = CalibrationOptions.from_yaml(a.config) if a.config else CalibrationOptions()
+    if a.noise_from_preset:
+        import sys
+
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from check_calibrate_real import options_from_eskf_preset
+
+        opts = options_from_eskf_preset(REAL, opts.model_dump(exclude_unset=True))
     eo = EskfOptions.from_yaml(REAL)
     rep: dict = {"dataset": a.dataset, "config": a.config, "window": a.window, "load_before": os.getloadavg()}
     base, cpu = run(ds, opts, eo)
