@@ -154,3 +154,33 @@ def test_grouped_range_factors_match_the_per_range_graph(seeded_runs):
     np.testing.assert_allclose(np.append(a["lever_arm_sd"], a["time_offset"]["sd"]), sd, rtol=0.02)
     assert a["solver"]["final_cost"] == pytest.approx(b["solver"]["final_cost"], rel=1e-6)
     np.testing.assert_allclose(res.residuals["residual"], per.residuals["residual"], atol=2e-4)
+
+
+def test_marginals_fall_back_when_a_lazy_query_fails(seeded_runs, monkeypatch):
+    """gtsam.Marginals eliminates per query: a query that raises (an "indeterminate" IMU chain, seen on an
+    ISAS-Walk window) switches to SparseMarginals instead of failing the calibration."""
+    import gtsam
+    from gtsam.symbol_shorthand import L, X
+
+    from uwbimu.calibration import graph as G
+    from uwbimu.calibration.batch import SparseMarginals, _marginals, _solve
+
+    ds, res = seeded_runs[0]
+    pb = G.build_problem(ds, res.eskf, CalibrationOptions(max_iterations=3))
+    graph, values, _, _ = _solve(pb, G._imu_factors(pb), G.initial_values(pb), pb.td0, None)
+
+    class Refusing:
+        def __init__(self, *a):
+            pass
+
+        def marginalCovariance(self, key):  # noqa: N802
+            raise RuntimeError("Indeterminate linear system detected")
+
+        jointMarginalCovariance = marginalCovariance  # noqa: N815
+
+    monkeypatch.setattr(gtsam, "Marginals", Refusing)
+    m = _marginals(pb, graph, values)
+    ref = SparseMarginals(graph, values)
+    np.testing.assert_allclose(m.marginalCovariance(X(7)), ref.marginalCovariance(X(7)))
+    np.testing.assert_allclose(m.jointMarginalCovariance(gtsam.KeyVector([L(0)])).fullMatrix(),
+                               ref.marginalCovariance(L(0)))

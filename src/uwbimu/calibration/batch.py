@@ -396,14 +396,38 @@ class SparseMarginals:
         return type("Joint", (), {"fullMatrix": lambda _self: cov})()
 
 
+class _Marginals:
+    """``gtsam.Marginals`` that falls back to :class:`SparseMarginals` when GTSAM's Cholesky refuses the
+    system, at construction or at any later query (GTSAM eliminates lazily per query)."""
+
+    def __init__(self, graph, values):
+        import gtsam
+
+        self._graph, self._values = graph, values
+        try:
+            self._m = gtsam.Marginals(graph, values)
+        except RuntimeError:
+            self._m = SparseMarginals(graph, values)
+
+    def _call(self, name, arg):
+        try:
+            return getattr(self._m, name)(arg)
+        except RuntimeError:
+            if isinstance(self._m, SparseMarginals):
+                raise
+            self._m = SparseMarginals(self._graph, self._values)
+            return getattr(self._m, name)(arg)
+
+    def marginalCovariance(self, key):  # noqa: N802 - gtsam.Marginals' name
+        return self._call("marginalCovariance", key)
+
+    def jointMarginalCovariance(self, keys):  # noqa: N802
+        return self._call("jointMarginalCovariance", keys)
+
+
 def _marginals(pb, graph, values):
     """``gtsam.Marginals``, or :class:`SparseMarginals` when GTSAM's Cholesky refuses the system."""
-    import gtsam
-
-    try:
-        return gtsam.Marginals(graph, values)
-    except RuntimeError:
-        return SparseMarginals(graph, values)
+    return _Marginals(graph, values)
 
 
 def _trajectory(pb, values, marg, td: float) -> pd.DataFrame:
