@@ -76,7 +76,7 @@ def _ate(traj, ds, align: str) -> float:
     return float(ev.summary["ate_position"]["rmse"])
 
 
-def full_log(ds, kind: str, opts, eo) -> dict:
+def full_log(ds, kind: str, opts, eo, save_dir=None) -> dict:
     import pandas as pd
 
     from uwbimu.calibration import calibrate
@@ -91,6 +91,10 @@ def full_log(ds, kind: str, opts, eo) -> dict:
     eskf_traj = pd.DataFrame({"t": e.t, "px": e.states[:, 0], "py": e.states[:, 1], "pz": e.states[:, 2]})
     ml = multilaterate(ds, epoch_s=EPOCH[kind])
     r = res.residuals
+    if save_dir is not None:
+        Path(save_dir).mkdir(parents=True, exist_ok=True)
+        r.to_csv(Path(save_dir) / "residuals.csv", index=False)
+        res.trajectory.to_csv(Path(save_dir) / "trajectory.csv", index=False)
     per_anchor = {str(a): {"median_cm": 100 * float(np.median(g.residual)),
                            "mad_cm": 100 * float(np.median(np.abs(g.residual - np.median(g.residual)))),
                            "n": int(len(g))} for a, g in r.groupby("anchor")}
@@ -116,7 +120,8 @@ def direction_table(res, ds, bins: int = 8) -> dict:
     For every range the unit line of sight anchor -> tag from the batch-smoothed trajectory (no ground
     truth): its azimuth in the world frame (seen from the anchor) and its azimuth in the IMU body frame
     (seen from the tag antenna).  Per anchor and per ``bins`` azimuth sectors: the median residual
-    [cm] (sectors with >= 30 ranges); ``spread`` = max - min of those medians; ``r2`` = share of the
+    [cm] (sectors with >= 30 ranges; with ``range_bias_drift`` the residual plus the row's slowly
+    varying bias, i.e. what the constant bias leaves); ``spread`` = max - min of those medians; ``r2`` = share of the
     residual variance explained by the sector medians.  Also the residuals' autocorrelation at 1 s lag.
     """
     from scipy.spatial.transform import Rotation, Slerp
@@ -135,6 +140,8 @@ def direction_table(res, ds, bins: int = 8) -> dict:
     az_w = np.degrees(np.arctan2(los[:, 1], los[:, 0]))
     az_b = np.degrees(np.arctan2(body[:, 1], body[:, 0]))
     e = r["residual"].to_numpy(float)
+    if "bias_drift" in r.columns:
+        e = e + r["bias_drift"].to_numpy(float)  # the correlated part is what this table is about
     out = {}
     edges = np.linspace(-180, 180, bins + 1)
     for a in sorted(r["anchor"].astype(str).unique(), key=str):
@@ -180,6 +187,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-full", action="store_true")
     ap.add_argument("--no-repeatability", action="store_true")
     ap.add_argument("--json", help="write every figure to this JSON file")
+    ap.add_argument("--save-dir", help="also write the full-log residuals.csv and trajectory.csv here")
     a = ap.parse_args(argv)
 
     from uwbimu.calibration import CalibrationOptions
@@ -195,7 +203,7 @@ def main(argv=None) -> int:
               "load_before": os.getloadavg()}
     print(f"options: {report['options']}")
     if not a.no_full:
-        f = full_log(ds, a.kind, opts, eo)
+        f = full_log(ds, a.kind, opts, eo, a.save_dir)
         report["full"] = f
         td = f["td"]
         sdc = "-" if td["sd_curvature"] is None else f"{1000 * td['sd_curvature']:.1f}"
