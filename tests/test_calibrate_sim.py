@@ -184,3 +184,21 @@ def test_marginals_fall_back_when_a_lazy_query_fails(seeded_runs, monkeypatch):
     np.testing.assert_allclose(m.marginalCovariance(X(7)), ref.marginalCovariance(X(7)))
     np.testing.assert_allclose(m.jointMarginalCovariance(gtsam.KeyVector([L(0)])).fullMatrix(),
                                ref.marginalCovariance(L(0)))
+
+
+def test_coarse_then_fine_profile_grid():
+    """coarse_step 0.1 s, step 0.02 s: the whole +/-0.3 s at 0.1 s, then 0.02 s within 0.1 s of the coarse
+    minimum; the verdict reads the union (identified here, t_d within 3 sigma, vertex inside the fine part)."""
+    ds = _flight("calibration-flight", 4, 8.0)
+    res = calibrate(ds, CalibrationOptions.model_validate(
+        {"td_profile": {"half_width": 0.3, "step": 0.02, "coarse_step": 0.1}, "max_iterations": 10}))
+    g = res.profile.grid
+    assert np.all(np.diff(g) > 0) and g[0] == pytest.approx(-0.3) and g[-1] == pytest.approx(0.3)
+    coarse = np.round(np.arange(-0.3, 0.3001, 0.1), 12)
+    assert set(coarse) <= set(np.round(g, 12))
+    fine = np.round(g[~np.isin(np.round(g, 12), coarse)], 12)
+    assert len(fine) == 8 and np.ptp(fine) <= 0.2 + 1e-9
+    assert res.profile.verdict == "identified"
+    assert fine.min() - 0.02 <= res.profile.vertex <= fine.max() + 0.02
+    td = res.calibration["time_offset"]
+    assert abs(td["value"] - ds.meta.truth.time_offset) < 3 * td["sd"]

@@ -64,26 +64,53 @@ def _solve(pb, imf, values, td0: float, td_fixed: Optional[float], assoc=None):
     return graph, values, assoc, iters
 
 
+def _profile_grid_points(mu: float, half: float, step: float) -> np.ndarray:
+    n = int(round(half / step))
+    return np.round(mu + step * np.arange(-n, n + 1), 12)
+
+
 def run_profile(pb, imf, free_values, centre: float, progress=None) -> TdProfile:
-    """Profile of t_d on the grid ``prior +/- half_width``, warm-started outward from ``centre``."""
+    """Profile of t_d on the grid ``prior +/- half_width``, warm-started outward from ``centre``.
+
+    With ``td_profile.coarse_step`` larger than ``step``: first the whole range at ``coarse_step``,
+    then ``step`` within one coarse step either side of the coarse minimum (warm-started from it);
+    the verdict reads the union of both (a non-uniform grid).  Otherwise the uniform ``step`` grid.
+    """
     po = pb.options.td_profile
     o = pb.options
-    n = int(round(po.half_width / po.step))
-    grid = o.time_offset_prior + po.step * np.arange(-n, n + 1)
-    chi2 = np.full(len(grid), np.nan)
-    iters = np.zeros(len(grid), int)
-    start = int(np.argmin(np.abs(grid - centre)))
+    mu = o.time_offset_prior
     base = G.without_td(free_values)
-    done = 0
-    for direction in (range(start, len(grid)), range(start - 1, -1, -1)):
-        vals = base
-        assoc = None
-        for i in direction:
-            graph, vals, assoc, iters[i] = _solve(pb, imf, vals, float(grid[i]), float(grid[i]), assoc)
-            chi2[i] = 2.0 * graph.error(vals) + ((grid[i] - o.time_offset_prior) / o.time_offset_prior_sd) ** 2
-            done += 1
-            if progress is not None:
-                progress(0.2 + 0.6 * done / len(grid))
+    found: dict = {}  # grid point -> (chi2, iterations, values)
+
+    def walk(points, start_t, start_vals, total):
+        points = np.asarray(points, float)
+        if not len(points):
+            return
+        start = int(np.argmin(np.abs(points - start_t)))
+        for direction in (range(start, len(points)), range(start - 1, -1, -1)):
+            vals, assoc = start_vals, None
+            for i in direction:
+                g = float(points[i])
+                graph, vals, assoc, it = _solve(pb, imf, vals, g, g, assoc)
+                found[g] = (2.0 * graph.error(vals) + ((g - mu) / o.time_offset_prior_sd) ** 2, it, vals)
+                if progress is not None:
+                    progress(0.2 + 0.6 * min(1.0, len(found) / total))
+
+    if po.coarse_step is not None and po.coarse_step > po.step:
+        coarse = _profile_grid_points(mu, po.half_width, po.coarse_step)
+        m = int(round(po.coarse_step / po.step))
+        total = len(coarse) + 2 * m
+        walk(coarse, centre, base, total)
+        best = min(found, key=lambda g: found[g][0])
+        fine = np.round(best + po.step * np.arange(-m, m + 1), 12)
+        fine = fine[(fine >= coarse[0]) & (fine <= coarse[-1]) & ~np.isin(fine, list(found))]
+        walk(fine, best, found[best][2], total)
+    else:
+        grid = _profile_grid_points(mu, po.half_width, po.step)
+        walk(grid, centre, base, len(grid))
+    grid = np.array(sorted(found))
+    chi2 = np.array([found[g][0] for g in grid])
+    iters = np.array([found[g][1] for g in grid], int)
     verdict, best, vertex, sig = profile_verdict(grid, chi2, po.confidence_chi2)
     return TdProfile(grid=grid, chi2=chi2, iterations=iters, verdict=verdict, best=best, vertex=vertex,
                      sigma_curvature=sig, confidence_chi2=po.confidence_chi2)

@@ -14,7 +14,10 @@ class TdProfileOptions(BaseModel):
     model_config = ConfigDict(extra="forbid")
     enabled: bool = True
     half_width: float = Field(0.5, gt=0, le=2.0, description="grid spans t_d prior mean +/- this [s]")
-    step: float = Field(0.02, gt=0, description="grid step [s]")
+    step: float = Field(0.02, gt=0, description="grid step [s] (near the minimum when coarse_step is set)")
+    coarse_step: Optional[float] = Field(
+        0.1, gt=0, description="[s] first pass over the whole grid at this step, then `step` within one coarse step "
+                               "of the coarse minimum; null: the whole grid at `step`")
     confidence_chi2: float = Field(
         9.0, gt=0, description="points whose profile chi2 is within this of the minimum form the confidence set "
                                "(9 = 3 sigma for one parameter)")
