@@ -137,6 +137,7 @@ def test_profile_minimum_at_the_grid_edge_is_held_at_prior(tmp_path):
     assert res.profile.verdict == "at_grid_edge" and res.profile.best == pytest.approx(0.2)
     assert td["held_at_prior"] and td["value"] == 0.3 and td["sd"] is None and td["sd_curvature"] is None
     assert "widen td_profile.half_width" in td["advice"]
+    assert res.calibration["conditional_on_time_offset"] == 0.3
     write_calibration(res, tmp_path)
     written = yaml.safe_load((tmp_path / "calibration.yaml").read_text())["time_offset"]
     assert written["verdict"] == "at_grid_edge" and written["sd"] is None and written["value"] == 0.3

@@ -321,6 +321,8 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
                    "final_cost": float(graph.error(values))},
     }
     cal["time_offset_sd"] = cal["time_offset"]["sd"]
+    # t_d held at its prior: every other sigma is conditional on that value (its uncertainty is not in them)
+    cal["conditional_on_time_offset"] = (None if td_free else td)
     off_p = offs + len(pb.anchor_ids)
     sd_p = {j: sd[off_p + 3 * i: off_p + 3 * i + 3] for i, j in enumerate(est)}
     cal["anchors"], anchors = _anchor_report(pb, values, sd_p, dataset)

@@ -102,6 +102,8 @@ def register(app: typer.Typer) -> None:
         if cal["time_offset"].get("advice"):
             console.print(f"[yellow]time offset not identified ({cal['time_offset']['verdict']}):[/] "
                           f"{cal['time_offset']['advice']}")
+            console.print(f"the other values and sigmas are conditional on t_d = {1000 * cal['time_offset']['value']:.1f} ms "
+                          "(held at the prior; its uncertainty is not in them)")
         if "anchors" in cal and cal["anchors"]["estimated"]:
             console.print(anchor_summary(cal["anchors"]))
         for ev in res.events:
