@@ -69,3 +69,23 @@ def test_estimate_anchors_refusals(dataset_dir, tmp_path, value, code):
     r = CliRunner().invoke(app, ["calibrate", str(dataset_dir), "--out", str(out), "--estimate-anchors", value])
     assert r.exit_code == code, r.output
     assert not out.exists()
+
+
+def test_repeatability_with_the_batch_method(dataset_dir, tmp_path):
+    """``uwbimu repeatability --method batch``: every window calibrated by the batch (none fails), lever arm
+    and t_d tested; the method is recorded in repeatability.json."""
+    import json
+
+    cfg = tmp_path / "calibrate.yaml"
+    cfg.write_text(yaml.safe_dump({"td_profile": {"enabled": False}, "max_iterations": 10}))
+    out = tmp_path / "rep"
+    r = CliRunner().invoke(app, ["repeatability", str(dataset_dir), "--out", str(out), "--windows", "2",
+                                 "--method", "batch", "--config", str(cfg)])
+    assert r.exit_code == 0, r.output
+    rep = json.loads((out / "repeatability.json").read_text())
+    assert rep["method"] == "batch" and rep["n_failed"] == 0
+    assert set(rep["parameters"]) == {"lx", "ly", "lz", "td"}
+    assert all(p["n"] == 2 for p in rep["parameters"].values())
+    bad = CliRunner().invoke(app, ["repeatability", str(dataset_dir), "--out", str(tmp_path / "x"),
+                                   "--method", "nope"])
+    assert bad.exit_code != 0 and "--method" in bad.output

@@ -211,3 +211,141 @@ def test_inter_anchor_factor_jacobians():
             minus = pair_error(pa - d, pb, 4.0) if which == 0 else pair_error(pa, pb - d, 4.0)
             num.append((plus - minus) / (2 * h))
         np.testing.assert_allclose(J, num, atol=1e-8)
+
+
+def _group_case(rng, n=7):
+    """Several ranges after one keyframe (two anchors), their deltas and a GTSAM Values."""
+    t, u = _imu(rng)
+    b_a, b_g = np.array([0.05, -0.03, 0.02]), np.array([0.01, -0.02, 0.005])
+    s0 = np.sort(rng.uniform(0.01, 0.18, n))
+    _k, deltas = imu_deltas(t, u, b_a, b_g, np.array([0.0]), s0)
+    anchors = np.array([[4.0, -1.0, 2.5], [-3.0, 2.0, 0.3]])
+    col = np.arange(n) % 2
+    rho = np.linalg.norm(anchors[col] - [1.0, 2.0, 1.5], axis=1) + rng.normal(0, 0.05, n)
+    return deltas, anchors, col, rho
+
+
+@pytest.mark.parametrize("td_fixed", [None, 0.031])
+def test_group_factor_equals_the_per_range_factors(td_fixed):
+    """The vectorised per-keyframe factor: same residuals as range_error, same whitened Jacobians and the same
+    error (sum of Huber losses) as one Robust(Huber) CustomFactor per range, with an outlier among the rows."""
+    gtsam = pytest.importorskip("gtsam")
+    from gtsam.symbol_shorthand import A, L, T, V, X
+
+    from uwbimu.calibration.range_factor import RangeGroup, make_gtsam_group_factor
+
+    rng = np.random.default_rng(3)
+    deltas, anchors, col, rho = _group_case(rng)
+    sigma, k, td0 = 0.1, 1.345, 0.02
+    R = so3_exp(np.array([0.2, -0.4, 1.1]))
+    td = 0.027 if td_fixed is None else td_fixed
+    state = (R, np.array([1.0, 2.0, 1.5]), np.array([0.4, -0.3, 0.2]), np.array([0.12, -0.08, 0.14]), td,
+             np.array([0.03, -0.05]))
+    # ranges consistent with the state up to 0.5 sigma, and one outlier (|z| > 6 > huber_k)
+    rho = RangeGroup(deltas, anchors[col], np.zeros(len(col)), col, td0).evaluate(*state)
+    rho += rng.uniform(-0.05, 0.05, len(rho))
+    rho[3] += 0.6
+    vals = gtsam.Values()
+    vals.insert(X(0), gtsam.Pose3(gtsam.Rot3(R), np.array([1.0, 2.0, 1.5])))
+    vals.insert(V(0), np.array([0.4, -0.3, 0.2]))
+    vals.insert(L(0), np.array([0.12, -0.08, 0.14]))
+    if td_fixed is None:
+        vals.insert(T(0), np.array([0.027]))
+    vals.insert(A(0), np.array([0.03]))
+    vals.insert(A(1), np.array([-0.05]))
+    tkey = [T(0)] if td_fixed is None else []
+    grp = RangeGroup(deltas, anchors[col], rho, col, td0)
+    fg = make_gtsam_group_factor([X(0), V(0), L(0)] + tkey + [A(0), A(1)], grp, sigma, k, td_fixed=td_fixed)
+    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(k),
+                                           gtsam.noiseModel.Isotropic.Sigma(1, sigma))
+    singles = [make_gtsam_factor([X(0), V(0), L(0)] + tkey + [A(int(c))], anchors[c], r, d, td0, noise,
+                                 td_fixed=td_fixed) for d, c, r in zip(deltas, col, rho)]
+    e = grp.evaluate(*state)
+    assert np.sum(np.abs(e) / sigma > k) == 1
+    np.testing.assert_allclose(e, [f.unwhitenedError(vals)[0] for f in singles], atol=1e-12)
+    assert fg.error(vals) == pytest.approx(sum(f.error(vals) for f in singles), rel=1e-12)
+    Ag, bg = fg.linearize(vals).jacobian()
+    for i, f in enumerate(singles):
+        A1, b1 = f.linearize(vals).jacobian()
+        row = np.concatenate([A1[0][:-1], np.zeros(2)])
+        row[len(row) - 2 + col[i]] = A1[0][-1]
+        if i == 3:  # the outlier: same gradient J^T b, Gauss-Newton weight k/(2|z|-k) instead of k/|z|
+            np.testing.assert_allclose(Ag[i] * bg[i], row * b1[0], rtol=1e-9)
+            continue
+        np.testing.assert_allclose(Ag[i], row, atol=1e-9)
+        assert bg[i] == pytest.approx(b1[0], abs=1e-12)
+
+
+def test_group_factor_jacobians_match_finite_differences():
+    from uwbimu.calibration.range_factor import RangeGroup
+
+    rng = np.random.default_rng(5)
+    deltas, anchors, col, rho = _group_case(rng)
+    grp = RangeGroup(deltas, anchors[col], rho, col, 0.02)
+    R, p, v = so3_exp(np.array([0.3, 0.1, -0.7])), np.array([1.0, 2.0, 1.5]), np.array([0.4, -0.3, 0.2])
+    lev, td, b = np.array([0.12, -0.08, 0.14]), 0.033, np.array([0.03, -0.05])
+    _e, Jp, Jv, Jl, Jt = grp.evaluate(R, p, v, lev, td, b, jacobians=True)
+    h = 1e-6
+    for i in range(3):
+        dx = np.zeros(3)
+        dx[i] = h
+        fd = (grp.evaluate(R @ so3_exp(dx), p, v, lev, td, b) - grp.evaluate(R @ so3_exp(-dx), p, v, lev, td, b)) / 2 / h
+        np.testing.assert_allclose(Jp[:, i], fd, atol=1e-6)
+        fd = (grp.evaluate(R, p + R @ dx, v, lev, td, b) - grp.evaluate(R, p - R @ dx, v, lev, td, b)) / 2 / h
+        np.testing.assert_allclose(Jp[:, 3 + i], fd, atol=1e-6)
+        fd = (grp.evaluate(R, p, v + dx, lev, td, b) - grp.evaluate(R, p, v - dx, lev, td, b)) / 2 / h
+        np.testing.assert_allclose(Jv[:, i], fd, atol=1e-6)
+        fd = (grp.evaluate(R, p, v, lev + dx, td, b) - grp.evaluate(R, p, v, lev - dx, td, b)) / 2 / h
+        np.testing.assert_allclose(Jl[:, i], fd, atol=1e-6)
+    fd = (grp.evaluate(R, p, v, lev, td + h, b) - grp.evaluate(R, p, v, lev, td - h, b)) / 2 / h
+    np.testing.assert_allclose(Jt, fd, atol=1e-6)
+
+
+def test_group_factor_over_several_keyframes():
+    """Rows attached to three keyframes in one factor: each row's pose/velocity Jacobian lands on its own
+    keyframe's keys, and residuals, error and whitened Jacobians equal one factor per range."""
+    gtsam = pytest.importorskip("gtsam")
+    from gtsam.symbol_shorthand import A, L, T, V, X
+
+    from uwbimu.calibration.range_factor import RangeGroup, make_gtsam_group_factor
+
+    rng = np.random.default_rng(11)
+    t, u = _imu(rng)
+    t_key = np.array([0.0, 0.06, 0.12])
+    s0 = np.sort(rng.uniform(0.0, 0.19, 9))
+    kk, deltas = imu_deltas(t, u, np.zeros(3), np.zeros(3), t_key, s0)
+    anchors = np.array([[4.0, -1.0, 2.5], [-3.0, 2.0, 0.3], [0.5, 5.0, 2.8]])
+    col = np.arange(9) % 3
+    R = [so3_exp(rng.normal(size=3) * 0.5) for _ in range(3)]
+    P = [np.array([1.0, 2.0, 1.5]) + 0.05 * i for i in range(3)]
+    Vv = [np.array([0.4, -0.3, 0.2]) * (1 + 0.1 * i) for i in range(3)]
+    lev, td, td0, b = np.array([0.12, -0.08, 0.14]), 0.027, 0.02, np.array([0.03, -0.05, 0.01])
+    grp0 = RangeGroup(deltas, anchors[col], np.zeros(9), col, td0, kf=kk)
+    rho = grp0.evaluate(np.array(R), np.array(P), np.array(Vv), lev, td, b) + rng.uniform(-0.05, 0.05, 9)
+    grp = RangeGroup(deltas, anchors[col], rho, col, td0, kf=kk)
+    keys = [X(0), V(0), X(1), V(1), X(2), V(2), L(0), T(0), A(0), A(1), A(2)]
+    fg = make_gtsam_group_factor(keys, grp, 0.1, 1.345)
+    vals = gtsam.Values()
+    for i in range(3):
+        vals.insert(X(i), gtsam.Pose3(gtsam.Rot3(R[i]), P[i]))
+        vals.insert(V(i), Vv[i])
+        vals.insert(A(i), np.array([b[i]]))
+    vals.insert(L(0), lev)
+    vals.insert(T(0), np.array([td]))
+    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(1.345),
+                                           gtsam.noiseModel.Isotropic.Sigma(1, 0.1))
+    singles = [make_gtsam_factor([X(int(k)), V(int(k)), L(0), T(0), A(int(c))], anchors[c], r, d, td0, noise)
+               for k, d, c, r in zip(kk, deltas, col, rho)]
+    assert fg.error(vals) == pytest.approx(sum(f.error(vals) for f in singles), rel=1e-12)
+    Ag, _ = fg.linearize(vals).jacobian()
+    dims = [6, 3] * 3 + [3, 1, 1, 1, 1]
+    starts = np.concatenate([[0], np.cumsum(dims)])
+    for i, f in enumerate(singles):
+        A1, _ = f.linearize(vals).jacobian()
+        row = np.zeros(Ag.shape[1])
+        k, c = int(kk[i]), int(col[i])
+        for blk, (lo, n) in enumerate([(starts[2 * k], 6), (starts[2 * k + 1], 3), (starts[6], 3), (starts[7], 1),
+                                       (starts[8 + c], 1)]):
+            row[lo:lo + n] = A1[0][[0, 6, 9, 12, 13][blk]:[0, 6, 9, 12, 13][blk] + n]
+        np.testing.assert_allclose(Ag[i], row, atol=1e-9)
+    assert set(kk) == {0, 1, 2}

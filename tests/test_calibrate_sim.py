@@ -122,3 +122,84 @@ def test_calibrate_accepts_tdoa():
     td = cal["time_offset"]
     assert abs(td["value"] - ds.meta.truth.time_offset) < 3 * td["sd"]
     assert set(r.residuals["kind"]) == {"tdoa"} and (r.residuals["anchor_b"] != "").all()
+
+
+def test_profile_minimum_at_the_grid_edge_is_held_at_prior(tmp_path):
+    """True t_d 30 ms, grid 0.2..0.4 s: the minimum is the grid's first point; nothing is reported as found,
+    t_d stays at the prior and the advice says to widen the grid."""
+    import yaml
+
+    ds = _flight("calibration-flight", 4, 8.0)
+    opts = CalibrationOptions.model_validate({"time_offset_prior": 0.3,
+                                              "td_profile": {"half_width": 0.1, "step": 0.05}})
+    res = calibrate(ds, opts)
+    td = res.calibration["time_offset"]
+    assert res.profile.verdict == "at_grid_edge" and res.profile.best == pytest.approx(0.2)
+    assert td["held_at_prior"] and td["value"] == 0.3 and td["sd"] is None and td["sd_curvature"] is None
+    assert "widen td_profile.half_width" in td["advice"]
+    assert res.calibration["conditional_on_time_offset"] == 0.3
+    write_calibration(res, tmp_path)
+    written = yaml.safe_load((tmp_path / "calibration.yaml").read_text())["time_offset"]
+    assert written["verdict"] == "at_grid_edge" and written["sd"] is None and written["value"] == 0.3
+
+
+def test_grouped_range_factors_match_the_per_range_graph(seeded_runs):
+    """The vectorised per-keyframe range factors (default) and one CustomFactor per range reach the same
+    optimum (same cost and gradient) and marginals within 2 % (Gauss-Newton weight of down-weighted rows)."""
+    ds, res = seeded_runs[0]
+    per = calibrate(ds, CalibrationOptions(td_profile={"enabled": False}, group_range_factors=False), eskf=res.eskf)
+    a, b = res.calibration, per.calibration
+    sd = np.append(b["lever_arm_sd"], b["time_offset"]["sd"])
+    diff = np.append(np.subtract(a["lever_arm"], b["lever_arm"]), a["time_offset"]["value"] - b["time_offset"]["value"])
+    assert np.all(np.abs(diff) < 0.02 * sd), diff / sd
+    np.testing.assert_allclose(np.append(a["lever_arm_sd"], a["time_offset"]["sd"]), sd, rtol=0.02)
+    assert a["solver"]["final_cost"] == pytest.approx(b["solver"]["final_cost"], rel=1e-6)
+    np.testing.assert_allclose(res.residuals["residual"], per.residuals["residual"], atol=2e-4)
+
+
+def test_marginals_fall_back_when_a_lazy_query_fails(seeded_runs, monkeypatch):
+    """gtsam.Marginals eliminates per query: a query that raises (an "indeterminate" IMU chain, seen on an
+    ISAS-Walk window) switches to SparseMarginals instead of failing the calibration."""
+    import gtsam
+    from gtsam.symbol_shorthand import L, X
+
+    from uwbimu.calibration import graph as G
+    from uwbimu.calibration.batch import SparseMarginals, _marginals, _solve
+
+    ds, res = seeded_runs[0]
+    pb = G.build_problem(ds, res.eskf, CalibrationOptions(max_iterations=3))
+    graph, values, _, _ = _solve(pb, G._imu_factors(pb), G.initial_values(pb), pb.td0, None)
+
+    class Refusing:
+        def __init__(self, *a):
+            pass
+
+        def marginalCovariance(self, key):  # noqa: N802
+            raise RuntimeError("Indeterminate linear system detected")
+
+        jointMarginalCovariance = marginalCovariance  # noqa: N815
+
+    monkeypatch.setattr(gtsam, "Marginals", Refusing)
+    m = _marginals(pb, graph, values)
+    ref = SparseMarginals(graph, values)
+    np.testing.assert_allclose(m.marginalCovariance(X(7)), ref.marginalCovariance(X(7)))
+    np.testing.assert_allclose(m.jointMarginalCovariance(gtsam.KeyVector([L(0)])).fullMatrix(),
+                               ref.marginalCovariance(L(0)))
+
+
+def test_coarse_then_fine_profile_grid():
+    """coarse_step 0.1 s, step 0.02 s: the whole +/-0.3 s at 0.1 s, then 0.02 s within 0.1 s of the coarse
+    minimum; the verdict reads the union (identified here, t_d within 3 sigma, vertex inside the fine part)."""
+    ds = _flight("calibration-flight", 4, 8.0)
+    res = calibrate(ds, CalibrationOptions.model_validate(
+        {"td_profile": {"half_width": 0.3, "step": 0.02, "coarse_step": 0.1}, "max_iterations": 10}))
+    g = res.profile.grid
+    assert np.all(np.diff(g) > 0) and g[0] == pytest.approx(-0.3) and g[-1] == pytest.approx(0.3)
+    coarse = np.round(np.arange(-0.3, 0.3001, 0.1), 12)
+    assert set(coarse) <= set(np.round(g, 12))
+    fine = np.round(g[~np.isin(np.round(g, 12), coarse)], 12)
+    assert len(fine) == 8 and np.ptp(fine) <= 0.2 + 1e-9
+    assert res.profile.verdict == "identified"
+    assert fine.min() - 0.02 <= res.profile.vertex <= fine.max() + 0.02
+    td = res.calibration["time_offset"]
+    assert abs(td["value"] - ds.meta.truth.time_offset) < 3 * td["sd"]

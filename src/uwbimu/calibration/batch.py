@@ -14,7 +14,7 @@ import pandas as pd
 from uwbimu.calibration import anchors as AN
 from uwbimu.calibration import graph as G
 from uwbimu.calibration.options import CalibrationOptions
-from uwbimu.calibration.profile import TdProfile, motion_advice, profile_verdict
+from uwbimu.calibration.profile import TdProfile, confidence_interval, motion_advice, profile_verdict
 
 
 @dataclass
@@ -42,42 +42,75 @@ class CalibrationResult:
     anchors: Optional[pd.DataFrame] = None
 
 
-def _solve(pb, imf, values, td0: float, td_fixed: Optional[float]):
-    """Solve with ranges attached about ``td0``; re-attach while free t_d moves > half a keyframe step."""
+def _solve(pb, imf, values, td0: float, td_fixed: Optional[float], assoc=None):
+    """Solve with ranges attached about ``td0``; re-attach while free t_d moves > half a keyframe step.
+
+    ``assoc``: an association to reuse for the first solve (profile points within half a keyframe
+    step of its ``td0``: the factor's second-order extrapolation in ``t_d - td0`` covers them).
+    """
     X, V, B, L, T, A = G._keys()
     half = 0.5 / pb.options.keyframe_hz
     for _ in range(pb.options.reassociate_max + 1):
-        assoc = G.associate(pb, td0)
+        if assoc is None or abs(assoc.td0 - td0) > half:
+            assoc = G.associate(pb, td0)
         graph = G.build_graph(pb, assoc, td_fixed=td_fixed, imu_factors=imf)
         values, iters = G.optimize(graph, values, pb.options.max_iterations)
         if td_fixed is not None:
             break
         td = float(values.atVector(T(0))[0])
-        if abs(td - td0) <= half:
+        if abs(td - assoc.td0) <= half:
             break
         td0 = td
     return graph, values, assoc, iters
 
 
+def _profile_grid_points(mu: float, half: float, step: float) -> np.ndarray:
+    n = int(round(half / step))
+    return np.round(mu + step * np.arange(-n, n + 1), 12)
+
+
 def run_profile(pb, imf, free_values, centre: float, progress=None) -> TdProfile:
-    """Profile of t_d on the grid ``prior +/- half_width``, warm-started outward from ``centre``."""
+    """Profile of t_d on the grid ``prior +/- half_width``, warm-started outward from ``centre``.
+
+    With ``td_profile.coarse_step`` larger than ``step``: first the whole range at ``coarse_step``,
+    then ``step`` within one coarse step either side of the coarse minimum (warm-started from it);
+    the verdict reads the union of both (a non-uniform grid).  Otherwise the uniform ``step`` grid.
+    """
     po = pb.options.td_profile
     o = pb.options
-    n = int(round(po.half_width / po.step))
-    grid = o.time_offset_prior + po.step * np.arange(-n, n + 1)
-    chi2 = np.full(len(grid), np.nan)
-    iters = np.zeros(len(grid), int)
-    start = int(np.argmin(np.abs(grid - centre)))
+    mu = o.time_offset_prior
     base = G.without_td(free_values)
-    done = 0
-    for direction in (range(start, len(grid)), range(start - 1, -1, -1)):
-        vals = base
-        for i in direction:
-            graph, vals, _, iters[i] = _solve(pb, imf, vals, float(grid[i]), float(grid[i]))
-            chi2[i] = 2.0 * graph.error(vals) + ((grid[i] - o.time_offset_prior) / o.time_offset_prior_sd) ** 2
-            done += 1
-            if progress is not None:
-                progress(0.2 + 0.6 * done / len(grid))
+    found: dict = {}  # grid point -> (chi2, iterations, values)
+
+    def walk(points, start_t, start_vals, total):
+        points = np.asarray(points, float)
+        if not len(points):
+            return
+        start = int(np.argmin(np.abs(points - start_t)))
+        for direction in (range(start, len(points)), range(start - 1, -1, -1)):
+            vals, assoc = start_vals, None
+            for i in direction:
+                g = float(points[i])
+                graph, vals, assoc, it = _solve(pb, imf, vals, g, g, assoc)
+                found[g] = (2.0 * graph.error(vals) + ((g - mu) / o.time_offset_prior_sd) ** 2, it, vals)
+                if progress is not None:
+                    progress(0.2 + 0.6 * min(1.0, len(found) / total))
+
+    if po.coarse_step is not None and po.coarse_step > po.step:
+        coarse = _profile_grid_points(mu, po.half_width, po.coarse_step)
+        m = int(round(po.coarse_step / po.step))
+        total = len(coarse) + 2 * m
+        walk(coarse, centre, base, total)
+        best = min(found, key=lambda g: found[g][0])
+        fine = np.round(best + po.step * np.arange(-m, m + 1), 12)
+        fine = fine[(fine >= coarse[0]) & (fine <= coarse[-1]) & ~np.isin(fine, list(found))]
+        walk(fine, best, found[best][2], total)
+    else:
+        grid = _profile_grid_points(mu, po.half_width, po.step)
+        walk(grid, centre, base, len(grid))
+    grid = np.array(sorted(found))
+    chi2 = np.array([found[g][0] for g in grid])
+    iters = np.array([found[g][1] for g in grid], int)
     verdict, best, vertex, sig = profile_verdict(grid, chi2, po.confidence_chi2)
     return TdProfile(grid=grid, chi2=chi2, iterations=iters, verdict=verdict, best=best, vertex=vertex,
                      sigma_curvature=sig, confidence_chi2=po.confidence_chi2)
@@ -89,18 +122,24 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
 
     Parameters
     ----------
-    dataset : :class:`uwbimu.io.dataset.Dataset` with IMU, ranges and anchors (one tag).
+    dataset : :class:`uwbimu.io.dataset.Dataset` with IMU, ranges and anchors (one tag).  A z-down
+        anchors' frame (``anchor_frame_up: -z``) and ``known_anchor_bias`` are handled by
+        :mod:`uwbimu.calibration.frames`: the outputs are in the anchors' frame, the ranges in
+        ``residuals`` have the documented biases removed.
     options : graph settings; defaults when None.
-    eskf : an ESKF result to initialise from; ``run_eskf(dataset, eskf_options)`` when None.
+    eskf : an ESKF result (anchors' frame) to initialise from; ``run_eskf(dataset, eskf_options)`` when None.
     progress : called with a fraction in [0, 1].
     """
     from uwbimu.estimation import EskfOptions, run_eskf
 
+    from uwbimu.calibration.frames import from_graph_frame, to_graph_frame
+
     t_start = time.perf_counter()
     o = options or CalibrationOptions()
+    dataset, eskf_options, eskf, frame = to_graph_frame(dataset, eskf_options or EskfOptions(), eskf)
     setup = AN.plan_anchors(dataset, o)
     events = list(setup.events)
-    eo = eskf_options or EskfOptions()
+    eo = eskf_options
     if not setup.any_estimated:
         eskf = eskf if eskf is not None else run_eskf(dataset, eo)
     else:
@@ -118,10 +157,15 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
         prof = run_profile(pb, imf, values, free_td, progress)
         if prof.identified:
             graph, values, assoc, iters = _solve(pb, imf, G.with_td(values, prof.vertex), prof.vertex, None)
-        else:
+            lo, hi = confidence_interval(prof.grid, prof.chi2, prof.confidence_chi2)
+            td_ref = float(values.atVector(T(0))[0])
+            if not lo <= td_ref <= hi:
+                # The free optimum contradicts its own profile: report nothing as found.
+                prof.verdict = "refinement_left_confidence_set"
+        if not prof.identified:
             td_free = False
             events.append({"kind": "time_offset_not_identified", "verdict": prof.verdict,
-                           "advice": motion_advice(eskf)})
+                           "advice": motion_advice(eskf, prof.verdict, prof.grid)})
             graph, values, assoc, iters = _solve(pb, imf, G.without_td(values), o.time_offset_prior,
                                                  o.time_offset_prior)
     if progress is not None:
@@ -133,8 +177,11 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
     cal["events"] = [{k: v for k, v in ev.items()} for ev in events]
     if progress is not None:
         progress(1.0)
-    return CalibrationResult(calibration=cal, trajectory=traj, residuals=res, profile=prof, eskf=eskf,
-                             runtime_s=time.perf_counter() - t_start, events=events, anchors=anchors)
+    out = CalibrationResult(calibration=cal, trajectory=traj, residuals=res, profile=prof, eskf=eskf,
+                            events=events, anchors=anchors)
+    from_graph_frame(out, frame)
+    out.runtime_s = time.perf_counter() - t_start
+    return out
 
 
 def _bootstrap(dataset, o: CalibrationOptions, setup, eo, eskf, events: list):
@@ -224,13 +271,10 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
     lever = values.atVector(L(0))
     td = float(values.atVector(T(0))[0]) if td_free else pb.options.time_offset_prior
     # Residuals of the final graph's range factors, in the order of assoc.used.
-    n_fixed = graph.size() - len(assoc.used)
-    rows = []
-    for idx, m in enumerate(assoc.used):
-        f = graph.at(n_fixed + idx)
-        e = float(f.unwhitenedError(values)[0])
-        rows.append((pb.t_range[m], pb.anchor_ids[pb.anchor_j[m]], pb.rho[m], pb.rho[m] + e, e))
-    res = pd.DataFrame(rows, columns=["t", "anchor", "range", "predicted", "residual"])
+    e = G.range_residuals(graph, assoc, values, td)
+    used = assoc.used
+    res = pd.DataFrame({"t": pb.t_range[used], "anchor": np.array(pb.anchor_ids, dtype=object)[pb.anchor_j[used]],
+                        "range": pb.rho[used], "predicted": pb.rho[used] + e, "residual": e})
     sig = np.full(len(res), pb.range_sigma)
     if pb.anchor_b is not None:
         # TDoA rows: "anchor" is anchor_a, "range" the measured TDoA [m]
@@ -238,6 +282,10 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
         res["kind"] = np.where(b >= 0, "tdoa", "range")
         res["anchor_b"] = np.where(b >= 0, np.array(pb.anchor_ids, dtype=object)[np.maximum(b, 0)], "")
         sig[b >= 0] = pb.tdoa_sigma
+    if pb.drift_knot is not None:
+        # the slowly varying bias of each row (already inside "predicted" and "residual")
+        res["bias_drift"] = [float(values.atVector(G.drift_key(j, n))[0])
+                             for j, n in zip(pb.anchor_j[used], pb.drift_knot[used])]
     res["z"] = res["residual"] / sig
     res["outlier"] = np.abs(res["z"]) > pb.options.huber_k
     offs = 3 + (1 if td_free else 0)
@@ -251,7 +299,11 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
                         "sd_curvature": (float(prof.sigma_curvature) if prof is not None and prof.identified
                                          else None),
                         "verdict": (prof.verdict if prof is not None else "not_profiled"),
-                        "held_at_prior": not td_free},
+                        "held_at_prior": not td_free,
+                        "profile_confidence_interval": (
+                            [float(v) for v in confidence_interval(prof.grid, prof.chi2, prof.confidence_chi2)]
+                            if prof is not None and prof.identified else None),
+                        "profile_grid": ([float(prof.grid[0]), float(prof.grid[-1])] if prof is not None else None)},
         "anchor_bias": bias,
         "anchor_bias_sd": {a: float(sd[offs + j]) for j, a in enumerate(pb.anchor_ids)},
         "correlations": {"names": names, "matrix": [[round(float(c), 4) for c in row] for row in corr]},
@@ -260,10 +312,17 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
                    "expected_downweighted": float(len(res) * erfc(pb.options.huber_k / np.sqrt(2.0))),
                    "outliers_3sigma": int((np.abs(res["z"]) > 3.0).sum()), "huber_k": pb.options.huber_k,
                    "range_sigma": pb.range_sigma},
+        "range_model": {"white_sd": pb.range_sigma, "huber_k": pb.options.huber_k,
+                        "constant_bias_prior_sd": pb.options.anchor_bias_prior_sd if pb.options.estimate_anchor_bias
+                        else None,
+                        "drift": (pb.options.range_bias_drift.model_dump() | {"knots_per_anchor": pb.n_knots}
+                                  if pb.options.range_bias_drift is not None else None)},
         "solver": {"keyframes": int(len(pb.key_idx)), "iterations": int(iters),
                    "final_cost": float(graph.error(values))},
     }
     cal["time_offset_sd"] = cal["time_offset"]["sd"]
+    # t_d held at its prior: every other sigma is conditional on that value (its uncertainty is not in them)
+    cal["conditional_on_time_offset"] = (None if td_free else td)
     off_p = offs + len(pb.anchor_ids)
     sd_p = {j: sd[off_p + 3 * i: off_p + 3 * i + 3] for i, j in enumerate(est)}
     cal["anchors"], anchors = _anchor_report(pb, values, sd_p, dataset)
@@ -320,7 +379,7 @@ def _anchor_report(pb, values, sd_p: dict, dataset):
 
 
 #: Tangent dimension of every variable, by the GTSAM symbol letter (see graph.py).
-_DIMS = {"x": 6, "v": 3, "b": 6, "l": 3, "t": 1, "a": 1, "p": 3}
+_DIMS = {"x": 6, "v": 3, "b": 6, "l": 3, "t": 1, "a": 1, "p": 3, "d": 1}
 
 
 class SparseMarginals:
@@ -366,14 +425,38 @@ class SparseMarginals:
         return type("Joint", (), {"fullMatrix": lambda _self: cov})()
 
 
+class _Marginals:
+    """``gtsam.Marginals`` that falls back to :class:`SparseMarginals` when GTSAM's Cholesky refuses the
+    system, at construction or at any later query (GTSAM eliminates lazily per query)."""
+
+    def __init__(self, graph, values):
+        import gtsam
+
+        self._graph, self._values = graph, values
+        try:
+            self._m = gtsam.Marginals(graph, values)
+        except RuntimeError:
+            self._m = SparseMarginals(graph, values)
+
+    def _call(self, name, arg):
+        try:
+            return getattr(self._m, name)(arg)
+        except RuntimeError:
+            if isinstance(self._m, SparseMarginals):
+                raise
+            self._m = SparseMarginals(self._graph, self._values)
+            return getattr(self._m, name)(arg)
+
+    def marginalCovariance(self, key):  # noqa: N802 - gtsam.Marginals' name
+        return self._call("marginalCovariance", key)
+
+    def jointMarginalCovariance(self, keys):  # noqa: N802
+        return self._call("jointMarginalCovariance", keys)
+
+
 def _marginals(pb, graph, values):
     """``gtsam.Marginals``, or :class:`SparseMarginals` when GTSAM's Cholesky refuses the system."""
-    import gtsam
-
-    try:
-        return gtsam.Marginals(graph, values)
-    except RuntimeError:
-        return SparseMarginals(graph, values)
+    return _Marginals(graph, values)
 
 
 def _trajectory(pb, values, marg, td: float) -> pd.DataFrame:

@@ -22,7 +22,7 @@ import numpy as np
 
 from uwbimu.calibration.anchors import GAUGE_SIGMA, AnchorSetup
 from uwbimu.calibration.options import CalibrationOptions
-from uwbimu.calibration.range_factor import imu_deltas, make_gtsam_factor
+from uwbimu.calibration.range_factor import RangeGroup, imu_cumulative, imu_deltas, make_gtsam_factor, make_gtsam_group_factor
 from uwbimu.calibration.tdoa_factor import make_gtsam_tdoa_factor
 from uwbimu.models.reference import GRAVITY
 
@@ -36,6 +36,39 @@ def _keys():
     from gtsam.symbol_shorthand import A, B, L, T, V, X
 
     return X, V, B, L, T, A
+
+
+def drift_key(j: int, n: int) -> int:
+    """Key of knot ``n`` of anchor ``j``'s slowly varying bias (``d``, 1-vector, m)."""
+    import gtsam
+
+    return gtsam.symbol("d", int(j) * 1_000_000 + int(n))
+
+
+def drift_factors(pb) -> list:
+    """Gauss-Markov chain of every anchor's slowly varying bias (linear, C++ ``JacobianFactor``s; cached)."""
+    import gtsam
+
+    if pb._drift_factors is not None:
+        return pb._drift_factors
+    dr = pb.options.range_bias_drift
+    phi = float(np.exp(-dr.knot_spacing / dr.correlation_time))
+    q = dr.sd * np.sqrt(1.0 - phi**2)
+    zero = gtsam.Values()
+    for j in range(len(pb.anchor_ids)):
+        for n in range(pb.n_knots):
+            zero.insert(drift_key(j, n), np.zeros(1))
+    out = []
+    one = np.ones((1, 1))
+    for j in range(len(pb.anchor_ids)):
+        jf = gtsam.JacobianFactor(drift_key(j, 0), one, np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, dr.sd))
+        out.append(gtsam.LinearContainerFactor(jf, zero))
+        for n in range(pb.n_knots - 1):
+            jf = gtsam.JacobianFactor(drift_key(j, n), -phi * one, drift_key(j, n + 1), one, np.zeros(1),
+                                      gtsam.noiseModel.Isotropic.Sigma(1, q))
+            out.append(gtsam.LinearContainerFactor(jf, zero))
+    pb._drift_factors = out
+    return out
 
 
 def _P():
@@ -68,6 +101,11 @@ class Problem:
     # rho[m] = |p_U - p_b| - |p_U - p_a| with a = anchor_j[m], b = anchor_b[m]; None: ranges only
     anchor_b: Optional[np.ndarray] = None
     tdoa_sigma: float = 0.0
+    # slowly varying bias (options.range_bias_drift): knot index of every row, number of knots per anchor
+    drift_knot: Optional[np.ndarray] = None
+    n_knots: int = 0
+    _drift_factors: Optional[list] = None
+    _imu_cum: Optional[dict] = None  # imu_cumulative at the first keyframe's ESKF bias (cached)
 
     def is_tdoa(self, m: int) -> bool:
         return self.anchor_b is not None and int(self.anchor_b[m]) >= 0
@@ -144,7 +182,17 @@ def build_problem(dataset, eskf, options: CalibrationOptions, anchors: Optional[
         t_r, rho, aj, bj = t_r[order], rho[order], aj[order], bj[order]
         base = options.range_sigma or dataset.meta.range_sigma or 0.1
         tsig = float(options.tdoa_sigma or (dataset.meta.extra or {}).get("tdoa_sigma") or np.sqrt(2.0) * base)
-    return Problem(t_imu=t_imu, u_imu=u_imu, key_idx=key_idx, t_range=t_r,
+    knot, n_knots = None, 0
+    dr = options.range_bias_drift
+    if dr is not None:
+        from uwbimu.errors import UsageError
+
+        if bj is not None or (anchors is not None and any(anchors.estimated)) or not options.group_range_factors:
+            raise UsageError("calibrate: range_bias_drift works with ranges to fixed anchors and grouped range "
+                             "factors only (not with TDoA, --estimate-anchors or group_range_factors: false)")
+        knot = np.rint((t_r - t_r.min()) / dr.knot_spacing).astype(np.int64)
+        n_knots = int(knot.max()) + 1
+    return Problem(t_imu=t_imu, u_imu=u_imu, key_idx=key_idx, t_range=t_r, drift_knot=knot, n_knots=n_knots,
                    rho=rho, anchor_j=aj, anchor_b=bj, tdoa_sigma=tsig,
                    anchor_ids=ids, anchor_pos=np.array([pos[a] for a in ids]), init_states=init,
                    lever0=np.asarray(eskf.calibration["lever_arm"], float),
@@ -195,6 +243,10 @@ class Association:
     used: np.ndarray  # indices into the problem's ranges
     key: np.ndarray
     deltas: list
+    # filled by build_graph: per used row, (graph factor index, row within that factor's residual);
+    # groups: graph factor index -> RangeGroup of the grouped (per-keyframe) range factors
+    slots: Optional[np.ndarray] = None
+    groups: dict = field(default_factory=dict)
 
 
 def associate(pb: Problem, td0: float, imu_bias=None) -> Association:
@@ -202,7 +254,12 @@ def associate(pb: Problem, td0: float, imu_bias=None) -> Association:
     used = np.flatnonzero((s0 >= pb.t_key[0]) & (s0 < pb.t_imu[-1]))
     # Short deltas use the ESKF bias of the earliest keyframe (a fixed linearisation point).
     b = pb.init_states[0, 10:16] if imu_bias is None else imu_bias
-    k, deltas = imu_deltas(pb.t_imu, pb.u_imu, b[:3], b[3:], pb.t_key, s0[used])
+    cum = None
+    if imu_bias is None:
+        if pb._imu_cum is None:
+            pb._imu_cum = imu_cumulative(pb.t_imu, pb.u_imu, b[:3], b[3:], pb.t_key)
+        cum = pb._imu_cum
+    k, deltas = imu_deltas(pb.t_imu, pb.u_imu, b[:3], b[3:], pb.t_key, s0[used], cum=cum)
     return Association(td0=td0, used=used, key=k, deltas=deltas)
 
 
@@ -232,6 +289,9 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
     if pb.anchors is not None:
         for f in anchor_factors(pb):
             g.add(f)
+    if pb.drift_knot is not None:
+        for f in drift_factors(pb):
+            g.add(f)
     noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(o.huber_k),
                                            gtsam.noiseModel.Isotropic.Sigma(1, pb.range_sigma))
     P = _P()
@@ -239,8 +299,46 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
     if pb.anchor_b is not None:
         tnoise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(o.huber_k),
                                                 gtsam.noiseModel.Isotropic.Sigma(1, pb.tdoa_sigma))
-    # The range factors come last: _report reads them as the graph's final len(assoc.used) factors.
-    for m, k, d in zip(assoc.used, assoc.key, assoc.deltas):
+    # assoc.slots records where each used row's residual lives (_report reads it back).
+    slots = np.zeros((len(assoc.used), 2), np.int64)
+    assoc.groups = {}
+    grouped = np.zeros(len(assoc.used), bool)
+    if o.group_range_factors:
+        plain = np.array([not pb.is_tdoa(m) and not pb.estimated(int(pb.anchor_j[m])) for m in assoc.used], bool)
+        rows = np.flatnonzero(plain)
+        if len(rows):
+            keys_of = np.asarray(assoc.key)[rows]
+            order = rows[np.argsort(keys_of, kind="stable")]
+            gk = np.asarray(assoc.key)[order] // o.range_group_keyframes
+            bounds = np.flatnonzero(np.diff(gk)) + 1
+            for chunk in np.split(order, bounds):
+                kfs, kf = np.unique(np.asarray(assoc.key)[chunk], return_inverse=True)
+                ms = assoc.used[chunk]
+                js = pb.anchor_j[ms].astype(np.int64)
+                ujs, col = np.unique(js, return_inverse=True)
+                bkeys = [A(int(j)) for j in ujs]
+                bmat = None
+                if pb.drift_knot is not None:
+                    dk = np.array([drift_key(j, n) for j, n in zip(js, pb.drift_knot[ms])], dtype=np.uint64)
+                    udk, dcol = np.unique(dk, return_inverse=True)
+                    bmat = np.zeros((len(ms), len(ujs) + len(udk)))
+                    bmat[np.arange(len(ms)), col] = 1.0
+                    bmat[np.arange(len(ms)), len(ujs) + dcol] = 1.0
+                    bkeys += [int(x) for x in udk]
+                grp = RangeGroup([assoc.deltas[i] for i in chunk], pb.anchor_pos[js], pb.rho[ms], col, assoc.td0,
+                                 bias_matrix=bmat, kf=kf)
+                keys = [key for k in kfs for key in (X(int(k)), V(int(k)))] + [L(0)] + \
+                    ([T(0)] if td_fixed is None else []) + bkeys
+                fi = g.size()
+                g.add(make_gtsam_group_factor(keys, grp, pb.range_sigma, o.huber_k, td_fixed=td_fixed))
+                assoc.groups[fi] = grp
+                slots[chunk, 0] = fi
+                slots[chunk, 1] = np.arange(len(chunk))
+            grouped[rows] = True
+    for i, (m, k, d) in enumerate(zip(assoc.used, assoc.key, assoc.deltas)):
+        if grouped[i]:
+            continue
+        slots[i] = (g.size(), 0)
         j = int(pb.anchor_j[m])
         if pb.is_tdoa(m):
             jb = int(pb.anchor_b[m])
@@ -252,7 +350,29 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
         keys = [X(k), V(k), L(0)] + ([T(0)] if td_fixed is None else []) + [A(j)] + ([P(j)] if est else [])
         g.add(make_gtsam_factor(keys, pb.anchor_pos[j], pb.rho[m], d, assoc.td0, noise, td_fixed=td_fixed,
                                 anchor_variable=est))
+    assoc.slots = slots
     return g
+
+
+def range_residuals(graph, assoc: Association, values, td: float) -> np.ndarray:
+    """Unwhitened residual [m] of every used row (``assoc.used`` order) of a graph built by :func:`build_graph`."""
+    X, V, B, L, T, A = _keys()
+    out = np.empty(len(assoc.used))
+    lever = values.atVector(L(0))
+    for fi, grp in assoc.groups.items():
+        f = graph.at(int(fi))
+        ks = f.keys()
+        poses = [values.atPose3(ks[2 * i]) for i in range(grp.n_kf)]
+        nb_off = len(ks) - grp.n_bias
+        biases = np.array([values.atVector(ks[nb_off + i])[0] for i in range(len(ks) - nb_off)])
+        e = grp.evaluate(np.array([q.rotation().matrix() for q in poses]), np.array([q.translation() for q in poses]),
+                         np.array([values.atVector(ks[2 * i + 1]) for i in range(grp.n_kf)]), lever, td, biases)
+        rows = np.flatnonzero(assoc.slots[:, 0] == fi)
+        out[rows] = e[assoc.slots[rows, 1]]
+    single = np.flatnonzero(~np.isin(assoc.slots[:, 0], list(assoc.groups)))
+    for i in single:
+        out[i] = float(graph.at(int(assoc.slots[i, 0])).unwhitenedError(values)[0])
+    return out
 
 
 def pair_error(pa: np.ndarray, pb_: np.ndarray, r: float, jacobians: bool = False):
@@ -331,6 +451,8 @@ def initial_values(pb: Problem, with_td: bool = True):
         vals.insert(T(0), np.array([pb.td0]))
     for j in range(len(pb.anchor_ids)):
         vals.insert(A(j), np.zeros(1))
+        for n in range(pb.n_knots if pb.drift_knot is not None else 0):
+            vals.insert(drift_key(j, n), np.zeros(1))
         if pb.estimated(j):
             vals.insert(_P()(j), np.asarray(pb.anchor_pos[j], float).copy())
     return vals

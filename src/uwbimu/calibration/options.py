@@ -14,10 +14,30 @@ class TdProfileOptions(BaseModel):
     model_config = ConfigDict(extra="forbid")
     enabled: bool = True
     half_width: float = Field(0.5, gt=0, le=2.0, description="grid spans t_d prior mean +/- this [s]")
-    step: float = Field(0.02, gt=0, description="grid step [s]")
+    step: float = Field(0.02, gt=0, description="grid step [s] (near the minimum when coarse_step is set)")
+    coarse_step: Optional[float] = Field(
+        0.1, gt=0, description="[s] first pass over the whole grid at this step, then `step` within one coarse step "
+                               "of the coarse minimum; null: the whole grid at `step`")
     confidence_chi2: float = Field(
         9.0, gt=0, description="points whose profile chi2 is within this of the minimum form the confidence set "
                                "(9 = 3 sigma for one parameter)")
+
+
+class RangeBiasDrift(BaseModel):
+    """Slowly varying part of each anchor's range bias: a first-order Gauss-Markov process per anchor.
+
+    Real two-way ranges carry errors that stay correlated for seconds (antenna pattern and multipath
+    change slowly with the line of sight); a white model then averages them as independent and is
+    over-confident.  Each anchor's bias is ``c_j + d_j(t)``: ``c_j`` the constant bias (prior
+    ``anchor_bias_prior_sd``), ``d_j`` piecewise constant on knots ``knot_spacing`` apart with
+    ``d_0 ~ N(0, sd^2)`` and ``d_{n+1} = phi d_n + w``, ``phi = exp(-knot_spacing / correlation_time)``,
+    ``w ~ N(0, sd^2 (1 - phi^2))`` (stationary sd ``sd``).  ``range_sigma`` is then the white part only.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    sd: float = Field(..., gt=0, description="stationary sd of the slowly varying bias [m]")
+    correlation_time: float = Field(2.0, gt=0, description="[s]")
+    knot_spacing: float = Field(0.5, gt=0, description="[s] (UWB clock); at most correlation_time / 2 is sensible")
 
 
 class CalibrationOptions(BaseModel):
@@ -40,6 +60,9 @@ class CalibrationOptions(BaseModel):
     time_offset_prior_sd: float = Field(0.5, gt=0, description="[s]")
     anchor_bias_prior_sd: float = Field(0.3, gt=0, description="per-anchor constant range bias prior sd [m]")
     estimate_anchor_bias: bool = True
+    range_bias_drift: Optional[RangeBiasDrift] = Field(
+        None, description="slowly varying per-anchor bias (correlated range errors of real data); none: white "
+                          "range noise plus a constant bias per anchor")
     estimate_anchors: list[str] = Field(
         default_factory=list, description="anchor ids whose positions are estimated (self-survey; anchors marked "
                                           "surveyed: false in anchors.csv are always estimated)")
@@ -52,6 +75,12 @@ class CalibrationOptions(BaseModel):
     bootstrap_range_sigma: float = Field(
         0.5, gt=0, description="[m] range sd of the initialising ESKF when it must use rough anchors.csv guesses "
                                "(fewer than 4 surveyed anchors); about the guesses' error")
+    group_range_factors: bool = Field(
+        True, description="one vectorised factor per keyframe for the ranges to fixed anchors (same model, ~10x "
+                          "faster); false: one GTSAM CustomFactor per range (the reference implementation)")
+    range_group_keyframes: int = Field(
+        5, ge=1, le=50, description="consecutive keyframes whose ranges share one vectorised factor (fewer, larger "
+                                    "Python callbacks; same model)")
     max_iterations: int = Field(50, ge=1)
     reassociate_max: int = Field(3, ge=0, description="re-attach ranges when t_d moved > half a keyframe step")
     td_profile: TdProfileOptions = Field(default_factory=TdProfileOptions)

@@ -15,8 +15,13 @@ units, independent of the grid and of the log's length:
 * otherwise ``identified``, with ``sigma_curvature = 1 / sqrt(a)`` from
   ``chi2 ~ a (t - t*)^2 + b``, fitted on the minimum and its neighbours.
 
+After an ``identified`` profile the free solve starts at the parabola vertex; a
+free optimum outside the profile's confidence interval (:func:`confidence_interval`)
+turns the verdict into ``refinement_left_confidence_set``.
+
 A grid-edge value is never reported as found: every verdict but
-``identified`` holds t_d at its prior.
+``identified`` holds t_d at its prior, and :func:`motion_advice` tells the user
+what would help (a wider grid for ``at_grid_edge``, other motion otherwise).
 """
 
 from __future__ import annotations
@@ -52,8 +57,10 @@ def profile_verdict(grid: np.ndarray, chi2: np.ndarray, confidence_chi2: float =
     """Verdict, best grid point, parabola vertex and curvature sigma of a profile (see module doc)."""
     grid = np.asarray(grid, float)
     chi2 = np.asarray(chi2, float)
-    i = int(np.argmin(chi2))
     nan = float("nan")
+    if not np.all(np.isfinite(chi2)):
+        return "failed_points", float(grid[int(np.nanargmin(chi2))]) if np.isfinite(chi2).any() else nan, nan, nan
+    i = int(np.argmin(chi2))
     if i in (0, len(grid) - 1):
         return "at_grid_edge", float(grid[i]), nan, nan
     inside = np.flatnonzero(chi2 - chi2[i] < confidence_chi2)
@@ -70,19 +77,51 @@ def profile_verdict(grid: np.ndarray, chi2: np.ndarray, confidence_chi2: float =
     return "identified", float(grid[i]), vertex, float(1.0 / np.sqrt(a))
 
 
-def motion_advice(eskf) -> str:
-    """Which motion would make t_d visible, from the ESKF trajectory's excitation.
+def confidence_interval(grid: np.ndarray, chi2: np.ndarray, confidence_chi2: float) -> tuple[float, float]:
+    """Ends [s] of the profile's confidence set (grid points with ``chi2 - min < confidence_chi2``),
+    widened to the linear-interpolation crossings of the threshold with the neighbouring points."""
+    grid = np.asarray(grid, float)
+    d = np.asarray(chi2, float) - np.nanmin(chi2)
+    inside = np.flatnonzero(d < confidence_chi2)
+    lo_i, hi_i = int(inside[0]), int(inside[-1])
+
+    def cross(i_in: int, i_out: int) -> float:
+        if i_out < 0 or i_out >= len(grid) or not np.isfinite(d[i_out]):
+            return float(grid[i_in])
+        f = (confidence_chi2 - d[i_in]) / (d[i_out] - d[i_in])
+        return float(grid[i_in] + f * (grid[i_out] - grid[i_in]))
+
+    return cross(lo_i, lo_i - 1), cross(hi_i, hi_i + 1)
+
+
+def motion_advice(eskf, verdict: str = "flat", grid: np.ndarray | None = None) -> str:
+    """What would make t_d identifiable, by verdict, with the ESKF trajectory's excitation.
 
     A range's sensitivity to t_d is ``n . (v + R (w x p_IU))``: the antenna's
     radial velocity; t_d is seen when that velocity *changes* (a constant
-    velocity shift is indistinguishable from a position shift).
+    velocity shift is indistinguishable from a position shift).  ``at_grid_edge``
+    is a grid problem first (the minimum may lie outside it); ``multi_modal``
+    is typical of periodic motion (a t_d shifted by a period fits as well).
     """
     st = eskf.states
     t = eskf.t
     acc = np.gradient(st[:, 3:6], t, axis=0)
     rms_speed = float(np.sqrt(np.mean(np.sum(st[:, 3:6] ** 2, axis=1))))
     rms_acc = float(np.sqrt(np.mean(np.sum(acc**2, axis=1))))
-    return (f"the log's antenna motion is weak for t_d (RMS speed {rms_speed:.2f} m/s, RMS acceleration "
-            f"{rms_acc:.2f} m/s^2): fly back-and-forth or circles of ~1 m at 0.5-1 Hz (accelerations of a few "
-            "m/s^2 towards and away from the anchors) and rotate about all axes; hovering or constant velocity "
-            "leaves t_d unobservable")
+    motion = (f"the log's antenna motion (RMS speed {rms_speed:.2f} m/s, RMS acceleration {rms_acc:.2f} m/s^2) "
+              "does not pin t_d: fly back-and-forth or circles of ~1 m at 0.5-1 Hz (accelerations of a few "
+              "m/s^2 towards and away from the anchors) and rotate about all axes; hovering or constant velocity "
+              "leaves t_d unobservable")
+    if verdict == "at_grid_edge":
+        span = "" if grid is None else f" [{1000 * grid[0]:.0f}, {1000 * grid[-1]:.0f}] ms"
+        return (f"the profile's minimum is at an end of the grid{span}: the offset may lie outside it; widen "
+                "td_profile.half_width or move time_offset_prior towards that end and rerun (if the minimum "
+                "stays at the edge, " + motion + ")")
+    if verdict == "multi_modal":
+        return ("the profile has several separated minima within the confidence set (typical of periodic "
+                "motion: t_d shifted by about a period fits as well); add non-periodic motion with varied "
+                "speeds, or narrow time_offset_prior_sd with independent knowledge; " + motion)
+    if verdict == "refinement_left_confidence_set":
+        return ("the free solve started at the profile's minimum moved outside the profile's confidence set "
+                "(the likelihood is not locally quadratic); " + motion)
+    return motion

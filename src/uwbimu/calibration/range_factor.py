@@ -61,54 +61,80 @@ class RangeDelta:
     omega: np.ndarray
 
 
+def imu_cumulative(t_imu: np.ndarray, u_imu: np.ndarray, b_a: np.ndarray, b_g: np.ndarray,
+                   t_key: np.ndarray) -> dict:
+    """IMU delta from its keyframe to every IMU sample (the walk :func:`imu_deltas` needs, done once).
+
+    Midpoint integration of the bias-corrected readings, reset at every keyframe (keyframes lie on
+    IMU samples).  Returns a dict of arrays: ``dR`` (n, 3, 3), ``dv``, ``dp`` (n, 3) at every sample
+    ``i`` from the keyframe ``k`` with ``t_key[k] <= t_imu[i]`` (the last one), and ``acc``, ``gyr``
+    (n, 3) the bias-corrected readings, ``key_idx`` the keyframes' sample indices.
+    """
+    t_imu = np.asarray(t_imu, float)
+    acc = np.asarray(u_imu[:, :3], float) - b_a
+    gyr = np.asarray(u_imu[:, 3:6], float) - b_g
+    key_idx = np.searchsorted(t_imu, t_key)
+    n = len(t_imu)
+    is_key = np.zeros(n, bool)
+    is_key[key_idx] = True
+    h = np.diff(t_imu)
+    a_mid = 0.5 * (acc[:-1] + acc[1:])
+    w_mid = 0.5 * (gyr[:-1] + gyr[1:])
+    E_half = so3_exp_batch(0.5 * h[:, None] * w_mid)
+    E_full = so3_exp_batch(h[:, None] * w_mid)
+    dR = np.empty((n, 3, 3))
+    dv = np.empty((n, 3))
+    dp = np.empty((n, 3))
+    R, v, p = np.eye(3), np.zeros(3), np.zeros(3)
+    for i in range(n):
+        if is_key[i]:
+            R, v, p = np.eye(3), np.zeros(3), np.zeros(3)
+        dR[i], dv[i], dp[i] = R, v, p
+        if i + 1 < n:
+            Ra = (R @ E_half[i]) @ a_mid[i]
+            p = p + v * h[i] + 0.5 * Ra * h[i] * h[i]
+            v = v + Ra * h[i]
+            R = R @ E_full[i]
+    return {"t": t_imu, "acc": acc, "gyr": gyr, "dR": dR, "dv": dv, "dp": dp, "key_idx": key_idx,
+            "t_key": np.asarray(t_key, float)}
+
+
 def imu_deltas(t_imu: np.ndarray, u_imu: np.ndarray, b_a: np.ndarray, b_g: np.ndarray,
-               t_key: np.ndarray, s0: np.ndarray) -> tuple[np.ndarray, list[RangeDelta]]:
+               t_key: np.ndarray, s0: np.ndarray, cum: dict | None = None) -> tuple[np.ndarray, list[RangeDelta]]:
     """Keyframe index and IMU delta for every instant ``s0`` (IMU clock).
 
     Midpoint integration of the bias-corrected readings between the IMU samples,
     a partial step to ``s0``.  ``s0`` must lie in ``[t_key[0], t_imu[-1])``.
+    ``cum``: :func:`imu_cumulative` of the same inputs, to reuse (it does not depend on ``s0``).
 
     Returns
     -------
     k : (M,) keyframe index of every instant.
     deltas : list of :class:`RangeDelta`.
     """
-    t_imu = np.asarray(t_imu, float)
-    acc = np.asarray(u_imu[:, :3], float) - b_a
-    gyr = np.asarray(u_imu[:, 3:6], float) - b_g
-    k_of = np.searchsorted(t_key, s0, side="right") - 1
-    order = np.argsort(s0, kind="stable")
-    out: list[RangeDelta | None] = [None] * len(s0)
-    key_idx = np.searchsorted(t_imu, t_key)  # keyframes lie on IMU samples
-    # Walk the IMU stream once, resetting the delta at every keyframe.
-    cur_k = -1
-    i = 0
-    dR = np.eye(3)
-    dv = np.zeros(3)
-    dp = np.zeros(3)
-    for m in order:
-        k, s = int(k_of[m]), float(s0[m])
-        if k != cur_k:
-            cur_k, i = k, int(key_idx[k])
-            dR, dv, dp = np.eye(3), np.zeros(3), np.zeros(3)
-        while i + 1 < len(t_imu) and t_imu[i + 1] <= s:
-            h = t_imu[i + 1] - t_imu[i]
-            a = 0.5 * (acc[i] + acc[i + 1])
-            w = 0.5 * (gyr[i] + gyr[i + 1])
-            R_mid = dR @ so3_exp(0.5 * h * w)
-            dp = dp + dv * h + 0.5 * (R_mid @ a) * h * h
-            dv = dv + (R_mid @ a) * h
-            dR = dR @ so3_exp(w * h)
-            i += 1
-        h = s - t_imu[i]
-        frac = h / (t_imu[i + 1] - t_imu[i]) if i + 1 < len(t_imu) else 0.0
-        a_s = acc[i] + frac * (acc[min(i + 1, len(acc) - 1)] - acc[i])
-        w_s = gyr[i] + frac * (gyr[min(i + 1, len(gyr) - 1)] - gyr[i])
-        a_mid, w_mid = 0.5 * (acc[i] + a_s), 0.5 * (gyr[i] + w_s)
-        R_mid = dR @ so3_exp(0.5 * h * w_mid)
-        out[m] = RangeDelta(tau=s - t_key[k], dR=dR @ so3_exp(w_mid * h), dv=dv + (R_mid @ a_mid) * h,
-                            dp=dp + dv * h + 0.5 * (R_mid @ a_mid) * h * h, acc=a_s, omega=w_s)
-    return k_of, out  # type: ignore[return-value]
+    if cum is None:
+        cum = imu_cumulative(t_imu, u_imu, b_a, b_g, t_key)
+    t, acc, gyr = cum["t"], cum["acc"], cum["gyr"]
+    s0 = np.asarray(s0, float)
+    k_of = np.searchsorted(cum["t_key"], s0, side="right") - 1
+    i = np.maximum(np.searchsorted(t, s0, side="right") - 1, cum["key_idx"][k_of])
+    j = np.minimum(i + 1, len(t) - 1)
+    h = s0 - t[i]
+    span = t[j] - t[i]
+    frac = np.where(j > i, h / np.where(span > 0, span, 1.0), 0.0)[:, None]
+    a_s = acc[i] + frac * (acc[j] - acc[i])
+    w_s = gyr[i] + frac * (gyr[j] - gyr[i])
+    a_mid, w_mid = 0.5 * (acc[i] + a_s), 0.5 * (gyr[i] + w_s)
+    dR, dv, dp = cum["dR"][i], cum["dv"][i], cum["dp"][i]
+    hh = h[:, None]
+    Ra = np.einsum("nij,nj->ni", dR @ so3_exp_batch(0.5 * hh * w_mid), a_mid)
+    dR_s = dR @ so3_exp_batch(w_mid * hh)
+    dv_s = dv + Ra * hh
+    dp_s = dp + dv * hh + 0.5 * Ra * hh * hh
+    tau = s0 - cum["t_key"][k_of]
+    out = [RangeDelta(tau=float(tau[m]), dR=dR_s[m], dv=dv_s[m], dp=dp_s[m], acc=a_s[m], omega=w_s[m])
+           for m in range(len(s0))]
+    return k_of, out
 
 
 def range_error(R_k, p_k, v_k, lever, td, bias, anchor, rho, d: RangeDelta, td0: float,
@@ -183,3 +209,164 @@ def make_gtsam_factor(keys, anchor, rho, d: RangeDelta, td0: float, noise, td_fi
         return np.array([e])
 
     return gtsam.CustomFactor(noise, gtsam.KeyVector(keys), error)
+
+
+def so3_exp_batch(w: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotation matrices ``Exp(w_i)`` (Rodrigues) of (N, 3) rotation vectors [rad]."""
+    w = np.asarray(w, float)
+    th = np.linalg.norm(w, axis=1)
+    K = np.zeros((len(w), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+    small = th < 1e-8
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 1.0, np.sin(ths) / ths)
+    b = np.where(small, 0.5, (1.0 - np.cos(ths)) / ths**2)
+    return np.eye(3)[None] + a[:, None, None] * K + b[:, None, None] * (K @ K)
+
+
+class RangeGroup:
+    """The ranges attached to a few consecutive keyframes, evaluated together (vectorised :func:`range_error`).
+
+    Same model, residual and Jacobians as :func:`range_error` for every row (pinned by
+    ``tests/test_calibrate_factor.py``); one GTSAM callback per group instead of one per range.
+
+    Parameters
+    ----------
+    deltas : the rows' :class:`RangeDelta` (each from its own keyframe).
+    anchors : (N, 3) anchor positions [m] (world).
+    rho : (N,) measured ranges [m].
+    bias_col : (N,) index of each row's anchor-bias key among the group's bias keys.
+    td0 : the association's time offset [s].
+    bias_matrix : optional (N, nb) 0/1 matrix: row m's bias is ``bias_matrix[m] @ biases`` (a constant
+        bias plus a slowly varying one); default the one-hot matrix of ``bias_col``.
+    kf : optional (N,) index of each row's keyframe among the group's keyframes (default all 0).
+    """
+
+    def __init__(self, deltas, anchors, rho, bias_col, td0: float, bias_matrix=None, kf=None):
+        self.tau = np.array([d.tau for d in deltas])
+        self.dR = np.array([d.dR for d in deltas])
+        self.dv = np.array([d.dv for d in deltas])
+        self.dp = np.array([d.dp for d in deltas])
+        self.acc = np.array([d.acc for d in deltas])
+        self.omega = np.array([d.omega for d in deltas])
+        self.dRacc = np.einsum("nij,nj->ni", self.dR, self.acc)
+        self.anchor = np.asarray(anchors, float).reshape(-1, 3)
+        self.rho = np.asarray(rho, float)
+        self.bias_col = np.asarray(bias_col, np.int64)
+        self.td0 = float(td0)
+        if bias_matrix is None:
+            bias_matrix = np.zeros((len(self.rho), int(self.bias_col.max()) + 1))
+            bias_matrix[np.arange(len(self.rho)), self.bias_col] = 1.0
+        self.bias_matrix = np.asarray(bias_matrix, float)
+        self.kf = np.zeros(len(self.rho), np.int64) if kf is None else np.asarray(kf, np.int64)
+        self.n_kf = int(self.kf.max()) + 1
+        self.kf_mask = [(self.kf == i)[:, None].astype(float) for i in range(self.n_kf)]
+
+    @property
+    def n_bias(self) -> int:
+        """Number of bias keys of the group."""
+        return int(self.bias_matrix.shape[1])
+
+    def __len__(self) -> int:
+        return len(self.rho)
+
+    def evaluate(self, R_k, p_k, v_k, lever, td: float, biases, jacobians: bool = False):
+        """Residuals ``e`` (N,) [m] and, on request, Jacobians ``(J_pose (N, 6), J_vel (N, 3),
+        J_lever (N, 3), J_td (N,))`` on the GTSAM tangents (see :func:`range_error`); each row's
+        pose and velocity Jacobians are with respect to its own keyframe.
+
+        ``R_k, p_k, v_k``: the keyframes' states, (K, 3, 3), (K, 3), (K, 3) with K = ``n_kf``
+        (or (3, 3), (3,), (3,) for one keyframe).
+        """
+        g = G_WORLD
+        R_k = np.asarray(R_k, float).reshape(-1, 3, 3)[self.kf]
+        p_k = np.asarray(p_k, float).reshape(-1, 3)[self.kf]
+        v_k = np.asarray(v_k, float).reshape(-1, 3)[self.kf]
+        delta = td - self.td0
+        tau = self.tau[:, None]
+        R_s0 = R_k @ self.dR
+        v_s0 = v_k - g * tau + np.einsum("nij,nj->ni", R_k, self.dv)
+        a_s0 = np.einsum("nij,nj->ni", R_s0, self.acc) - g
+        p_s0 = p_k + v_k * tau - 0.5 * g * tau**2 + np.einsum("nij,nj->ni", R_k, self.dp)
+        M = self.dR @ so3_exp_batch(self.omega * delta)
+        R_s = R_k @ M
+        p_U = p_s0 + v_s0 * delta + 0.5 * a_s0 * delta**2 + R_s @ lever
+        u = p_U - self.anchor
+        r = np.sqrt(np.einsum("ni,ni->n", u, u))
+        e = r + self.bias_matrix @ np.asarray(biases, float) - self.rho
+        if not jacobians:
+            return e
+        n = u / r[:, None]
+        m = np.einsum("nij,ni->nj", R_k, n)  # R_k^T n
+        body = self.dp + delta * self.dv + 0.5 * delta**2 * self.dRacc + M @ lever
+        J_pose = np.hstack([np.cross(body, m), m])
+        J_vel = n * (tau + delta)
+        J_lever = np.einsum("nij,ni->nj", R_s, n)
+        J_td = np.einsum("ni,ni->n", n, v_s0 + a_s0 * delta
+                         + np.einsum("nij,nj->ni", R_s, np.cross(self.omega, lever)))
+        return e, J_pose, J_vel, J_lever, J_td
+
+
+def huber_sqrt(z: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
+    """``s = sign(z) sqrt(2 rho(z))`` of the Huber loss (``rho = z^2/2`` for ``|z| <= k``, else
+    ``k|z| - k^2/2``) and ``ds/dz``: ``s^2 / 2`` is GTSAM's Huber loss exactly, and so is its gradient."""
+    a = np.abs(z)
+    out = a > k
+    s = np.where(out, np.sign(z) * np.sqrt(np.maximum(2.0 * k * a - k * k, 0.0)), z)
+    ds = np.where(out, k / np.where(out, np.abs(s), 1.0), 1.0)
+    return s, ds
+
+
+def make_gtsam_group_factor(keys, group: RangeGroup, sigma: float, huber_k: float, td_fixed: float | None = None):
+    """A ``gtsam.CustomFactor`` of a group's ranges.
+
+    Keys: ``[pose_0, velocity_0, ..., pose_{K-1}, velocity_{K-1}, lever arm, (t_d), bias_0, bias_1, ...]``
+    (K = ``group.n_kf`` keyframes).  The robust loss is applied per range inside the factor: the
+    returned residual is ``huber_sqrt(e / sigma)`` with a unit noise model, so the factor's error is
+    the sum of the rows' Huber losses (equal to one ``Robust(Huber(k), Isotropic(sigma))`` factor per
+    range) with the same gradient; its Gauss-Newton weight of a down-weighted row is ``k / (2|z| - k)``
+    where GTSAM's iteratively reweighted one is ``k / |z|`` (equal at the threshold).
+    """
+    import gtsam
+
+    has_td = td_fixed is None
+    K = group.n_kf
+    il = 2 * K  # index of the lever-arm key
+    off = il + (2 if has_td else 1)
+    nb = len(keys) - off
+    n = len(group)
+    onehot = group.bias_matrix
+    assert onehot.shape[1] == nb, "one key per column of the group's bias matrix"
+
+    def error(this, values, H):
+        ks = this.keys()
+        R = np.empty((K, 3, 3))
+        P = np.empty((K, 3))
+        Vv = np.empty((K, 3))
+        for i in range(K):
+            pose = values.atPose3(ks[2 * i])
+            R[i], P[i], Vv[i] = pose.rotation().matrix(), pose.translation(), values.atVector(ks[2 * i + 1])
+        td = values.atVector(ks[il + 1])[0] if has_td else td_fixed
+        biases = np.array([values.atVector(ks[off + i])[0] for i in range(nb)])
+        res = group.evaluate(R, P, Vv, values.atVector(ks[il]), td, biases, jacobians=H is not None)
+        if H is None:
+            return huber_sqrt(res / sigma, huber_k)[0]
+        e, Jp, Jv, Jl, Jt = res
+        s, ds = huber_sqrt(e / sigma, huber_k)
+        w = (ds / sigma)[:, None]
+        Jp, Jv = w * Jp, w * Jv
+        if K == 1:
+            H[0], H[1] = Jp, Jv
+        else:
+            for i in range(K):
+                H[2 * i] = Jp * group.kf_mask[i]
+                H[2 * i + 1] = Jv * group.kf_mask[i]
+        H[il] = w * Jl
+        if has_td:
+            H[il + 1] = w * Jt[:, None]
+        for i in range(nb):
+            H[off + i] = w * onehot[:, i:i + 1]
+        return s
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(n), gtsam.KeyVector(keys), error)

@@ -25,9 +25,13 @@ def calibration_summary(cal: dict, truth=None) -> Table:
                   "-" if tv is None else f"{100 * tv:.2f}")
     td = cal["time_offset"]
     tv = truth.time_offset if truth is not None else None
-    val = (f"{1000 * td['value']:.1f} ± {1000 * td['sd']:.1f} (curvature {1000 * td['sd_curvature']:.1f})"
-           if td["sd"] is not None and td["sd_curvature"] is not None
-           else f"{1000 * td['value']:.1f} (held at prior: {td['verdict']})")
+    if td["held_at_prior"]:
+        val = f"{1000 * td['value']:.1f} (held at prior: {td['verdict']})"
+    elif td["sd_curvature"] is not None:
+        val = (f"{1000 * td['value']:.1f} ± {1000 * td['sd']:.1f} marginal, ± {1000 * td['sd_curvature']:.1f} "
+               f"profile curvature")
+    else:
+        val = f"{1000 * td['value']:.1f} ± {1000 * td['sd']:.1f} marginal ({td['verdict']})"
     t.add_row("time offset (ms)", val, "-" if tv is None else f"{1000 * tv:.1f}")
     for a, b in cal["anchor_bias"].items():
         t.add_row(f"range bias {a} (cm)", f"{100 * b:.2f} ± {100 * cal['anchor_bias_sd'][a]:.2f}", "-")
@@ -98,6 +102,8 @@ def register(app: typer.Typer) -> None:
         if cal["time_offset"].get("advice"):
             console.print(f"[yellow]time offset not identified ({cal['time_offset']['verdict']}):[/] "
                           f"{cal['time_offset']['advice']}")
+            console.print(f"the other values and sigmas are conditional on t_d = {1000 * cal['time_offset']['value']:.1f} ms "
+                          "(held at the prior; its uncertainty is not in them)")
         if "anchors" in cal and cal["anchors"]["estimated"]:
             console.print(anchor_summary(cal["anchors"]))
         for ev in res.events:

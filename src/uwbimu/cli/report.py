@@ -58,6 +58,7 @@ def register(app: typer.Typer) -> None:
         dataset: Path = typer.Argument(..., help="Dataset folder."),
         out: Path = typer.Option(..., "--out", "-o", help="Folder for repeatability.json (e.g. the estimator output folder)."),
         windows: int = typer.Option(4, "--windows", "-k", min=2, help="Number of windows."),
+        method: str = typer.Option("eskf", "--method", help="eskf (filter) or batch (uwbimu calibrate, GTSAM)."),
         config: Optional[Path] = typer.Option(None, "--config", help="Estimator options YAML."),
         preset: Optional[str] = typer.Option(None, "--preset", help="Shipped estimator options: default, real, isas-walk."),
         level: float = typer.Option(0.01, "--level", help="Significance level of the chi-square test."),
@@ -77,14 +78,31 @@ def register(app: typer.Typer) -> None:
 
         console = Console()
         check_output_target(out, ["repeatability.json"], force, protect=[dataset])
-        opts = estimator_options("eskf", config, preset)
+        if method not in ("eskf", "batch"):
+            from uwbimu.errors import UsageError
+
+            raise UsageError(f"--method {method!r}: expected eskf or batch")
+        if method == "batch":
+            from uwbimu.calibration import CalibrationOptions
+            from uwbimu.errors import UsageError
+
+            if preset is not None:
+                raise UsageError("--preset applies to --method eskf; give the batch options with --config")
+            try:
+                opts = CalibrationOptions.from_yaml(config) if config is not None else CalibrationOptions()
+            except (OSError, ValueError) as exc:
+                raise UsageError(f"--config {config}: {exc}") from None
+        else:
+            opts = estimator_options("eskf", config, preset)
         ds = load(dataset, load_options)
         print_load_warnings(console, ds)
-        opts = apply_dataset_properties(opts, ds, console)
+        if method == "eskf":
+            opts = apply_dataset_properties(opts, ds, console)
         with Progress(console=console) as prog:
             task = prog.add_task("calibrating windows", total=windows)
-            rep = repeatability(ds, windows, "eskf", options=opts, level=level,
+            rep = repeatability(ds, windows, method, options=opts, level=level,
                                 progress=lambda d, n: prog.update(task, completed=d))
+        rep["method"] = method
         rep["dataset"] = str(dataset)
         with output_folder(out, force, protect=[dataset], names=["repeatability.json"], finite=False) as tmp:
             write_json(tmp / "repeatability.json", rep)

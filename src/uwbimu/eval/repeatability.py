@@ -85,7 +85,8 @@ def _values(cal: dict) -> tuple[dict, dict]:
             vals[n] = float(la[i])
             sds[n] = float(las[i]) if las is not None and las[i] is not None else float("nan")
     if cal.get("time_offset") is not None:
-        vals["td"] = float(cal["time_offset"])
+        to = cal["time_offset"]
+        vals["td"] = float(to["value"] if isinstance(to, dict) else to)  # the batch calibrator's dict form
         s = cal.get("time_offset_sd")
         sds["td"] = float(s) if s is not None else float("nan")
     return vals, sds
