@@ -58,7 +58,7 @@ def register(app: typer.Typer) -> None:
         dataset: Path = typer.Argument(..., help="Dataset folder."),
         out: Path = typer.Option(..., "--out", "-o", help="Folder for repeatability.json (e.g. the estimator output folder)."),
         windows: int = typer.Option(4, "--windows", "-k", min=2, help="Number of windows."),
-        method: str = typer.Option("eskf", "--method", help="eskf (filter) or batch (uwbimu calibrate, GTSAM)."),
+        method: str = typer.Option("eskf", "--method", help="Estimator: eskf (the filter) or batch (uwbimu calibrate, GTSAM)."),
         config: Optional[Path] = typer.Option(None, "--config", help="Estimator options YAML."),
         preset: Optional[str] = typer.Option(None, "--preset", help="Shipped estimator options: default, real, isas-walk."),
         level: float = typer.Option(0.01, "--level", help="Significance level of the chi-square test."),
