@@ -225,3 +225,39 @@ def test_error_ellipse():
     assert major == pytest.approx(2 * 0.01 * np.sqrt(1.9))
     assert minor == pytest.approx(2 * 0.01 * np.sqrt(0.1))
     assert ang % 180.0 == pytest.approx(45.0)
+
+
+def test_cli_report_on_a_calibrate_folder(batch_out, tmp_path):
+    """``uwbimu calibrate DS --out OUT`` then ``uwbimu report OUT --dataset DS``: report.html next to the outputs."""
+    from typer.testing import CliRunner
+
+    from uwbimu.cli.main import app
+    from uwbimu.io.dataset import write_dataset
+
+    _out, ds = batch_out
+    ds_dir = write_dataset(ds, tmp_path / "ds")
+    cfg = tmp_path / "calibrate.yaml"
+    cfg.write_text(yaml.safe_dump({"td_profile": {"enabled": False}, "max_iterations": 10}))
+    out = tmp_path / "out"
+    r = CliRunner().invoke(app, ["calibrate", str(ds_dir), "--out", str(out), "--config", str(cfg)])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(app, ["report", str(out), "--dataset", str(ds_dir)])
+    assert r.exit_code == 0, r.output
+    doc = _parse((out / "report.html").read_text())
+    assert "batch" in doc.sections and set(PARTS) <= set(doc.parts)
+    # profile disabled: no td_profile.csv, the part says so (verdict from calibration.yaml)
+    assert not (out / "td_profile.csv").exists()
+    assert doc.parts["td-profile"]["verdict"] == "not_profiled"
+    assert "fig-batch-td-profile" not in doc.figures
+    assert doc.parts["anchor-ellipses"]["estimated"] == "0"
+
+
+def test_a_malformed_input_fails_its_part_only(batch_out, tmp_path):
+    out, _ds = batch_out
+    o = _copy(out, tmp_path / "o")
+    df = pd.read_csv(o / "anchors_estimated.csv")
+    df["sd_x"] = "not a number"
+    df.to_csv(o / "anchors_estimated.csv", index=False)
+    doc = _parse(render_report(o))
+    assert doc.parts["anchor-ellipses"].get("failed") == "yes"
+    assert all("failed" not in doc.parts[k] for k in PARTS if k != "anchor-ellipses")

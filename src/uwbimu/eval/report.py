@@ -744,7 +744,7 @@ def _batch_profile_part(inp: ReportInputs) -> Markup:
     prof = inp.td_profile
     if prof is None:
         return _part("td-profile", "Time-offset profile", _missing(Markup(
-            "<code>td_profile.csv</code> not found (profile disabled: <code>td_profile: {enabled: false}</code>); "
+            "<code>td_profile.csv</code> not found (profile disabled: <code>td_profile: {{enabled: false}}</code>); "
             "t_d verdict in <code>calibration.yaml</code>: {}.").format(verdict)), verdict=verdict)
     if "time_offset" not in prof.columns or not ({"delta_chi2", "chi2"} & set(prof.columns)):
         return _part("td-profile", "Time-offset profile", _missing(Markup(
@@ -1088,13 +1088,17 @@ def _batch_section(inp: ReportInputs) -> Optional[Markup]:
     if not is_batch_output(inp):
         return None
     parts = []
-    for fn in (_batch_profile_part, _batch_angle_part, _batch_ellipse_part, _batch_before_after_part):
+    for key, title, fn in (("td-profile", "Time-offset profile", _batch_profile_part),
+                           ("residual-angle", "Residual vs line-of-sight angle", _batch_angle_part),
+                           ("anchor-ellipses", "Anchor error ellipses", _batch_ellipse_part),
+                           ("before-after", "Residuals without / with the range bias", _batch_before_after_part)):
         try:
             parts.append(fn(inp))
         except EvalInputError:
             raise
-        except Exception as exc:  # one broken part must not lose the others
-            parts.append(_block("warn", f"This part failed: {type(exc).__name__}: {exc}"))
+        except Exception as exc:  # one broken part must not lose the others; say what failed
+            parts.append(_part(key, title, _block("warn", f"This part failed: {type(exc).__name__}: {exc}"),
+                               failed="yes"))
     return Markup('<p class="note">Outputs of <code>uwbimu calibrate</code> (batch MAP, see docs/calibrate.md).</p>') + \
         _join(parts)
 
