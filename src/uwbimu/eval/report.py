@@ -727,6 +727,12 @@ def is_batch_output(inp: ReportInputs) -> bool:
         isinstance(c.get("time_offset"), dict) and "verdict" in c["time_offset"])
 
 
+def _not_found_or_lacks(name: str, absent: bool, need: Sequence[str]) -> Markup:
+    if absent:
+        return Markup("<code>{}</code> not found.").format(name)
+    return Markup("<code>{}</code> lacks the column(s) {}.").format(name, ", ".join(need))
+
+
 def _part(key: str, title: str, content: Markup, **attrs: Any) -> Markup:
     return _block("part", key, title, content, [(k.replace("_", "-"), str(v)) for k, v in attrs.items()])
 
@@ -858,7 +864,7 @@ def _batch_angle_part(inp: ReportInputs) -> Markup:
     need = [c for c in ("t", "anchor", "residual") if res is None or c not in res.columns]
     if res is None or need:
         return _part("residual-angle", "Residual vs line-of-sight angle", _missing(
-            Markup("<code>residuals.csv</code> not found or lacks {}.").format(", ".join(need))), x_axis="none")
+            _not_found_or_lacks("residuals.csv", res is None, need)), x_axis="none")
     rr, n_tdoa = _range_rows(res)
     traj = inp.trajectory
     anchors, src = _anchor_table(inp)
@@ -924,8 +930,8 @@ def _batch_angle_part(inp: ReportInputs) -> Markup:
     parts = [Markup('<p class="note">{}</p>').format(Markup(" ").join(notes))]
     if rows:
         parts.append(_table(["anchor", "ranges", "azimuth covered [deg]", "peak-to-peak of 30° medians [cm]"], rows))
-    cap = ("Residual (predicted − measured range, with the estimated range bias) per anchor against the "
-           + ("body-frame azimuth of the line of sight; black: median per 30° bin (5 ranges or more)"
+    cap = ("Residual (predicted − measured range, with the estimated range bias) per anchor against "
+           + ("the body-frame azimuth of the line of sight; black: median per 30° bin (5 ranges or more)"
               if mode == "azimuth" else "time") + "; red ×: down-weighted (|z| > Huber k, residuals.csv outlier).")
     parts.append(_fig("batch-residual-angle", fig, cap))
     return _part("residual-angle", "Residual vs line-of-sight angle" if mode == "azimuth" else "Residual vs time",
@@ -970,8 +976,8 @@ def _batch_ellipse_part(inp: ReportInputs) -> Markup:
     a = inp.anchors_estimated
     need = [c for c in ("anchor", "x", "y", "sd_x", "sd_y", "estimated") if a is None or c not in a.columns]
     if a is None or need:
-        return _part("anchor-ellipses", "Anchor error ellipses", _missing(Markup(
-            "<code>anchors_estimated.csv</code> not found or lacks {}.").format(", ".join(need))), estimated="0")
+        return _part("anchor-ellipses", "Anchor error ellipses", _missing(_not_found_or_lacks(
+            "anchors_estimated.csv", a is None, need)), estimated="0")
     cal = inp.calibration or {}
     est = _as_bool(a["estimated"])
     xy = a[["x", "y"]].to_numpy(float)
@@ -1036,7 +1042,7 @@ def _batch_before_after_part(inp: ReportInputs) -> Markup:
     need = [c for c in ("anchor", "residual") if res is None or c not in res.columns]
     if res is None or need:
         return _part("before-after", "Residuals without / with the range bias", _missing(
-            Markup("<code>residuals.csv</code> not found or lacks {}.").format(", ".join(need))), before="absent")
+            _not_found_or_lacks("residuals.csv", res is None, need)), before="absent")
     rr, n_tdoa = _range_rows(res)
     cal = inp.calibration or {}
     bias = cal.get("anchor_bias") if isinstance(cal.get("anchor_bias"), dict) else None
