@@ -1,0 +1,263 @@
+"""The report's batch-calibration section (issue 12 item 7): t_d profile, residual vs line-of-sight
+angle, anchor error ellipses and residuals without / with the range bias, read from the files
+``uwbimu calibrate`` writes."""
+
+from __future__ import annotations
+
+import base64
+import shutil
+from html.parser import HTMLParser
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from uwbimu.eval.report import error_ellipse, line_of_sight_azimuth, render_report
+
+PARTS = ("td-profile", "residual-angle", "anchor-ellipses", "before-after")
+ESTIMATED = "A7"
+
+
+class _Doc(HTMLParser):
+    """Sections, batch parts (with their data- attributes), figures and the tables of each part."""
+
+    def __init__(self):
+        super().__init__()
+        self.sections, self.figures, self.parts, self.tables = set(), {}, {}, {}
+        self._part, self._fig, self._row, self._cell = None, None, None, None
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        if tag == "section":
+            self.sections.add(a["id"])
+        if tag == "div" and "data-part" in a:
+            self._part = a["data-part"]
+            self.parts[self._part] = {k[5:]: v for k, v in a.items() if k.startswith("data-")}
+            self.tables[self._part] = []
+        if tag == "figure":
+            self._fig = a["id"]
+        if tag == "img" and self._fig:
+            self.figures[self._fig] = a["src"]
+        if tag == "tr" and self._part:
+            self._row = []
+            self.tables[self._part].append(self._row)
+        if tag in ("td", "th") and self._row is not None:
+            self._cell = []
+
+    def handle_endtag(self, tag):
+        if tag in ("td", "th") and self._cell is not None:
+            self._row.append("".join(self._cell).strip())
+            self._cell = None
+        if tag == "tr":
+            self._row = None
+        if tag == "section":
+            self._part = None
+
+    def handle_data(self, data):
+        if self._cell is not None:
+            self._cell.append(data)
+
+
+def _parse(text: str) -> _Doc:
+    d = _Doc()
+    d.feed(text)
+    return d
+
+
+def _table(doc: _Doc, part: str) -> pd.DataFrame:
+    rows = doc.tables[part]
+    return pd.DataFrame(rows[1:], columns=rows[0])
+
+
+@pytest.fixture(scope="module")
+def batch_out(tmp_path_factory):
+    """A 10 s simulated calibration flight through the batch calibrator (profile on, one anchor estimated)."""
+    pytest.importorskip("gtsam")
+    from uwbimu.calibration import CalibrationOptions, calibrate, write_calibration
+    from uwbimu.sim import builtin_scenario, simulate
+
+    sc = builtin_scenario("calibration-flight")
+    sc = sc.model_copy(update={"duration": 10.0, "seeds": sc.seeds.model_copy(update={"noise": 4})})
+    ds = simulate(sc)
+    opts = CalibrationOptions.model_validate({"td_profile": {"half_width": 0.2, "step": 0.1},
+                                              "estimate_anchors": [ESTIMATED]})
+    out = tmp_path_factory.mktemp("batch") / "out"
+    out.mkdir()
+    write_calibration(calibrate(ds, opts), out, plots=False)
+    return out, ds
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_section_has_its_four_parts(batch_out):
+    out, _ds = batch_out
+    doc = _parse(render_report(out))
+    assert "batch" in doc.sections
+    assert set(PARTS) <= set(doc.parts)
+    cal = yaml.safe_load((out / "calibration.yaml").read_text())
+    assert doc.parts["td-profile"]["verdict"] == cal["time_offset"]["verdict"]
+    # attitude in trajectory.csv and anchors in anchors_estimated.csv: angle, not time
+    assert doc.parts["residual-angle"]["x-axis"] == "azimuth"
+    assert doc.parts["residual-angle"]["anchors-from"] == "anchors_estimated.csv"
+    assert doc.parts["anchor-ellipses"]["estimated"] == "1"
+    assert doc.parts["before-after"]["before"] == "present"
+    assert doc.parts["before-after"]["drift"] == "absent"  # the writer adds bias_drift only with range_bias_drift
+    for name in ("fig-batch-td-profile", "fig-batch-residual-angle", "fig-batch-anchor-ellipses"):
+        png = base64.b64decode(doc.figures[name].split(",", 1)[1])
+        assert png[:8] == b"\x89PNG\r\n\x1a\n", name
+    # the ellipse table: the estimated anchor with its 2-sigma semi-axes, the others fixed
+    ell = _table(doc, "anchor-ellipses").set_index("anchor")
+    an = pd.read_csv(out / "anchors_estimated.csv").set_index("anchor")
+    assert set(ell.index[ell["position"] == "estimated"]) == {ESTIMATED}
+    major = float(ell.loc[ESTIMATED, "2σ major [cm]"])
+    sx, sy = an.loc[ESTIMATED, ["sd_x", "sd_y"]]
+    assert 2 * 100 * max(sx, sy) - 0.05 <= major <= 2 * 100 * np.hypot(sx, sy) + 0.05
+
+
+def test_before_after_table_uses_the_written_columns(batch_out):
+    """"with" = residual as written (bias inside); "without" = residual - anchor_bias, per anchor."""
+    out, _ds = batch_out
+    doc = _parse(render_report(out))
+    tab = _table(doc, "before-after").set_index("anchor")
+    res = pd.read_csv(out / "residuals.csv")
+    cal = yaml.safe_load((out / "calibration.yaml").read_text())
+    assert set(tab.index) == set(res["anchor"].astype(str)) | {"all"}
+    for a, g in res.groupby(res["anchor"].astype(str)):
+        with_ = 100 * g["residual"].median()
+        without = 100 * (g["residual"] - cal["anchor_bias"][a]).median()
+        assert float(tab.loc[a, "median with [cm]"]) == pytest.approx(with_, abs=0.006)
+        assert float(tab.loc[a, "median without [cm]"]) == pytest.approx(without, abs=0.006)
+        assert int(tab.loc[a, "ranges"]) == len(g)
+        assert int(tab.loc[a, "down-weighted"]) == int(g["outlier"].sum())
+    assert int(tab.loc["all", "ranges"]) == len(res)
+
+
+def test_residual_vs_time_when_no_attitude_or_anchors(batch_out, tmp_path):
+    out, ds = batch_out
+    o = _copy(out, tmp_path / "o")
+    (o / "anchors_estimated.csv").unlink()
+    # without anchors_estimated.csv: the dataset's anchors give the angle; no ellipses
+    doc = _parse(render_report(o, dataset=ds))
+    assert doc.parts["residual-angle"]["x-axis"] == "azimuth"
+    assert doc.parts["residual-angle"]["anchors-from"] == "dataset anchors.csv"
+    assert doc.parts["anchor-ellipses"]["estimated"] == "0"
+    assert "fig-batch-anchor-ellipses" not in doc.figures
+    # no anchors at all: residual vs time, said in the part's attribute and shown as a figure
+    doc = _parse(render_report(o))
+    assert doc.parts["residual-angle"]["x-axis"] == "time"
+    assert "fig-batch-residual-angle" in doc.figures
+    # no attitude in trajectory.csv: time as well
+    o2 = _copy(out, tmp_path / "o2")
+    tr = pd.read_csv(o2 / "trajectory.csv").drop(columns=["qw", "qx", "qy", "qz"])
+    tr.to_csv(o2 / "trajectory.csv", index=False)
+    assert _parse(render_report(o2)).parts["residual-angle"]["x-axis"] == "time"
+
+
+def test_batch_text_is_escaped(batch_out, tmp_path):
+    out, _ds = batch_out
+    o = _copy(out, tmp_path / "o")
+    evil_id = '<img src=x onerror="alert(1)">'
+    evil_verdict = '"><script>alert(2)</script>'
+    for name in ("residuals.csv", "anchors_estimated.csv"):
+        df = pd.read_csv(o / name)
+        df["anchor"] = df["anchor"].astype(str).replace({"A0": evil_id})
+        df.to_csv(o / name, index=False)
+    cal = yaml.safe_load((o / "calibration.yaml").read_text())
+    cal["anchor_bias"][evil_id] = cal["anchor_bias"].pop("A0")
+    cal["time_offset"]["verdict"] = evil_verdict
+    (o / "calibration.yaml").write_text(yaml.safe_dump(cal))
+    html = render_report(o)
+    assert "<script>" not in html and "<img src=x" not in html
+    doc = _parse(html)
+    assert doc.parts["td-profile"]["verdict"] == evil_verdict  # escaped in the attribute, read back intact
+    assert evil_id in _table(doc, "before-after")["anchor"].tolist()
+    assert evil_id in _table(doc, "anchor-ellipses")["anchor"].tolist()
+
+
+def test_folder_without_batch_outputs_has_no_section(tmp_path):
+    """An estimator folder (scalar time_offset, no td_profile.csv / anchors_estimated.csv): no batch section."""
+    out = tmp_path / "est"
+    out.mkdir()
+    (out / "calibration.yaml").write_text(yaml.safe_dump({
+        "lever_arm": [0.1, 0.0, 0.0], "lever_arm_sd": [0.01, 0.01, 0.01], "time_offset": 0.01,
+        "time_offset_sd": 0.002}))
+    pd.DataFrame({"t": [0.0, 0.1], "px": [0.0, 0.1], "py": [0.0, 0.0], "pz": [1.0, 1.0]}).to_csv(
+        out / "trajectory.csv", index=False)
+    pd.DataFrame({"t": [0.0, 0.1], "anchor": ["A0", "A1"], "innovation": [0.01, -0.01], "nis": [0.5, 0.4],
+                  "accepted": [True, True]}).to_csv(out / "residuals.csv", index=False)
+    doc = _parse(render_report(out))
+    assert "calibration" in doc.sections and "batch" not in doc.sections
+    assert doc.parts == {}
+    # td_profile.csv alone makes it a batch folder
+    pd.DataFrame({"time_offset": [-0.1, 0.0, 0.1], "chi2": [9.0, 0.0, 9.0], "delta_chi2": [9.0, 0.0, 9.0],
+                  "iterations": [3, 3, 3]}).to_csv(out / "td_profile.csv", index=False)
+    doc = _parse(render_report(out))
+    assert "batch" in doc.sections and set(PARTS) <= set(doc.parts)
+
+
+def test_line_of_sight_azimuth_body_frame():
+    """Azimuth of the anchor seen from the tag antenna, in the body frame (lever arm included)."""
+    s = np.sqrt(0.5)
+    traj = pd.DataFrame({"t": [0.0, 1.0, 2.0], "px": 0.0, "py": 0.0, "pz": 0.0,
+                         # identity, identity, then 90 deg yaw (body x along world y)
+                         "qw": [1.0, 1.0, s], "qx": 0.0, "qy": 0.0, "qz": [0.0, 0.0, s]})
+    anchors = pd.DataFrame({"anchor": ["N", "E"], "x": [0.0, 1.0], "y": [1.0, 0.0], "z": [0.0, 0.0]})
+    res = pd.DataFrame({"t": [0.0, 0.0, 2.0, 2.0, 5.0], "anchor": ["N", "E", "N", "E", "N"]})
+    az = line_of_sight_azimuth(res, traj, anchors)
+    np.testing.assert_allclose(az[:4], [90.0, 0.0, 0.0, -90.0], atol=1e-9)
+    assert np.isnan(az[4])  # outside the trajectory's span
+    # tag antenna 1 m along body x.  t=0: anchor N at world (0, 1, 0) is seen at (-1, 1) -> 135 deg;
+    # t=2 (yaw 90 deg, antenna at world (0, 1, 0)): anchor E at world offset (1, -1) = body (-1, -1) -> -135 deg
+    az = line_of_sight_azimuth(res.iloc[[0, 3]], traj, anchors, lever_arm=[1.0, 0.0, 0.0])
+    np.testing.assert_allclose(az, [135.0, -135.0], atol=1e-9)
+
+
+def test_error_ellipse():
+    major, minor, ang = error_ellipse(0.02, 0.01, 0.0)
+    assert (major, minor) == pytest.approx((0.04, 0.02))
+    assert ang % 180.0 == pytest.approx(0.0, abs=1e-9) or ang % 180.0 == pytest.approx(180.0, abs=1e-9)
+    major, minor, ang = error_ellipse(0.01, 0.01, 0.9)
+    assert major == pytest.approx(2 * 0.01 * np.sqrt(1.9))
+    assert minor == pytest.approx(2 * 0.01 * np.sqrt(0.1))
+    assert ang % 180.0 == pytest.approx(45.0)
+
+
+def test_cli_report_on_a_calibrate_folder(batch_out, tmp_path):
+    """``uwbimu calibrate DS --out OUT`` then ``uwbimu report OUT --dataset DS``: report.html next to the outputs."""
+    from typer.testing import CliRunner
+
+    from uwbimu.cli.main import app
+    from uwbimu.io.dataset import write_dataset
+
+    _out, ds = batch_out
+    ds_dir = write_dataset(ds, tmp_path / "ds")
+    cfg = tmp_path / "calibrate.yaml"
+    cfg.write_text(yaml.safe_dump({"td_profile": {"enabled": False}, "max_iterations": 10}))
+    out = tmp_path / "out"
+    r = CliRunner().invoke(app, ["calibrate", str(ds_dir), "--out", str(out), "--config", str(cfg)])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(app, ["report", str(out), "--dataset", str(ds_dir)])
+    assert r.exit_code == 0, r.output
+    doc = _parse((out / "report.html").read_text())
+    assert "batch" in doc.sections and set(PARTS) <= set(doc.parts)
+    # profile disabled: no td_profile.csv, the part says so (verdict from calibration.yaml)
+    assert not (out / "td_profile.csv").exists()
+    assert doc.parts["td-profile"]["verdict"] == "not_profiled"
+    assert "fig-batch-td-profile" not in doc.figures
+    assert doc.parts["anchor-ellipses"]["estimated"] == "0"
+
+
+def test_a_malformed_input_fails_its_part_only(batch_out, tmp_path):
+    out, _ds = batch_out
+    o = _copy(out, tmp_path / "o")
+    df = pd.read_csv(o / "anchors_estimated.csv")
+    df["sd_x"] = "not a number"
+    df.to_csv(o / "anchors_estimated.csv", index=False)
+    doc = _parse(render_report(o))
+    assert doc.parts["anchor-ellipses"].get("failed") == "yes"
+    assert all("failed" not in doc.parts[k] for k in PARTS if k != "anchor-ellipses")
