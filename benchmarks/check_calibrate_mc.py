@@ -1,0 +1,84 @@
+"""Batch calibrator on simulation against the Cramer-Rao bound (issue 12 item 4).
+
+For each built-in scenario and noise seed: simulate, run ``uwbimu.calibration.calibrate`` (free
+t_d, no profile, defaults otherwise) and compare the lever arm and t_d with the truth and with
+the posterior Cramer-Rao bound of the same flight (``uwbimu.studies.crlb.scenario_bound``: the
+bound at the end of the log, which for constant parameters is the full-log bound).  Prints per
+scenario and quantity: RMS error, RMS reported sigma, sqrt(mean CRLB^2), RMS error / CRLB and
+RMS(error / sigma).
+
+    PYTHONPATH=src python benchmarks/check_calibrate_mc.py [--seeds 20] [--workers 2]
+        [--scenarios calibration-flight,excited-90s,lissajous] [--duration 60] [--json OUT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+
+NAMES = ("lever x", "lever y", "lever z", "t_d")
+
+
+def one(args) -> dict:
+    name, seed, duration = args
+    from uwbimu.calibration import CalibrationOptions, calibrate
+    from uwbimu.sim import builtin_scenario, simulate
+    from uwbimu.studies.crlb import scenario_bound
+
+    sc = builtin_scenario(name)
+    upd = {"seeds": sc.seeds.model_copy(update={"noise": 1000 + seed})}
+    if duration:
+        upd["duration"] = float(duration)
+    sc = sc.model_copy(update=upd)
+    ds = simulate(sc)
+    t0 = time.process_time()
+    res = calibrate(ds, CalibrationOptions.model_validate({"td_profile": {"enabled": False}}))
+    cpu = time.process_time() - t0
+    cal, truth = res.calibration, ds.meta.truth
+    err = np.append(np.subtract(cal["lever_arm"], truth.lever_arm), cal["time_offset"]["value"] - truth.time_offset)
+    sd = np.append(cal["lever_arm_sd"], cal["time_offset"]["sd"])
+    s = sc.model_dump(mode="json")
+    b = scenario_bound(s, (s["seeds"]["truth"], s["seeds"]["noise"], s["seeds"]["init"]))
+    crlb = np.array([b["lever_arm_sd_x"], b["lever_arm_sd_y"], b["lever_arm_sd_z"], b["time_offset_sd"]])
+    return {"scenario": name, "seed": seed, "err": err.tolist(), "sd": sd.tolist(), "crlb": crlb.tolist(), "cpu_s": cpu}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--scenarios", default="calibration-flight,excited-90s,lissajous")
+    ap.add_argument("--duration", type=float, default=0.0, help="override the scenarios' duration [s] (0: keep)")
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args()
+    jobs = [(n.strip(), s, a.duration) for n in a.scenarios.split(",") for s in range(a.seeds)]
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor(a.workers) as ex:
+        rows = list(ex.map(one, jobs))
+    wall = time.perf_counter() - t0
+    print(f"{len(rows)} calibrations, {wall:.0f} s wall, {a.workers} workers, "
+          f"median {np.median([r['cpu_s'] for r in rows]):.1f} s CPU each")
+    print("| scenario | quantity | RMS error | RMS sigma | CRLB | RMS error / CRLB | RMS(error / sigma) |")
+    print("|---|---|---|---|---|---|---|")
+    for name in dict.fromkeys(r["scenario"] for r in rows):
+        R = [r for r in rows if r["scenario"] == name]
+        E, S, C = (np.array([r[k] for r in R]) for k in ("err", "sd", "crlb"))
+        for j, q in enumerate(NAMES):
+            unit, f = ("ms", 1e3) if q == "t_d" else ("mm", 1e3)
+            rms_e = np.sqrt(np.mean(E[:, j] ** 2))
+            rms_s = np.sqrt(np.mean(S[:, j] ** 2))
+            cr = np.sqrt(np.mean(C[:, j] ** 2))
+            z = np.sqrt(np.mean((E[:, j] / S[:, j]) ** 2))
+            print(f"| {name} | {q} | {f * rms_e:.2f} {unit} | {f * rms_s:.2f} {unit} | {f * cr:.2f} {unit} | "
+                  f"{rms_e / cr:.2f} | {z:.2f} |")
+    if a.json:
+        with open(a.json, "w") as fh:
+            json.dump({"rows": rows, "wall_s": wall}, fh)
+
+
+if __name__ == "__main__":
+    main()
