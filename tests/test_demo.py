@@ -31,6 +31,11 @@ def test_demo_writes_every_stage(demo_run):
     # The calibration the demo prints is the estimator's, and it is close to the truth.
     la = figures["calibration"]["lever_arm"]
     assert abs(la[2] - 0.14) < 0.05
+    # Every repeatability window was calibrated (a window that fails is recorded, not raised).
+    import json
+
+    rep = json.loads((out / "estimate" / "repeatability.json").read_text())
+    assert rep["n_failed"] == 0 and set(figures["repeatability"]) == {"lx", "ly", "lz", "td"}
 
 
 def test_demo_reruns_into_its_own_folder(demo_run, tmp_path):

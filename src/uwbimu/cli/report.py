@@ -62,6 +62,7 @@ def register(app: typer.Typer) -> None:
         config: Optional[Path] = typer.Option(None, "--config", help="Estimator options YAML."),
         preset: Optional[str] = typer.Option(None, "--preset", help="Shipped estimator options: default, real, isas-walk."),
         level: float = typer.Option(0.01, "--level", help="Significance level of the chi-square test."),
+        workers: int = typer.Option(1, "--workers", min=1, help="Windows calibrated in parallel (process pool)."),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         load_options=None,
     ) -> None:
@@ -100,7 +101,7 @@ def register(app: typer.Typer) -> None:
             opts = apply_dataset_properties(opts, ds, console)
         with Progress(console=console) as prog:
             task = prog.add_task("calibrating windows", total=windows)
-            rep = repeatability(ds, windows, method, options=opts, level=level,
+            rep = repeatability(ds, windows, method, options=opts, level=level, workers=workers,
                                 progress=lambda d, n: prog.update(task, completed=d))
         rep["method"] = method
         rep["dataset"] = str(dataset)

@@ -20,6 +20,7 @@ or is that dict, with keys ``lever_arm``, ``lever_arm_sd``, ``time_offset``,
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any, Callable, Optional, Union
 
 import numpy as np
@@ -71,7 +72,7 @@ def split_windows(ds: Dataset, k: int, t_range: Optional[tuple[float, float]] = 
 
 def _calibration_of(result: Any) -> dict:
     cal = getattr(result, "calibration", result)
-    if not isinstance(cal, dict):
+    if not isinstance(cal, Mapping):  # a dict or a typed result that reads as one (CalibrationEstimate)
         raise TypeError(f"estimator returned {type(result).__name__} without a calibration dict")
     return cal
 
@@ -86,7 +87,7 @@ def _values(cal: dict) -> tuple[dict, dict]:
             sds[n] = float(las[i]) if las is not None and las[i] is not None else float("nan")
     if cal.get("time_offset") is not None:
         to = cal["time_offset"]
-        vals["td"] = float(to["value"] if isinstance(to, dict) else to)  # the batch calibrator's dict form
+        vals["td"] = float(to["value"] if isinstance(to, Mapping) else to)  # the batch calibrator's dict form
         s = cal.get("time_offset_sd")
         sds["td"] = float(s) if s is not None else float("nan")
     return vals, sds
@@ -137,6 +138,32 @@ def consistency(values: np.ndarray, sds: np.ndarray, level: float = 0.01) -> dic
     return out
 
 
+def _window_frame(i: int, w: Dataset) -> dict:
+    t0, t1 = float(w.imu_t[0]) if len(w.imu) else float("nan"), float(w.imu_t[-1]) if len(w.imu) else float("nan")
+    return {"i": i, "t0": t0, "t1": t1, "t_mid": 0.5 * (t0 + t1), "n_imu": len(w.imu), "n_uwb": len(w.uwb)}
+
+
+def _run_window(i: int, w: Dataset, estimator: Callable[[Dataset], Any]) -> dict:
+    rec = _window_frame(i, w)
+    try:
+        res = estimator(w)
+        vals, sds = _values(_calibration_of(res))
+        rec["values"], rec["sd"] = vals, sds
+        rec["warnings"] = list(getattr(res, "warnings", []) or [])
+    except Exception as exc:  # a window that fails is reported, not fatal
+        rec["error"] = f"{type(exc).__name__}: {exc}"
+    return rec
+
+
+def _window_task(task) -> dict:
+    """One window on an executor's worker: ``(i, window, registry name, options)`` -> record."""
+    from uwbimu.eval.estimators import get_estimator
+
+    i, w, name, opts = task
+    entry = get_estimator(name)
+    return _run_window(i, w, lambda d: entry.run(d, opts, None))
+
+
 def repeatability(
     ds: Dataset,
     k: int,
@@ -145,6 +172,7 @@ def repeatability(
     progress: Optional[Callable[[int, int], None]] = None,
     t_range: Optional[tuple[float, float]] = None,
     options: Any = None,
+    workers: int = 1,
 ) -> dict:
     """Calibrate each of ``k`` windows with ``estimator`` and test the spread.
 
@@ -157,6 +185,9 @@ def repeatability(
         ``Dataset -> EstimationResult`` (or calibration dict).
     level : significance level of the consistency test.
     progress : optional callback ``(done, total)``.
+    workers : windows calibrated in parallel on the Monte Carlo executors
+        (:func:`uwbimu.studies.executors.execute`, a process pool); 1 (default) runs them here, in
+        order.  Only for a registry name (a callable may not be picklable).
 
     Returns
     -------
@@ -165,29 +196,41 @@ def repeatability(
     (per parameter: :func:`consistency` + ``truth``/``mean_error`` when the
     dataset's truth is known), ``n_failed``.
     """
-    if isinstance(estimator, str):
+    name = estimator if isinstance(estimator, str) else None
+    if name is not None:
         from uwbimu.eval.estimators import get_estimator
 
-        entry = get_estimator(estimator)
+        entry = get_estimator(name)
         opts = entry.options(options)
         estimator = lambda w: entry.run(w, opts, None)  # noqa: E731
     elif options is not None:
         raise ValueError("options apply to a registry name, not to an estimator callable")
+    if workers != 1 and name is None:
+        raise ValueError("workers > 1 needs an estimator name of the registry (a callable may not be picklable)")
     wins = split_windows(ds, k, t_range=t_range)
-    records = []
-    for i, w in enumerate(wins):
-        t0, t1 = float(w.imu_t[0]) if len(w.imu) else float("nan"), float(w.imu_t[-1]) if len(w.imu) else float("nan")
-        rec: dict = {"i": i, "t0": t0, "t1": t1, "t_mid": 0.5 * (t0 + t1), "n_imu": len(w.imu), "n_uwb": len(w.uwb)}
-        try:
-            res = estimator(w)
-            vals, sds = _values(_calibration_of(res))
-            rec["values"], rec["sd"] = vals, sds
-            rec["warnings"] = list(getattr(res, "warnings", []) or [])
-        except Exception as exc:  # a window that fails is reported, not fatal
-            rec["error"] = f"{type(exc).__name__}: {exc}"
-        records.append(rec)
-        if progress is not None:
-            progress(i + 1, len(wins))
+    if workers != 1:
+        from uwbimu.studies.executors import execute
+
+        got: dict[int, dict] = {}
+
+        def keep(rec: dict) -> None:
+            got[rec["i"]] = rec
+            if progress is not None:
+                progress(len(got), len(wins))
+
+        failed = execute(_window_task, [(i, w, name, opts) for i, w in enumerate(wins)], keep, workers=workers,
+                         describe=lambda t: f"window {t[0]}",
+                         preload=("uwbimu.sim", "uwbimu.estimation", "uwbimu.eval.estimators"))
+        for line in failed:  # a worker that died: the window is reported as failed, not lost
+            i = int(line.split(":")[0].split()[-1])
+            got[i] = {**_window_frame(i, wins[i]), "error": line}
+        records = [got[i] for i in range(len(wins))]
+    else:
+        records = []
+        for i, w in enumerate(wins):
+            records.append(_run_window(i, w, estimator))
+            if progress is not None:
+                progress(i + 1, len(wins))
     truth = {}
     if ds.meta.truth is not None:
         if ds.meta.truth.lever_arm is not None:
