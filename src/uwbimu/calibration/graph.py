@@ -22,7 +22,8 @@ import numpy as np
 
 from uwbimu.calibration.anchors import GAUGE_SIGMA, AnchorSetup
 from uwbimu.calibration.options import CalibrationOptions
-from uwbimu.calibration.range_factor import RangeGroup, imu_cumulative, imu_deltas, make_gtsam_factor, make_gtsam_group_factor
+from uwbimu.calibration.range_factor import (RangeGroup, imu_cumulative, imu_deltas, make_gtsam_factor,
+                                             make_gtsam_group_factor, so3_exp)
 from uwbimu.calibration.tdoa_factor import make_gtsam_tdoa_factor
 from uwbimu.models.reference import GRAVITY
 
@@ -230,7 +231,13 @@ def _imu_factors(pb: Problem):
         pim = gtsam.PreintegratedCombinedMeasurements(params, gtsam.imuBias.ConstantBias(b[:3], b[3:]))
         for i in range(i0, i1):
             mid = 0.5 * (u[i] + u[i + 1])
-            pim.integrateMeasurement(mid[:3], mid[3:], pb.t_imu[i + 1] - pb.t_imu[i])
+            h = pb.t_imu[i + 1] - pb.t_imu[i]
+            # GTSAM rotates the step's acceleration with the attitude at the START of the step; the range
+            # factors' IMU deltas (imu_cumulative) use the midpoint attitude.  Hand GTSAM the acceleration
+            # already turned by half the step's rotation, so both integrate the same motion (otherwise the
+            # trajectory lags half an IMU period against the ranges: t_d biased by about -T/2).
+            acc = so3_exp(0.5 * h * (mid[3:] - b[3:])) @ (mid[:3] - b[:3]) + b[:3]
+            pim.integrateMeasurement(acc, mid[3:], h)
         factors.append(gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1), pim))
     return factors
 
