@@ -170,3 +170,20 @@ def test_direction_refused_with_self_survey():
     with pytest.raises(UsageError, match="range_model.direction"):
         calibrate(ds, CalibrationOptions(td_profile={"enabled": False}, estimate_anchors=[a0],
                                          range_model={"direction": {"harmonics": 2}}))
+
+
+def test_direction_with_drift_keeps_both_terms():
+    """With range_bias_drift too, every grouped factor carries bias, drift and direction keys: both columns
+    are in residuals.csv and predicted = range + residual still holds."""
+    pytest.importorskip("gtsam")
+    from uwbimu.calibration import CalibrationOptions, calibrate
+    from uwbimu.sim import builtin_scenario, simulate
+
+    ds = simulate(builtin_scenario("calibration-flight").model_copy(update={"duration": 8.0}))
+    ds, _ = _with_body_azimuth_bias(ds, 0.05, 0.03)
+    r = calibrate(ds, CalibrationOptions(td_profile={"enabled": False}, range_bias_drift={"sd": 0.05},
+                                         range_model={"direction": {"harmonics": 2, "per_anchor": True}}))
+    res = r.residuals
+    assert {"bias_drift", "bias_direction"} <= set(res.columns)
+    assert res["bias_direction"].abs().max() > 0.01 and res["bias_drift"].abs().max() > 0.0
+    np.testing.assert_allclose(res["predicted"] - res["range"], res["residual"], atol=1e-12)
