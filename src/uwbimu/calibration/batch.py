@@ -404,7 +404,8 @@ def _anchor_report(pb, values, sd_p: dict, dataset):
     return out, table
 
 
-#: Tangent dimension of every variable, by the GTSAM symbol letter (see graph.py).
+#: Tangent dimension of every variable, by the GTSAM symbol letter (see graph.py); others (``h``, the
+#: direction-bias coefficients) are vectors whose length is read from the values.
 _DIMS = {"x": 6, "v": 3, "b": 6, "l": 3, "t": 1, "a": 1, "p": 3, "d": 1}
 
 
@@ -428,7 +429,8 @@ class SparseMarginals:
         keys = sorted(int(k) for k in values.keys())  # sparseJacobian_ orders columns by key
         self._cols, off = {}, 0
         for k in keys:
-            d = _DIMS[chr(gtsam.Symbol(k).chr())]
+            c = chr(gtsam.Symbol(k).chr())
+            d = _DIMS[c] if c in _DIMS else len(values.atVector(k))
             self._cols[k] = np.arange(off, off + d)
             off += d
         rows, cols = ijs[0].astype(int) - 1, ijs[1].astype(int) - 1
