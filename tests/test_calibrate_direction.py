@@ -5,15 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from test_calibrate_factor import _imu  # same synthetic IMU stream
+
 from uwbimu.calibration.range_factor import RangeGroup, direction_features, imu_deltas, so3_exp
-
-
-def _imu(rng, n=41, rate=200.0):
-    t = np.arange(n) / rate
-    u = np.empty((n, 6))
-    u[:, :3] = [0.3, -0.2, 9.81] + 1.5 * np.sin(2 * np.pi * np.outer(t, [1.1, 0.7, 1.3]) + rng.uniform(0, 6, 3))
-    u[:, 3:] = 0.8 * np.sin(2 * np.pi * np.outer(t, [0.9, 1.2, 0.5]) + rng.uniform(0, 6, 3))
-    return t, u
 
 
 def _group(rng, n=9, direction=((1, 2), True)):
