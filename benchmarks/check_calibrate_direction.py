@@ -34,7 +34,8 @@ def main(argv=None) -> int:
     ds, _inj = _with_body_azimuth_bias(ds, a.c1, a.s2)
     truth = np.asarray(ds.meta.truth.lever_arm, float)
     base = dict(td_profile={"enabled": False})
-    runs = [("none", {}), ("shared K=2", {"harmonics": 2}), ("shared K=2 lowest_order 2", {"harmonics": 2, "lowest_order": 2}),
+    runs = [("none", {}), ("shared K=2", {"harmonics": 2}),
+            ("shared K=2 lowest_order 2", {"harmonics": 2, "lowest_order": 2}),
             ("per anchor K=2", {"harmonics": 2, "per_anchor": True}),
             ("per anchor K=2 + drift", {"harmonics": 2, "per_anchor": True, "_drift": True})]
     eskf = None
@@ -49,12 +50,14 @@ def main(argv=None) -> int:
         eskf = r.eskf
         c = r.calibration
         err = 100 * (np.asarray(c["lever_arm"]) - truth)
-        print(f"{name}: lever arm error [cm] {np.round(err, 2)} +/- {np.round(100 * np.asarray(c['lever_arm_sd']), 2)}, "
+        sd = np.round(100 * np.asarray(c["lever_arm_sd"]), 2)
+        print(f"{name}: lever arm error [cm] {np.round(err, 2)} +/- {sd}, "
               f"{c['solver']['iterations']} iterations, {time.process_time() - c0:.1f} s CPU")
         dm = c["range_model"]["direction"]
         if dm:
             for lab, cs in dm["coefficients"].items():
-                print(f"    {lab}: " + ", ".join(f"{n} {100 * x['value']:+.2f} +/- {100 * x['sd']:.2f}" for n, x in cs.items()))
+                print(f"    {lab}: " + ", ".join(f"{n} {100 * x['value']:+.2f} +/- {100 * x['sd']:.2f}"
+                                             for n, x in cs.items()))
     return 0
 
 
