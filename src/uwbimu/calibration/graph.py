@@ -25,8 +25,7 @@ import numpy as np
 from uwbimu.calibration.anchors import GAUGE_SIGMA, AnchorSetup
 from uwbimu.calibration.options import CalibrationOptions
 from uwbimu.calibration.range_factor import (RangeGroup, direction_features, imu_cumulative, imu_deltas,
-                                              make_gtsam_factor,
-                                              make_gtsam_group_factor)
+                                              make_gtsam_factor, make_gtsam_group_factor)
 from uwbimu.calibration.tdoa_factor import make_gtsam_tdoa_factor
 from uwbimu.models.reference import GRAVITY
 
@@ -390,22 +389,30 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
     return g
 
 
+def _group_states(grp: RangeGroup, ks, values):
+    """Attitudes (K, 3, 3), positions (K, 3), velocities (K, 3) of a grouped range factor's keyframes."""
+    poses = [values.atPose3(ks[2 * i]) for i in range(grp.n_kf)]
+    return (np.array([q.rotation().matrix() for q in poses]), np.array([q.translation() for q in poses]),
+            np.array([values.atVector(ks[2 * i + 1]) for i in range(grp.n_kf)]))
+
+
+def _group_coefs(grp: RangeGroup, ks, values):
+    """(n_dir, P) direction-bias coefficients of a grouped range factor (its last keys), or None."""
+    if not grp.n_dir:
+        return None
+    return np.array([values.atVector(ks[len(ks) - grp.n_dir + i]) for i in range(grp.n_dir)])
+
+
 def range_residuals(graph, assoc: Association, values, td: float) -> np.ndarray:
     """Unwhitened residual [m] of every used row (``assoc.used`` order) of a graph built by :func:`build_graph`."""
     X, V, B, L, T, A = _keys()
     out = np.empty(len(assoc.used))
     lever = values.atVector(L(0))
     for fi, grp in assoc.groups.items():
-        f = graph.at(int(fi))
-        ks = f.keys()
-        poses = [values.atPose3(ks[2 * i]) for i in range(grp.n_kf)]
+        ks = graph.at(int(fi)).keys()
         nb_off = len(ks) - grp.n_bias - grp.n_dir
         biases = np.array([values.atVector(ks[nb_off + i])[0] for i in range(grp.n_bias)])
-        coefs = (np.array([values.atVector(ks[nb_off + grp.n_bias + i]) for i in range(grp.n_dir)])
-                 if grp.n_dir else None)
-        e = grp.evaluate(np.array([q.rotation().matrix() for q in poses]), np.array([q.translation() for q in poses]),
-                         np.array([values.atVector(ks[2 * i + 1]) for i in range(grp.n_kf)]), lever, td, biases,
-                         dir_coefs=coefs)
+        e = grp.evaluate(*_group_states(grp, ks, values), lever, td, biases, dir_coefs=_group_coefs(grp, ks, values))
         rows = np.flatnonzero(assoc.slots[:, 0] == fi)
         out[rows] = e[assoc.slots[rows, 1]]
     single = np.flatnonzero(~np.isin(assoc.slots[:, 0], list(assoc.groups)))
@@ -423,13 +430,9 @@ def direction_terms(graph, assoc: Association, values, td: float) -> np.ndarray:
         if grp.direction is None:
             continue
         ks = graph.at(int(fi)).keys()
-        poses = [values.atPose3(ks[2 * i]) for i in range(grp.n_kf)]
-        coefs = np.array([values.atVector(ks[len(ks) - grp.n_dir + i]) for i in range(grp.n_dir)])
-        wb = grp.line_of_sight_body(np.array([q.rotation().matrix() for q in poses]),
-                                    np.array([q.translation() for q in poses]),
-                                    np.array([values.atVector(ks[2 * i + 1]) for i in range(grp.n_kf)]), lever, td)
+        wb = grp.line_of_sight_body(*_group_states(grp, ks, values), lever, td)
         F, _ = direction_features(wb, *grp.direction)
-        term = np.einsum("np,np->n", F, coefs[grp.dir_col])
+        term = np.einsum("np,np->n", F, _group_coefs(grp, ks, values)[grp.dir_col])
         rows = np.flatnonzero(assoc.slots[:, 0] == fi)
         out[rows] = term[assoc.slots[rows, 1]]
     return out
