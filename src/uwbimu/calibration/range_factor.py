@@ -16,6 +16,11 @@ initial estimate) and a second-order extrapolation in ``delta = t_d - t_d0``::
 with ``tau = s0 - t_k`` and ``w = w_m - b_g`` at ``s0``.  The residual equals
 :func:`uwbimu.models.reference.range_measurement` of the reference-propagated
 state plus the anchor bias (pinned by ``tests/test_calibrate_factor.py``).
+
+Optionally (:class:`RangeGroup` with ``direction``) a direction-dependent bias
+``F(w_b) . c`` is added, ``w_b = R(s)^T (p_anchor - p(s) - R(s) p_IU)`` the line
+of sight in the body frame (:func:`direction_features`; exact Jacobians pinned by
+``tests/test_calibrate_direction.py``).
 """
 
 from __future__ import annotations
@@ -229,7 +234,8 @@ class RangeGroup:
     """The ranges attached to a few consecutive keyframes, evaluated together (vectorised :func:`range_error`).
 
     Same model, residual and Jacobians as :func:`range_error` for every row (pinned by
-    ``tests/test_calibrate_factor.py``); one GTSAM callback per group instead of one per range.
+    ``tests/test_calibrate_factor.py``), plus the optional direction-dependent term; one GTSAM
+    callback per group instead of one per range.
 
     Parameters
     ----------
@@ -338,9 +344,10 @@ class RangeGroup:
                          + np.einsum("nij,nj->ni", R_s, np.cross(self.omega, lever)))
         if self.direction is None:
             return e, J_pose, J_vel, J_lever, J_td
-        # direction term d = F(w_b) c with w_b = R_s^T (anchor - p_U) = M^T R_k^T q - M^T b1 - lever:
-        # dw_b/dtheta = M^T [M w_b + body]x, dw_b/dp = -M^T, dw_b/dv = -(tau + delta) R_s^T, dw_b/dlever = -I,
-        # dw_b/dt_d = -omega x (w_b + lever) - R_s^T (v_s0 + a_s0 delta)
+        # direction term F(w_b) c with w_b = R_s^T (anchor - p_U) = M^T R_k^T q - M^T b1 - lever, where
+        # q = anchor - p_k - v_k (tau + delta) + g (tau + delta)^2 / 2 (world) and b1 = body - M lever:
+        # dw_b/dtheta = M^T [R_k^T q]x = M^T [M w_b + body]x, dw_b/dp = -M^T, dw_b/dv = -(tau + delta) R_s^T,
+        # dw_b/dlever = -I, dw_b/dt_d = -omega x (w_b + lever) - R_s^T (v_s0 + a_s0 delta)
         gv = np.einsum("np,npi->ni", C, dF)  # d(term)/d(w_b)
         Mg = np.einsum("nij,nj->ni", M, gv)
         Rg = np.einsum("nij,nj->ni", R_s, gv)
@@ -365,10 +372,12 @@ def direction_features(wb: np.ndarray, orders, elevation: bool, jacobian: bool =
     Returns
     -------
     F : (N, P) features; dF : (N, P, 3) their derivatives with respect to ``wb`` [1/m] (None unless asked).
+
+    A line of sight along the body z axis has no azimuth: ``hypot(w_x, w_y)`` is floored at 1 um there.
     """
     wb = np.asarray(wb, float)
     x, y, zz = wb[:, 0], wb[:, 1], wb[:, 2]
-    h2 = x * x + y * y
+    h2 = np.maximum(x * x + y * y, 1e-12)
     az = np.arctan2(y, x)
     cols, dcols = [], []
     daz = np.stack([-y / h2, x / h2, np.zeros_like(x)], axis=1) if jacobian else None
