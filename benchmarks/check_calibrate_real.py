@@ -108,6 +108,11 @@ def full_log(ds, kind: str, opts, eo, save_dir=None) -> dict:
            "eskf_td_sd": e.calibration["time_offset_sd"], "residuals_per_anchor": per_anchor,
            "downweighted": c["ranges"]["downweighted"], "expected_downweighted": c["ranges"]["expected_downweighted"]}
     out["direction"] = direction_table(res, ds)
+    out["range_model_direction"] = c["range_model"].get("direction")
+    if save_dir is not None:
+        import yaml
+
+        (Path(save_dir) / "calibration.yaml").write_text(yaml.safe_dump(c, sort_keys=False))
     if res.profile is not None:
         out["profile"] = {"grid": [float(x) for x in res.profile.grid],
                           "delta_chi2": [float(x) for x in res.profile.chi2 - np.nanmin(res.profile.chi2)]}
@@ -219,6 +224,11 @@ def main(argv=None) -> int:
             f"{k}: {v['median_cm']:+.1f}/{v['mad_cm']:.1f}" for k, v in f["residuals_per_anchor"].items()))
         print("  residual vs line of sight per anchor (spread of 45-deg sector medians [cm], share of variance; "
               "autocorrelation at 1 s):")
+        dm = f.get("range_model_direction")
+        if dm:
+            print("  direction model coefficients [cm or cm/rad] +/- sd: " + "; ".join(
+                f"{lab}: " + ", ".join(f"{n} {100 * x['value']:+.1f}+/-{100 * x['sd']:.1f}" for n, x in cs.items())
+                for lab, cs in dm["coefficients"].items()))
         for k, v in f["direction"].items():
             print(f"    {k}: world azimuth {v['world_azimuth']['spread_cm']:.1f} cm ({v['world_azimuth']['r2']:.2f}), "
                   f"body azimuth {v['body_azimuth']['spread_cm']:.1f} cm ({v['body_azimuth']['r2']:.2f}), "

@@ -265,6 +265,12 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
     names = ["lever_arm_x", "lever_arm_y", "lever_arm_z"] + (["time_offset"] if td_free else []) + \
         [f"anchor_bias_{a}" for a in pb.anchor_ids] + \
         [f"anchor_{c}_{pb.anchor_ids[j]}" for j in est for c in "xyz"]
+    dmod = pb.options.range_model.direction
+    n_dir = G.n_dir_vectors(pb)
+    if n_dir:  # last, so the offsets below stay valid
+        keys += [G.dir_key(i) for i in range(n_dir)]
+        names += [f"direction_{'' if not dmod.per_anchor else pb.anchor_ids[i] + '_'}{c}"
+                  for i in range(n_dir) for c in dmod.names()]
     cov = marg.jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
     sd = np.sqrt(np.diag(cov))
     corr = cov / np.outer(sd, sd)
@@ -286,6 +292,9 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
         # the slowly varying bias of each row (already inside "predicted" and "residual")
         res["bias_drift"] = [float(values.atVector(G.drift_key(j, n))[0])
                              for j, n in zip(pb.anchor_j[used], pb.drift_knot[used])]
+    if n_dir:
+        # the direction-dependent bias of each row (already inside "predicted" and "residual")
+        res["bias_direction"] = G.direction_terms(graph, assoc, values, td)
     res["z"] = res["residual"] / sig
     res["outlier"] = np.abs(res["z"]) > pb.options.huber_k
     offs = 3 + (1 if td_free else 0)
@@ -316,7 +325,9 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
                         "constant_bias_prior_sd": pb.options.anchor_bias_prior_sd if pb.options.estimate_anchor_bias
                         else None,
                         "drift": (pb.options.range_bias_drift.model_dump() | {"knots_per_anchor": pb.n_knots}
-                                  if pb.options.range_bias_drift is not None else None)},
+                                  if pb.options.range_bias_drift is not None else None),
+                        "direction": _direction_report(pb, values, sd, len(names) - n_dir * (dmod.n_coef if dmod
+                                                                                             else 0))},
         "solver": {"keyframes": int(len(pb.key_idx)), "iterations": int(iters),
                    "final_cost": float(graph.error(values))},
     }
@@ -328,6 +339,21 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
     cal["anchors"], anchors = _anchor_report(pb, values, sd_p, dataset)
     traj = _trajectory(pb, values, marg, td)
     return cal, traj, res, anchors
+
+
+def _direction_report(pb, values, sd, off: int):
+    """``range_model.direction`` of calibration.yaml: the model, coefficient values and marginal sd [m, m/rad]."""
+    d = pb.options.range_model.direction
+    if d is None:
+        return None
+    out = d.model_dump() | {"frame": "tag body (IMU) frame, line of sight tag antenna -> anchor",
+                            "coefficient_names": d.names(), "coefficients": {}}
+    labels = list(pb.anchor_ids) if d.per_anchor else ["all"]
+    for i, lab in enumerate(labels):
+        c = values.atVector(G.dir_key(i))
+        s = sd[off + i * d.n_coef: off + (i + 1) * d.n_coef]
+        out["coefficients"][lab] = {n: {"value": float(v), "sd": float(e)} for n, v, e in zip(d.names(), c, s)}
+    return out
 
 
 def _anchor_positions(pb, values) -> np.ndarray:
@@ -378,7 +404,8 @@ def _anchor_report(pb, values, sd_p: dict, dataset):
     return out, table
 
 
-#: Tangent dimension of every variable, by the GTSAM symbol letter (see graph.py).
+#: Tangent dimension of every variable, by the GTSAM symbol letter (see graph.py); others (``h``, the
+#: direction-bias coefficients) are vectors whose length is read from the values.
 _DIMS = {"x": 6, "v": 3, "b": 6, "l": 3, "t": 1, "a": 1, "p": 3, "d": 1}
 
 
@@ -402,7 +429,8 @@ class SparseMarginals:
         keys = sorted(int(k) for k in values.keys())  # sparseJacobian_ orders columns by key
         self._cols, off = {}, 0
         for k in keys:
-            d = _DIMS[chr(gtsam.Symbol(k).chr())]
+            c = chr(gtsam.Symbol(k).chr())
+            d = _DIMS[c] if c in _DIMS else len(values.atVector(k))
             self._cols[k] = np.arange(off, off + d)
             off += d
         rows, cols = ijs[0].astype(int) - 1, ijs[1].astype(int) - 1

@@ -6,6 +6,8 @@ offset t_d (s); ``A(j)`` constant range bias of anchor ``j`` (m).  Factors:
 ``CombinedImuFactor`` between consecutive keyframes (preintegration with bias
 random walk), one robust (Huber) :mod:`uwbimu.calibration.range_factor` per
 range, priors on the first keyframe, the lever arm, t_d and the anchor biases.
+With ``range_model.direction``, ``h(i)`` holds a coefficient vector of the direction-dependent
+range bias (one shared, or one per anchor ``i``) with a zero-mean prior.
 The fixed anchors define the world frame (the gauge).  Self-survey
 (:mod:`uwbimu.calibration.anchors`): an estimated anchor's position is a
 ``Point3`` ``P(j)`` with an optional weak prior, the range factors of its ranges
@@ -22,8 +24,8 @@ import numpy as np
 
 from uwbimu.calibration.anchors import GAUGE_SIGMA, AnchorSetup
 from uwbimu.calibration.options import CalibrationOptions
-from uwbimu.calibration.range_factor import (RangeGroup, imu_cumulative, imu_deltas, make_gtsam_factor,
-                                             make_gtsam_group_factor, so3_exp)
+from uwbimu.calibration.range_factor import (RangeGroup, direction_features, imu_cumulative, imu_deltas,
+                                              make_gtsam_factor, make_gtsam_group_factor, so3_exp)
 from uwbimu.calibration.tdoa_factor import make_gtsam_tdoa_factor
 from uwbimu.models.reference import GRAVITY
 
@@ -70,6 +72,21 @@ def drift_factors(pb) -> list:
             out.append(gtsam.LinearContainerFactor(jf, zero))
     pb._drift_factors = out
     return out
+
+
+def dir_key(i: int) -> int:
+    """Key of direction-bias coefficient vector ``i`` (``h``; per anchor ``i`` = anchor index, shared ``i`` = 0)."""
+    import gtsam
+
+    return gtsam.symbol("h", int(i))
+
+
+def n_dir_vectors(pb) -> int:
+    """Number of direction-bias coefficient vectors of the problem (0 without the model)."""
+    d = pb.options.range_model.direction
+    if d is None:
+        return 0
+    return len(pb.anchor_ids) if d.per_anchor else 1
 
 
 def _P():
@@ -193,6 +210,12 @@ def build_problem(dataset, eskf, options: CalibrationOptions, anchors: Optional[
                              "factors only (not with TDoA, --estimate-anchors or group_range_factors: false)")
         knot = np.rint((t_r - t_r.min()) / dr.knot_spacing).astype(np.int64)
         n_knots = int(knot.max()) + 1
+    if options.range_model.direction is not None:
+        from uwbimu.errors import UsageError
+
+        if bj is not None or (anchors is not None and any(anchors.estimated)) or not options.group_range_factors:
+            raise UsageError("calibrate: range_model.direction works with ranges to fixed anchors and grouped range "
+                             "factors only (not with TDoA, --estimate-anchors or group_range_factors: false)")
     return Problem(t_imu=t_imu, u_imu=u_imu, key_idx=key_idx, t_range=t_r, drift_knot=knot, n_knots=n_knots,
                    rho=rho, anchor_j=aj, anchor_b=bj, tdoa_sigma=tsig,
                    anchor_ids=ids, anchor_pos=np.array([pos[a] for a in ids]), init_states=init,
@@ -299,6 +322,10 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
     if pb.drift_knot is not None:
         for f in drift_factors(pb):
             g.add(f)
+    dmod = o.range_model.direction
+    for i in range(n_dir_vectors(pb)):
+        g.add(gtsam.PriorFactorVector(dir_key(i), np.zeros(dmod.n_coef),
+                                      gtsam.noiseModel.Isotropic.Sigma(dmod.n_coef, dmod.prior_sd)))
     noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(o.huber_k),
                                            gtsam.noiseModel.Isotropic.Sigma(1, pb.range_sigma))
     P = _P()
@@ -332,8 +359,15 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
                     bmat[np.arange(len(ms)), col] = 1.0
                     bmat[np.arange(len(ms)), len(ujs) + dcol] = 1.0
                     bkeys += [int(x) for x in udk]
+                dkw = {}
+                if dmod is not None:
+                    dj = js if dmod.per_anchor else np.zeros(len(js), np.int64)
+                    udj, dcol = np.unique(dj, return_inverse=True)
+                    orders = tuple(range(dmod.lowest_order, dmod.harmonics + 1))
+                    dkw = {"direction": (orders, dmod.elevation), "dir_col": dcol}
+                    bkeys += [dir_key(int(x)) for x in udj]
                 grp = RangeGroup([assoc.deltas[i] for i in chunk], pb.anchor_pos[js], pb.rho[ms], col, assoc.td0,
-                                 bias_matrix=bmat, kf=kf)
+                                 bias_matrix=bmat, kf=kf, **dkw)
                 keys = [key for k in kfs for key in (X(int(k)), V(int(k)))] + [L(0)] + \
                     ([T(0)] if td_fixed is None else []) + bkeys
                 fi = g.size()
@@ -361,24 +395,52 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
     return g
 
 
+def _group_states(grp: RangeGroup, ks, values):
+    """Attitudes (K, 3, 3), positions (K, 3), velocities (K, 3) of a grouped range factor's keyframes."""
+    poses = [values.atPose3(ks[2 * i]) for i in range(grp.n_kf)]
+    return (np.array([q.rotation().matrix() for q in poses]), np.array([q.translation() for q in poses]),
+            np.array([values.atVector(ks[2 * i + 1]) for i in range(grp.n_kf)]))
+
+
+def _group_coefs(grp: RangeGroup, ks, values):
+    """(n_dir, P) direction-bias coefficients of a grouped range factor (its last keys), or None."""
+    if not grp.n_dir:
+        return None
+    return np.array([values.atVector(ks[len(ks) - grp.n_dir + i]) for i in range(grp.n_dir)])
+
+
 def range_residuals(graph, assoc: Association, values, td: float) -> np.ndarray:
     """Unwhitened residual [m] of every used row (``assoc.used`` order) of a graph built by :func:`build_graph`."""
     X, V, B, L, T, A = _keys()
     out = np.empty(len(assoc.used))
     lever = values.atVector(L(0))
     for fi, grp in assoc.groups.items():
-        f = graph.at(int(fi))
-        ks = f.keys()
-        poses = [values.atPose3(ks[2 * i]) for i in range(grp.n_kf)]
-        nb_off = len(ks) - grp.n_bias
-        biases = np.array([values.atVector(ks[nb_off + i])[0] for i in range(len(ks) - nb_off)])
-        e = grp.evaluate(np.array([q.rotation().matrix() for q in poses]), np.array([q.translation() for q in poses]),
-                         np.array([values.atVector(ks[2 * i + 1]) for i in range(grp.n_kf)]), lever, td, biases)
+        ks = graph.at(int(fi)).keys()
+        nb_off = len(ks) - grp.n_bias - grp.n_dir
+        biases = np.array([values.atVector(ks[nb_off + i])[0] for i in range(grp.n_bias)])
+        e = grp.evaluate(*_group_states(grp, ks, values), lever, td, biases, dir_coefs=_group_coefs(grp, ks, values))
         rows = np.flatnonzero(assoc.slots[:, 0] == fi)
         out[rows] = e[assoc.slots[rows, 1]]
     single = np.flatnonzero(~np.isin(assoc.slots[:, 0], list(assoc.groups)))
     for i in single:
         out[i] = float(graph.at(int(assoc.slots[i, 0])).unwhitenedError(values)[0])
+    return out
+
+
+def direction_terms(graph, assoc: Association, values, td: float) -> np.ndarray:
+    """Direction-dependent bias [m] of every used row (``assoc.used`` order; 0 for rows without it)."""
+    X, V, B, L, T, A = _keys()
+    out = np.zeros(len(assoc.used))
+    lever = values.atVector(L(0))
+    for fi, grp in assoc.groups.items():
+        if grp.direction is None:
+            continue
+        ks = graph.at(int(fi)).keys()
+        wb = grp.line_of_sight_body(*_group_states(grp, ks, values), lever, td)
+        F, _ = direction_features(wb, *grp.direction)
+        term = np.einsum("np,np->n", F, _group_coefs(grp, ks, values)[grp.dir_col])
+        rows = np.flatnonzero(assoc.slots[:, 0] == fi)
+        out[rows] = term[assoc.slots[rows, 1]]
     return out
 
 
@@ -460,6 +522,8 @@ def initial_values(pb: Problem, with_td: bool = True):
         vals.insert(A(j), np.zeros(1))
         for n in range(pb.n_knots if pb.drift_knot is not None else 0):
             vals.insert(drift_key(j, n), np.zeros(1))
+        if j < n_dir_vectors(pb):
+            vals.insert(dir_key(j), np.zeros(pb.options.range_model.direction.n_coef))
         if pb.estimated(j):
             vals.insert(_P()(j), np.asarray(pb.anchor_pos[j], float).copy())
     return vals

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
 class TdProfileOptions(BaseModel):
@@ -40,6 +40,50 @@ class RangeBiasDrift(BaseModel):
     knot_spacing: float = Field(0.5, gt=0, description="[s] (UWB clock); at most correlation_time / 2 is sensible")
 
 
+class DirectionBias(BaseModel):
+    """Direction-dependent range bias: a low-order function of the line of sight in the TAG's body frame.
+
+    Each predicted range gains ``f(az, el) . c``: ``az = atan2(u_y, u_x)`` and ``el = asin(u_z)`` [rad] of
+    the unit vector ``u`` from the tag antenna to the anchor in the IMU (body) frame, ``f`` the Fourier
+    terms ``cos(n az), sin(n az)`` for ``n = lowest_order .. harmonics`` and, with ``elevation``, ``el``.
+    ``c`` [m, m/rad] is one vector shared by all anchors or one per anchor, with a zero-mean prior of sd
+    ``prior_sd`` per coefficient.  The order-1 terms shared by all anchors are, to first order, a shift
+    of the antenna phase centre, i.e. the lever arm (``-u . dp_IU = -cos(el)(dx cos az + dy sin az) -
+    dz sin el``): only the prior and the spread of elevations separate them (docs/calibrate.md).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    harmonics: int = Field(2, ge=1, le=6, description="highest Fourier order in body azimuth")
+    lowest_order: int = Field(1, ge=1, le=6, description="lowest Fourier order (2 leaves order 1 to the lever arm)")
+    elevation: bool = Field(False, description="add a term linear in body elevation [m/rad]")
+    per_anchor: bool = Field(False, description="one coefficient vector per anchor (else shared by all anchors)")
+    prior_sd: float = Field(0.05, gt=0, description="zero-mean prior sd of every coefficient [m or m/rad]")
+
+    @model_validator(mode="after")
+    def _orders(self) -> "DirectionBias":
+        if self.lowest_order > self.harmonics:
+            raise ValueError(f"lowest_order ({self.lowest_order}) must not exceed harmonics ({self.harmonics})")
+        return self
+
+    @property
+    def n_coef(self) -> int:
+        """Number of coefficients per vector."""
+        return 2 * (self.harmonics - self.lowest_order + 1) + (1 if self.elevation else 0)
+
+    def names(self) -> list[str]:
+        """Coefficient names, in vector order."""
+        out = [f"{f}{n}" for n in range(self.lowest_order, self.harmonics + 1) for f in ("cos", "sin")]
+        return out + (["elevation"] if self.elevation else [])
+
+
+class RangeModelOptions(BaseModel):
+    """Extra terms of the range model (beyond the constant bias and ``range_bias_drift``)."""
+
+    model_config = ConfigDict(extra="forbid")
+    direction: Optional[DirectionBias] = Field(
+        None, description="direction-dependent bias in the tag's body frame; none: no direction term")
+
+
 class CalibrationOptions(BaseModel):
     """Factor-graph settings; noise defaults come from ``dataset.yaml`` when it documents them."""
 
@@ -63,6 +107,7 @@ class CalibrationOptions(BaseModel):
     range_bias_drift: Optional[RangeBiasDrift] = Field(
         None, description="slowly varying per-anchor bias (correlated range errors of real data); none: white "
                           "range noise plus a constant bias per anchor")
+    range_model: RangeModelOptions = Field(default_factory=RangeModelOptions)
     estimate_anchors: list[str] = Field(
         default_factory=list, description="anchor ids whose positions are estimated (self-survey; anchors marked "
                                           "surveyed: false in anchors.csv are always estimated)")

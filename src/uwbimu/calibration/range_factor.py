@@ -16,6 +16,11 @@ initial estimate) and a second-order extrapolation in ``delta = t_d - t_d0``::
 with ``tau = s0 - t_k`` and ``w = w_m - b_g`` at ``s0``.  The residual equals
 :func:`uwbimu.models.reference.range_measurement` of the reference-propagated
 state plus the anchor bias (pinned by ``tests/test_calibrate_factor.py``).
+
+Optionally (:class:`RangeGroup` with ``direction``) a direction-dependent bias
+``F(w_b) . c`` is added, ``w_b = R(s)^T (p_anchor - p(s) - R(s) p_IU)`` the line
+of sight in the body frame (:func:`direction_features`; exact Jacobians pinned by
+``tests/test_calibrate_direction.py``).
 """
 
 from __future__ import annotations
@@ -229,7 +234,8 @@ class RangeGroup:
     """The ranges attached to a few consecutive keyframes, evaluated together (vectorised :func:`range_error`).
 
     Same model, residual and Jacobians as :func:`range_error` for every row (pinned by
-    ``tests/test_calibrate_factor.py``); one GTSAM callback per group instead of one per range.
+    ``tests/test_calibrate_factor.py``), plus the optional direction-dependent term; one GTSAM
+    callback per group instead of one per range.
 
     Parameters
     ----------
@@ -241,9 +247,13 @@ class RangeGroup:
     bias_matrix : optional (N, nb) 0/1 matrix: row m's bias is ``bias_matrix[m] @ biases`` (a constant
         bias plus a slowly varying one); default the one-hot matrix of ``bias_col``.
     kf : optional (N,) index of each row's keyframe among the group's keyframes (default all 0).
+    direction : optional ``(orders, elevation)`` of the direction-dependent bias (:func:`direction_features`):
+        each row's range gains ``direction_features(w_b) @ c`` with ``c`` its coefficient vector.
+    dir_col : (N,) index of each row's coefficient vector among the group's direction keys (with ``direction``).
     """
 
-    def __init__(self, deltas, anchors, rho, bias_col, td0: float, bias_matrix=None, kf=None):
+    def __init__(self, deltas, anchors, rho, bias_col, td0: float, bias_matrix=None, kf=None,
+                 direction=None, dir_col=None):
         self.tau = np.array([d.tau for d in deltas])
         self.dR = np.array([d.dR for d in deltas])
         self.dv = np.array([d.dv for d in deltas])
@@ -262,6 +272,13 @@ class RangeGroup:
         self.kf = np.zeros(len(self.rho), np.int64) if kf is None else np.asarray(kf, np.int64)
         self.n_kf = int(self.kf.max()) + 1
         self.kf_mask = [(self.kf == i)[:, None].astype(float) for i in range(self.n_kf)]
+        self.direction = direction
+        if direction is not None:
+            self.dir_col = np.zeros(len(self.rho), np.int64) if dir_col is None else np.asarray(dir_col, np.int64)
+            self.n_dir = int(self.dir_col.max()) + 1
+            self.dir_mask = [(self.dir_col == i)[:, None].astype(float) for i in range(self.n_dir)]
+        else:
+            self.dir_col, self.n_dir, self.dir_mask = None, 0, []
 
     @property
     def n_bias(self) -> int:
@@ -271,14 +288,11 @@ class RangeGroup:
     def __len__(self) -> int:
         return len(self.rho)
 
-    def evaluate(self, R_k, p_k, v_k, lever, td: float, biases, jacobians: bool = False):
-        """Residuals ``e`` (N,) [m] and, on request, Jacobians ``(J_pose (N, 6), J_vel (N, 3),
-        J_lever (N, 3), J_td (N,))`` on the GTSAM tangents (see :func:`range_error`); each row's
-        pose and velocity Jacobians are with respect to its own keyframe.
+    def line_of_sight_body(self, R_k, p_k, v_k, lever, td: float) -> np.ndarray:
+        """(N, 3) vector from the tag antenna to the anchor in the body (IMU) frame at the range instant [m]."""
+        return self._geometry(R_k, p_k, v_k, lever, td)["wb"]
 
-        ``R_k, p_k, v_k``: the keyframes' states, (K, 3, 3), (K, 3), (K, 3) with K = ``n_kf``
-        (or (3, 3), (3,), (3,) for one keyframe).
-        """
+    def _geometry(self, R_k, p_k, v_k, lever, td):
         g = G_WORLD
         R_k = np.asarray(R_k, float).reshape(-1, 3, 3)[self.kf]
         p_k = np.asarray(p_k, float).reshape(-1, 3)[self.kf]
@@ -293,8 +307,31 @@ class RangeGroup:
         R_s = R_k @ M
         p_U = p_s0 + v_s0 * delta + 0.5 * a_s0 * delta**2 + R_s @ lever
         u = p_U - self.anchor
+        wb = -np.einsum("nij,ni->nj", R_s, u)  # R_s^T (anchor - p_U)
+        return {"R_k": R_k, "delta": delta, "tau": tau, "v_s0": v_s0, "a_s0": a_s0, "M": M, "R_s": R_s,
+                "u": u, "wb": wb}
+
+    def evaluate(self, R_k, p_k, v_k, lever, td: float, biases, jacobians: bool = False, dir_coefs=None):
+        """Residuals ``e`` (N,) [m] and, on request, Jacobians ``(J_pose (N, 6), J_vel (N, 3),
+        J_lever (N, 3), J_td (N,))`` on the GTSAM tangents (see :func:`range_error`); each row's
+        pose and velocity Jacobians are with respect to its own keyframe.
+
+        With a direction model, ``dir_coefs`` (n_dir, P) are the coefficient vectors, the direction term
+        is added to ``e`` and its exact derivatives to every Jacobian, and a fifth Jacobian ``F`` (N, P)
+        (the features: each row's derivative with respect to its own coefficient vector) is appended.
+
+        ``R_k, p_k, v_k``: the keyframes' states, (K, 3, 3), (K, 3), (K, 3) with K = ``n_kf``
+        (or (3, 3), (3,), (3,) for one keyframe).
+        """
+        geo = self._geometry(R_k, p_k, v_k, lever, td)
+        R_k, delta, tau, v_s0, a_s0, M, R_s, u = (geo[k] for k in ("R_k", "delta", "tau", "v_s0", "a_s0", "M",
+                                                                    "R_s", "u"))
         r = np.sqrt(np.einsum("ni,ni->n", u, u))
         e = r + self.bias_matrix @ np.asarray(biases, float) - self.rho
+        if self.direction is not None:
+            C = np.asarray(dir_coefs, float).reshape(self.n_dir, -1)[self.dir_col]
+            F, dF = direction_features(geo["wb"], *self.direction, jacobian=jacobians)
+            e = e + np.einsum("np,np->n", F, C)
         if not jacobians:
             return e
         n = u / r[:, None]
@@ -305,7 +342,58 @@ class RangeGroup:
         J_lever = np.einsum("nij,ni->nj", R_s, n)
         J_td = np.einsum("ni,ni->n", n, v_s0 + a_s0 * delta
                          + np.einsum("nij,nj->ni", R_s, np.cross(self.omega, lever)))
-        return e, J_pose, J_vel, J_lever, J_td
+        if self.direction is None:
+            return e, J_pose, J_vel, J_lever, J_td
+        # direction term F(w_b) c with w_b = R_s^T (anchor - p_U) = M^T R_k^T q - M^T b1 - lever, where
+        # q = anchor - p_k - v_k (tau + delta) + g (tau + delta)^2 / 2 (world) and b1 = body - M lever:
+        # dw_b/dtheta = M^T [R_k^T q]x = M^T [M w_b + body]x, dw_b/dp = -M^T, dw_b/dv = -(tau + delta) R_s^T,
+        # dw_b/dlever = -I, dw_b/dt_d = -omega x (w_b + lever) - R_s^T (v_s0 + a_s0 delta)
+        gv = np.einsum("np,npi->ni", C, dF)  # d(term)/d(w_b)
+        Mg = np.einsum("nij,nj->ni", M, gv)
+        Rg = np.einsum("nij,nj->ni", R_s, gv)
+        z = np.einsum("nij,nj->ni", M, geo["wb"]) + body
+        J_pose = J_pose + np.hstack([np.cross(Mg, z), -Mg])
+        J_vel = J_vel - Rg * (tau + delta)
+        J_lever = J_lever - gv
+        J_td = J_td - np.einsum("ni,ni->n", gv, np.cross(self.omega, geo["wb"] + lever)) \
+            - np.einsum("ni,ni->n", Rg, v_s0 + a_s0 * delta)
+        return e, J_pose, J_vel, J_lever, J_td, F
+
+
+def direction_features(wb: np.ndarray, orders, elevation: bool, jacobian: bool = False):
+    """Features of the direction-dependent bias and, on request, their derivatives.
+
+    Parameters
+    ----------
+    wb : (N, 3) line of sight from the tag antenna to the anchor, body (IMU) frame [m] (any length).
+    orders : Fourier orders ``n`` in body azimuth ``az = atan2(w_y, w_x)``: columns ``cos(n az), sin(n az)``.
+    elevation : append ``el = atan2(w_z, hypot(w_x, w_y))`` [rad].
+
+    Returns
+    -------
+    F : (N, P) features; dF : (N, P, 3) their derivatives with respect to ``wb`` [1/m] (None unless asked).
+
+    A line of sight along the body z axis has no azimuth: ``hypot(w_x, w_y)`` is floored at 1 um there.
+    """
+    wb = np.asarray(wb, float)
+    x, y, zz = wb[:, 0], wb[:, 1], wb[:, 2]
+    h2 = np.maximum(x * x + y * y, 1e-12)
+    az = np.arctan2(y, x)
+    cols, dcols = [], []
+    daz = np.stack([-y / h2, x / h2, np.zeros_like(x)], axis=1) if jacobian else None
+    for n in orders:
+        c, s_ = np.cos(n * az), np.sin(n * az)
+        cols += [c, s_]
+        if jacobian:
+            dcols += [(-n * s_)[:, None] * daz, (n * c)[:, None] * daz]
+    if elevation:
+        h = np.sqrt(h2)
+        cols.append(np.arctan2(zz, h))
+        if jacobian:
+            r2 = h2 + zz * zz
+            dcols.append(np.stack([-x * zz / (r2 * h), -y * zz / (r2 * h), h / r2], axis=1))
+    F = np.stack(cols, axis=1)
+    return F, (np.stack(dcols, axis=1) if jacobian else None)
 
 
 def huber_sqrt(z: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
@@ -321,8 +409,9 @@ def huber_sqrt(z: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
 def make_gtsam_group_factor(keys, group: RangeGroup, sigma: float, huber_k: float, td_fixed: float | None = None):
     """A ``gtsam.CustomFactor`` of a group's ranges.
 
-    Keys: ``[pose_0, velocity_0, ..., pose_{K-1}, velocity_{K-1}, lever arm, (t_d), bias_0, bias_1, ...]``
-    (K = ``group.n_kf`` keyframes).  The robust loss is applied per range inside the factor: the
+    Keys: ``[pose_0, velocity_0, ..., pose_{K-1}, velocity_{K-1}, lever arm, (t_d), bias_0, bias_1, ...,
+    (dir_0, dir_1, ...)]`` (K = ``group.n_kf`` keyframes; the direction-coefficient vectors last, one per
+    ``group.n_dir``, with a direction model).  The robust loss is applied per range inside the factor: the
     returned residual is ``huber_sqrt(e / sigma)`` with a unit noise model, so the factor's error is
     the sum of the rows' Huber losses (equal to one ``Robust(Huber(k), Isotropic(sigma))`` factor per
     range) with the same gradient; its Gauss-Newton weight of a down-weighted row is ``k / (2|z| - k)``
@@ -334,7 +423,8 @@ def make_gtsam_group_factor(keys, group: RangeGroup, sigma: float, huber_k: floa
     K = group.n_kf
     il = 2 * K  # index of the lever-arm key
     off = il + (2 if has_td else 1)
-    nb = len(keys) - off
+    nd = group.n_dir
+    nb = len(keys) - off - nd
     n = len(group)
     onehot = group.bias_matrix
     assert onehot.shape[1] == nb, "one key per column of the group's bias matrix"
@@ -349,10 +439,12 @@ def make_gtsam_group_factor(keys, group: RangeGroup, sigma: float, huber_k: floa
             R[i], P[i], Vv[i] = pose.rotation().matrix(), pose.translation(), values.atVector(ks[2 * i + 1])
         td = values.atVector(ks[il + 1])[0] if has_td else td_fixed
         biases = np.array([values.atVector(ks[off + i])[0] for i in range(nb)])
-        res = group.evaluate(R, P, Vv, values.atVector(ks[il]), td, biases, jacobians=H is not None)
+        coefs = np.array([values.atVector(ks[off + nb + i]) for i in range(nd)]) if nd else None
+        res = group.evaluate(R, P, Vv, values.atVector(ks[il]), td, biases, jacobians=H is not None,
+                             dir_coefs=coefs)
         if H is None:
             return huber_sqrt(res / sigma, huber_k)[0]
-        e, Jp, Jv, Jl, Jt = res
+        e, Jp, Jv, Jl, Jt = res[:5]
         s, ds = huber_sqrt(e / sigma, huber_k)
         w = (ds / sigma)[:, None]
         Jp, Jv = w * Jp, w * Jv
@@ -367,6 +459,8 @@ def make_gtsam_group_factor(keys, group: RangeGroup, sigma: float, huber_k: floa
             H[il + 1] = w * Jt[:, None]
         for i in range(nb):
             H[off + i] = w * onehot[:, i:i + 1]
+        for i in range(nd):
+            H[off + nb + i] = w * res[5] * group.dir_mask[i]
         return s
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(n), gtsam.KeyVector(keys), error)
