@@ -49,6 +49,9 @@ def test_excerpt_conversion_values(imported):
                                 0.723518271051, -0.010143029001, -0.025207981371, 0.689770242975], rtol=1e-8, atol=1e-11)
     assert ds.uwb["anchor"].iloc[:2].tolist() == ["4", "6"]
     np.testing.assert_allclose(ds.anchor_positions()["2"], [-1.521325623594, -1.871297644138, 0.293390671208])
+    # anchor.txt "id tx ty tz qx qy qz qw": the documented antenna orientation -> anchors.csv qw, qx, qy, qz
+    a2 = ds.anchors.set_index("anchor").loc["2", ["qw", "qx", "qy", "qz"]].to_numpy(float)
+    np.testing.assert_allclose(a2, [0.513857791475, -0.483663161110, -0.509068408645, -0.492817889332])
     # At rest the specific force rotated into the world points up (z-up world, IMU-frame pose).
     from uwbimu.models.quaternion import quat_rotate
 

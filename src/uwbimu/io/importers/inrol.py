@@ -135,7 +135,9 @@ def convert(src: Union[str, os.PathLike], name: str | None = None,
     uwb = pd.DataFrame({"t": raw["timestamp"], "anchor": _ids(raw["anchor_id"]), "range": raw["r"]})
 
     raw = read_text_table(src / "anchor.txt", ["anchor_id", "tx", "ty", "tz", "qx", "qy", "qz", "qw"])
-    anchors = pd.DataFrame({"anchor": _ids(raw["anchor_id"]), "x": raw["tx"], "y": raw["ty"], "z": raw["tz"]})
+    # the documented antenna orientations (antenna frame -> world) go into anchors.csv's optional qw..qz
+    anchors = pd.DataFrame({"anchor": _ids(raw["anchor_id"]), "x": raw["tx"], "y": raw["ty"], "z": raw["tz"],
+                            "qw": raw["qw"], "qx": raw["qx"], "qy": raw["qy"], "qz": raw["qz"]})
     orient = {a: [float(v) for v in row] for a, row in
               zip(anchors["anchor"], raw[["qx", "qy", "qz", "qw"]].to_numpy())}
 
