@@ -2,7 +2,7 @@
 
 For each built-in scenario and noise seed: simulate, run ``uwbimu.calibration.calibrate`` (free
 t_d, no profile, defaults otherwise) and compare the lever arm and t_d with the truth and with
-the posterior Cramer-Rao bound of the same flight (``uwbimu.studies.crlb.scenario_bound``: the
+the posterior Cramer-Rao bound of the same flight (``uwbimu.studies.crlb.posterior_bound``: the
 bound at the end of the log, which for constant parameters is the full-log bound).  Prints per
 scenario and quantity: RMS error, RMS reported sigma, sqrt(mean CRLB^2), RMS error / CRLB and
 RMS(error / sigma).
@@ -26,24 +26,24 @@ NAMES = ("lever x", "lever y", "lever z", "t_d")
 def one(args) -> dict:
     name, seed, duration = args
     from uwbimu.calibration import CalibrationOptions, calibrate
-    from uwbimu.sim import builtin_scenario, simulate
-    from uwbimu.studies.crlb import scenario_bound
+    from uwbimu.sim import builtin_scenario, simulate_full
+    from uwbimu.studies.crlb import posterior_bound
 
     sc = builtin_scenario(name)
     upd = {"seeds": sc.seeds.model_copy(update={"noise": 1000 + seed})}
     if duration:
         upd["duration"] = float(duration)
     sc = sc.model_copy(update=upd)
-    ds = simulate(sc)
+    sim = simulate_full(sc)  # the dataset and the truth the bound needs, simulated once
+    ds = sim.dataset
     t0 = time.process_time()
     res = calibrate(ds, CalibrationOptions.model_validate({"td_profile": {"enabled": False}}))
     cpu = time.process_time() - t0
     cal, truth = res.calibration, ds.meta.truth
     err = np.append(np.subtract(cal["lever_arm"], truth.lever_arm), cal["time_offset"]["value"] - truth.time_offset)
     sd = np.append(cal["lever_arm_sd"], cal["time_offset"]["sd"])
-    s = sc.model_dump(mode="json")
-    b = scenario_bound(s, (s["seeds"]["truth"], s["seeds"]["noise"], s["seeds"]["init"]))
-    crlb = np.array([b["lever_arm_sd_x"], b["lever_arm_sd_y"], b["lever_arm_sd_z"], b["time_offset_sd"]])
+    b = posterior_bound(sim, sc)
+    crlb = np.append(b["lever_arm_sd"], b["time_offset_sd"])
     return {"scenario": name, "seed": seed, "err": err.tolist(), "sd": sd.tolist(), "crlb": crlb.tolist(), "cpu_s": cpu}
 
 

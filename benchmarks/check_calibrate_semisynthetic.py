@@ -26,6 +26,7 @@ import dataclasses
 import json
 import os
 import time
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -33,14 +34,13 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 REAL = REPO / "examples" / "estimator_real.yaml"
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from check_self_survey import window as first_seconds  # noqa: E402
+
 
 def window(ds, seconds: float | None):
-    if not seconds:
-        return ds
-    t0 = float(ds.imu["t"].iloc[0])
-    imu = ds.imu[ds.imu.t < t0 + seconds].reset_index(drop=True)
-    uwb = ds.uwb[ds.uwb.t < t0 + seconds - 0.2].reset_index(drop=True)
-    return dataclasses.replace(ds, imu=imu, uwb=uwb)
+    """The first ``seconds`` of the log (the whole log when None or 0)."""
+    return first_seconds(ds, seconds) if seconds else ds
 
 
 def shifted(ds, shift: float):

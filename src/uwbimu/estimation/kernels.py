@@ -19,7 +19,7 @@ import numpy as np
 from numba import njit
 
 from uwbimu.models import kernels as _physics
-from uwbimu.models.state import E_L, ERROR_DIM, N_L, NOMINAL_DIM
+from uwbimu.models.state import E_BG, E_L, ERROR_DIM, N_L, N_TD, NOMINAL_DIM
 from uwbimu.models.kernels import (  # noqa: F401  (re-exported)
     GRAVITY, rotmat, _deriv, _rk4_core, _rk4_s, _rk4, rk4_step_mid, rk4_step, propagate_interval, _mm3,
     _skew3, _phi_blocks, phi_blocks, _phi_vec, _cov_step, _cov_step_rows, cov_step, decay_biases, range_jacobian,
@@ -479,8 +479,8 @@ IS_K, IS_J, IS_ALL_REJ, IS_N_FROZEN, IS_N_OUT, IS_PHASE, IS_GAP, IS_DIV, IS_N_EV
 # phases of a pass: measurements in time order, then the outputs after the last one, then done
 PHASE_ROWS, PHASE_TAIL, PHASE_DONE = range(3)
 
-_I_TD = 19  # nominal index of t_d (models.state.TD)
-_I_BG = 12  # error index of the gyro bias (models.state.EBG.start); nominal b_g at _I_BG + 1
+_I_TD = N_TD  # nominal index of t_d
+_I_BG = E_BG  # error index of the gyro bias; nominal b_g at _I_BG + 1
 
 
 @njit(cache=True)
