@@ -197,6 +197,12 @@ def _bootstrap(dataset, o: CalibrationOptions, setup, eo, eskf, events: list):
     """
     from uwbimu.estimation import run_eskf
 
+    names, _ = G.tag_names(dataset)
+    if len(names) > 1 and getattr(eo, "tag", None) is None:
+        from uwbimu.errors import InputError
+
+        raise InputError(f"calibrate: anchor self-survey (estimate_anchors / --estimate-anchors) with several tags "
+                         f"({names}) is not supported", hint="calibrate one tag (ESKF option tag) or fix the anchors")
     if eskf is None:
         guesses = int(setup.surveyed.sum()) < 4 and bool((setup.estimated & ~setup.surveyed).any())
         if guesses:
@@ -267,10 +273,19 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
         [f"anchor_{c}_{pb.anchor_ids[j]}" for j in est for c in "xyz"]
     dmod = pb.options.range_model.direction
     n_dir = G.n_dir_vectors(pb)
-    if n_dir:  # last, so the offsets below stay valid
+    off_dir = len(names)
+    if n_dir:  # after the others, so the offsets below stay valid
         keys += [G.dir_key(i) for i in range(n_dir)]
-        names += [f"direction_{'' if not dmod.per_anchor else pb.anchor_ids[i] + '_'}{c}"
-                  for i in range(n_dir) for c in dmod.names()]
+        names += [f"direction_{_dir_label(pb, i, '_')}{c}" for i in range(n_dir) for c in dmod.names()]
+    amod = pb.options.range_model.anchor_direction
+    off_adir = len(names)
+    adir = G.adir_anchors(pb)
+    keys += [G.adir_key(j) for j in adir]
+    names += [f"anchor_direction_{pb.anchor_ids[j]}_{c}" for j in adir for c in (amod.names() if amod else [])]
+    off_tags = len(names)
+    for i, tag in enumerate(pb.tag_names[1:], start=1):  # several tags: the first one's lever arm is lever_arm_*
+        keys.append(G.lever_key(i))
+        names += [f"lever_arm_{tag}_{c}" for c in "xyz"]
     cov = marg.jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
     sd = np.sqrt(np.diag(cov))
     corr = cov / np.outer(sd, sd)
@@ -281,6 +296,9 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
     used = assoc.used
     res = pd.DataFrame({"t": pb.t_range[used], "anchor": np.array(pb.anchor_ids, dtype=object)[pb.anchor_j[used]],
                         "range": pb.rho[used], "predicted": pb.rho[used] + e, "residual": e})
+    if pb.tag_column:  # the log names its tags: so does residuals.csv
+        ti = pb.tag_i[used] if pb.tag_i is not None else np.zeros(len(used), np.int64)
+        res.insert(2, "tag", np.array(pb.tag_names, dtype=object)[ti])
     sig = np.full(len(res), pb.range_sigma)
     if pb.anchor_b is not None:
         # TDoA rows: "anchor" is anchor_a, "range" the measured TDoA [m]
@@ -295,6 +313,9 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
     if n_dir:
         # the direction-dependent bias of each row (already inside "predicted" and "residual")
         res["bias_direction"] = G.direction_terms(graph, assoc, values, td)
+    if amod is not None:
+        # the anchor-side direction-dependent bias of each row (already inside "predicted" and "residual")
+        res["bias_anchor_direction"] = G.anchor_direction_terms(graph, assoc, values, td)
     res["z"] = res["residual"] / sig
     res["outlier"] = np.abs(res["z"]) > pb.options.huber_k
     offs = 3 + (1 if td_free else 0)
@@ -326,11 +347,15 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
                         else None,
                         "drift": (pb.options.range_bias_drift.model_dump() | {"knots_per_anchor": pb.n_knots}
                                   if pb.options.range_bias_drift is not None else None),
-                        "direction": _direction_report(pb, values, sd, len(names) - n_dir * (dmod.n_coef if dmod
-                                                                                             else 0))},
+                        "direction": _direction_report(pb, values, sd, off_dir)},
         "solver": {"keyframes": int(len(pb.key_idx)), "iterations": int(iters),
                    "final_cost": float(graph.error(values))},
     }
+    if amod is not None:  # only with the option: the layout without it is unchanged
+        cal["range_model"]["anchor_direction"] = _anchor_direction_report(pb, values, sd, off_adir)
+    if pb.n_tags > 1:
+        # several tags: one block each, as the ESKF's calibration.yaml (top-level lever_arm = the first tag's)
+        cal = _with_tags(cal, pb, values, sd, off_tags, assoc)
     cal["time_offset_sd"] = cal["time_offset"]["sd"]
     # t_d held at its prior: every other sigma is conditional on that value (its uncertainty is not in them)
     cal["conditional_on_time_offset"] = (None if td_free else td)
@@ -341,18 +366,72 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
     return cal, traj, res, anchors
 
 
+def _with_tags(cal: dict, pb, values, sd, off: int, assoc) -> dict:
+    """``cal`` with a ``tags`` block after ``lever_arm_sd``: ``{tag: {lever_arm, lever_arm_sd, lever_arm_prior,
+    ranges}}`` [m, IMU frame], every tag in order (the first one's values are the top-level ``lever_arm``)."""
+    tags = {}
+    n_rows = np.bincount(pb.tag_i[assoc.used], minlength=pb.n_tags)
+    for i, tag in enumerate(pb.tag_names):
+        s = sd[:3] if i == 0 else sd[off + 3 * (i - 1): off + 3 * i]
+        tags[tag] = {"lever_arm": [float(x) for x in values.atVector(G.lever_key(i))],
+                     "lever_arm_sd": [float(x) for x in s],
+                     "lever_arm_prior": [float(x) for x in pb.lever_prior[i]],
+                     "ranges": int(n_rows[i])}
+    out = {}
+    for k, v in cal.items():
+        out[k] = v
+        if k == "lever_arm_sd":
+            out["tags"] = tags
+    return out
+
+
+def _dir_label(pb, i: int, sep: str = "/") -> str:
+    """Label of direction coefficient vector ``i``: ``[TAG sep][ANCHOR]`` (with ``sep`` appended, ``_`` names) or
+    ``all`` (shared, one tag; "" in names)."""
+    d = pb.options.range_model.direction
+    per = G.n_dir_per_tag(pb)
+    t, a = divmod(i, per)
+    parts = ([pb.tag_names[t]] if pb.n_tags > 1 else []) + ([pb.anchor_ids[a]] if d.per_anchor else [])
+    if sep == "_":
+        return "".join(p + "_" for p in parts)
+    return parts[-1] if parts else "all"
+
+
 def _direction_report(pb, values, sd, off: int):
-    """``range_model.direction`` of calibration.yaml: the model, coefficient values and marginal sd [m, m/rad]."""
+    """``range_model.direction`` of calibration.yaml: the model, coefficient values and marginal sd [m, m/rad].
+
+    ``coefficients``: ``{ANCHOR or "all": {name: {value, sd}}}`` with one tag; with several, one such
+    mapping per tag (``{TAG: {ANCHOR or "all": ...}}``: the body-frame direction belongs to each tag's antenna).
+    """
     d = pb.options.range_model.direction
     if d is None:
         return None
     out = d.model_dump() | {"frame": "tag body (IMU) frame, line of sight tag antenna -> anchor",
                             "coefficient_names": d.names(), "coefficients": {}}
-    labels = list(pb.anchor_ids) if d.per_anchor else ["all"]
-    for i, lab in enumerate(labels):
+    for i in range(G.n_dir_vectors(pb)):
         c = values.atVector(G.dir_key(i))
         s = sd[off + i * d.n_coef: off + (i + 1) * d.n_coef]
-        out["coefficients"][lab] = {n: {"value": float(v), "sd": float(e)} for n, v, e in zip(d.names(), c, s)}
+        blk = {n: {"value": float(v), "sd": float(e)} for n, v, e in zip(d.names(), c, s)}
+        if pb.n_tags > 1:
+            out["coefficients"].setdefault(pb.tag_names[i // G.n_dir_per_tag(pb)], {})[_dir_label(pb, i)] = blk
+        else:
+            out["coefficients"][_dir_label(pb, i)] = blk
+    return out
+
+
+def _anchor_direction_report(pb, values, sd, off: int):
+    """``range_model.anchor_direction`` of calibration.yaml: the model and, per anchor with ranges, its coefficients
+    ``{ANCHOR: {name: {value, sd}}}`` [m, m/rad^q]."""
+    d = pb.options.range_model.anchor_direction
+    if d is None:
+        return None
+    out = d.model_dump() | {"frame": "anchor antenna frame (anchors.csv qw..qz), line of sight anchor -> tag antenna",
+                            "coefficient_names": d.names(), "coefficients": {}}
+    for i, j in enumerate(G.adir_anchors(pb)):
+        c = values.atVector(G.adir_key(j))
+        s = sd[off + i * d.n_coef: off + (i + 1) * d.n_coef]
+        out["coefficients"][pb.anchor_ids[j]] = {n: {"value": float(v), "sd": float(e)}
+                                                 for n, v, e in zip(d.names(), c, s)}
     return out
 
 

@@ -1,13 +1,14 @@
 """Full-batch MAP calibration with GTSAM: the factor graph, its solve and its marginals.
 
 Variables (GTSAM keys): ``X(k)`` pose, ``V(k)`` velocity, ``B(k)`` IMU bias of
-keyframe ``k`` (IMU clock); ``L(0)`` lever arm p_IU (IMU frame, m); ``T(0)`` time
-offset t_d (s); ``A(j)`` constant range bias of anchor ``j`` (m).  Factors:
+keyframe ``k`` (IMU clock); ``L(i)`` lever arm p_IU of tag ``i`` (IMU frame, m; ``L(0)`` with
+one tag); ``T(0)`` time offset t_d (s); ``A(j)`` constant range bias of anchor ``j`` (m).  Factors:
 ``CombinedImuFactor`` between consecutive keyframes (preintegration with bias
 random walk), one robust (Huber) :mod:`uwbimu.calibration.range_factor` per
 range, priors on the first keyframe, the lever arm, t_d and the anchor biases.
 With ``range_model.direction``, ``h(i)`` holds a coefficient vector of the direction-dependent
-range bias (one shared, or one per anchor ``i``) with a zero-mean prior.
+range bias (one shared, or one per anchor, for every tag) with a zero-mean prior; with
+``range_model.anchor_direction``, ``g(j)`` the anchor-side coefficients of anchor ``j``.
 The fixed anchors define the world frame (the gauge).  Self-survey
 (:mod:`uwbimu.calibration.anchors`): an estimated anchor's position is a
 ``Point3`` ``P(j)`` with an optional weak prior, the range factors of its ranges
@@ -75,18 +76,38 @@ def drift_factors(pb) -> list:
 
 
 def dir_key(i: int) -> int:
-    """Key of direction-bias coefficient vector ``i`` (``h``; per anchor ``i`` = anchor index, shared ``i`` = 0)."""
+    """Key of direction-bias coefficient vector ``i`` (``h``): ``i = tag * n + a``, ``a`` the anchor index
+    (``per_anchor``, ``n`` anchors) or 0 (shared, ``n = 1``); one tag: ``i`` = anchor index or 0."""
     import gtsam
 
     return gtsam.symbol("h", int(i))
 
 
-def n_dir_vectors(pb) -> int:
-    """Number of direction-bias coefficient vectors of the problem (0 without the model)."""
+def n_dir_per_tag(pb) -> int:
+    """Direction-bias coefficient vectors per tag (0 without the model)."""
     d = pb.options.range_model.direction
     if d is None:
         return 0
     return len(pb.anchor_ids) if d.per_anchor else 1
+
+
+def n_dir_vectors(pb) -> int:
+    """Number of direction-bias coefficient vectors of the problem (0 without the model)."""
+    return n_dir_per_tag(pb) * pb.n_tags
+
+
+def adir_key(j: int) -> int:
+    """Key of anchor ``j``'s anchor-side direction-bias coefficients (``g``, ``range_model.anchor_direction``)."""
+    import gtsam
+
+    return gtsam.symbol("g", int(j))
+
+
+def lever_key(i: int) -> int:
+    """Key of tag ``i``'s lever arm (``L(i)``; ``L(0)`` with one tag)."""
+    from gtsam.symbol_shorthand import L
+
+    return L(int(i))
 
 
 def _P():
@@ -124,6 +145,21 @@ class Problem:
     n_knots: int = 0
     _drift_factors: Optional[list] = None
     _imu_cum: Optional[dict] = None  # imu_cumulative at the first keyframe's ESKF bias (cached)
+    # several tags: tag index of every row, tag names (dataset.yaml order first), ESKF lever arms and priors
+    # (n_tags, 3); one tag: tag_i None, levers0 = [lever0], lever_prior = [options.lever_arm_prior]
+    tag_i: Optional[np.ndarray] = None
+    tag_names: list = field(default_factory=lambda: ["tag0"])
+    levers0: Optional[np.ndarray] = None
+    lever_prior: Optional[np.ndarray] = None
+    tag_column: bool = False  # uwb.csv has a tag column (residuals.csv gets one)
+    anchor_rot: Optional[np.ndarray] = None  # (J, 3, 3) antenna frame -> world (anchor_direction)
+
+    @property
+    def n_tags(self) -> int:
+        return len(self.tag_names)
+
+    def tag_of(self, m: int) -> int:
+        return 0 if self.tag_i is None else int(self.tag_i[m])
 
     def is_tdoa(self, m: int) -> bool:
         return self.anchor_b is not None and int(self.anchor_b[m]) >= 0
@@ -136,12 +172,86 @@ class Problem:
         return self.t_imu[self.key_idx]
 
 
+def tag_names(dataset, eskf=None) -> tuple[list[str], bool]:
+    """The tags a calibration uses and whether the log names them (a ``tag`` column in uwb.csv or tdoa.csv).
+
+    The tags the initialising ESKF used (its ``calibration["tags"]``: every tag of the log in dataset.yaml's
+    order, or the one its ``tag`` option picked), else every tag of the log in dataset.yaml's order
+    first; ``["tag0"]`` (or the ESKF's single name) when the log has no tag column.
+    """
+    import pandas as pd
+
+    etags = list(((getattr(eskf, "calibration", None) or {}).get("tags") or {}))
+    present: list[str] = []
+    for tab in (dataset.uwb, getattr(dataset, "tdoa", None)):
+        if tab is not None and len(tab) and "tag" in tab.columns:
+            present += [t for t in pd.unique(tab["tag"].astype(str)) if t not in present]
+    if not present:
+        return (etags[:1] or ["tag0"]), False
+    used = [t for t in etags if t in present]
+    if not used:
+        order = [tm.name for tm in dataset.meta.tags if tm.name in present]
+        used = order + [t for t in present if t not in order]
+    return used, True
+
+
+def _tag_levers(dataset, eskf, options: CalibrationOptions, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Initial lever arms (the ESKF's, per tag) and prior means (n_tags, 3) [m, IMU frame].
+
+    One tag: the ESKF's lever arm and ``options.lever_arm_prior``.  Several: each tag's ESKF lever arm
+    (``calibration["tags"]``) and, as prior mean, its nominal lever arm in dataset.yaml when documented,
+    else ``options.lever_arm_prior``.
+    """
+    cal = eskf.calibration
+    prior = np.asarray(options.lever_arm_prior, float)
+    if len(names) == 1:
+        return np.asarray(cal["lever_arm"], float)[None], prior[None]
+    etag = cal.get("tags") or {}
+    meta = {tm.name: tm.lever_arm for tm in dataset.meta.tags}
+    pri = np.array([meta[n] if meta.get(n) is not None else prior for n in names], float)
+    init = np.array([etag[n]["lever_arm"] if n in etag else pri[i] for i, n in enumerate(names)], float)
+    return init, pri
+
+
+def _anchor_rotations(dataset, ids: list[str], needed, anchors: Optional[AnchorSetup]) -> np.ndarray:
+    """(J, 3, 3) antenna orientations (antenna frame -> graph world) from anchors.csv qw..qz; refuses an anchor in
+    ``needed`` (ids with ranges) without one (InputError naming ``range_model.anchor_direction``)."""
+    from uwbimu.errors import InputError
+    from uwbimu.models.quaternion import quat_to_rotmat
+
+    quat = ["qw", "qx", "qy", "qz"]
+    tab = dataset.anchors
+    if not set(quat) <= set(tab.columns):
+        raise InputError("calibrate: range_model.anchor_direction needs the anchor antenna orientations "
+                         "(anchors.csv columns qw, qx, qy, qz); this anchors.csv has none",
+                         hint="add qw..qz (antenna frame -> world, docs/dataset_format.md) or drop "
+                              "range_model.anchor_direction")
+    q = {str(a): row for a, row in zip(tab["anchor"].astype(str), tab[quat].to_numpy(float))}
+    missing = sorted(a for a in needed if not np.all(np.isfinite(q.get(a, np.full(4, np.nan)))))
+    if missing:
+        raise InputError(f"calibrate: range_model.anchor_direction needs an antenna orientation (anchors.csv qw..qz) "
+                         f"for every anchor with ranges; missing for anchor(s) {missing}",
+                         hint="give qw..qz for those anchors or drop range_model.anchor_direction")
+    G = anchors.transform[0] if anchors is not None else np.eye(3)
+    out = np.empty((len(ids), 3, 3))
+    for j, a in enumerate(ids):
+        qa = q.get(a)
+        if qa is None or not np.all(np.isfinite(qa)):
+            out[j] = np.eye(3)  # no ranges: never used
+        else:
+            out[j] = G @ quat_to_rotmat(qa / np.linalg.norm(qa))
+    return out
+
+
 def build_problem(dataset, eskf, options: CalibrationOptions, anchors: Optional[AnchorSetup] = None) -> Problem:
-    """Keyframes, ranges, noise and the ESKF initial guess of one tag's log.
+    """Keyframes, ranges, noise and the ESKF initial guess of a log with one tag or several.
 
     ``anchors`` (self-survey): anchor ids, fixed positions and initial guesses in the
-    gauge frame; default: every anchor fixed at its ``anchors.csv`` position.
+    gauge frame; default: every anchor fixed at its ``anchors.csv`` position.  Several tags
+    (:func:`tag_names`): every row keeps its tag, each tag has its own lever arm.
     """
+    from uwbimu.errors import InputError, UsageError
+
     imu = dataset.imu
     t_imu = imu["t"].to_numpy(float)
     u_imu = imu[["ax", "ay", "az", "wx", "wy", "wz"]].to_numpy(float)
@@ -159,6 +269,17 @@ def build_problem(dataset, eskf, options: CalibrationOptions, anchors: Optional[
     uwb = dataset.uwb
     known = uwb["anchor"].astype(str).isin(ids).to_numpy()
     uwb = uwb[known]
+    names, tag_column = tag_names(dataset, eskf)
+    tmap = {n: i for i, n in enumerate(names)}
+    if tag_column and "tag" in uwb.columns:
+        uwb = uwb[uwb["tag"].astype(str).isin(names).to_numpy()]
+        ti = uwb["tag"].astype(str).map(tmap).to_numpy(np.int64)
+    else:
+        ti = np.zeros(len(uwb), np.int64)
+    if len(names) > 1 and anchors is not None and any(anchors.estimated):
+        raise InputError(f"calibrate: anchor self-survey (estimate_anchors / --estimate-anchors) with several tags "
+                         f"({names}) is not supported",
+                         hint="calibrate one tag (ESKF option tag) or fix the anchors")
     jmap = {a: j for j, a in enumerate(ids)}
     t_e = eskf.t_imu if eskf.t_imu is not None else eskf.t + eskf.calibration["time_offset"]
     tk = t_imu[key_idx]
@@ -190,38 +311,49 @@ def build_problem(dataset, eskf, options: CalibrationOptions, anchors: Optional[
             raise UsageError("calibrate: anchor self-survey with TDoA is not supported yet",
                              hint="survey the anchors with ranges, or fix them (no --estimate-anchors)")
         ok = tdoa["anchor_a"].astype(str).isin(ids).to_numpy() & tdoa["anchor_b"].astype(str).isin(ids).to_numpy()
+        if len(names) > 1 and "tag" not in tdoa.columns:
+            raise InputError(f"calibrate: the log has several tags ({names}) but tdoa.csv has no tag column",
+                             hint="add the tag column to tdoa.csv (docs/dataset_format.md)")
+        if tag_column and "tag" in tdoa.columns:
+            ok &= tdoa["tag"].astype(str).isin(names).to_numpy()
         td = tdoa[ok]
+        tti = (td["tag"].astype(str).map(tmap).to_numpy(np.int64) if tag_column and "tag" in td.columns
+               else np.zeros(len(td), np.int64))
+        ti = np.concatenate([ti, tti])
         t_r = np.concatenate([t_r, td["t"].to_numpy(float)])
         rho = np.concatenate([rho, td["tdoa"].to_numpy(float)])
         aj = np.concatenate([aj, np.array([jmap[a] for a in td["anchor_a"].astype(str)], dtype=np.int64)])
         bj = np.concatenate([np.full(len(uwb), -1, dtype=np.int64),
                              np.array([jmap[b] for b in td["anchor_b"].astype(str)], dtype=np.int64)])
         order = np.argsort(t_r, kind="stable")
-        t_r, rho, aj, bj = t_r[order], rho[order], aj[order], bj[order]
+        t_r, rho, aj, bj, ti = t_r[order], rho[order], aj[order], bj[order], ti[order]
         base = options.range_sigma or dataset.meta.range_sigma or 0.1
         tsig = float(options.tdoa_sigma or (dataset.meta.extra or {}).get("tdoa_sigma") or np.sqrt(2.0) * base)
     knot, n_knots = None, 0
     dr = options.range_bias_drift
     if dr is not None:
-        from uwbimu.errors import UsageError
-
         if bj is not None or (anchors is not None and any(anchors.estimated)) or not options.group_range_factors:
             raise UsageError("calibrate: range_bias_drift works with ranges to fixed anchors and grouped range "
                              "factors only (not with TDoA, --estimate-anchors or group_range_factors: false)")
         knot = np.rint((t_r - t_r.min()) / dr.knot_spacing).astype(np.int64)
         n_knots = int(knot.max()) + 1
-    if options.range_model.direction is not None:
-        from uwbimu.errors import UsageError
-
+    for fld in ("direction", "anchor_direction"):
+        if getattr(options.range_model, fld) is None:
+            continue
         if bj is not None or (anchors is not None and any(anchors.estimated)) or not options.group_range_factors:
-            raise UsageError("calibrate: range_model.direction works with ranges to fixed anchors and grouped range "
+            raise UsageError(f"calibrate: range_model.{fld} works with ranges to fixed anchors and grouped range "
                              "factors only (not with TDoA, --estimate-anchors or group_range_factors: false)")
+    rot = None
+    if options.range_model.anchor_direction is not None:
+        rot = _anchor_rotations(dataset, ids, sorted({ids[j] for j in np.unique(aj)}), anchors)
+    levers0, lprior = _tag_levers(dataset, eskf, options, names)
     return Problem(t_imu=t_imu, u_imu=u_imu, key_idx=key_idx, t_range=t_r, drift_knot=knot, n_knots=n_knots,
                    rho=rho, anchor_j=aj, anchor_b=bj, tdoa_sigma=tsig,
                    anchor_ids=ids, anchor_pos=np.array([pos[a] for a in ids]), init_states=init,
-                   lever0=np.asarray(eskf.calibration["lever_arm"], float),
+                   lever0=levers0[0].copy(),
                    td0=float(eskf.calibration["time_offset"]), options=options, range_sigma=float(sigma),
-                   imu_noise=noise, anchors=anchors)
+                   imu_noise=noise, anchors=anchors, tag_i=ti if len(names) > 1 else None, tag_names=list(names),
+                   levers0=levers0, lever_prior=lprior, tag_column=bool(tag_column), anchor_rot=rot)
 
 
 def _pose(s):
@@ -308,8 +440,10 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
     g.add(gtsam.PriorFactorVector(V(0), s[3:6], gtsam.noiseModel.Isotropic.Sigma(3, 1.0)))
     g.add(gtsam.PriorFactorConstantBias(B(0), gtsam.imuBias.ConstantBias(np.zeros(3), np.zeros(3)),
                                         gtsam.noiseModel.Diagonal.Sigmas(np.array([0.2] * 3 + [0.05] * 3))))
-    g.add(gtsam.PriorFactorVector(L(0), np.asarray(o.lever_arm_prior, float),
-                                  gtsam.noiseModel.Isotropic.Sigma(3, o.lever_arm_prior_sd)))
+    for i in range(pb.n_tags):
+        prior = pb.lever_prior[i] if pb.lever_prior is not None else np.asarray(o.lever_arm_prior, float)
+        g.add(gtsam.PriorFactorVector(L(i), np.asarray(prior, float),
+                                      gtsam.noiseModel.Isotropic.Sigma(3, o.lever_arm_prior_sd)))
     if td_fixed is None:
         g.add(gtsam.PriorFactorVector(T(0), np.array([o.time_offset_prior]),
                                       gtsam.noiseModel.Isotropic.Sigma(1, o.time_offset_prior_sd)))
@@ -326,6 +460,10 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
     for i in range(n_dir_vectors(pb)):
         g.add(gtsam.PriorFactorVector(dir_key(i), np.zeros(dmod.n_coef),
                                       gtsam.noiseModel.Isotropic.Sigma(dmod.n_coef, dmod.prior_sd)))
+    amod = o.range_model.anchor_direction
+    for j in adir_anchors(pb):
+        g.add(gtsam.PriorFactorVector(adir_key(j), np.zeros(amod.n_coef),
+                                      gtsam.noiseModel.Isotropic.Sigma(amod.n_coef, amod.prior_sd)))
     noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(o.huber_k),
                                            gtsam.noiseModel.Isotropic.Sigma(1, pb.range_sigma))
     P = _P()
@@ -342,12 +480,17 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
         rows = np.flatnonzero(plain)
         if len(rows):
             keys_of = np.asarray(assoc.key)[rows]
-            order = rows[np.argsort(keys_of, kind="stable")]
+            # one group per block of keyframes and tag (each tag's ranges depend on its own lever arm)
+            tg = pb.tag_i[assoc.used[rows]] if pb.tag_i is not None else np.zeros(len(rows), np.int64)
+            order = rows[np.lexsort((keys_of, tg, keys_of // o.range_group_keyframes))]
             gk = np.asarray(assoc.key)[order] // o.range_group_keyframes
+            if pb.tag_i is not None:
+                gk = gk * pb.n_tags + pb.tag_i[assoc.used[order]]
             bounds = np.flatnonzero(np.diff(gk)) + 1
             for chunk in np.split(order, bounds):
                 kfs, kf = np.unique(np.asarray(assoc.key)[chunk], return_inverse=True)
                 ms = assoc.used[chunk]
+                tag = pb.tag_of(int(ms[0]))
                 js = pb.anchor_j[ms].astype(np.int64)
                 ujs, col = np.unique(js, return_inverse=True)
                 bkeys = [A(int(j)) for j in ujs]
@@ -361,14 +504,18 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
                     bkeys += [int(x) for x in udk]
                 dkw = {}
                 if dmod is not None:
-                    dj = js if dmod.per_anchor else np.zeros(len(js), np.int64)
+                    dj = (js if dmod.per_anchor else np.zeros(len(js), np.int64)) + tag * n_dir_per_tag(pb)
                     udj, dcol = np.unique(dj, return_inverse=True)
                     orders = tuple(range(dmod.lowest_order, dmod.harmonics + 1))
                     dkw = {"direction": (orders, dmod.elevation), "dir_col": dcol}
                     bkeys += [dir_key(int(x)) for x in udj]
+                if amod is not None:
+                    dkw |= {"anchor_direction": (amod.orders, amod.elevation_order), "anchor_rot": pb.anchor_rot[js],
+                            "adir_col": col}
+                    bkeys += [adir_key(int(j)) for j in ujs]
                 grp = RangeGroup([assoc.deltas[i] for i in chunk], pb.anchor_pos[js], pb.rho[ms], col, assoc.td0,
                                  bias_matrix=bmat, kf=kf, **dkw)
-                keys = [key for k in kfs for key in (X(int(k)), V(int(k)))] + [L(0)] + \
+                keys = [key for k in kfs for key in (X(int(k)), V(int(k)))] + [L(tag)] + \
                     ([T(0)] if td_fixed is None else []) + bkeys
                 fi = g.size()
                 g.add(make_gtsam_group_factor(keys, grp, pb.range_sigma, o.huber_k, td_fixed=td_fixed))
@@ -383,12 +530,13 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
         j = int(pb.anchor_j[m])
         if pb.is_tdoa(m):
             jb = int(pb.anchor_b[m])
-            keys = [X(k), V(k), L(0)] + ([T(0)] if td_fixed is None else []) + [A(j), A(jb)]
+            keys = [X(k), V(k), L(pb.tag_of(m))] + ([T(0)] if td_fixed is None else []) + [A(j), A(jb)]
             g.add(make_gtsam_tdoa_factor(keys, pb.anchor_pos[j], pb.anchor_pos[jb], pb.rho[m], d, assoc.td0, tnoise,
                                          td_fixed=td_fixed))
             continue
         est = pb.estimated(j)
-        keys = [X(k), V(k), L(0)] + ([T(0)] if td_fixed is None else []) + [A(j)] + ([P(j)] if est else [])
+        keys = [X(k), V(k), L(pb.tag_of(m))] + ([T(0)] if td_fixed is None else []) + [A(j)] + \
+            ([P(j)] if est else [])
         g.add(make_gtsam_factor(keys, pb.anchor_pos[j], pb.rho[m], d, assoc.td0, noise, td_fixed=td_fixed,
                                 anchor_variable=est))
     assoc.slots = slots
@@ -403,22 +551,42 @@ def _group_states(grp: RangeGroup, ks, values):
 
 
 def _group_coefs(grp: RangeGroup, ks, values):
-    """(n_dir, P) direction-bias coefficients of a grouped range factor (its last keys), or None."""
+    """(n_dir, P) direction-bias coefficients of a grouped range factor (its last keys but the anchor-side
+    ones), or None."""
     if not grp.n_dir:
         return None
-    return np.array([values.atVector(ks[len(ks) - grp.n_dir + i]) for i in range(grp.n_dir)])
+    off = len(ks) - grp.n_adir - grp.n_dir
+    return np.array([values.atVector(ks[off + i]) for i in range(grp.n_dir)])
+
+
+def _group_acoefs(grp: RangeGroup, ks, values):
+    """(n_adir, P_a) anchor-side direction-bias coefficients of a grouped range factor (its last keys), or None."""
+    if not grp.n_adir:
+        return None
+    return np.array([values.atVector(ks[len(ks) - grp.n_adir + i]) for i in range(grp.n_adir)])
+
+
+def _group_lever(grp: RangeGroup, ks, values) -> np.ndarray:
+    """Lever arm of a grouped range factor's tag (the key after its keyframes)."""
+    return values.atVector(ks[2 * grp.n_kf])
+
+
+def adir_anchors(pb) -> list[int]:
+    """Indices of the anchors with anchor-side direction coefficients (those with ranges; none without the model)."""
+    if pb.options.range_model.anchor_direction is None:
+        return []
+    return [int(j) for j in np.unique(pb.anchor_j)]
 
 
 def range_residuals(graph, assoc: Association, values, td: float) -> np.ndarray:
     """Unwhitened residual [m] of every used row (``assoc.used`` order) of a graph built by :func:`build_graph`."""
-    X, V, B, L, T, A = _keys()
     out = np.empty(len(assoc.used))
-    lever = values.atVector(L(0))
     for fi, grp in assoc.groups.items():
         ks = graph.at(int(fi)).keys()
-        nb_off = len(ks) - grp.n_bias - grp.n_dir
+        nb_off = len(ks) - grp.n_bias - grp.n_dir - grp.n_adir
         biases = np.array([values.atVector(ks[nb_off + i])[0] for i in range(grp.n_bias)])
-        e = grp.evaluate(*_group_states(grp, ks, values), lever, td, biases, dir_coefs=_group_coefs(grp, ks, values))
+        e = grp.evaluate(*_group_states(grp, ks, values), _group_lever(grp, ks, values), td, biases,
+                         dir_coefs=_group_coefs(grp, ks, values), adir_coefs=_group_acoefs(grp, ks, values))
         rows = np.flatnonzero(assoc.slots[:, 0] == fi)
         out[rows] = e[assoc.slots[rows, 1]]
     single = np.flatnonzero(~np.isin(assoc.slots[:, 0], list(assoc.groups)))
@@ -427,16 +595,28 @@ def range_residuals(graph, assoc: Association, values, td: float) -> np.ndarray:
     return out
 
 
+def anchor_direction_terms(graph, assoc: Association, values, td: float) -> np.ndarray:
+    """Anchor-side direction-dependent bias [m] of every used row (``assoc.used`` order; 0 for rows without it)."""
+    out = np.zeros(len(assoc.used))
+    for fi, grp in assoc.groups.items():
+        if grp.anchor_direction is None:
+            continue
+        ks = graph.at(int(fi)).keys()
+        wa = grp.line_of_sight_anchor(*_group_states(grp, ks, values), _group_lever(grp, ks, values), td)
+        term = grp.anchor_term(np.einsum("nij,nj->ni", grp.anchor_rot, wa), _group_acoefs(grp, ks, values))
+        rows = np.flatnonzero(assoc.slots[:, 0] == fi)
+        out[rows] = term[assoc.slots[rows, 1]]
+    return out
+
+
 def direction_terms(graph, assoc: Association, values, td: float) -> np.ndarray:
     """Direction-dependent bias [m] of every used row (``assoc.used`` order; 0 for rows without it)."""
-    X, V, B, L, T, A = _keys()
     out = np.zeros(len(assoc.used))
-    lever = values.atVector(L(0))
     for fi, grp in assoc.groups.items():
         if grp.direction is None:
             continue
         ks = graph.at(int(fi)).keys()
-        wb = grp.line_of_sight_body(*_group_states(grp, ks, values), lever, td)
+        wb = grp.line_of_sight_body(*_group_states(grp, ks, values), _group_lever(grp, ks, values), td)
         F, _ = direction_features(wb, *grp.direction)
         term = np.einsum("np,np->n", F, _group_coefs(grp, ks, values)[grp.dir_col])
         rows = np.flatnonzero(assoc.slots[:, 0] == fi)
@@ -515,15 +695,19 @@ def initial_values(pb: Problem, with_td: bool = True):
         vals.insert(X(k), _pose(s))
         vals.insert(V(k), s[3:6].copy())
         vals.insert(B(k), gtsam.imuBias.ConstantBias(s[10:13].copy(), s[13:16].copy()))
-    vals.insert(L(0), pb.lever0.copy())
+    levers = pb.levers0 if pb.levers0 is not None else pb.lever0[None]
+    for i in range(pb.n_tags):
+        vals.insert(L(i), np.asarray(levers[i], float).copy())
     if with_td:
         vals.insert(T(0), np.array([pb.td0]))
+    for i in range(n_dir_vectors(pb)):
+        vals.insert(dir_key(i), np.zeros(pb.options.range_model.direction.n_coef))
+    for j in adir_anchors(pb):
+        vals.insert(adir_key(j), np.zeros(pb.options.range_model.anchor_direction.n_coef))
     for j in range(len(pb.anchor_ids)):
         vals.insert(A(j), np.zeros(1))
         for n in range(pb.n_knots if pb.drift_knot is not None else 0):
             vals.insert(drift_key(j, n), np.zeros(1))
-        if j < n_dir_vectors(pb):
-            vals.insert(dir_key(j), np.zeros(pb.options.range_model.direction.n_coef))
         if pb.estimated(j):
             vals.insert(_P()(j), np.asarray(pb.anchor_pos[j], float).copy())
     return vals

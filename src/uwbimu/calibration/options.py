@@ -76,12 +76,58 @@ class DirectionBias(BaseModel):
         return out + (["elevation"] if self.elevation else [])
 
 
+class AnchorDirectionBias(BaseModel):
+    """Direction-dependent range bias at the ANCHOR antenna: a low-order function of the line of sight's angles
+    in each anchor's antenna frame (``anchors.csv`` qw..qz, antenna frame -> world).
+
+    Each predicted range to anchor ``j`` gains ``g(az_a, el_a) . c_j``: ``w_a = R_j^T (p_U - p_j)`` is the
+    line of sight from the anchor to the tag antenna in the antenna frame, ``az_a = atan2(w_y, w_x)``,
+    ``el_a = atan2(w_z, hypot(w_x, w_y))`` [rad]; ``g`` holds ``cos(n az_a), sin(n az_a)`` for ``n =
+    lowest_order .. harmonics`` (none with ``harmonics: 0``) and ``el_a^q`` for ``q = 1 .. elevation_order``.
+    ``c_j`` [m, m/rad^q] is one vector per anchor (shared by every tag: it belongs to the anchor's
+    antenna) with a zero-mean prior of sd ``prior_sd`` per coefficient.  An anchor with ranges and no
+    orientation in ``anchors.csv`` is refused.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    harmonics: int = Field(1, ge=0, le=4, description="highest Fourier order in antenna azimuth (0: none)")
+    lowest_order: int = Field(1, ge=1, le=4, description="lowest Fourier order in antenna azimuth")
+    elevation_order: int = Field(1, ge=0, le=3, description="powers el_a^1..el_a^q of the antenna elevation [rad]")
+    prior_sd: float = Field(0.05, gt=0, description="zero-mean prior sd of every coefficient [m, m/rad^q]")
+
+    @model_validator(mode="after")
+    def _orders(self) -> "AnchorDirectionBias":
+        if self.harmonics and self.lowest_order > self.harmonics:
+            raise ValueError(f"lowest_order ({self.lowest_order}) must not exceed harmonics ({self.harmonics})")
+        if self.n_coef == 0:
+            raise ValueError("harmonics: 0 and elevation_order: 0 leave no term")
+        return self
+
+    @property
+    def orders(self) -> tuple:
+        """Fourier orders in antenna azimuth."""
+        return tuple(range(self.lowest_order, self.harmonics + 1)) if self.harmonics else ()
+
+    @property
+    def n_coef(self) -> int:
+        """Number of coefficients per anchor."""
+        return 2 * len(self.orders) + self.elevation_order
+
+    def names(self) -> list[str]:
+        """Coefficient names, in vector order."""
+        out = [f"{f}{n}" for n in self.orders for f in ("cos", "sin")]
+        return out + [("elevation" if q == 1 else f"elevation{q}") for q in range(1, self.elevation_order + 1)]
+
+
 class RangeModelOptions(BaseModel):
     """Extra terms of the range model (beyond the constant bias and ``range_bias_drift``)."""
 
     model_config = ConfigDict(extra="forbid")
     direction: Optional[DirectionBias] = Field(
         None, description="direction-dependent bias in the tag's body frame; none: no direction term")
+    anchor_direction: Optional[AnchorDirectionBias] = Field(
+        None, description="direction-dependent bias in each anchor's antenna frame (anchors.csv qw..qz); none: "
+                          "no anchor-side term")
 
 
 class CalibrationOptions(BaseModel):

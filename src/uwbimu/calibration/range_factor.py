@@ -250,10 +250,15 @@ class RangeGroup:
     direction : optional ``(orders, elevation)`` of the direction-dependent bias (:func:`direction_features`):
         each row's range gains ``direction_features(w_b) @ c`` with ``c`` its coefficient vector.
     dir_col : (N,) index of each row's coefficient vector among the group's direction keys (with ``direction``).
+    anchor_direction : optional ``(orders, elevation_order)`` of the anchor-side direction-dependent bias: each
+        row's range gains ``direction_features(w_a) @ c_a``, ``w_a = R_a^T (p_U - anchor)`` the line of sight
+        from the anchor to the tag antenna in the anchor's antenna frame.
+    anchor_rot : (N, 3, 3) each row's anchor antenna orientation ``R_a`` (antenna frame -> world).
+    adir_col : (N,) index of each row's anchor-side coefficient vector among the group's anchor-side keys.
     """
 
     def __init__(self, deltas, anchors, rho, bias_col, td0: float, bias_matrix=None, kf=None,
-                 direction=None, dir_col=None):
+                 direction=None, dir_col=None, anchor_direction=None, anchor_rot=None, adir_col=None):
         self.tau = np.array([d.tau for d in deltas])
         self.dR = np.array([d.dR for d in deltas])
         self.dv = np.array([d.dv for d in deltas])
@@ -279,6 +284,14 @@ class RangeGroup:
             self.dir_mask = [(self.dir_col == i)[:, None].astype(float) for i in range(self.n_dir)]
         else:
             self.dir_col, self.n_dir, self.dir_mask = None, 0, []
+        self.anchor_direction = anchor_direction
+        if anchor_direction is not None:
+            self.anchor_rot = np.asarray(anchor_rot, float).reshape(-1, 3, 3)
+            self.adir_col = np.zeros(len(self.rho), np.int64) if adir_col is None else np.asarray(adir_col, np.int64)
+            self.n_adir = int(self.adir_col.max()) + 1
+            self.adir_mask = [(self.adir_col == i)[:, None].astype(float) for i in range(self.n_adir)]
+        else:
+            self.anchor_rot, self.adir_col, self.n_adir, self.adir_mask = None, None, 0, []
 
     @property
     def n_bias(self) -> int:
@@ -291,6 +304,21 @@ class RangeGroup:
     def line_of_sight_body(self, R_k, p_k, v_k, lever, td: float) -> np.ndarray:
         """(N, 3) vector from the tag antenna to the anchor in the body (IMU) frame at the range instant [m]."""
         return self._geometry(R_k, p_k, v_k, lever, td)["wb"]
+
+    def line_of_sight_anchor(self, R_k, p_k, v_k, lever, td: float) -> np.ndarray:
+        """(N, 3) vector from the anchor to the tag antenna in the anchor's antenna frame [m]."""
+        return np.einsum("nji,nj->ni", self.anchor_rot, self._geometry(R_k, p_k, v_k, lever, td)["u"])
+
+    def anchor_term(self, u, adir_coefs, jacobian: bool = False):
+        """Anchor-side direction bias (N,) [m] of the world lines of sight ``u = p_U - anchor`` (N, 3) and, on
+        request, its features (N, P) and its gradient with respect to ``u`` (N, 3, world)."""
+        C = np.asarray(adir_coefs, float).reshape(self.n_adir, -1)[self.adir_col]
+        wa = np.einsum("nji,nj->ni", self.anchor_rot, u)  # R_a^T u
+        F, dF = direction_features(wa, *self.anchor_direction, jacobian=jacobian)
+        term = np.einsum("np,np->n", F, C)
+        if not jacobian:
+            return term
+        return term, F, np.einsum("nij,nj->ni", self.anchor_rot, np.einsum("np,npi->ni", C, dF))
 
     def _geometry(self, R_k, p_k, v_k, lever, td):
         g = G_WORLD
@@ -311,7 +339,8 @@ class RangeGroup:
         return {"R_k": R_k, "delta": delta, "tau": tau, "v_s0": v_s0, "a_s0": a_s0, "M": M, "R_s": R_s,
                 "u": u, "wb": wb}
 
-    def evaluate(self, R_k, p_k, v_k, lever, td: float, biases, jacobians: bool = False, dir_coefs=None):
+    def evaluate(self, R_k, p_k, v_k, lever, td: float, biases, jacobians: bool = False, dir_coefs=None,
+                 adir_coefs=None):
         """Residuals ``e`` (N,) [m] and, on request, Jacobians ``(J_pose (N, 6), J_vel (N, 3),
         J_lever (N, 3), J_td (N,))`` on the GTSAM tangents (see :func:`range_error`); each row's
         pose and velocity Jacobians are with respect to its own keyframe.
@@ -319,6 +348,9 @@ class RangeGroup:
         With a direction model, ``dir_coefs`` (n_dir, P) are the coefficient vectors, the direction term
         is added to ``e`` and its exact derivatives to every Jacobian, and a fifth Jacobian ``F`` (N, P)
         (the features: each row's derivative with respect to its own coefficient vector) is appended.
+        With an anchor-side model, ``adir_coefs`` (n_adir, P_a) likewise: its term is added to ``e``; it is
+        a function of ``u = p_U - anchor`` only, so its derivatives are the range's own with ``n = u / |u|``
+        replaced by ``n + R_a dg/dw_a``; its features ``F_a`` (N, P_a) come last.
 
         ``R_k, p_k, v_k``: the keyframes' states, (K, 3, 3), (K, 3), (K, 3) with K = ``n_kf``
         (or (3, 3), (3,), (3,) for one keyframe).
@@ -332,9 +364,14 @@ class RangeGroup:
             C = np.asarray(dir_coefs, float).reshape(self.n_dir, -1)[self.dir_col]
             F, dF = direction_features(geo["wb"], *self.direction, jacobian=jacobians)
             e = e + np.einsum("np,np->n", F, C)
+        if self.anchor_direction is not None:
+            at = self.anchor_term(u, adir_coefs, jacobian=jacobians)
+            e = e + (at[0] if jacobians else at)
         if not jacobians:
             return e
         n = u / r[:, None]
+        if self.anchor_direction is not None:
+            n = n + at[2]  # d(|u| + g(R_a^T u) c)/du: every Jacobian below is linear in it
         m = np.einsum("nij,ni->nj", R_k, n)  # R_k^T n
         body = self.dp + delta * self.dv + 0.5 * delta**2 * self.dRacc + M @ lever
         J_pose = np.hstack([np.cross(body, m), m])
@@ -342,8 +379,9 @@ class RangeGroup:
         J_lever = np.einsum("nij,ni->nj", R_s, n)
         J_td = np.einsum("ni,ni->n", n, v_s0 + a_s0 * delta
                          + np.einsum("nij,nj->ni", R_s, np.cross(self.omega, lever)))
+        extra = (at[1],) if self.anchor_direction is not None else ()
         if self.direction is None:
-            return e, J_pose, J_vel, J_lever, J_td
+            return (e, J_pose, J_vel, J_lever, J_td) + extra
         # direction term F(w_b) c with w_b = R_s^T (anchor - p_U) = M^T R_k^T q - M^T b1 - lever, where
         # q = anchor - p_k - v_k (tau + delta) + g (tau + delta)^2 / 2 (world) and b1 = body - M lever:
         # dw_b/dtheta = M^T [R_k^T q]x = M^T [M w_b + body]x, dw_b/dp = -M^T, dw_b/dv = -(tau + delta) R_s^T,
@@ -357,7 +395,7 @@ class RangeGroup:
         J_lever = J_lever - gv
         J_td = J_td - np.einsum("ni,ni->n", gv, np.cross(self.omega, geo["wb"] + lever)) \
             - np.einsum("ni,ni->n", Rg, v_s0 + a_s0 * delta)
-        return e, J_pose, J_vel, J_lever, J_td, F
+        return (e, J_pose, J_vel, J_lever, J_td, F) + extra
 
 
 def direction_features(wb: np.ndarray, orders, elevation: bool, jacobian: bool = False):
@@ -367,7 +405,8 @@ def direction_features(wb: np.ndarray, orders, elevation: bool, jacobian: bool =
     ----------
     wb : (N, 3) line of sight from the tag antenna to the anchor, body (IMU) frame [m] (any length).
     orders : Fourier orders ``n`` in body azimuth ``az = atan2(w_y, w_x)``: columns ``cos(n az), sin(n az)``.
-    elevation : append ``el = atan2(w_z, hypot(w_x, w_y))`` [rad].
+    elevation : append ``el = atan2(w_z, hypot(w_x, w_y))`` [rad] (``True`` or 1); an int ``q`` appends
+        ``el, el^2, .., el^q``.
 
     Returns
     -------
@@ -388,10 +427,14 @@ def direction_features(wb: np.ndarray, orders, elevation: bool, jacobian: bool =
             dcols += [(-n * s_)[:, None] * daz, (n * c)[:, None] * daz]
     if elevation:
         h = np.sqrt(h2)
-        cols.append(np.arctan2(zz, h))
+        el = np.arctan2(zz, h)
         if jacobian:
             r2 = h2 + zz * zz
-            dcols.append(np.stack([-x * zz / (r2 * h), -y * zz / (r2 * h), h / r2], axis=1))
+            del_ = np.stack([-x * zz / (r2 * h), -y * zz / (r2 * h), h / r2], axis=1)
+        for q in range(1, int(elevation) + 1):
+            cols.append(el**q)
+            if jacobian:
+                dcols.append((q * el ** (q - 1))[:, None] * del_)
     F = np.stack(cols, axis=1)
     return F, (np.stack(dcols, axis=1) if jacobian else None)
 
@@ -410,8 +453,8 @@ def make_gtsam_group_factor(keys, group: RangeGroup, sigma: float, huber_k: floa
     """A ``gtsam.CustomFactor`` of a group's ranges.
 
     Keys: ``[pose_0, velocity_0, ..., pose_{K-1}, velocity_{K-1}, lever arm, (t_d), bias_0, bias_1, ...,
-    (dir_0, dir_1, ...)]`` (K = ``group.n_kf`` keyframes; the direction-coefficient vectors last, one per
-    ``group.n_dir``, with a direction model).  The robust loss is applied per range inside the factor: the
+    (dir_0, dir_1, ...), (adir_0, ...)]`` (K = ``group.n_kf`` keyframes; the direction-coefficient vectors
+    last, one per ``group.n_dir``, with a direction model, then the anchor-side ones, one per ``group.n_adir``).  The robust loss is applied per range inside the factor: the
     returned residual is ``huber_sqrt(e / sigma)`` with a unit noise model, so the factor's error is
     the sum of the rows' Huber losses (equal to one ``Robust(Huber(k), Isotropic(sigma))`` factor per
     range) with the same gradient; its Gauss-Newton weight of a down-weighted row is ``k / (2|z| - k)``
@@ -423,8 +466,8 @@ def make_gtsam_group_factor(keys, group: RangeGroup, sigma: float, huber_k: floa
     K = group.n_kf
     il = 2 * K  # index of the lever-arm key
     off = il + (2 if has_td else 1)
-    nd = group.n_dir
-    nb = len(keys) - off - nd
+    nd, nad = group.n_dir, group.n_adir
+    nb = len(keys) - off - nd - nad
     n = len(group)
     onehot = group.bias_matrix
     assert onehot.shape[1] == nb, "one key per column of the group's bias matrix"
@@ -440,8 +483,9 @@ def make_gtsam_group_factor(keys, group: RangeGroup, sigma: float, huber_k: floa
         td = values.atVector(ks[il + 1])[0] if has_td else td_fixed
         biases = np.array([values.atVector(ks[off + i])[0] for i in range(nb)])
         coefs = np.array([values.atVector(ks[off + nb + i]) for i in range(nd)]) if nd else None
+        acoefs = np.array([values.atVector(ks[off + nb + nd + i]) for i in range(nad)]) if nad else None
         res = group.evaluate(R, P, Vv, values.atVector(ks[il]), td, biases, jacobians=H is not None,
-                             dir_coefs=coefs)
+                             dir_coefs=coefs, adir_coefs=acoefs)
         if H is None:
             return huber_sqrt(res / sigma, huber_k)[0]
         e, Jp, Jv, Jl, Jt = res[:5]
@@ -461,6 +505,8 @@ def make_gtsam_group_factor(keys, group: RangeGroup, sigma: float, huber_k: floa
             H[off + i] = w * onehot[:, i:i + 1]
         for i in range(nd):
             H[off + nb + i] = w * res[5] * group.dir_mask[i]
+        for i in range(nad):
+            H[off + nb + nd + i] = w * res[-1] * group.adir_mask[i]
         return s
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(n), gtsam.KeyVector(keys), error)

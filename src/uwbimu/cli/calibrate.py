@@ -15,14 +15,22 @@ from uwbimu.cli.dataset_options import with_load_options
 
 
 def calibration_summary(cal: dict, truth=None) -> Table:
-    """Rich table "value ± σ" (and the truth when the dataset documents it)."""
+    """Rich table "value ± σ" (and the truth when the dataset documents it); one lever arm per tag when
+    the calibration has several (``cal["tags"]``)."""
     t = Table(title="Batch calibration (value ± 1σ, marginal)")
     for c in ("parameter", "estimate ± σ", "truth"):
         t.add_column(c, justify="left" if c == "parameter" else "right")
-    for i, c in enumerate("xyz"):
-        tv = truth.lever_arm[i] if truth is not None and truth.lever_arm is not None else None
-        t.add_row(f"lever arm {c} (cm)", f"{100 * cal['lever_arm'][i]:.2f} ± {100 * cal['lever_arm_sd'][i]:.2f}",
-                  "-" if tv is None else f"{100 * tv:.2f}")
+    tags = cal.get("tags") or {}
+    blocks = list(tags.items()) if len(tags) > 1 else [(None, cal)]  # several tags: one lever arm each
+    for name, blk in blocks:
+        t_lever = truth.lever_arm if truth is not None else None
+        if name is not None:
+            t_lever = (truth.tags or {}).get(name) if truth is not None else None
+        for i, c in enumerate("xyz"):
+            tv = t_lever[i] if t_lever is not None else None
+            label = f"lever arm {c} (cm)" if name is None else f"lever arm {c}, {name} (cm)"
+            t.add_row(label, f"{100 * blk['lever_arm'][i]:.2f} ± {100 * blk['lever_arm_sd'][i]:.2f}",
+                      "-" if tv is None else f"{100 * tv:.2f}")
     td = cal["time_offset"]
     tv = truth.time_offset if truth is not None else None
     if td["held_at_prior"]:
