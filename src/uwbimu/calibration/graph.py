@@ -510,7 +510,7 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
                     dkw = {"direction": (orders, dmod.elevation), "dir_col": dcol}
                     bkeys += [dir_key(int(x)) for x in udj]
                 if amod is not None:
-                    dkw |= {"anchor_direction": (amod.orders, amod.elevation_order), "anchor_rot": pb.anchor_rot[js],
+                    dkw |= {"anchor_direction": (amod.orders, amod.powers), "anchor_rot": pb.anchor_rot[js],
                             "adir_col": col}
                     bkeys += [adir_key(int(j)) for j in ujs]
                 grp = RangeGroup([assoc.deltas[i] for i in chunk], pb.anchor_pos[js], pb.rho[ms], col, assoc.td0,

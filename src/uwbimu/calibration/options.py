@@ -83,7 +83,11 @@ class AnchorDirectionBias(BaseModel):
     Each predicted range to anchor ``j`` gains ``g(az_a, el_a) . c_j``: ``w_a = R_j^T (p_U - p_j)`` is the
     line of sight from the anchor to the tag antenna in the antenna frame, ``az_a = atan2(w_y, w_x)``,
     ``el_a = atan2(w_z, hypot(w_x, w_y))`` [rad]; ``g`` holds ``cos(n az_a), sin(n az_a)`` for ``n =
-    lowest_order .. harmonics`` (none with ``harmonics: 0``) and ``el_a^q`` for ``q = 1 .. elevation_order``.
+    lowest_order .. harmonics`` (none with ``harmonics: 0``) and ``el_a^q`` for ``q = elevation_lowest_order ..
+    elevation_order``.  The order-1 azimuth terms and the linear elevation term are, to first order, the
+    components of the unit line of sight in the antenna frame: common to the anchors in the way a shift of
+    the whole trajectory is, they are separated from it only by the prior and the anchors' different
+    orientations (docs/calibrate.md); ``lowest_order: 2`` and ``elevation_lowest_order: 2`` leave them out.
     ``c_j`` [m, m/rad^q] is one vector per anchor (shared by every tag: it belongs to the anchor's
     antenna) with a zero-mean prior of sd ``prior_sd`` per coefficient.  An anchor with ranges and no
     orientation in ``anchors.csv`` is refused.
@@ -92,13 +96,19 @@ class AnchorDirectionBias(BaseModel):
     model_config = ConfigDict(extra="forbid")
     harmonics: int = Field(1, ge=0, le=4, description="highest Fourier order in antenna azimuth (0: none)")
     lowest_order: int = Field(1, ge=1, le=4, description="lowest Fourier order in antenna azimuth")
-    elevation_order: int = Field(1, ge=0, le=3, description="powers el_a^1..el_a^q of the antenna elevation [rad]")
+    elevation_order: int = Field(1, ge=0, le=3, description="highest power q of the antenna elevation [rad] (0: none)")
+    elevation_lowest_order: int = Field(
+        1, ge=1, le=3, description="lowest power of the antenna elevation (2 leaves the linear term out: with the "
+                                   "order-1 azimuth terms it mimics a translation of the trajectory, see docs)")
     prior_sd: float = Field(0.05, gt=0, description="zero-mean prior sd of every coefficient [m, m/rad^q]")
 
     @model_validator(mode="after")
     def _orders(self) -> "AnchorDirectionBias":
         if self.harmonics and self.lowest_order > self.harmonics:
             raise ValueError(f"lowest_order ({self.lowest_order}) must not exceed harmonics ({self.harmonics})")
+        if self.elevation_order and self.elevation_lowest_order > self.elevation_order:
+            raise ValueError(f"elevation_lowest_order ({self.elevation_lowest_order}) must not exceed elevation_order "
+                             f"({self.elevation_order})")
         if self.n_coef == 0:
             raise ValueError("harmonics: 0 and elevation_order: 0 leave no term")
         return self
@@ -109,14 +119,19 @@ class AnchorDirectionBias(BaseModel):
         return tuple(range(self.lowest_order, self.harmonics + 1)) if self.harmonics else ()
 
     @property
+    def powers(self) -> tuple:
+        """Powers of the antenna elevation."""
+        return tuple(range(self.elevation_lowest_order, self.elevation_order + 1)) if self.elevation_order else ()
+
+    @property
     def n_coef(self) -> int:
         """Number of coefficients per anchor."""
-        return 2 * len(self.orders) + self.elevation_order
+        return 2 * len(self.orders) + len(self.powers)
 
     def names(self) -> list[str]:
         """Coefficient names, in vector order."""
         out = [f"{f}{n}" for n in self.orders for f in ("cos", "sin")]
-        return out + [("elevation" if q == 1 else f"elevation{q}") for q in range(1, self.elevation_order + 1)]
+        return out + [("elevation" if q == 1 else f"elevation{q}") for q in self.powers]
 
 
 class RangeModelOptions(BaseModel):

@@ -406,7 +406,7 @@ def direction_features(wb: np.ndarray, orders, elevation: bool, jacobian: bool =
     wb : (N, 3) line of sight from the tag antenna to the anchor, body (IMU) frame [m] (any length).
     orders : Fourier orders ``n`` in body azimuth ``az = atan2(w_y, w_x)``: columns ``cos(n az), sin(n az)``.
     elevation : append ``el = atan2(w_z, hypot(w_x, w_y))`` [rad] (``True`` or 1); an int ``q`` appends
-        ``el, el^2, .., el^q``.
+        ``el, el^2, .., el^q``, a tuple of powers ``el^q`` for each ``q`` in it.
 
     Returns
     -------
@@ -425,13 +425,14 @@ def direction_features(wb: np.ndarray, orders, elevation: bool, jacobian: bool =
         cols += [c, s_]
         if jacobian:
             dcols += [(-n * s_)[:, None] * daz, (n * c)[:, None] * daz]
-    if elevation:
+    powers = tuple(elevation) if isinstance(elevation, (tuple, list)) else tuple(range(1, int(elevation) + 1))
+    if powers:
         h = np.sqrt(h2)
         el = np.arctan2(zz, h)
         if jacobian:
             r2 = h2 + zz * zz
             del_ = np.stack([-x * zz / (r2 * h), -y * zz / (r2 * h), h / r2], axis=1)
-        for q in range(1, int(elevation) + 1):
+        for q in powers:
             cols.append(el**q)
             if jacobian:
                 dcols.append((q * el ** (q - 1))[:, None] * del_)
