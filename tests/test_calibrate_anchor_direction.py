@@ -228,14 +228,13 @@ def test_anchor_side_bias_is_recovered():
                                                            "uwb": sc.uwb.model_copy(update={"rate_hz": 100.0})})))
     ids = sorted(ds.anchors["anchor"].astype(str))
     rng = np.random.default_rng(3)
-    truth = {a: (float(rng.choice([-1, 1]) * rng.uniform(0.15, 0.25)), float(rng.choice([-1, 1]) * rng.uniform(0.3, 0.5)))
-             for a in ids}
+    truth = {a: (float(rng.choice([-1, 1]) * rng.uniform(0.15, 0.25)),
+                 float(rng.choice([-1, 1]) * rng.uniform(0.3, 0.5))) for a in ids}
     ds, inj = _with_anchor_side_bias(ds, truth)
     opts = dict(td_profile={"enabled": False})
     plain = calibrate(ds, CalibrationOptions(**opts))
-    model = calibrate(ds, CalibrationOptions(**opts, range_model={"anchor_direction": {"harmonics": 1, "elevation_order": 1,
-                                                                                        "prior_sd": 0.3}}),
-                      eskf=plain.eskf)
+    ad = {"harmonics": 1, "elevation_order": 1, "prior_sd": 0.3}
+    model = calibrate(ds, CalibrationOptions(**opts, range_model={"anchor_direction": ad}), eskf=plain.eskf)
     d = model.calibration["range_model"]["anchor_direction"]
     assert d["coefficient_names"] == ["cos1", "sin1", "elevation"] and list(d["coefficients"]) == ids
     for a in ids:

@@ -306,8 +306,6 @@ def build_problem(dataset, eskf, options: CalibrationOptions, anchors: Optional[
     tsig = 0.0
     if tdoa is not None and len(tdoa):
         if anchors is not None and any(anchors.estimated):
-            from uwbimu.errors import UsageError
-
             raise UsageError("calibrate: anchor self-survey with TDoA is not supported yet",
                              hint="survey the anchors with ranges, or fix them (no --estimate-anchors)")
         ok = tdoa["anchor_a"].astype(str).isin(ids).to_numpy() & tdoa["anchor_b"].astype(str).isin(ids).to_numpy()
@@ -595,33 +593,40 @@ def range_residuals(graph, assoc: Association, values, td: float) -> np.ndarray:
     return out
 
 
-def anchor_direction_terms(graph, assoc: Association, values, td: float) -> np.ndarray:
-    """Anchor-side direction-dependent bias [m] of every used row (``assoc.used`` order; 0 for rows without it)."""
+def _row_terms(graph, assoc: Association, term_of) -> np.ndarray:
+    """Per used row (``assoc.used`` order) the value ``term_of(group, keys)`` gives for the rows of every grouped
+    range factor (None: the group has no such term; 0 for those rows and the single factors)."""
     out = np.zeros(len(assoc.used))
     for fi, grp in assoc.groups.items():
-        if grp.anchor_direction is None:
+        term = term_of(grp, graph.at(int(fi)).keys())
+        if term is None:
             continue
-        ks = graph.at(int(fi)).keys()
-        wa = grp.line_of_sight_anchor(*_group_states(grp, ks, values), _group_lever(grp, ks, values), td)
-        term = grp.anchor_term(np.einsum("nij,nj->ni", grp.anchor_rot, wa), _group_acoefs(grp, ks, values))
         rows = np.flatnonzero(assoc.slots[:, 0] == fi)
         out[rows] = term[assoc.slots[rows, 1]]
     return out
+
+
+def anchor_direction_terms(graph, assoc: Association, values, td: float) -> np.ndarray:
+    """Anchor-side direction-dependent bias [m] of every used row (``assoc.used`` order; 0 for rows without it)."""
+    def term(grp, ks):
+        if grp.anchor_direction is None:
+            return None
+        u = grp._geometry(*_group_states(grp, ks, values), _group_lever(grp, ks, values), td)["u"]
+        return grp.anchor_term(u, _group_acoefs(grp, ks, values))
+
+    return _row_terms(graph, assoc, term)
 
 
 def direction_terms(graph, assoc: Association, values, td: float) -> np.ndarray:
     """Direction-dependent bias [m] of every used row (``assoc.used`` order; 0 for rows without it)."""
-    out = np.zeros(len(assoc.used))
-    for fi, grp in assoc.groups.items():
+    def term(grp, ks):
         if grp.direction is None:
-            continue
-        ks = graph.at(int(fi)).keys()
+            return None
         wb = grp.line_of_sight_body(*_group_states(grp, ks, values), _group_lever(grp, ks, values), td)
         F, _ = direction_features(wb, *grp.direction)
-        term = np.einsum("np,np->n", F, _group_coefs(grp, ks, values)[grp.dir_col])
-        rows = np.flatnonzero(assoc.slots[:, 0] == fi)
-        out[rows] = term[assoc.slots[rows, 1]]
-    return out
+        return np.einsum("np,np->n", F, _group_coefs(grp, ks, values)[grp.dir_col])
+
+    return _row_terms(graph, assoc, term)
 
 
 def pair_error(pa: np.ndarray, pb_: np.ndarray, r: float, jacobians: bool = False):

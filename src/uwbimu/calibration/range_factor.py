@@ -398,7 +398,7 @@ class RangeGroup:
         return (e, J_pose, J_vel, J_lever, J_td, F) + extra
 
 
-def direction_features(wb: np.ndarray, orders, elevation: bool, jacobian: bool = False):
+def direction_features(wb: np.ndarray, orders, elevation, jacobian: bool = False):
     """Features of the direction-dependent bias and, on request, their derivatives.
 
     Parameters
@@ -455,8 +455,9 @@ def make_gtsam_group_factor(keys, group: RangeGroup, sigma: float, huber_k: floa
 
     Keys: ``[pose_0, velocity_0, ..., pose_{K-1}, velocity_{K-1}, lever arm, (t_d), bias_0, bias_1, ...,
     (dir_0, dir_1, ...), (adir_0, ...)]`` (K = ``group.n_kf`` keyframes; the direction-coefficient vectors
-    last, one per ``group.n_dir``, with a direction model, then the anchor-side ones, one per ``group.n_adir``).  The robust loss is applied per range inside the factor: the
-    returned residual is ``huber_sqrt(e / sigma)`` with a unit noise model, so the factor's error is
+    last, one per ``group.n_dir``, with a direction model, then the anchor-side ones, one per
+    ``group.n_adir``).  The robust loss is applied per range inside the factor: the returned residual
+    is ``huber_sqrt(e / sigma)`` with a unit noise model, so the factor's error is
     the sum of the rows' Huber losses (equal to one ``Robust(Huber(k), Isotropic(sigma))`` factor per
     range) with the same gradient; its Gauss-Newton weight of a down-weighted row is ``k / (2|z| - k)``
     where GTSAM's iteratively reweighted one is ``k / |z|`` (equal at the threshold).
