@@ -258,3 +258,30 @@ def test_anchor_side_bias_is_recovered():
     assert np.corrcoef(est, ref)[0, 1] > 0.9 and min(cc) > 0.6, cc
     mad = lambda x: float(np.median(np.abs(x - np.median(x))))  # noqa: E731
     assert mad(model.residuals["residual"]) < 0.8 * mad(plain.residuals["residual"])
+
+
+def test_z_down_anchors_frame_gives_the_same_coefficients():
+    """The same log written in a z-down anchors' frame (positions and antenna orientations turned 180 deg about
+    x): same anchor-side coefficients, so the orientations follow the graph's frame."""
+    pytest.importorskip("gtsam")
+    from uwbimu.calibration import CalibrationOptions, calibrate
+    from uwbimu.calibration.frames import FLIP, flip_quat
+    from uwbimu.sim import builtin_scenario, simulate
+
+    ds = _with_orientations(simulate(builtin_scenario("calibration-flight").model_copy(update={"duration": 8.0})))
+    ds, _ = _with_anchor_side_bias(ds, {a: (0.1, -0.3) for a in ds.anchors["anchor"].astype(str)})
+    anchors = ds.anchors.copy()
+    anchors[["x", "y", "z"]] = anchors[["x", "y", "z"]].to_numpy(float) * FLIP
+    anchors[["qw", "qx", "qy", "qz"]] = flip_quat(anchors[["qw", "qx", "qy", "qz"]].to_numpy(float))
+    down = dataclasses.replace(ds, anchors=anchors, meta=ds.meta.model_copy(update={"anchor_frame_up": "-z"}))
+    opts = CalibrationOptions(td_profile={"enabled": False}, range_model={"anchor_direction": {"prior_sd": 0.3}})
+    ref, alt = calibrate(ds, opts), calibrate(down, opts)
+    cr = ref.calibration["range_model"]["anchor_direction"]["coefficients"]
+    ca = alt.calibration["range_model"]["anchor_direction"]["coefficients"]
+    assert max(abs(c["value"]) for cs in cr.values() for c in cs.values()) > 0.05  # the term is there
+    for a, cs in cr.items():
+        for n, c in cs.items():
+            assert ca[a][n]["value"] == pytest.approx(c["value"], abs=1e-5), (a, n)
+            assert ca[a][n]["sd"] == pytest.approx(c["sd"], rel=1e-3), (a, n)
+    np.testing.assert_allclose(alt.residuals["bias_anchor_direction"], ref.residuals["bias_anchor_direction"],
+                               atol=1e-5)
