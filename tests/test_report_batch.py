@@ -215,6 +215,10 @@ def test_line_of_sight_azimuth_body_frame():
     # t=2 (yaw 90 deg, antenna at world (0, 1, 0)): anchor E at world offset (1, -1) = body (-1, -1) -> -135 deg
     az = line_of_sight_azimuth(res.iloc[[0, 3]], traj, anchors, lever_arm=[1.0, 0.0, 0.0])
     np.testing.assert_allclose(az, [135.0, -135.0], atol=1e-9)
+    # several tags: each row uses its own tag's lever arm (tag "b" at the IMU origin)
+    two = res.iloc[[0, 3, 0]].assign(tag=["a", "a", "b"])
+    az = line_of_sight_azimuth(two, traj, anchors, lever_arm={"a": [1.0, 0.0, 0.0], "b": [0.0, 0.0, 0.0]})
+    np.testing.assert_allclose(az, [135.0, -135.0, 90.0], atol=1e-9)
 
 
 def test_error_ellipse():

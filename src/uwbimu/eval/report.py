@@ -828,7 +828,8 @@ def line_of_sight_azimuth(res: pd.DataFrame, traj: pd.DataFrame, anchors: pd.Dat
     res : rows with ``t`` (UWB clock) [s] and ``anchor``.
     traj : ``t`` (UWB clock) [s], ``px, py, pz`` [m] (world) and ``qw, qx, qy, qz`` (body to world).
     anchors : ``anchor, x, y, z`` [m], same world frame as ``traj``.
-    lever_arm : tag antenna in the body frame [m] (zero when None).
+    lever_arm : tag antenna in the body frame [m] (zero when None): one (3,) for every row, or a dict
+        ``{tag: (3,)}`` used with ``res["tag"]`` (several tags; a tag not in it gets zero).
 
     Returns
     -------
@@ -844,7 +845,11 @@ def line_of_sight_azimuth(res: pd.DataFrame, traj: pd.DataFrame, anchors: pd.Dat
     p = np.column_stack([np.interp(tc, tt, traj[c].to_numpy(float)) for c in ("px", "py", "pz")])
     q = traj[["qx", "qy", "qz", "qw"]].to_numpy(float)
     R = Slerp(tt, Rotation.from_quat(q))(tc)
-    lev = np.zeros(3) if lever_arm is None else np.asarray(lever_arm, float)
+    if isinstance(lever_arm, dict):
+        tags = res["tag"].astype(str) if "tag" in res.columns else pd.Series([""] * len(res))
+        lev = np.array([lever_arm.get(k, (0.0, 0.0, 0.0)) for k in tags], float).reshape(-1, 3)
+    else:
+        lev = np.zeros(3) if lever_arm is None else np.asarray(lever_arm, float)
     pos = {str(r.anchor): (r.x, r.y, r.z) for r in anchors.itertuples(index=False)}
     a = np.array([pos.get(str(k), (np.nan, np.nan, np.nan)) for k in res["anchor"]], float).reshape(-1, 3)
     u = R.inv().apply(a - p) - lev
@@ -875,7 +880,11 @@ def _batch_angle_part(inp: ReportInputs) -> Markup:
         why.append(Markup("no anchor positions (neither <code>anchors_estimated.csv</code> nor <code>--dataset</code>)"))
     if not len(rr):
         why.append("no two-way range rows (TDoA only)")
-    lever = (inp.calibration or {}).get("lever_arm")
+    cal = inp.calibration or {}
+    lever = cal.get("lever_arm")
+    if isinstance(cal.get("tags"), dict) and "tag" in rr.columns:
+        # several tags: each row's line of sight leaves its own tag's antenna
+        lever = {str(k): v.get("lever_arm") or (0.0, 0.0, 0.0) for k, v in cal["tags"].items()}
     angle = not why
     notes = []
     if angle:
