@@ -549,7 +549,7 @@ def _damping(values, lam: float):
 
 
 def optimize(graph, values, max_iterations: int, relative_tol: float = 1e-6, absolute_tol: float = 1e-9,
-             predicted_tol: float | None = None):
+             predicted_tol: float | None = None, history: list | None = None, engine: str = "python"):
     """Levenberg-Marquardt on ``graph`` from ``values``: GTSAM's algorithm, driven from Python.
 
     Same steps as ``gtsam.LevenbergMarquardtOptimizer`` with its default parameters (multifrontal
@@ -561,9 +561,14 @@ def optimize(graph, values, max_iterations: int, relative_tol: float = 1e-6, abs
     evaluation: 75 % of the solve time on a 3-minute log); here every linearisation and error
     evaluation is called on a Python-owned ``Values``, which pybind11 passes by reference.
 
-    ``predicted_tol`` (cost units, i.e. half chi-square): also stop after a successful step whose
-    decrease predicted by the linearised system was below it (the next step would gain about
-    that much less); None: GTSAM's rule only.
+    ``predicted_tol`` (cost units, i.e. half chi-square): also stop once the decrease still expected is
+    below it.  After two accepted steps with cost decreases ``d1``, ``d2`` (``r = d2 / d1 < 1``) the
+    remaining decrease of a linearly converging sequence is ``d2 r / (1 - r)``; after the first step,
+    the decrease the linearised system predicted for it (the Gauss-Newton model's own estimate) must be
+    below it too.  This saves the last, confirming linearisation of GTSAM's rule (which needs the
+    decrease itself to be small).  None: GTSAM's rule only.
+
+    ``history``: a list that receives the cost after every accepted step (the first entry: the start).
 
     Returns
     -------
@@ -571,7 +576,17 @@ def optimize(graph, values, max_iterations: int, relative_tol: float = 1e-6, abs
     """
     import gtsam
 
+    if engine == "gtsam":  # the reference: GTSAM's own optimizer (same steps, slower; see above)
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(max_iterations)
+        params.setRelativeErrorTol(relative_tol)
+        params.setAbsoluteErrorTol(absolute_tol)
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        result = opt.optimize()
+        return result, int(opt.iterations())
     err = graph.error(values)
+    if history is not None:
+        history.append(err)
     if not np.isfinite(err) or err <= 0.0:
         return values, 0
     ordering = graph.orderingCOLAMD()
@@ -579,6 +594,7 @@ def optimize(graph, values, max_iterations: int, relative_tol: float = 1e-6, abs
     zero = None
     lam = LM_LAMBDA_INITIAL
     it = 0
+    last_d = None
     while it < max_iterations:
         lin = graph.linearize(values)
         if zero is None:
@@ -606,10 +622,17 @@ def optimize(graph, values, max_iterations: int, relative_tol: float = 1e-6, abs
                     stop = abs(change) < relative_tol * err
             if success:
                 values, prev, err = new_values, err, new_err
+                if history is not None:
+                    history.append(err)
                 lam = max(0.0, lam / LM_LAMBDA_FACTOR)
                 it += 1
                 moved = True
-                done = predicted_tol is not None and lin_change < predicted_tol
+                if predicted_tol is not None:
+                    d = prev - err
+                    r = d / last_d if last_d else np.inf
+                    remaining = d * r / (1.0 - r) if r < 1.0 else np.inf
+                    done = (lin_change < predicted_tol and it == 1) or remaining < predicted_tol
+                    last_d = d
                 break
             if stop:
                 break

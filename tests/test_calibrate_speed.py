@@ -1,0 +1,96 @@
+"""Speed paths of the batch calibrator (issue 12 item 8) against their references.
+
+* :func:`uwbimu.calibration.graph.optimize` (LM driven from Python) takes the same steps as GTSAM's
+  ``LevenbergMarquardtOptimizer``;
+* the fast t_d profile (secant warm starts, expected-decrease stop) against the reference full-solve
+  profile (GTSAM's optimizer, its convergence rule): same grid, chi2 within a stated tolerance, same
+  argmin and verdict;
+* the profile on the Monte Carlo executors (``workers=2``) gives the values of the in-process run.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("gtsam")
+
+from uwbimu.calibration import CalibrationOptions, calibrate  # noqa: E402
+from uwbimu.calibration import anchors as AN  # noqa: E402
+from uwbimu.calibration import batch as BT  # noqa: E402
+from uwbimu.calibration import graph as G  # noqa: E402
+from uwbimu.sim import builtin_scenario, simulate  # noqa: E402
+
+#: Tolerance of the fast profile against the reference [chi-square units]: the stop rule's target
+#: (:data:`uwbimu.calibration.batch.PROFILE_CHI2_TOL`) with a factor 2.5 of margin for the estimate of the
+#: remaining decrease; the verdict's threshold is 9.
+CHI2_TOL = 2.5 * BT.PROFILE_CHI2_TOL
+
+
+def _flight(seed: int, duration: float):
+    sc = builtin_scenario("calibration-flight")
+    return simulate(sc.model_copy(update={"duration": duration, "seeds": sc.seeds.model_copy(update={"noise": seed})}))
+
+
+@pytest.fixture(scope="module")
+def problem():
+    """A 10 s simulated flight: problem, IMU factors and the free solution (t_d estimated)."""
+    from uwbimu.estimation import EskfOptions, run_eskf
+
+    ds = _flight(4, 10.0)
+    o = CalibrationOptions.model_validate({"td_profile": {"half_width": 0.3}})
+    pb = G.build_problem(ds, run_eskf(ds, EskfOptions()), o, AN.plan_anchors(ds, o))
+    imf = G._imu_factors(pb)
+    graph, values, _assoc, _it = BT._solve(pb, imf, G.initial_values(pb), pb.td0, None)
+    X, V, B, L, T, A = G._keys()
+    return ds, pb, imf, values, float(values.atVector(T(0))[0])
+
+
+@pytest.mark.parametrize("td_fixed", [None, 0.05])
+def test_python_lm_takes_gtsams_steps(problem, td_fixed):
+    _ds, pb, imf, _values, _td = problem
+    assoc = G.associate(pb, pb.td0)
+    graph = G.build_graph(pb, assoc, td_fixed=td_fixed, imu_factors=imf)
+    start = G.initial_values(pb, with_td=td_fixed is None)
+    ref, it_ref = G.optimize(graph, start, 50, engine="gtsam")
+    got, it = G.optimize(graph, start, 50)
+    assert it == it_ref > 1
+    assert graph.error(got) == pytest.approx(graph.error(ref), rel=1e-12)
+    assert np.abs(ref.localCoordinates(got).vector()).max() < 1e-9
+
+
+def test_expected_decrease_stop_saves_iterations_within_its_tolerance(problem):
+    _ds, pb, imf, values, _td = problem
+    g = 0.1
+    graph = G.build_graph(pb, G.associate(pb, g), td_fixed=g, imu_factors=imf)
+    start = G.without_td(values)
+    full, it_full = G.optimize(graph, start, 50)
+    fast, it_fast = G.optimize(graph, start, 50, predicted_tol=0.01)
+    assert it_fast < it_full
+    assert 0.0 <= graph.error(fast) - graph.error(full) < 0.01
+
+
+def test_fast_profile_matches_the_full_solve_reference(problem):
+    _ds, pb, imf, values, td = problem
+    ref = BT.run_profile(pb, imf, values, td, mode="reference")
+    fast = BT.run_profile(pb, imf, values, td, mode="fast")
+    np.testing.assert_array_equal(fast.grid, ref.grid)
+    assert len(ref.grid) == 15  # coarse 0.1 s over +/-0.3 s, then 0.02 s about the coarse minimum
+    assert np.abs(fast.chi2 - ref.chi2).max() < CHI2_TOL
+    assert int(np.argmin(fast.chi2)) == int(np.argmin(ref.chi2))
+    assert fast.verdict == ref.verdict == "identified"
+    assert fast.vertex == pytest.approx(ref.vertex, abs=0.02 * ref.sigma_curvature)
+    assert fast.sigma_curvature == pytest.approx(ref.sigma_curvature, rel=0.01)
+    assert fast.iterations.sum() < 0.7 * ref.iterations.sum()
+
+
+def test_profile_on_the_process_pool_equals_the_in_process_profile():
+    ds = _flight(5, 6.0)
+    o = CalibrationOptions.model_validate({"td_profile": {"half_width": 0.2}, "max_iterations": 10})
+    here = calibrate(ds, o)
+    pool = calibrate(ds, o, eskf=here.eskf, workers=2)
+    np.testing.assert_array_equal(pool.profile.grid, here.profile.grid)
+    np.testing.assert_array_equal(pool.profile.chi2, here.profile.chi2)
+    np.testing.assert_array_equal(pool.profile.iterations, here.profile.iterations)
+    assert pool.calibration["lever_arm"] == here.calibration["lever_arm"]
+    assert pool.calibration["time_offset"] == here.calibration["time_offset"]
