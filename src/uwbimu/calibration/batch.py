@@ -43,18 +43,19 @@ class CalibrationResult:
 
 
 def _solve(pb, imf, values, td0: float, td_fixed: Optional[float], assoc=None, predicted_tol: Optional[float] = None,
-           engine: str = "python"):
+           engine: str = "python", rows=None):
     """Solve with ranges attached about ``td0``; re-attach while free t_d moves > half a keyframe step.
 
-    ``assoc``: an association to reuse for the first solve (profile points within half a keyframe
-    step of its ``td0``: the factor's second-order extrapolation in ``t_d - td0`` covers them).
-    ``predicted_tol``, ``engine``: see :func:`uwbimu.calibration.graph.optimize`.
+    ``assoc``: an association to reuse for the first solve (within half a keyframe step of its ``td0``
+    the factor's second-order extrapolation in ``t_d - td0`` covers the motion).
+    ``predicted_tol``, ``engine``: see :func:`uwbimu.calibration.graph.optimize`; ``rows``: the ranges
+    to use (:func:`uwbimu.calibration.graph.associate`).
     """
     X, V, B, L, T, A = G._keys()
     half = 0.5 / pb.options.keyframe_hz
     for _ in range(pb.options.reassociate_max + 1):
         if assoc is None or abs(assoc.td0 - td0) > half:
-            assoc = G.associate(pb, td0)
+            assoc = G.associate(pb, td0, rows=rows)
         graph = G.build_graph(pb, assoc, td_fixed=td_fixed, imu_factors=imf)
         values, iters = G.optimize(graph, values, pb.options.max_iterations, predicted_tol=predicted_tol,
                                    engine=engine)
@@ -78,8 +79,24 @@ def _profile_grid_points(mu: float, half: float, step: float) -> np.ndarray:
 PROFILE_CHI2_TOL = 0.02
 
 
-def _walk(pb, imf, points, start, prev, mode: str = "fast", on_point=None) -> list:
+def profile_rows(pb, lo: float, hi: float) -> np.ndarray:
+    """Indices of the ranges whose IMU instant ``t + t_d`` lies inside the IMU span for every ``t_d`` in
+    ``[lo, hi]`` [s]: the data every profile point uses.
+
+    Without this common set a range near either end of the log would count at some grid points and not
+    at others: on the 190 s INRoL log the used ranges fall from 32420 at ``t_d = 0`` to 32333 at
+    +/-0.5 s, about 0.8 chi-square each, a tent in the profile with a kink at 0 (a t_d bias of about
+    1.4 ms there, larger on short windows).
+    """
+    return np.flatnonzero((pb.t_range + lo >= pb.t_key[0]) & (pb.t_range + hi < pb.t_imu[-1]))
+
+
+def _walk(pb, imf, points, start, prev, mode: str = "fast", on_point=None, rows=None) -> list:
     """Solve the profile points in the given order, each warm-started from the previous one.
+
+    Every point attaches the ranges ``rows`` at its own t_d (no reuse of a neighbour's association:
+    its extrapolation in ``t_d - td0`` changes chi2 by up to ~1 at 0.04 s on INRoL, more than the
+    solver tolerance), so a point's value does not depend on the walk that reached it.
 
     Parameters
     ----------
@@ -91,6 +108,7 @@ def _walk(pb, imf, points, start, prev, mode: str = "fast", on_point=None) -> li
         each point warm-started from the previous solution and solved to GTSAM's convergence rule
         (relative decrease 1e-6) with GTSAM's own optimizer (the full-solve profile).
     on_point : called after each point.
+    rows : the ranges used (:func:`profile_rows`); None: all inside the IMU span at each point.
 
     Returns
     -------
@@ -102,7 +120,6 @@ def _walk(pb, imf, points, start, prev, mode: str = "fast", on_point=None) -> li
     tol = 0.5 * PROFILE_CHI2_TOL if fast else None  # graph cost = chi2 / 2
     engine = "python" if fast else "gtsam"
     out = []
-    assoc = None
     for g in points:
         g = float(g)
         init = start[1]
@@ -110,7 +127,7 @@ def _walk(pb, imf, points, start, prev, mode: str = "fast", on_point=None) -> li
             step = prev[1].localCoordinates(start[1])  # prev -> start, in start's tangent convention
             step.scaleInPlace((g - start[0]) / (start[0] - prev[0]))
             init = start[1].retract(step)
-        graph, vals, assoc, it = _solve(pb, imf, init, g, g, assoc, predicted_tol=tol, engine=engine)
+        graph, vals, _assoc, it = _solve(pb, imf, init, g, g, None, predicted_tol=tol, engine=engine, rows=rows)
         chi2 = 2.0 * graph.error(vals) + ((g - mu) / o.time_offset_prior_sd) ** 2
         out.append((g, chi2, it, vals))
         prev, start = start, (g, vals)
@@ -133,12 +150,12 @@ def _light_problem(pb):
 
 def _walk_task(task):
     """Executor task: one profile walk in a worker process; returns its points, with the values of the best."""
-    token, pb, points, start, prev, mode = task
+    token, pb, points, start, prev, mode, rows = task
     if _WORKER_PROBLEM.get("token") != token:
         _WORKER_PROBLEM.clear()
         _WORKER_PROBLEM.update(token=token, pb=pb, imf=G._imu_factors(pb))
     pb, imf = _WORKER_PROBLEM["pb"], _WORKER_PROBLEM["imf"]
-    return _keep_best(_walk(pb, imf, points, start, prev, mode))
+    return _keep_best(_walk(pb, imf, points, start, prev, mode, rows=rows))
 
 
 def _keep_best(points: list) -> list:
@@ -149,7 +166,7 @@ def _keep_best(points: list) -> list:
     return [(g, c, it, v if k == i else None) for k, (g, c, it, v) in enumerate(points)]
 
 
-def _run_walks(pb, imf, walks: list, mode: str, workers: int, executor: Optional[dict], on_point) -> list:
+def _run_walks(pb, imf, walks: list, mode: str, workers: int, executor: Optional[dict], on_point, rows) -> list:
     """Run independent walks ``(points, start, prev)``: here in order (``workers == 1``, no pickling) or on the
     Monte Carlo executors (:func:`uwbimu.studies.executors.execute`), one task per walk.  Same points, same
     warm starts either way, so the same values.  Returns the concatenated points."""
@@ -157,7 +174,7 @@ def _run_walks(pb, imf, walks: list, mode: str, workers: int, executor: Optional
     if workers == 1 and not executor:
         out = []
         for points, start, prev in walks:
-            out += _keep_best(_walk(pb, imf, points, start, prev, mode, on_point))
+            out += _keep_best(_walk(pb, imf, points, start, prev, mode, on_point, rows))
         return out
     import uuid
 
@@ -167,7 +184,7 @@ def _run_walks(pb, imf, walks: list, mode: str, workers: int, executor: Optional
     token = uuid.uuid4().hex
     light = _light_problem(pb)
     got: dict[int, list] = {}
-    tasks = [(i, (token, light, [float(g) for g in w[0]], w[1], w[2], mode)) for i, w in enumerate(walks)]
+    tasks = [(i, (token, light, [float(g) for g in w[0]], w[1], w[2], mode, rows)) for i, w in enumerate(walks)]
 
     def keep(res):
         i, pts = res
@@ -225,21 +242,23 @@ def run_profile(pb, imf, free_values, centre: float, progress=None, workers: int
         for g, c, it, v in pts:
             found[g] = (c, it, v)
 
+    ends = _profile_grid_points(mu, po.half_width, po.coarse_step if po.coarse_step else po.step)[[0, -1]]
+    rows = profile_rows(pb, float(min(ends[0], mu - po.half_width)), float(max(ends[-1], mu + po.half_width)))
     if po.coarse_step is not None and po.coarse_step > po.step:
         coarse = _profile_grid_points(mu, po.half_width, po.coarse_step)
         m = int(round(po.coarse_step / po.step))
         n_total = len(coarse) + 2 * m
-        record(_run_walks(pb, imf, walks_from(coarse, centre, base), mode, workers, executor, on_point))
+        record(_run_walks(pb, imf, walks_from(coarse, centre, base), mode, workers, executor, on_point, rows))
         best = min(found, key=lambda g: found[g][0])
         fine = np.round(best + po.step * np.arange(-m, m + 1), 12)
         fine = fine[(fine >= coarse[0]) & (fine <= coarse[-1]) & ~np.isin(fine, list(found))]
         start = (best, found[best][2])
         fw = [(fine[fine > best], start, None), (fine[fine < best][::-1], start, None)]
-        record(_run_walks(pb, imf, fw, mode, workers, executor, on_point))
+        record(_run_walks(pb, imf, fw, mode, workers, executor, on_point, rows))
     else:
         grid = _profile_grid_points(mu, po.half_width, po.step)
         n_total = len(grid)
-        record(_run_walks(pb, imf, walks_from(grid, centre, base), mode, workers, executor, on_point))
+        record(_run_walks(pb, imf, walks_from(grid, centre, base), mode, workers, executor, on_point, rows))
     grid = np.array(sorted(found))
     chi2 = np.array([found[g][0] for g in grid])
     iters = np.array([found[g][1] for g in grid], int)
@@ -250,7 +269,7 @@ def run_profile(pb, imf, free_values, centre: float, progress=None, workers: int
 
 def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, eskf_options=None,
               progress: Optional[Callable[[float], None]] = None, workers: int = 1,
-              executor: Optional[dict] = None) -> CalibrationResult:
+              executor: Optional[dict] = None, reference_solver: bool = False) -> CalibrationResult:
     """Full-batch MAP calibration of lever arm, t_d and per-anchor range bias (see docs/calibrate.md).
 
     Parameters
@@ -266,6 +285,9 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
         solves them here, in order, without pickling.  The result does not depend on it.
     executor : further keyword arguments of :func:`uwbimu.studies.executors.execute` for the profile
         (``client``, ``scheduler`` or ``dask_local``: run it on Dask); None: a local process pool.
+    reference_solver : every solve with GTSAM's own ``LevenbergMarquardtOptimizer`` and the profile points
+        solved to its convergence rule (``mode="reference"`` of :func:`run_profile`): the slower reference
+        the fast path is measured against (``benchmarks/bench_calibrate.py``, ``tests/test_calibrate_speed.py``).
     """
     from uwbimu.estimation import EskfOptions, run_eskf
 
@@ -286,14 +308,17 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
     pb = G.build_problem(dataset, eskf, o, setup)
     imf = G._imu_factors(pb)
     X, V, B, L, T, A = G._keys()
-    graph, values, assoc, iters = _solve(pb, imf, G.initial_values(pb), pb.td0, None)
+    engine = "gtsam" if reference_solver else "python"
+    graph, values, assoc, iters = _solve(pb, imf, G.initial_values(pb), pb.td0, None, engine=engine)
     free_td = float(values.atVector(T(0))[0])
     prof = None
     td_free = True
     if o.td_profile.enabled:
-        prof = run_profile(pb, imf, values, free_td, progress, workers=workers, executor=executor)
+        prof = run_profile(pb, imf, values, free_td, progress, workers=workers, executor=executor,
+                           mode="reference" if reference_solver else "fast")
         if prof.identified:
-            graph, values, assoc, iters = _solve(pb, imf, G.with_td(values, prof.vertex), prof.vertex, None)
+            graph, values, assoc, iters = _solve(pb, imf, G.with_td(values, prof.vertex), prof.vertex, None,
+                                                 engine=engine)
             lo, hi = confidence_interval(prof.grid, prof.chi2, prof.confidence_chi2)
             td_ref = float(values.atVector(T(0))[0])
             if not lo <= td_ref <= hi:
@@ -304,7 +329,7 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
             events.append({"kind": "time_offset_not_identified", "verdict": prof.verdict,
                            "advice": motion_advice(eskf, prof.verdict, prof.grid)})
             graph, values, assoc, iters = _solve(pb, imf, G.without_td(values), o.time_offset_prior,
-                                                 o.time_offset_prior)
+                                                 o.time_offset_prior, engine=engine)
     if progress is not None:
         progress(0.9)
     cal, traj, res, anchors = _report(pb, graph, values, assoc, td_free, prof, iters, dataset)

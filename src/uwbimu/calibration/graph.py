@@ -279,9 +279,20 @@ class Association:
     groups: dict = field(default_factory=dict)
 
 
-def associate(pb: Problem, td0: float, imu_bias=None) -> Association:
+def associate(pb: Problem, td0: float, imu_bias=None, rows: Optional[np.ndarray] = None) -> Association:
+    """Attach the ranges to keyframes about ``td0`` (IMU clock ``s0 = t + td0``).
+
+    Every range with ``s0`` inside the IMU span is used, or, with ``rows`` (indices into the problem's
+    ranges), those of ``rows`` inside it: the t_d profile passes the rows inside the span at every grid
+    point, so that all its points see the same data.
+    """
     s0 = pb.t_range + td0
-    used = np.flatnonzero((s0 >= pb.t_key[0]) & (s0 < pb.t_imu[-1]))
+    inside = (s0 >= pb.t_key[0]) & (s0 < pb.t_imu[-1])
+    if rows is not None:
+        keep = np.zeros(len(s0), bool)
+        keep[np.asarray(rows, np.int64)] = True
+        inside &= keep
+    used = np.flatnonzero(inside)
     # Short deltas use the ESKF bias of the earliest keyframe (a fixed linearisation point).
     b = pb.init_states[0, 10:16] if imu_bias is None else imu_bias
     cum = None
