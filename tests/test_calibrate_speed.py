@@ -94,3 +94,20 @@ def test_profile_on_the_process_pool_equals_the_in_process_profile():
     np.testing.assert_array_equal(pool.profile.iterations, here.profile.iterations)
     assert pool.calibration["lever_arm"] == here.calibration["lever_arm"]
     assert pool.calibration["time_offset"] == here.calibration["time_offset"]
+
+
+def test_profile_sharper_than_its_step_is_zoomed(problem):
+    """A 0.15 s step against a sigma of ~0.03 s: the confidence set is one grid point until the zoom adds
+    points at 0.03 s about the vertex; the result then agrees with the 0.02 s profile."""
+    ds, pb, imf, values, td = problem
+    coarse = pb.options.model_copy(update={"td_profile": pb.options.td_profile.model_copy(
+        update={"step": 0.15, "coarse_step": None})})
+    p = BT.run_profile(G.Problem(**{**pb.__dict__, "options": coarse}), imf, values, td)
+    fine = BT.run_profile(pb, imf, values, td)
+    zoom = p.grid[~np.isin(np.round(p.grid, 12), np.round(np.arange(-0.3, 0.3001, 0.15), 12))]
+    assert len(zoom) >= 3 and np.allclose(np.round(zoom / 0.03), zoom / 0.03)  # on the 0.03 s zoom grid
+    assert np.abs(zoom - p.vertex).max() <= 2.5 * 0.03  # about the vertex
+    assert p.verdict == fine.verdict == "identified"
+    assert np.sum(p.chi2 - p.chi2.min() < 9.0) >= 2
+    assert p.vertex == pytest.approx(fine.vertex, abs=0.2 * fine.sigma_curvature)
+    assert abs(p.vertex - ds.meta.truth.time_offset) < 3 * p.sigma_curvature
