@@ -111,3 +111,49 @@ def test_profile_sharper_than_its_step_is_zoomed(problem):
     assert np.sum(p.chi2 - p.chi2.min() < 9.0) >= 2
     assert p.vertex == pytest.approx(fine.vertex, abs=0.2 * fine.sigma_curvature)
     assert abs(p.vertex - ds.meta.truth.time_offset) < 3 * p.sigma_curvature
+
+
+@pytest.mark.parametrize("td", [0.02, 0.047, -0.013])
+def test_numba_group_kernel_equals_the_numpy_group(monkeypatch, td):
+    """The compiled row loop (range_kernel.group_rows) against RangeGroup's NumPy implementation: residuals and
+    every Jacobian on rows of three keyframes, at the association's t_d (delta = 0) and away from it."""
+    from uwbimu.calibration import range_factor as RF
+
+    rng = np.random.default_rng(21)
+    t = np.arange(61) / 200.0
+    u = np.empty((61, 6))
+    u[:, :3] = [0.3, -0.2, 9.81] + 1.5 * np.sin(2 * np.pi * np.outer(t, [1.1, 0.7, 1.3]) + rng.uniform(0, 6, 3))
+    u[:, 3:] = 0.8 * np.sin(2 * np.pi * np.outer(t, [0.9, 1.2, 0.5]) + rng.uniform(0, 6, 3))
+    kk, deltas = RF.imu_deltas(t, u, np.array([0.05, -0.03, 0.02]), np.array([0.01, -0.02, 0.005]),
+                               np.array([0.0, 0.1, 0.2]), np.sort(rng.uniform(0.0, 0.29, 40)))
+    anchors = rng.uniform(-5, 5, (4, 3))
+    col = np.arange(40) % 4
+    grp = RF.RangeGroup(deltas, anchors[col], rng.normal(4.0, 1.0, 40), col, 0.02, kf=kk)
+    state = (np.array([RF.so3_exp(rng.normal(size=3)) for _ in range(3)]), rng.normal(size=(3, 3)),
+             rng.normal(size=(3, 3)), np.array([0.12, -0.08, 0.14]), td, rng.normal(0, 0.05, 4))
+    fast = grp.evaluate(*state, jacobians=True)
+    e_fast = grp.evaluate(*state)
+    monkeypatch.setattr(RF, "USE_KERNEL", False)
+    ref = grp.evaluate(*state, jacobians=True)
+    np.testing.assert_allclose(e_fast, ref[0], rtol=0, atol=1e-12)
+    for a, b in zip(fast, ref):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+
+
+def test_group_with_an_unknown_attribute_takes_the_numpy_path(monkeypatch):
+    """A model term the kernel does not know (any new RangeGroup attribute) must not be skipped silently."""
+    from uwbimu.calibration import range_factor as RF
+
+    assert "anchor_direction" not in RF._KERNEL_ATTRS
+    t = np.arange(41) / 200.0
+    u = np.tile([0.0, 0.0, 9.81, 0.1, 0.0, 0.2], (41, 1))
+    _k, deltas = RF.imu_deltas(t, u, np.zeros(3), np.zeros(3), np.array([0.0]), np.array([0.05, 0.1]))
+    grp = RF.RangeGroup(deltas, np.array([[3.0, 0, 1], [0, 3.0, 1]]), np.array([3.0, 3.0]), np.array([0, 1]), 0.0)
+    calls = []
+    monkeypatch.setattr(RF.RangeGroup, "_evaluate_kernel", lambda *a, **k: calls.append(1))
+    grp.evaluate(np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), 0.0, np.zeros(2))
+    assert calls == [1]
+    grp.anchor_direction = True  # what a later model term would add
+    calls.clear()
+    grp.evaluate(np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), 0.0, np.zeros(2))
+    assert calls == []
