@@ -157,3 +157,27 @@ def test_group_with_an_unknown_attribute_takes_the_numpy_path(monkeypatch):
     calls.clear()
     grp.evaluate(np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), 0.0, np.zeros(2))
     assert calls == []
+
+
+def test_cli_workers_option(tmp_path):
+    """``uwbimu calibrate --workers 2``: the profile on the process pool, the same td_profile.csv as in-process;
+    ``--workers 0`` is a usage error."""
+    import yaml
+    from typer.testing import CliRunner
+
+    from uwbimu.cli.main import app
+    from uwbimu.io.dataset import write_dataset
+
+    ds_dir = write_dataset(_flight(6, 6.0), tmp_path / "ds")
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(yaml.safe_dump({"td_profile": {"half_width": 0.2}, "max_iterations": 10}))
+    outs = []
+    for w in ("1", "2"):
+        out = tmp_path / f"out{w}"
+        r = CliRunner().invoke(app, ["calibrate", str(ds_dir), "--out", str(out), "--config", str(cfg), "--no-plots",
+                                     "--workers", w])
+        assert r.exit_code == 0, r.output
+        outs.append((out / "td_profile.csv").read_text())
+    assert outs[0] == outs[1]
+    r = CliRunner().invoke(app, ["calibrate", str(ds_dir), "--out", str(tmp_path / "o0"), "--workers", "0"])
+    assert r.exit_code == 2

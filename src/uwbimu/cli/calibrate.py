@@ -64,7 +64,7 @@ def register(app: typer.Typer) -> None:
                  "anchors.csv, none for rows marked surveyed: false); adds to the config's estimate_anchors"),
         plots: bool = typer.Option(True, "--plots/--no-plots", help="Write the plots (td_profile.png, ...)."),
         workers: int = typer.Option(
-            1, "--workers", "-j", min=1,
+            1, "--workers", min=1,
             help="Processes for the t_d profile (its upward and downward walks run in parallel on the Monte Carlo "
                  "process pool; more than 2 gain nothing). 1: in this process. Same result either way."),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
