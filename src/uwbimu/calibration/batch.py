@@ -85,8 +85,8 @@ def profile_rows(pb, lo: float, hi: float) -> np.ndarray:
 
     Without this common set a range near either end of the log would count at some grid points and not
     at others: on the 190 s INRoL log the used ranges fall from 32420 at ``t_d = 0`` to 32333 at
-    +/-0.5 s, about 0.8 chi-square each, a tent in the profile with a kink at 0 (a t_d bias of about
-    1.4 ms there, larger on short windows).
+    +/-0.5 s, about 0.8 chi-square each: a tent in the profile with a kink at 0, whose slope shifts the
+    vertex (estimated ~1.4 ms there; more on short windows, whose curvature is smaller).
     """
     return np.flatnonzero((pb.t_range + lo >= pb.t_key[0]) & (pb.t_range + hi < pb.t_imu[-1]))
 

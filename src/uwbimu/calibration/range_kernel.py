@@ -7,8 +7,8 @@ the model of :func:`uwbimu.calibration.range_factor.range_error` (which is pinne
 :mod:`uwbimu.models.reference` by ``tests/test_calibrate_factor.py``) and is pinned to the NumPy
 implementation of ``RangeGroup.evaluate`` by ``tests/test_calibrate_speed.py`` (1e-12), on top of
 the finite-difference and per-range tests of ``tests/test_calibrate_factor.py`` that now run through
-it.  Self-contained (no calls into other numba modules, so its disk cache cannot go stale through a
-dependency).
+it.  It calls the 3x3 product of :mod:`uwbimu.models.kernels`, so it ends with that module's
+``refresh_stale_cache`` (its disk cache is flushed when that source changes).
 """
 
 from __future__ import annotations
@@ -18,13 +18,8 @@ import math
 import numpy as np
 from numba import njit
 
-
-@njit(cache=True)
-def _mul3(A, B, out):
-    """``out = A @ B`` for 3x3 matrices."""
-    for i in range(3):
-        for j in range(3):
-            out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+from uwbimu.models import kernels as _physics
+from uwbimu.models.kernels import _mm3, refresh_stale_cache
 
 
 @njit(cache=True)
@@ -75,9 +70,9 @@ def group_rows(R_k, p_k, v_k, kf, tau, dR, dv, dp, acc, omega, dRacc, anchor, le
         E[2, 0] = -ca * wy + cb * wx * wz
         E[1, 2] = -ca * wx + cb * wy * wz
         E[2, 1] = ca * wx + cb * wy * wz
-        _mul3(dR[i], E, M)
-        _mul3(R, M, Rs)
-        _mul3(R, dR[i], Rs0)
+        _mm3(dR[i], E, M)
+        _mm3(R, M, Rs)
+        _mm3(R, dR[i], Rs0)
         t = tau[i]
         for c in range(3):
             gc = g if c == 2 else 0.0
@@ -123,3 +118,6 @@ def group_rows(R_k, p_k, v_k, kf, tau, dR, dv, dp, acc, omega, dRacc, anchor, le
             w = vs[c] + asv[c] * delta + Rs[c, 0] * c0 + Rs[c, 1] * c1 + Rs[c, 2] * c2
             jt += u[c] / r * w
         Jt[i] = jt
+
+
+refresh_stale_cache(globals(), [_physics])
