@@ -3,8 +3,23 @@
     python benchmarks/bench_calibrate.py cost
     python benchmarks/bench_calibrate.py shift DATASET [--window 40] [--shifts 0,0.05,-0.05,0.1,-0.1]
     python benchmarks/bench_calibrate.py full DATASET      # ATE of batch vs ESKF (slow: ~10 min)
+    python benchmarks/bench_calibrate.py profile DATASET [--workers N] [--baseline]
+    python benchmarks/bench_calibrate.py long [--duration 600] [--imu-rate 1000] [--workers N] [--baseline]
 
 DATASET: an imported INRoL folder (``uwbimu import inrol ../shared/datasets/inrol_uwb_imu DIR``).
+
+``profile`` (issue 12 item 8, target: a 3-minute real log with the t_d profile in < 60 s CPU on one
+core): ``calibrate`` of the whole log with the default options (t_d profile on), the initialising
+ESKF included; CPU seconds of this process (``time.process_time``) and wall seconds, the result
+(lever arm, t_d +/- sigma, verdict, ATE against the ground truth).  ``--baseline``: the same
+calibration with ``reference_solver=True`` (GTSAM's own optimizer, every profile point solved to its
+convergence rule: the code before item 8) in the same process, on the same ESKF (run once, its
+time added to both), and the ratio.  ``--workers N``: the profile's walks on a process pool (its CPU
+is in the workers, so only the wall time means something then).
+
+``long`` (target: a 10-minute 1 kHz log in < 5 minutes): the built-in ``calibration-flight``
+simulated with ``--duration`` and an IMU at ``--imu-rate``; the same figures, the result against
+the simulation's truth (lever arm and t_d error in sigmas, ATE).  The simulation is not timed.
 State the machine load (``uptime``) next to any figure.  Nothing is hard-coded: every number is
 measured in the run (docs/calibrate.md holds the tables).
 """
@@ -13,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import time
 from pathlib import Path
 
@@ -89,17 +105,102 @@ def full(path: str) -> None:
           f"{r.runtime_s:.0f} s")
 
 
+def _ate(ds, traj) -> float:
+    from uwbimu.estimation import truth_at
+
+    pt, _q, _v, ok = truth_at(ds, traj.t.to_numpy())
+    return float(np.sqrt(np.mean(np.sum((traj[["px", "py", "pz"]].to_numpy()[ok] - pt[ok]) ** 2, axis=1))))
+
+
+def _timed_calibrate(ds, opts, eo, eskf, **kw):
+    from uwbimu.calibration import calibrate
+
+    c0, w0 = time.process_time(), time.perf_counter()
+    r = calibrate(ds, opts, eskf=eskf, eskf_options=eo, **kw)
+    return r, time.process_time() - c0, time.perf_counter() - w0
+
+
+def _describe(label: str, r, cpu: float, wall: float, ds, eskf_cpu: float) -> str:
+    c = r.calibration
+    td = c["time_offset"]
+    sd = "held at prior" if td["sd"] is None else f"+/- {1000 * td['sd']:.2f} (curvature {1000 * td['sd_curvature']:.2f})"
+    truth = ds.meta.truth
+    vs = ""
+    if truth is not None and truth.lever_arm is not None:
+        el = (np.array(c["lever_arm"]) - truth.lever_arm) / np.array(c["lever_arm_sd"])
+        vs = f"; vs truth: lever arm error {np.round(el, 2)} sigma"
+        if truth.time_offset is not None and td["sd"] is not None:
+            vs += f", t_d error {(td['value'] - truth.time_offset) / td['sd']:+.2f} sigma"
+    p = r.profile
+    prof = "" if p is None else (f"; profile {len(p.grid)} points, {int(p.iterations.sum())} LM steps, "
+                                 f"argmin {1000 * p.best:.0f} ms")
+    return (f"{label}: {cpu + eskf_cpu:.1f} s CPU ({eskf_cpu:.1f} ESKF + {cpu:.1f} batch), {wall:.1f} s wall (batch); "
+            f"lever arm [cm] {np.round(100 * np.array(c['lever_arm']), 2)} +/- {np.round(100 * np.array(c['lever_arm_sd']), 2)}; "
+            f"t_d {1000 * td['value']:.2f} ms {sd}, {td['verdict']}; ATE {_ate(ds, r.trajectory):.3f} m{prof}{vs}")
+
+
+def _profile_bench(ds, eo, workers: int, baseline: bool) -> None:
+    from uwbimu.calibration import CalibrationOptions
+    from uwbimu.estimation import run_eskf
+
+    print(f"load before: {os.getloadavg()}")
+    opts = CalibrationOptions()
+    c0 = time.process_time()
+    eskf = run_eskf(ds, eo)  # the anchors' frame, as calibrate() takes it
+    eskf_cpu = time.process_time() - c0
+    r, cpu, wall = _timed_calibrate(ds, opts, eo, eskf, workers=workers)
+    print(_describe(f"fast (workers={workers})", r, cpu, wall, ds, eskf_cpu))
+    if baseline:
+        rb, cpu_b, wall_b = _timed_calibrate(ds, opts, eo, eskf, reference_solver=True)
+        print(_describe("reference (GTSAM optimizer, full-solve profile)", rb, cpu_b, wall_b, ds, eskf_cpu))
+        if workers == 1:
+            print(f"ratio reference / fast: {(cpu_b + eskf_cpu) / (cpu + eskf_cpu):.2f} (CPU, ESKF included), "
+                  f"{cpu_b / cpu:.2f} (batch only)")
+        d = np.abs(np.subtract(r.profile.chi2, rb.profile.chi2)).max() if np.array_equal(r.profile.grid, rb.profile.grid) \
+            else float("nan")
+        print(f"max |chi2 fast - chi2 reference| over the profile grid: {d:.4f}")
+    print(f"load after: {os.getloadavg()}")
+
+
+def profile(path: str, workers: int, baseline: bool) -> None:
+    from uwbimu.estimation import EskfOptions
+    from uwbimu.io.loader import load_dataset
+
+    _profile_bench(load_dataset(path), EskfOptions.from_yaml(REAL), workers, baseline)
+
+
+def long(duration: float, imu_rate: float, workers: int, baseline: bool) -> None:
+    from uwbimu.estimation import EskfOptions
+    from uwbimu.sim import builtin_scenario, simulate
+
+    sc = builtin_scenario("calibration-flight")
+    sc = sc.model_copy(update={"duration": duration, "imu": sc.imu.model_copy(update={"rate_hz": imu_rate})})
+    w0 = time.perf_counter()
+    ds = simulate(sc)
+    print(f"simulated calibration-flight: {duration:g} s, IMU {imu_rate:g} Hz ({len(ds.imu)} samples), "
+          f"{len(ds.uwb)} ranges ({time.perf_counter() - w0:.0f} s, not timed below)")
+    _profile_bench(ds, EskfOptions(), workers, baseline)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["cost", "shift", "full"])
+    ap.add_argument("what", choices=["cost", "shift", "full", "profile", "long"])
     ap.add_argument("dataset", nargs="?")
     ap.add_argument("--window", type=float, default=40.0)
     ap.add_argument("--shifts", default="0,0.05,-0.05,0.1,-0.1")
+    ap.add_argument("--workers", type=int, default=1, help="profile / long: processes for the t_d profile")
+    ap.add_argument("--baseline", action="store_true", help="profile / long: also the reference solver, same run")
+    ap.add_argument("--duration", type=float, default=600.0, help="long: simulated log length [s]")
+    ap.add_argument("--imu-rate", type=float, default=1000.0, help="long: IMU rate [Hz]")
     a = ap.parse_args(argv)
     if a.what == "cost":
         cost()
+    elif a.what == "long":
+        long(a.duration, a.imu_rate, a.workers, a.baseline)
     elif a.dataset is None:
-        ap.error("shift and full need DATASET")
+        ap.error("shift, full and profile need DATASET")
+    elif a.what == "profile":
+        profile(a.dataset, a.workers, a.baseline)
     elif a.what == "shift":
         shift(a.dataset, a.window, [float(x) for x in a.shifts.split(",")])
     else:

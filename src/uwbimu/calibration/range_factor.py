@@ -230,6 +230,16 @@ def so3_exp_batch(w: np.ndarray) -> np.ndarray:
     return np.eye(3)[None] + a[:, None, None] * K + b[:, None, None] * (K @ K)
 
 
+#: Evaluate groups without a direction model with the numba row loop (:mod:`uwbimu.calibration.range_kernel`);
+#: False: the NumPy implementation (the kernel's reference in ``tests/test_calibrate_speed.py``).
+USE_KERNEL = True
+#: The attributes of a RangeGroup the kernel knows; a group with any other (a model term added later) takes the
+#: NumPy path until the kernel learns it.
+_KERNEL_ATTRS = frozenset({"tau", "dR", "dv", "dp", "acc", "omega", "dRacc", "anchor", "rho", "bias_col", "td0",
+                           "bias_matrix", "kf", "n_kf", "kf_mask", "direction", "dir_col", "n_dir", "dir_mask",
+                           "anchor_direction", "anchor_rot", "adir_col", "n_adir", "adir_mask"})
+
+
 class RangeGroup:
     """The ranges attached to a few consecutive keyframes, evaluated together (vectorised :func:`range_error`).
 
@@ -339,6 +349,26 @@ class RangeGroup:
         return {"R_k": R_k, "delta": delta, "tau": tau, "v_s0": v_s0, "a_s0": a_s0, "M": M, "R_s": R_s,
                 "u": u, "wb": wb}
 
+    def _evaluate_kernel(self, R_k, p_k, v_k, lever, td: float, biases, jacobians: bool):
+        """:meth:`evaluate` without a direction model, by the compiled row loop (:mod:`.range_kernel`)."""
+        from uwbimu.calibration.range_kernel import group_rows
+
+        n = len(self.rho)
+        R_k = np.ascontiguousarray(R_k, dtype=float).reshape(-1, 3, 3)
+        p_k = np.ascontiguousarray(p_k, dtype=float).reshape(-1, 3)
+        v_k = np.ascontiguousarray(v_k, dtype=float).reshape(-1, 3)
+        r = np.empty(n)
+        if jacobians:
+            Jp, Jv, Jl, Jt = np.empty((n, 6)), np.empty((n, 3)), np.empty((n, 3)), np.empty(n)
+        else:
+            Jp = Jv = Jl = np.empty((0, 6))
+            Jt = np.empty(0)
+        group_rows(R_k, p_k, v_k, self.kf, self.tau, self.dR, self.dv, self.dp, self.acc, self.omega, self.dRacc,
+                   self.anchor, np.ascontiguousarray(lever, dtype=float).reshape(3), float(td - self.td0),
+                   float(G_WORLD[2]), jacobians, r, Jp, Jv, Jl, Jt)
+        e = r + self.bias_matrix @ np.asarray(biases, float) - self.rho
+        return (e, Jp, Jv, Jl, Jt) if jacobians else e
+
     def evaluate(self, R_k, p_k, v_k, lever, td: float, biases, jacobians: bool = False, dir_coefs=None,
                  adir_coefs=None):
         """Residuals ``e`` (N,) [m] and, on request, Jacobians ``(J_pose (N, 6), J_vel (N, 3),
@@ -355,6 +385,9 @@ class RangeGroup:
         ``R_k, p_k, v_k``: the keyframes' states, (K, 3, 3), (K, 3), (K, 3) with K = ``n_kf``
         (or (3, 3), (3,), (3,) for one keyframe).
         """
+        if USE_KERNEL and self.direction is None and self.anchor_direction is None \
+                and set(vars(self)) <= _KERNEL_ATTRS and np.size(lever) == 3:
+            return self._evaluate_kernel(R_k, p_k, v_k, lever, td, biases, jacobians)
         geo = self._geometry(R_k, p_k, v_k, lever, td)
         R_k, delta, tau, v_s0, a_s0, M, R_s, u = (geo[k] for k in ("R_k", "delta", "tau", "v_s0", "a_s0", "M",
                                                                     "R_s", "u"))

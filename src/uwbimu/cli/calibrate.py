@@ -71,6 +71,10 @@ def register(app: typer.Typer) -> None:
             help="Comma-separated anchor ids whose positions are estimated (self-survey; weak prior around "
                  "anchors.csv, none for rows marked surveyed: false); adds to the config's estimate_anchors"),
         plots: bool = typer.Option(True, "--plots/--no-plots", help="Write the plots (td_profile.png, ...)."),
+        workers: int = typer.Option(
+            1, "--workers", min=1,
+            help="Processes for the t_d profile (its upward and downward walks run in parallel on the Monte Carlo "
+                 "process pool; more than 2 gain nothing). 1: in this process. Same result either way."),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         load_options=None,
     ) -> None:
@@ -98,7 +102,7 @@ def register(app: typer.Typer) -> None:
         eskf_opts = apply_dataset_properties(eskf_opts, ds, console)
         try:
             with console.status("ESKF initialisation, factor graph, t_d profile"):
-                res = calibrate(ds, opts, eskf_options=eskf_opts)
+                res = calibrate(ds, opts, eskf_options=eskf_opts, workers=workers)
         except UwbimuError:
             raise  # refusals (e.g. anchor self-survey geometry) keep their own exit code
         except (InitialisationError, ValueError, RuntimeError) as exc:

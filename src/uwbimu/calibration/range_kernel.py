@@ -1,0 +1,123 @@
+"""Numba kernel of the grouped range factor: residuals and Jacobians of :class:`RangeGroup` rows.
+
+:meth:`uwbimu.calibration.range_factor.RangeGroup.evaluate` without a direction model spends most of
+its time in NumPy call overhead (~50 array operations on ~85 rows per call, called once per group and
+LM evaluation).  :func:`group_rows` does the same arithmetic row by row in one compiled loop.  It is
+the model of :func:`uwbimu.calibration.range_factor.range_error` (which is pinned to
+:mod:`uwbimu.models.reference` by ``tests/test_calibrate_factor.py``) and is pinned to the NumPy
+implementation of ``RangeGroup.evaluate`` by ``tests/test_calibrate_speed.py`` (1e-12), on top of
+the finite-difference and per-range tests of ``tests/test_calibrate_factor.py`` that now run through
+it.  It calls the 3x3 product of :mod:`uwbimu.models.kernels`, so it ends with that module's
+``refresh_stale_cache`` (its disk cache is flushed when that source changes).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from uwbimu.models import kernels as _physics
+from uwbimu.models.kernels import _mm3, refresh_stale_cache
+
+
+@njit(cache=True)
+def group_rows(R_k, p_k, v_k, kf, tau, dR, dv, dp, acc, omega, dRacc, anchor, lever, delta, g, jac,
+               r_out, Jp, Jv, Jl, Jt):
+    """Distance ``|p_U - anchor|`` of every row and, with ``jac``, its Jacobians (GTSAM tangents).
+
+    Parameters
+    ----------
+    R_k, p_k, v_k : (K, 3, 3), (K, 3), (K, 3) keyframe attitudes (body -> world), positions [m] and
+        velocities [m/s].
+    kf : (N,) int64 keyframe index of every row.
+    tau, dR, dv, dp, acc, omega, dRacc : the rows' IMU deltas (:class:`RangeDelta` fields, stacked; ``dRacc``
+        = ``dR @ acc``) [s, -, m/s, m, m/s^2, rad/s, m/s^2].
+    anchor : (N, 3) anchor positions [m]; lever : (3,) lever arm p_IU [m] (IMU frame).
+    delta : ``t_d - td0`` [s]; g : gravity magnitude [m/s^2] (``G_WORLD = [0, 0, g]``).
+    r_out : (N,) output distances [m] (the residual is ``r + bias - rho``, added by the caller).
+    Jp, Jv, Jl, Jt : (N, 6), (N, 3), (N, 3), (N,) outputs (written only with ``jac``): pose ``[theta, p]``,
+        velocity, lever arm, t_d.
+    """
+    E = np.empty((3, 3))
+    M = np.empty((3, 3))
+    Rs = np.empty((3, 3))
+    Rs0 = np.empty((3, 3))
+    R = np.empty((3, 3))
+    vs = np.empty(3)
+    asv = np.empty(3)
+    u = np.empty(3)
+    for i in range(tau.shape[0]):
+        k = kf[i]
+        for a in range(3):
+            for b in range(3):
+                R[a, b] = R_k[k, a, b]
+        # E = Exp(omega * delta) (Rodrigues, as so3_exp_batch)
+        wx, wy, wz = omega[i, 0] * delta, omega[i, 1] * delta, omega[i, 2] * delta
+        th = math.sqrt(wx * wx + wy * wy + wz * wz)
+        if th < 1e-8:
+            ca, cb = 1.0, 0.5
+        else:
+            ca, cb = math.sin(th) / th, (1.0 - math.cos(th)) / (th * th)
+        # K = [w]x ; K @ K = w w^T - |w|^2 I
+        E[0, 0] = 1.0 + cb * (wx * wx - th * th)
+        E[1, 1] = 1.0 + cb * (wy * wy - th * th)
+        E[2, 2] = 1.0 + cb * (wz * wz - th * th)
+        E[0, 1] = -ca * wz + cb * wx * wy
+        E[1, 0] = ca * wz + cb * wx * wy
+        E[0, 2] = ca * wy + cb * wx * wz
+        E[2, 0] = -ca * wy + cb * wx * wz
+        E[1, 2] = -ca * wx + cb * wy * wz
+        E[2, 1] = ca * wx + cb * wy * wz
+        _mm3(dR[i], E, M)
+        _mm3(R, M, Rs)
+        _mm3(R, dR[i], Rs0)
+        t = tau[i]
+        for c in range(3):
+            gc = g if c == 2 else 0.0
+            Rdv = R[c, 0] * dv[i, 0] + R[c, 1] * dv[i, 1] + R[c, 2] * dv[i, 2]
+            Rdp = R[c, 0] * dp[i, 0] + R[c, 1] * dp[i, 1] + R[c, 2] * dp[i, 2]
+            vs[c] = v_k[k, c] - gc * t + Rdv
+            asv[c] = Rs0[c, 0] * acc[i, 0] + Rs0[c, 1] * acc[i, 1] + Rs0[c, 2] * acc[i, 2] - gc
+            ps0 = p_k[k, c] + v_k[k, c] * t - 0.5 * gc * t * t + Rdp
+            Rl = Rs[c, 0] * lever[0] + Rs[c, 1] * lever[1] + Rs[c, 2] * lever[2]
+            u[c] = ps0 + vs[c] * delta + 0.5 * asv[c] * delta * delta + Rl - anchor[i, c]
+        u0, u1, u2 = u[0], u[1], u[2]
+        r = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+        r_out[i] = r
+        if not jac:
+            continue
+        n0, n1, n2 = u0 / r, u1 / r, u2 / r
+        m0 = R[0, 0] * n0 + R[1, 0] * n1 + R[2, 0] * n2
+        m1 = R[0, 1] * n0 + R[1, 1] * n1 + R[2, 1] * n2
+        m2 = R[0, 2] * n0 + R[1, 2] * n1 + R[2, 2] * n2
+        hd = 0.5 * delta * delta
+        b0 = dp[i, 0] + delta * dv[i, 0] + hd * dRacc[i, 0] + M[0, 0] * lever[0] + M[0, 1] * lever[1] + M[0, 2] * lever[2]
+        b1 = dp[i, 1] + delta * dv[i, 1] + hd * dRacc[i, 1] + M[1, 0] * lever[0] + M[1, 1] * lever[1] + M[1, 2] * lever[2]
+        b2 = dp[i, 2] + delta * dv[i, 2] + hd * dRacc[i, 2] + M[2, 0] * lever[0] + M[2, 1] * lever[1] + M[2, 2] * lever[2]
+        Jp[i, 0] = b1 * m2 - b2 * m1
+        Jp[i, 1] = b2 * m0 - b0 * m2
+        Jp[i, 2] = b0 * m1 - b1 * m0
+        Jp[i, 3] = m0
+        Jp[i, 4] = m1
+        Jp[i, 5] = m2
+        s = t + delta
+        Jv[i, 0] = n0 * s
+        Jv[i, 1] = n1 * s
+        Jv[i, 2] = n2 * s
+        for c in range(3):
+            Jl[i, c] = Rs[0, c] * n0 + Rs[1, c] * n1 + Rs[2, c] * n2
+        # omega x lever, turned by R_s
+        ox, oy, oz = omega[i, 0], omega[i, 1], omega[i, 2]
+        c0 = oy * lever[2] - oz * lever[1]
+        c1 = oz * lever[0] - ox * lever[2]
+        c2 = ox * lever[1] - oy * lever[0]
+        jt = 0.0
+        for c in range(3):
+            w = vs[c] + asv[c] * delta + Rs[c, 0] * c0 + Rs[c, 1] * c1 + Rs[c, 2] * c2
+            jt += u[c] / r * w
+        Jt[i] = jt
+
+
+refresh_stale_cache(globals(), [_physics])
