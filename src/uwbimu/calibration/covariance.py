@@ -51,7 +51,8 @@ class SandwichInfo:
     n_bins: int
     bandwidth_bins: float  # Andrews' S (Bartlett weights 1 - l/S for l < S)
     rho: list = field(default_factory=list)  # AR(1) coefficient of each standardised score series of interest
-    method: str = "plateau"
+    method: str = "andrews"
+    prewhiten: bool = True
     andrews_bins: float = float("nan")
     plateau_bins: float = float("nan")
     curve: list = field(default_factory=list)  # (L, v(L)) of the plateau rule
@@ -153,7 +154,7 @@ def bartlett_long_run(S: np.ndarray, bandwidth: float) -> np.ndarray:
 
 def sandwich_covariance(graph, values, keys, slots: np.ndarray, row_time: np.ndarray, bin_s: float,
                         inlier: np.ndarray | None = None, interest: np.ndarray | None = None,
-                        bandwidth: str = "plateau", n_probes: int = 64, seed: int = 0):
+                        bandwidth: str = "andrews", prewhiten: bool = True, n_probes: int = 64, seed: int = 0):
     """Model and HAC-sandwich covariance of the variables ``keys`` of a solved graph.
 
     Parameters
@@ -205,18 +206,29 @@ def sandwich_covariance(graph, values, keys, slots: np.ndarray, row_time: np.nda
     h = np.clip(h, 0.0, 0.9)
     U = A * (r / np.sqrt(1.0 - h))[:, None]
     t = np.asarray(row_time, float)
-    tb = np.floor((t - t.min()) / bin_s).astype(np.int64)
+    tb = np.floor((t - t.min()) / bin_s + 1e-9).astype(np.int64)  # (1e-9: stamps on the bin grid)
     nb = int(tb.max()) + 1
     S = np.zeros((nb, U.shape[1]))
     np.add.at(S, tb, U)
     sel = np.arange(U.shape[1]) if interest is None else np.asarray(interest)
+    D = np.eye(S.shape[1])
+    if prewhiten:
+        # Andrews-Monahan prewhitening with one AR(1) per column: s*_t = s_t - rho s_{t-1}, recoloured
+        # by D = diag(1 / (1 - rho)) (exact for the long-run variance whatever the filter)
+        rho_pw = np.zeros(S.shape[1])
+        for a in range(S.shape[1]):
+            den = float(S[:-1, a] @ S[:-1, a])
+            rho_pw[a] = float(S[1:, a] @ S[:-1, a]) / den if den > 0 else 0.0
+        rho_pw = np.clip(rho_pw, -0.9, 0.9)
+        S = S[1:] - S[:-1] * rho_pw
+        D = np.diag(1.0 / (1.0 - rho_pw))
     bw_a, rho = andrews_bandwidth(S[:, sel])
     bw_p, curve = plateau_bandwidth(S[:, sel])
     bw = bw_a if bandwidth == "andrews" else bw_p
-    omega = bartlett_long_run(S, bw)
+    omega = D @ bartlett_long_run(S, bw) @ D
     cov = cov_bread - A_in.T @ A_in + omega
     cov = 0.5 * (cov + cov.T)
     info = SandwichInfo(bin_s=float(bin_s), n_bins=nb, bandwidth_bins=bw, rho=[float(x) for x in rho],
                         mean_leverage=float(h.mean()), n_rows=int(len(row_index)), method=bandwidth,
-                        andrews_bins=bw_a, plateau_bins=bw_p, curve=curve)
+                        andrews_bins=bw_a, plateau_bins=bw_p, curve=curve, prewhiten=prewhiten)
     return cov, cov_model, info
