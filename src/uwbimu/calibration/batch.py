@@ -301,7 +301,6 @@ def _profile_chi2_scale(pb, graph, values, assoc) -> float:
 
 
 def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset, chi2_scale: float = 1.0):
-
     X, V, B, L, T, A = G._keys()
     P = G._P()
     marg = _marginals(pb, graph, values)
