@@ -270,9 +270,9 @@ def _calibration_covariance(pb, graph, values, assoc, keys, td: float, td_free: 
 
     from uwbimu.calibration import covariance as CV
 
+    cov_model = _marginals(pb, graph, values).jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
     if pb.options.covariance == "model":
-        cov = _marginals(pb, graph, values).jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
-        return cov, cov, {"method": "model", "description": "GTSAM marginals of the white range-noise model"}
+        return cov_model, cov_model, {"method": "model", "description": "GTSAM marginals of the white range-noise model"}
     e = G.range_residuals(graph, assoc, values, td)
     sig = np.full(len(e), pb.range_sigma)
     if pb.anchor_b is not None:
@@ -280,7 +280,7 @@ def _calibration_covariance(pb, graph, values, assoc, keys, td: float, td_free: 
     inlier = np.abs(e / sig) <= pb.options.huber_k
     cov, cov_model, info = CV.sandwich_covariance(graph, values, keys, assoc.slots, pb.t_range[assoc.used],
                                                   1.0 / pb.options.keyframe_hz, inlier=inlier,
-                                                  interest=np.arange(4 if td_free else 3))
+                                                  interest=np.arange(4 if td_free else 3), cov_model=cov_model)
     sec = {"method": "sandwich", "description": "HAC (Newey-West, Bartlett kernel) sandwich over the range "
                                                 "factors' scores; IMU factors and priors keep their model information",
            "bandwidth_rule": info.method, "bandwidth_s": info.bandwidth_s, "bin_s": info.bin_s,
