@@ -455,11 +455,6 @@ def _anchor_report(pb, values, sd_p: dict, dataset):
     return out, table
 
 
-#: Tangent dimension of every variable, by the GTSAM symbol letter (see graph.py); others (``h``, the
-#: direction-bias coefficients) are vectors whose length is read from the values.
-_DIMS = {"x": 6, "v": 3, "b": 6, "l": 3, "t": 1, "a": 1, "p": 3, "d": 1}
-
-
 class SparseMarginals:
     """Marginal covariances from the sparse Gauss-Newton Hessian ``J^T J`` (SciPy ``splu``).
 
@@ -471,24 +466,13 @@ class SparseMarginals:
     """
 
     def __init__(self, graph, values):
-        import gtsam
-        import scipy.sparse as sp
         from scipy.sparse.linalg import splu
 
-        lin = graph.linearize(values)
-        ijs = lin.sparseJacobian_()
-        keys = sorted(int(k) for k in values.keys())  # sparseJacobian_ orders columns by key
-        self._cols, off = {}, 0
-        for k in keys:
-            c = chr(gtsam.Symbol(k).chr())
-            d = _DIMS[c] if c in _DIMS else len(values.atVector(k))
-            self._cols[k] = np.arange(off, off + d)
-            off += d
-        rows, cols = ijs[0].astype(int) - 1, ijs[1].astype(int) - 1
-        keep = cols < off  # the last column is the right-hand side b
-        J = sp.csc_matrix((ijs[2][keep], (rows[keep], cols[keep])), shape=(int(rows.max()) + 1, off))
+        from uwbimu.calibration.covariance import linear_system
+
+        J, _b, _row0, self._cols = linear_system(graph, values)  # columns ordered by key
         self._lu = splu((J.T @ J).tocsc())
-        self._n = off
+        self._n = J.shape[1]
 
     def _block(self, keys):
         cols = np.concatenate([self._cols[int(k)] for k in keys])
