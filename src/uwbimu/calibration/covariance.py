@@ -4,32 +4,39 @@ The marginals of the solved graph (``gtsam.Marginals``) are the inverse of the i
 ``H = J^T J`` of the whitened, Huber-reweighted linearised graph: they assume that every range error
 is independent with the modelled sd.  Real range errors are correlated over seconds (antenna pattern
 and multipath follow the line of sight) and the range model is misspecified, so those marginals are
-over-confident.  The sandwich keeps ``H`` but replaces the range rows' model information by the
-empirical covariance of their score contributions, correlated in time::
+over-confident.  The sandwich replaces the range rows' model information by the empirical
+covariance of their score contributions, correlated in time::
 
-    Cov = H^-1 B H^-1,   B = J_O^T J_O + Omega_R
+    Cov = H_psi^-1 B H_psi^-1,   B = J_O^T J_O + Omega
 
 ``J_O``: the rows of every other factor (IMU preintegration, priors, drift chain, inter-anchor
-ranges: their model information is kept); ``Omega_R``: a Bartlett-kernel (Newey-West)
-long-run covariance of the range/TDoA rows' scores ``s_i = J_i^T r_i`` (whitened, IRLS-weighted:
-exactly the Huber loss's gradient), summed per time bin of one keyframe period.  Only the rows
-``X = H^-1 E_theta`` of the calibration parameters are needed (SciPy ``splu`` of the sparse ``H``),
-and with ``u_i = (J_i X)^T r_i``::
+ranges: their model information is kept); ``Omega``: a Bartlett-kernel (Newey-West) long-run
+covariance of the range/TDoA rows' scores ``J_i^T r_i`` (``J_i``, ``r_i``: whitened and IRLS-weighted
+as GTSAM linearises them, so ``J_i^T r_i`` is exactly the Huber loss's gradient), summed per time bin
+of one keyframe period.  ``H_psi``: the bread with Huber's curvature (the rows with ``|z| > k`` leave
+it; their Gauss-Newton weight is not the loss's curvature, and keeping it made the sandwich 10-35 %
+too small on white simulated ranges).  Only ``X = H_psi^-1 E_theta`` (the calibration parameters'
+columns) is needed, from one sparse factorisation (:class:`_SymmetricFactor`); with
+``a_i = (J_i X)^T`` and ``u_i = a_i r_i``::
 
-    Cov_theta = Cov_model - sum_i a_i a_i^T + Omega(u),    a_i = (J_i X)^T
+    Cov_theta = X^T H_psi X - sum_inliers a_i a_i^T + Omega(u)
 
-(``X^T H X = Cov_model``), so on white ranges, where ``Omega(u) ~ sum_i a_i a_i^T``, the sandwich
-equals the model covariance up to sampling noise.
+so on white ranges, where ``Omega(u) ~ sum a_i a_i^T``, the sandwich equals the model covariance up to
+Huber's efficiency and sampling noise.
 
 * **Leverage (HC2)**: the fitted trajectory absorbs part of each residual (``E r_i^2 = 1 - h_i``
   for unit white errors, ``h_i = J_i H^-1 J_i^T``); each ``u_i`` is divided by ``sqrt(1 - h_i)``.
   ``h_i`` is estimated without forming ``H^-1``: ``w = H^-1 J^T xi`` with ``xi ~ N(0, I)`` has
   covariance ``H^-1``, so ``h_i = E (J_i w)^2`` (``n_probes`` fixed-seed probes, deterministic).
+* **Prewhitening** (Andrews-Monahan 1992, default): each column of the binned score series is
+  filtered by its own AR(1) ``s*_t = s_t - rho s_{t-1}`` and the long-run covariance recoloured by
+  ``diag(1 / (1 - rho))`` (exact whatever the filter; removes Bartlett's downward bias on AR errors).
 * **Bandwidth from the data** (Andrews 1991, AR(1) plug-in, Bartlett kernel): each standardised
   score series of the parameters of interest (lever arm, t_d) is fitted with an AR(1) ``rho_a``;
   ``alpha = sum 4 rho^2 s^4 / ((1-rho)^6 (1+rho)^2) / sum s^4 / (1-rho)^4`` (``s^2 = 1 - rho^2``)
   and the bandwidth ``S = 1.1447 (alpha T)^(1/3)`` bins (``T``: number of bins), weights
   ``1 - l / S`` for lags ``l < S``.  White scores give ``rho ~ 0`` and ``S ~ 1``: lag 0 only.
+  The plateau rule (:func:`plateau_bandwidth`) is computed and reported alongside.
 """
 
 from __future__ import annotations
