@@ -212,6 +212,8 @@ def sandwich_covariance(graph, values, keys, slots: np.ndarray, row_time: np.nda
         bread (the Huber loss has no curvature there), their scores stay.  All when None.
     interest : indices (into the covariance's order) of the parameters whose score series choose the
         bandwidth; all when None.
+    bandwidth : ``"andrews"`` (AR(1) plug-in, default) or ``"plateau"`` (:func:`plateau_bandwidth`).
+    prewhiten : AR(1) prewhitening of each score column before the kernel (default True).
     n_probes : random probes of the leverage estimate (fixed ``seed``).
     cov_model : the model covariance of ``keys`` when already known (``gtsam.Marginals``); else computed.
 
