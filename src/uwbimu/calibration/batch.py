@@ -344,13 +344,19 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
     free_td = float(values.atVector(T(0))[0])
     prof = None
     td_free = True
+    chi2_scale = 1.0
     if o.td_profile.enabled:
+        # honesty correction of the white-noise profile: model / sandwich variance of t_d at the free solve
+        chi2_scale = _profile_chi2_scale(pb, graph, values, assoc)
         prof = run_profile(pb, imf, values, free_td, progress, workers=workers, executor=executor,
                            mode="reference" if reference_solver else "fast")
+        if chi2_scale != 1.0:
+            prof.verdict, prof.best, prof.vertex, prof.sigma_curvature = profile_verdict(
+                prof.grid, prof.chi2, prof.confidence_chi2, chi2_scale=chi2_scale)
         if prof.identified:
             graph, values, assoc, iters = _solve(pb, imf, G.with_td(values, prof.vertex), prof.vertex, None,
                                                  engine=engine)
-            lo, hi = confidence_interval(prof.grid, prof.chi2, prof.confidence_chi2)
+            lo, hi = confidence_interval(prof.grid, prof.chi2, prof.confidence_chi2, chi2_scale=chi2_scale)
             td_ref = float(values.atVector(T(0))[0])
             if not lo <= td_ref <= hi:
                 # The free optimum contradicts its own profile: report nothing as found.
@@ -363,7 +369,7 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
                                                  o.time_offset_prior, engine=engine)
     if progress is not None:
         progress(0.9)
-    cal, traj, res, anchors = _report(pb, graph, values, assoc, td_free, prof, iters, dataset)
+    cal, traj, res, anchors = _report(pb, graph, values, assoc, td_free, prof, iters, dataset, chi2_scale=chi2_scale)
     for ev in events:
         if ev["kind"] == "time_offset_not_identified":
             cal["time_offset"]["advice"] = ev["advice"]
@@ -453,9 +459,47 @@ def _initial_anchors(dataset, eskf, o: CalibrationOptions, setup) -> list[dict]:
     return events
 
 
-def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
+def _calibration_covariance(pb, graph, values, assoc, keys, td: float, td_free: bool):
+    """Covariance of ``keys`` by ``options.covariance``: (cov, cov_model, yaml section).
+
+    ``sandwich``: :func:`uwbimu.calibration.covariance.sandwich_covariance` over the range/TDoA rows
+    (Huber inliers ``|z| <= huber_k`` in the bread; bandwidth from the lever arm's and t_d's score series).
+    """
     import gtsam
 
+    from uwbimu.calibration import covariance as CV
+
+    cov_model = _marginals(pb, graph, values).jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
+    if pb.options.covariance == "model":
+        return cov_model, cov_model, {"method": "model", "description": "GTSAM marginals of the white range-noise model"}
+    e = G.range_residuals(graph, assoc, values, td)
+    sig = np.full(len(e), pb.range_sigma)
+    if pb.anchor_b is not None:
+        sig[pb.anchor_b[assoc.used] >= 0] = pb.tdoa_sigma
+    inlier = np.abs(e / sig) <= pb.options.huber_k
+    cov, cov_model, info = CV.sandwich_covariance(graph, values, keys, assoc.slots, pb.t_range[assoc.used],
+                                                  1.0 / pb.options.keyframe_hz, inlier=inlier,
+                                                  interest=np.arange(4 if td_free else 3), cov_model=cov_model)
+    sec = {"method": "sandwich", "description": "HAC (Newey-West, Bartlett kernel) sandwich over the range "
+                                                "factors' scores; IMU factors and priors keep their model information",
+           "bandwidth_rule": info.method, "bandwidth_s": info.bandwidth_s, "bin_s": info.bin_s,
+           "n_bins": info.n_bins, "andrews_bandwidth_s": float(info.andrews_bins * info.bin_s),
+           "plateau_bandwidth_s": float(info.plateau_bins * info.bin_s),
+           "score_ar1": [round(x, 4) for x in info.rho], "mean_leverage": info.mean_leverage}
+    return cov, cov_model, sec
+
+
+def _profile_chi2_scale(pb, graph, values, assoc) -> float:
+    """Model / sandwich variance of t_d at a free solve (1 with ``covariance: model``)."""
+    if pb.options.covariance == "model":
+        return 1.0
+    X, V, B, L, T, A = G._keys()
+    td = float(values.atVector(T(0))[0])
+    cov, cov_model, _ = _calibration_covariance(pb, graph, values, assoc, [L(0), T(0)], td, True)
+    return float(cov_model[3, 3] / cov[3, 3]) if cov[3, 3] > 0 else 1.0
+
+
+def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset, chi2_scale: float = 1.0):
     X, V, B, L, T, A = G._keys()
     P = G._P()
     marg = _marginals(pb, graph, values)
@@ -479,11 +523,12 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
     for i, tag in enumerate(pb.tag_names[1:], start=1):  # several tags: the first one's lever arm is lever_arm_*
         keys.append(G.lever_key(i))
         names += [f"lever_arm_{tag}_{c}" for c in "xyz"]
-    cov = marg.jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
-    sd = np.sqrt(np.diag(cov))
-    corr = cov / np.outer(sd, sd)
     lever = values.atVector(L(0))
     td = float(values.atVector(T(0))[0]) if td_free else pb.options.time_offset_prior
+    cov, cov_model, cov_sec = _calibration_covariance(pb, graph, values, assoc, keys, td, td_free)
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    sd_model = np.sqrt(np.diag(cov_model))
+    corr = cov / np.outer(sd, sd)
     # Residuals of the final graph's range factors, in the order of assoc.used.
     e = G.range_residuals(graph, assoc, values, td)
     used = assoc.used
@@ -517,18 +562,24 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset):
         "method": "batch-map-gtsam",
         "lever_arm": [float(x) for x in lever],
         "lever_arm_sd": [float(x) for x in sd[:3]],
+        "lever_arm_sd_model": [float(x) for x in sd_model[:3]],
         "time_offset": {"value": td, "sd": float(sd[3]) if td_free else None,
                         "sd_marginal": float(sd[3]) if td_free else None,
+                        "sd_model": float(sd_model[3]) if td_free else None,
+                        "profile_chi2_scale": float(chi2_scale),
                         "sd_curvature": (float(prof.sigma_curvature) if prof is not None and prof.identified
                                          else None),
                         "verdict": (prof.verdict if prof is not None else "not_profiled"),
                         "held_at_prior": not td_free,
                         "profile_confidence_interval": (
-                            [float(v) for v in confidence_interval(prof.grid, prof.chi2, prof.confidence_chi2)]
+                            [float(v) for v in confidence_interval(prof.grid, prof.chi2, prof.confidence_chi2,
+                                                                   chi2_scale=chi2_scale)]
                             if prof is not None and prof.identified else None),
                         "profile_grid": ([float(prof.grid[0]), float(prof.grid[-1])] if prof is not None else None)},
         "anchor_bias": bias,
         "anchor_bias_sd": {a: float(sd[offs + j]) for j, a in enumerate(pb.anchor_ids)},
+        "anchor_bias_sd_model": {a: float(sd_model[offs + j]) for j, a in enumerate(pb.anchor_ids)},
+        "covariance": cov_sec,
         "correlations": {"names": names, "matrix": [[round(float(c), 4) for c in row] for row in corr]},
         "ranges": {"used": int(len(assoc.used)), "outside_imu_span": int(len(pb.t_range) - len(assoc.used)),
                    "downweighted": int(res["outlier"].sum()),
@@ -676,11 +727,6 @@ def _anchor_report(pb, values, sd_p: dict, dataset):
     return out, table
 
 
-#: Tangent dimension of every variable, by the GTSAM symbol letter (see graph.py); others (``h``, the
-#: direction-bias coefficients) are vectors whose length is read from the values.
-_DIMS = {"x": 6, "v": 3, "b": 6, "l": 3, "t": 1, "a": 1, "p": 3, "d": 1}
-
-
 class SparseMarginals:
     """Marginal covariances from the sparse Gauss-Newton Hessian ``J^T J`` (SciPy ``splu``).
 
@@ -692,24 +738,13 @@ class SparseMarginals:
     """
 
     def __init__(self, graph, values):
-        import gtsam
-        import scipy.sparse as sp
         from scipy.sparse.linalg import splu
 
-        lin = graph.linearize(values)
-        ijs = lin.sparseJacobian_()
-        keys = sorted(int(k) for k in values.keys())  # sparseJacobian_ orders columns by key
-        self._cols, off = {}, 0
-        for k in keys:
-            c = chr(gtsam.Symbol(k).chr())
-            d = _DIMS[c] if c in _DIMS else len(values.atVector(k))
-            self._cols[k] = np.arange(off, off + d)
-            off += d
-        rows, cols = ijs[0].astype(int) - 1, ijs[1].astype(int) - 1
-        keep = cols < off  # the last column is the right-hand side b
-        J = sp.csc_matrix((ijs[2][keep], (rows[keep], cols[keep])), shape=(int(rows.max()) + 1, off))
+        from uwbimu.calibration.covariance import linear_system
+
+        J, _b, _row0, self._cols = linear_system(graph, values)  # columns ordered by key
         self._lu = splu((J.T @ J).tocsc())
-        self._n = off
+        self._n = J.shape[1]
 
     def _block(self, keys):
         cols = np.concatenate([self._cols[int(k)] for k in keys])

@@ -187,6 +187,12 @@ class CalibrationOptions(BaseModel):
     range_group_keyframes: int = Field(
         5, ge=1, le=50, description="consecutive keyframes whose ranges share one vectorised factor (fewer, larger "
                                     "Python callbacks; same model)")
+    covariance: Literal["sandwich", "model"] = Field(
+        "sandwich", description="sigma of the calibration parameters: 'sandwich' (HAC / Newey-West over the range "
+                                "factors' scores, bandwidth chosen from the data: honest when range errors are "
+                                "correlated in time or the range model is misspecified; the t_d profile's chi2 is "
+                                "scaled by model / sandwich variance) or 'model' (GTSAM marginals of the white "
+                                "range-noise model); calibration.yaml keeps both (sd, sd_model)")
     max_iterations: int = Field(50, ge=1)
     reassociate_max: int = Field(3, ge=0, description="re-attach ranges when t_d moved > half a keyframe step")
     td_profile: TdProfileOptions = Field(default_factory=TdProfileOptions)

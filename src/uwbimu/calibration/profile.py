@@ -53,10 +53,14 @@ class TdProfile:
                              "iterations": self.iterations})
 
 
-def profile_verdict(grid: np.ndarray, chi2: np.ndarray, confidence_chi2: float = 9.0):
-    """Verdict, best grid point, parabola vertex and curvature sigma of a profile (see module doc)."""
+def profile_verdict(grid: np.ndarray, chi2: np.ndarray, confidence_chi2: float = 9.0, chi2_scale: float = 1.0):
+    """Verdict, best grid point, parabola vertex and curvature sigma of a profile (see module doc).
+
+    ``chi2_scale`` multiplies the profile first (honesty correction: model / sandwich variance of t_d,
+    docs/calibrate.md "Honest sigma"); 1 reads the white-noise likelihood as is.
+    """
     grid = np.asarray(grid, float)
-    chi2 = np.asarray(chi2, float)
+    chi2 = chi2_scale * np.asarray(chi2, float)
     nan = float("nan")
     if not np.all(np.isfinite(chi2)):
         return "failed_points", float(grid[int(np.nanargmin(chi2))]) if np.isfinite(chi2).any() else nan, nan, nan
@@ -77,11 +81,13 @@ def profile_verdict(grid: np.ndarray, chi2: np.ndarray, confidence_chi2: float =
     return "identified", float(grid[i]), vertex, float(1.0 / np.sqrt(a))
 
 
-def confidence_interval(grid: np.ndarray, chi2: np.ndarray, confidence_chi2: float) -> tuple[float, float]:
-    """Ends [s] of the profile's confidence set (grid points with ``chi2 - min < confidence_chi2``),
-    widened to the linear-interpolation crossings of the threshold with the neighbouring points."""
+def confidence_interval(grid: np.ndarray, chi2: np.ndarray, confidence_chi2: float,
+                        chi2_scale: float = 1.0) -> tuple[float, float]:
+    """Ends [s] of the profile's confidence set (grid points with ``chi2_scale * (chi2 - min) <
+    confidence_chi2``), widened to the linear-interpolation crossings of the threshold with the
+    neighbouring points."""
     grid = np.asarray(grid, float)
-    d = np.asarray(chi2, float) - np.nanmin(chi2)
+    d = chi2_scale * (np.asarray(chi2, float) - np.nanmin(chi2))
     inside = np.flatnonzero(d < confidence_chi2)
     lo_i, hi_i = int(inside[0]), int(inside[-1])
 

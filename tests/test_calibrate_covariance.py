@@ -1,0 +1,138 @@
+"""HAC sandwich covariance of the calibration parameters (uwbimu.calibration.covariance)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+gtsam = pytest.importorskip("gtsam")
+
+from uwbimu.calibration import CalibrationOptions, calibrate  # noqa: E402
+from uwbimu.calibration import covariance as CV  # noqa: E402
+from uwbimu.calibration.profile import confidence_interval, profile_verdict  # noqa: E402
+from uwbimu.sim import builtin_scenario, simulate  # noqa: E402
+
+N, DT, SIG = 600, 0.1, 0.1
+T_LIN = np.arange(N) * DT
+F_LIN = np.column_stack([np.ones(N), np.sin(0.5 * T_LIN)])
+KEY = gtsam.symbol("h", 0)
+
+
+def _ar1(rng, n, rho, sig):
+    w = rng.standard_normal(n) * sig * np.sqrt(1.0 - rho**2)
+    e = np.empty(n)
+    e[0] = rng.standard_normal() * sig
+    for i in range(1, n):
+        e[i] = rho * e[i - 1] + w[i]
+    return e
+
+
+def _linear_sandwich(y):
+    """Sandwich of y = F theta + e through a GTSAM graph of one CustomFactor per row (time stamps T_LIN)."""
+    noise = gtsam.noiseModel.Isotropic.Sigma(1, SIG)
+    g = gtsam.NonlinearFactorGraph()
+    for i in range(N):
+        def err(this, v, H, i=i):
+            if H is not None:
+                H[0] = F_LIN[i:i + 1].copy()
+            return np.array([F_LIN[i] @ v.atVector(KEY) - y[i]])
+        g.add(gtsam.CustomFactor(noise, [KEY], err))
+    g.add(gtsam.PriorFactorVector(KEY, np.zeros(2), gtsam.noiseModel.Isotropic.Sigma(2, 100.0)))
+    v = gtsam.Values()
+    v.insert(KEY, np.linalg.lstsq(F_LIN, y, rcond=None)[0])
+    slots = np.column_stack([np.arange(N), np.zeros(N, int)])
+    return CV.sandwich_covariance(g, v, [KEY], slots, T_LIN, DT)
+
+
+@pytest.mark.parametrize("rho", [0.8, 0.0])
+def test_sandwich_matches_monte_carlo_with_ar1_noise(rho):
+    # Monte Carlo spread of the least-squares estimate under AR(1) noise (the truth of the covariance)
+    mc = np.array([np.linalg.lstsq(F_LIN, _ar1(np.random.default_rng(s), N, rho, SIG), rcond=None)[0]
+                   for s in range(1500)])
+    sd_mc = mc.std(axis=0)
+    sds, infos = [], []
+    for s in range(8):
+        cov, cov_model, info = _linear_sandwich(_ar1(np.random.default_rng(10_000 + s), N, rho, SIG))
+        sds.append(np.sqrt(np.diag(cov)))
+        infos.append(info)
+    sd_model = np.sqrt(np.diag(cov_model))
+    sd_sand = np.mean(sds, axis=0)
+    if rho > 0:
+        assert np.all(sd_model < 0.5 * sd_mc), (sd_model, sd_mc)  # the white model is over-confident (3x)
+    else:
+        np.testing.assert_allclose(sd_model, sd_mc, rtol=0.1)
+    np.testing.assert_allclose(sd_sand, sd_mc, rtol=0.15)
+    assert all(i.bandwidth_bins >= 1.0 and i.n_bins == N for i in infos)
+
+
+def test_andrews_bandwidth_grows_with_autocorrelation():
+    rng = np.random.default_rng(3)
+    white = rng.standard_normal((2000, 1))
+    red = _ar1(rng, 2000, 0.9, 1.0)[:, None]
+    bw_w, rho_w = CV.andrews_bandwidth(white)
+    bw_r, rho_r = CV.andrews_bandwidth(red)
+    assert bw_w < 3.0 and abs(rho_w[0]) < 0.1
+    assert bw_r > 20.0 and rho_r[0] > 0.8
+
+
+def _flight(seed, duration, ar=0.0):
+    sc = builtin_scenario("calibration-flight")
+    sc = sc.model_copy(update={"duration": duration, "seeds": sc.seeds.model_copy(update={"noise": seed})})
+    ds = simulate(sc)
+    if ar:
+        # correlated range errors: one AR(1) per anchor (per-range coefficient ar, sd 0.1 m) on top of the white
+        rng = np.random.default_rng(100 + seed)
+        u = ds.uwb
+        for a in u["anchor"].unique():
+            m = (u["anchor"] == a).to_numpy()
+            u.loc[m, "range"] = u.loc[m, "range"].to_numpy() + _ar1(rng, int(m.sum()), ar, 0.1)
+    return ds
+
+
+def _errors_and_sds(ds, res):
+    cal, truth = res.calibration, ds.meta.truth
+    err = np.append(np.subtract(cal["lever_arm"], truth.lever_arm), cal["time_offset"]["value"] - truth.time_offset)
+    sd = np.append(cal["lever_arm_sd"], cal["time_offset"]["sd"])
+    sd_model = np.append(cal["lever_arm_sd_model"], cal["time_offset"]["sd_model"])
+    return err, sd, sd_model
+
+
+def test_white_simulation_sandwich_close_to_model_sigma():
+    ds = _flight(1, 30.0)
+    res = calibrate(ds, CalibrationOptions.model_validate({"td_profile": {"enabled": False}}))
+    _err, sd, sd_model = _errors_and_sds(ds, res)
+    ratio = sd / sd_model
+    assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
+    c = res.calibration["covariance"]
+    assert c["method"] == "sandwich" and c["bandwidth_s"] >= c["bin_s"] > 0
+    # model option: sd is the GTSAM marginal, identical to sd_model
+    res_m = calibrate(ds, CalibrationOptions.model_validate({"td_profile": {"enabled": False}, "covariance": "model"}),
+                      eskf=res.eskf)
+    np.testing.assert_allclose(res_m.calibration["lever_arm_sd"], sd_model[:3], rtol=1e-6)
+    assert res_m.calibration["covariance"]["method"] == "model"
+
+
+def test_correlated_range_errors_sandwich_closer_to_the_seed_spread():
+    opts = CalibrationOptions.model_validate({"td_profile": {"enabled": False}})
+    z_s, z_m = [], []
+    for seed in (1, 2, 3):
+        ds = _flight(seed, 12.0, ar=0.9)
+        err, sd, sd_model = _errors_and_sds(ds, calibrate(ds, opts))
+        assert np.all(sd > sd_model)  # correlated errors: the sandwich widens every sigma
+        z_s.append(err / sd)
+        z_m.append(err / sd_model)
+    rms_s, rms_m = float(np.sqrt(np.mean(np.square(z_s)))), float(np.sqrt(np.mean(np.square(z_m))))
+    assert rms_m > 1.5  # the white model is over-confident here
+    assert abs(np.log(rms_s)) < abs(np.log(rms_m)), (rms_s, rms_m)
+
+
+def test_profile_chi2_scale_widens_the_confidence_set_and_the_curvature_sigma():
+    grid = np.round(np.arange(-0.2, 0.2001, 0.02), 6)
+    chi2 = ((grid - 0.01) / 0.01) ** 2 + 5.0
+    v1, _b1, _x1, s1 = profile_verdict(grid, chi2, 9.0)
+    v2, _b2, _x2, s2 = profile_verdict(grid, chi2, 9.0, chi2_scale=0.25)
+    assert v1 == v2 == "identified"
+    assert s2 == pytest.approx(2.0 * s1, rel=1e-6)
+    lo1, hi1 = confidence_interval(grid, chi2, 9.0)
+    lo2, hi2 = confidence_interval(grid, chi2, 9.0, chi2_scale=0.25)
+    assert lo2 < lo1 and hi2 > hi1
