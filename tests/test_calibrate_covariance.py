@@ -112,6 +112,21 @@ def test_white_simulation_sandwich_close_to_model_sigma():
     assert res_m.calibration["covariance"]["method"] == "model"
 
 
+def test_sandwich_never_below_the_model_sigma():
+    """An overstated range sd (3x the simulated noise) makes the raw sandwich smaller than the model; the
+    reported sigma is floored at the model's, the profile scale at 1, the correlations stay the sandwich's."""
+    ds = _flight(2, 12.0)
+    noise = float(ds.meta.range_sigma or 0.1)
+    res = calibrate(ds, CalibrationOptions.model_validate({"td_profile": {"enabled": False},
+                                                           "range_sigma": 3.0 * noise}))
+    _err, sd, sd_model = _errors_and_sds(ds, res)
+    np.testing.assert_allclose(sd, sd_model, rtol=1e-9)
+    c = res.calibration["covariance"]
+    assert c["floored_at_model"] >= 4
+    corr = np.array(res.calibration["correlations"]["matrix"])
+    assert np.allclose(np.diag(corr), 1.0) and np.all(np.abs(corr) <= 1.0 + 1e-6)
+
+
 def test_correlated_range_errors_sandwich_closer_to_the_seed_spread():
     opts = CalibrationOptions.model_validate({"td_profile": {"enabled": False}})
     z_s, z_m = [], []

@@ -190,9 +190,10 @@ class CalibrationOptions(BaseModel):
     covariance: Literal["sandwich", "model"] = Field(
         "sandwich", description="sigma of the calibration parameters: 'sandwich' (HAC / Newey-West over the range "
                                 "factors' scores, bandwidth chosen from the data: honest when range errors are "
-                                "correlated in time or the range model is misspecified; the t_d profile's chi2 is "
-                                "scaled by model / sandwich variance) or 'model' (GTSAM marginals of the white "
-                                "range-noise model); calibration.yaml keeps both (sd, sd_model)")
+                                "correlated in time or the range model is misspecified; never below the model's "
+                                "sigma, which a short log's noisy sandwich can undercut; the t_d profile's chi2 is "
+                                "scaled by model / sandwich variance, at most 1) or 'model' (GTSAM marginals of the "
+                                "white range-noise model); calibration.yaml keeps both (sd, sd_model)")
     max_iterations: int = Field(50, ge=1)
     reassociate_max: int = Field(3, ge=0, description="re-attach ranges when t_d moved > half a keyframe step")
     td_profile: TdProfileOptions = Field(default_factory=TdProfileOptions)
