@@ -41,6 +41,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+
+
 REPO = Path(__file__).resolve().parents[1]
 REAL = REPO / "examples" / "estimator_real.yaml"
 
@@ -97,15 +99,30 @@ def run_one(ds, unknown, bias: bool, profile: bool):
     return r, time.process_time() - c0, time.perf_counter() - w0
 
 
-def table(r, unknown, doc: pd.DataFrame, label: str) -> list[dict]:
+def inflation(r, ds, a: str) -> float:
+    """:func:`uwbimu.calibration.anchors.bias_confounding` inflation of estimated anchor ``a``.
+
+    On the calibrated anchor position and the initialising ESKF's antenna positions at its range times
+    (what the calibrator's geometry checks see; no ground truth).
+    """
+    from uwbimu.calibration import anchors as AN
+
+    t = ds.uwb["t"].to_numpy(float)[ds.uwb["anchor"].astype(str).to_numpy() == a]
+    t = t[t <= r.eskf.t[-1]]
+    P = AN.antenna_positions(r.eskf, t)
+    return AN.bias_confounding(a, np.asarray(r.calibration["anchors"]["positions"][a]["position"], float), P)[
+        "inflation"]
+
+
+def table(r, unknown, doc: pd.DataFrame, label: str, ds=None) -> list[dict]:
     """Print the per-anchor table of one run; return its rows (for --json)."""
     cal = r.calibration
     pos = cal["anchors"]["positions"]
     bias_est = cal["range_model"]["constant_bias_prior_sd"] is not None
     print(f"\n#### {label}")
     print("| anchor | error x, y, z (cm) | abs error (cm) | sd x, y, z (cm) | error / sd | Mahalanobis | "
-          "range bias (cm) |")
-    print("|---|---|---|---|---|---|---|")
+          "range bias (cm) | bias inflation |")
+    print("|---|---|---|---|---|---|---|---|")
     rows = []
     for a in unknown:
         est = np.asarray(pos[a]["position"], float)
@@ -115,16 +132,18 @@ def table(r, unknown, doc: pd.DataFrame, label: str) -> list[dict]:
         maha = float(np.sqrt(err @ np.linalg.solve(C, err))) if C is not None else float("nan")
         b, bsd = cal["anchor_bias"][a], cal["anchor_bias_sd"][a]
         btxt = f"{100 * b:+.1f} +/- {100 * bsd:.1f}" if bias_est else "not estimated"
+        infl = inflation(r, ds, a) if ds is not None else float("nan")
         print(f"| {a} | {', '.join(f'{100 * e:+.1f}' for e in err)} | {100 * np.linalg.norm(err):.1f} | "
               f"{', '.join(f'{100 * s:.1f}' for s in sd)} | {', '.join(f'{e / s:+.1f}' for e, s in zip(err, sd))} | "
-              f"{maha:.1f} | {btxt} |")
+              f"{maha:.1f} | {btxt} | {infl:.0f} |")
         row = {"anchor": a, "error_m": err.tolist(), "abs_error_m": float(np.linalg.norm(err)), "sd_m": sd.tolist(),
-               "mahalanobis": maha, "bias_estimated": bias_est, "bias_m": b if bias_est else None}
+               "mahalanobis": maha, "bias_estimated": bias_est, "bias_m": b if bias_est else None,
+               "bias_inflation": infl}
         if "sd_model" in pos[a]:
             sm = np.asarray(pos[a]["sd_model"], float)
             row["sd_model_m"] = sm.tolist()
             print(f"|   | sd_model x, y, z (cm): {', '.join(f'{100 * s:.1f}' for s in sm)}; error / sd_model: "
-                  f"{', '.join(f'{e / s:+.1f}' for e, s in zip(err, sm))} | | | | | |")
+                  f"{', '.join(f'{e / s:+.1f}' for e, s in zip(err, sm))} | | | | | | |")
         rows.append(row)
     la, las = cal["lever_arm"], cal["lever_arm_sd"]
     to = cal["time_offset"]
@@ -153,10 +172,12 @@ def true_antenna(ds):
     return ok, p + rot.apply(LEVER_ARM_DOC)
 
 
-def multilaterate_huber(P, rho, a0, bias: bool, sigma=0.1, k=1.345, iters=30):
+def multilaterate_huber(P, rho, a0, bias: bool, sigma=0.1, k=1.345, iters=30, t=None, hac_lag_s=5.0):
     """Anchor position (and constant bias) from ranges at known antenna positions, Huber IRLS.
 
-    Returns (position [m], bias [m], white-model sd per axis [m]).
+    Returns (position [m], bias [m], white-model sd per axis [m], HAC sd per axis [m] or None).  The HAC
+    (sandwich, Newey-West, Bartlett weights over ``hac_lag_s`` seconds of the range times ``t``) sd
+    treats the residuals as time-correlated, not white.
     """
     a, b = np.asarray(a0, float).copy(), 0.0
     for _ in range(iters):
@@ -169,29 +190,42 @@ def multilaterate_huber(P, rho, a0, bias: bool, sigma=0.1, k=1.345, iters=30):
         a = a + step[:3]
         b = b + (step[3] if bias else 0.0)
     sd = np.sqrt(np.diag(np.linalg.inv(J.T @ J))[:3]) * sigma
-    return a, b, sd
+    hac = None
+    if t is not None:
+        g = J * (w * e)[:, None]  # per-range score
+        S = g.T @ g
+        dt = float(np.median(np.diff(t)))
+        for lag in range(1, int(hac_lag_s / dt) + 1):
+            wl = 1.0 - lag / (hac_lag_s / dt + 1.0)
+            G = g[lag:].T @ g[:-lag]
+            S += wl * (G + G.T)
+        Ainv = np.linalg.inv((J * w[:, None]).T @ J)
+        hac = np.sqrt(np.diag(Ainv @ S @ Ainv)[:3])
+    return a, b, sd, hac
 
 
 def floor(ds, ids) -> list[dict]:
     """Range-only floor per anchor (see module doc); prints a table."""
+    from uwbimu.calibration.anchors import bias_confounding
+
     ok, P = true_antenna(ds)
     uwb = ds.uwb[ok]
     aid = uwb["anchor"].astype(str).to_numpy()
     rho = uwb["range"].to_numpy(float)
     doc = documented(ds)
+    tr = uwb["t"].to_numpy(float)
     quarters = np.array_split(np.arange(len(uwb)), 4)
     print("\n#### Range-only floor: multilateration at the TRUE antenna positions (mocap; diagnostic only)")
-    print("| anchor | bias | error x, y, z (cm) | abs (cm) | white sd x, y, z (cm) | quarters: abs error (cm) | "
-          "quarters: sd of estimate x, y, z (cm) | mean line of sight length |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| anchor | bias | error x, y, z (cm) | abs (cm) | white sd x, y, z (cm) | HAC sd x, y, z (cm) | "
+          "quarters: abs error (cm) | quarters: sd of estimate x, y, z (cm) | bias inflation |")
+    print("|---|---|---|---|---|---|---|---|---|")
     out = []
     for a in ids:
         a0 = doc.loc[a].to_numpy(float)
         m = aid == a
-        n = a0 - P[m]
-        mrl = float(np.linalg.norm((n / np.linalg.norm(n, axis=1)[:, None]).mean(axis=0)))
+        infl = bias_confounding(a, a0, P[m])["inflation"]
         for bias in (False, True):
-            est, b, sd = multilaterate_huber(P[m], rho[m], a0 + 0.3, bias)
+            est, b, sd, hac = multilaterate_huber(P[m], rho[m], a0 + 0.3, bias, t=tr[m])
             err = est - a0
             q = []
             for idx in quarters:
@@ -202,11 +236,11 @@ def floor(ds, ids) -> list[dict]:
             q = np.array(q)
             print(f"| {a} | {'est. %+.0f cm' % (100 * b) if bias else 'off'} | "
                   f"{', '.join(f'{100 * e:+.1f}' for e in err)} | {100 * np.linalg.norm(err):.1f} | "
-                  f"{', '.join(f'{100 * s:.1f}' for s in sd)} | "
+                  f"{', '.join(f'{100 * s:.1f}' for s in sd)} | {', '.join(f'{100 * s:.1f}' for s in hac)} | "
                   f"{', '.join(f'{100 * np.linalg.norm(e):.0f}' for e in q)} | "
-                  f"{', '.join(f'{100 * s:.0f}' for s in q.std(axis=0, ddof=1))} | {mrl:.2f} |")
+                  f"{', '.join(f'{100 * s:.0f}' for s in q.std(axis=0, ddof=1))} | {infl:.0f} |")
             out.append({"anchor": a, "bias": bias, "error_m": err.tolist(), "bias_m": b, "white_sd_m": sd.tolist(),
-                        "quarter_errors_m": q.tolist(), "mean_resultant_length": mrl})
+                        "hac_sd_m": hac.tolist(), "quarter_errors_m": q.tolist(), "bias_inflation": infl})
     return out
 
 
@@ -228,7 +262,7 @@ def main() -> None:
     doc = documented(ds)
     out = {"runs": [], "floor": None}
     if args.full or args.floor_only:
-        out["floor"] = floor(ds, list(doc.index))
+        out["floor"] = floor(ds, sorted(doc.index))
     if args.floor_only:
         return
     sets = ({f"set-{s}": tuple(a.strip() for a in s.split(",")) for s in args.sets.split(";")}
@@ -242,7 +276,7 @@ def main() -> None:
             label = (f"{name}, range bias {'estimated' if v == 'bias' else 'off'}, profile "
                      f"{'on (default)' if args.profile else 'off'}; {span:.0f} s, {len(ds.uwb)} ranges; "
                      f"CPU {cpu:.0f} s, wall {wall:.0f} s")
-            rows = table(r, unknown, doc, label)
+            rows = table(r, unknown, doc, label, ds)
             out["runs"].append({"set": name, "variant": v, "profile": args.profile, "cpu_s": cpu, "wall_s": wall,
                                 "rows": rows, "lever_arm_m": r.calibration["lever_arm"],
                                 "time_offset": r.calibration["time_offset"],
