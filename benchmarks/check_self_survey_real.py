@@ -169,7 +169,37 @@ def true_antenna(ds):
     tg = gt["t"].to_numpy(float)
     p = np.column_stack([np.interp(t[ok], tg, gt[c].to_numpy(float)) for c in ("px", "py", "pz")])
     rot = Slerp(tg, Rotation.from_quat(gt[["qx", "qy", "qz", "qw"]].to_numpy(float)))(t[ok])
-    return ok, p + rot.apply(LEVER_ARM_DOC)
+    return ok, p + rot.apply(LEVER_ARM_DOC), rot
+
+
+def multilaterate_direction(P, rho, rot, a0, harmonics=2, elevation=False, prior_sd=0.05, sigma=0.1, k=1.345,
+                            iters=30):
+    """As :func:`multilaterate_huber` without range bias, plus the tag-side direction model of the calibrator.
+
+    Bias ``sum_n c_n cos(n az) + s_n sin(n az) (+ e el)`` of the line of sight tag -> anchor in the TAG
+    body frame (``range_model.direction``, ``per_anchor: true``), zero-mean prior ``prior_sd`` per
+    coefficient.  Returns the position [m].
+    """
+    a = np.asarray(a0, float).copy()
+    x = np.zeros(2 * harmonics + int(elevation))
+    for _ in range(iters):
+        u = a - P
+        r = np.linalg.norm(u, axis=1)
+        n = u / r[:, None]
+        ub = rot.inv().apply(n)
+        az, el = np.arctan2(ub[:, 1], ub[:, 0]), np.arcsin(np.clip(ub[:, 2], -1.0, 1.0))
+        F = np.column_stack([f(h * az) for h in range(1, harmonics + 1) for f in (np.cos, np.sin)]
+                            + ([el] if elevation else []))
+        e = r + F @ x - rho
+        w = np.minimum(1.0, k * sigma / np.maximum(np.abs(e), 1e-12))
+        J = np.column_stack([n, F])
+        H = (J * w[:, None]).T @ J / sigma**2
+        g = (J * w[:, None]).T @ e / sigma**2
+        H[3:, 3:] += np.eye(len(x)) / prior_sd**2
+        g[3:] += x / prior_sd**2
+        step = -np.linalg.solve(H, g)
+        a, x = a + step[:3], x + step[3:]
+    return a
 
 
 def multilaterate_huber(P, rho, a0, bias: bool, sigma=0.1, k=1.345, iters=30, t=None, hac_lag_s=5.0):
@@ -208,7 +238,7 @@ def floor(ds, ids) -> list[dict]:
     """Range-only floor per anchor (see module doc); prints a table."""
     from uwbimu.calibration.anchors import bias_confounding
 
-    ok, P = true_antenna(ds)
+    ok, P, rot = true_antenna(ds)
     uwb = ds.uwb[ok]
     aid = uwb["anchor"].astype(str).to_numpy()
     rho = uwb["range"].to_numpy(float)
@@ -241,6 +271,20 @@ def floor(ds, ids) -> list[dict]:
                   f"{', '.join(f'{100 * s:.0f}' for s in q.std(axis=0, ddof=1))} | {infl:.0f} |")
             out.append({"anchor": a, "bias": bias, "error_m": err.tolist(), "bias_m": b, "white_sd_m": sd.tolist(),
                         "hac_sd_m": hac.tolist(), "quarter_errors_m": q.tolist(), "bias_inflation": infl})
+    print("\nRange-only floor with the tag-side direction model (no constant bias, per anchor, prior sd 5 cm): "
+          "abs error (cm)")
+    print("| model | " + " | ".join(ids) + " | median |")
+    print("|---" * (len(ids) + 2) + "|")
+    for lab, kw in (("none", None), ("harmonics 2", {}), ("harmonics 2 + elevation", {"elevation": True})):
+        errs = []
+        for a in ids:
+            a0 = doc.loc[a].to_numpy(float)
+            m = aid == a
+            est = (multilaterate_huber(P[m], rho[m], a0 + 0.3, False)[0] if kw is None else
+                   multilaterate_direction(P[m], rho[m], rot[np.flatnonzero(m)], a0 + 0.3, **kw))
+            errs.append(100 * np.linalg.norm(est - a0))
+        print(f"| {lab} | " + " | ".join(f"{e:.1f}" for e in errs) + f" | {np.median(errs):.1f} |")
+        out.append({"direction_model": lab, "abs_error_cm": dict(zip(ids, errs))})
     return out
 
 
