@@ -5,7 +5,9 @@
 DATASET: an imported INRoL folder (``uwbimu import inrol ../shared/datasets/inrol_uwb_imu DIR``).
 The ``--unknown`` anchors are marked ``surveyed: false`` and their coordinates overwritten with 0
 (nothing of the documented value reaches the calibrator); the calibrator estimates them with no
-prior, from the first ``--window`` seconds of the log (the full 190 s log takes ~10 min).  The
+prior, from the first ``--window`` seconds of the log.  The full-log survey (four triples, range
+bias estimated and off, the ground-truth range-only floor) is ``benchmarks/check_self_survey_real.py
+DATASET --full``.  The
 errors are against the documented ``anchor.txt`` values (the imported anchors.csv).  Every number
 printed is measured in this run; state the machine load (``uptime``) next to it.
 """

@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from uwbimu.calibration import CalibrationOptions
-from uwbimu.calibration.anchors import geometry_checks, multilaterate, plan_anchors
+from uwbimu.calibration.anchors import BIAS_INFLATION, bias_confounding, geometry_checks, multilaterate, plan_anchors
 from uwbimu.errors import InputError
 from uwbimu.io.dataset import Dataset, write_dataset
 from uwbimu.io.loader import DatasetError, load_dataset
@@ -133,6 +133,37 @@ def test_geometry_checks(scale):
     # Multilateration finds the anchor from the 3-D positions.
     est, rms = multilaterate(solid, _ranges(solid, a, sigma))
     assert np.linalg.norm(est - a) < 0.05 * scale and rms < 2 * sigma
+
+
+@pytest.mark.parametrize("scale", [1.0, 10.0])
+def test_bias_confounding(scale):
+    """Inflation = largest ratio of position variances with the range bias free against known (Fisher).
+
+    A small flight volume far from the anchor (narrow cone, as for a room-corner anchor seen from a
+    1-m box 3 m away) is flagged; a motion around the anchor is not.  Scale-free.
+    """
+    rng = np.random.default_rng(2)
+    a = scale * np.array([0.0, 0.0, 2.0])
+    box = scale * (np.array([3.0, 0.5, 1.0]) + rng.uniform(-0.5, 0.5, (500, 3)))
+    ring = scale * np.column_stack([2.0 * np.cos(th := rng.uniform(0, 2 * np.pi, 500)), 2.0 * np.sin(th),
+                                    rng.uniform(0.5, 3.5, 500)])
+
+    def fisher_inflation(P):
+        n = (a - P) / np.linalg.norm(a - P, axis=1)[:, None]
+        J = np.column_stack([-n, np.ones(len(n))])
+        cov_free = np.linalg.inv(J.T @ J)[:3, :3]  # bias estimated (no prior)
+        cov_known = np.linalg.inv(n.T @ n)  # bias known
+        return float(np.sqrt(np.max(np.linalg.eigvals(np.linalg.solve(cov_known, cov_free)).real)))
+
+    narrow, wide = bias_confounding("X", a, box), bias_confounding("Y", a, ring)
+    assert narrow["inflation"] == pytest.approx(fisher_inflation(box), rel=1e-6)
+    assert wide["inflation"] == pytest.approx(fisher_inflation(ring), rel=1e-6)
+    assert narrow["inflation"] > BIAS_INFLATION and narrow["event"]["kind"] == "anchor_bias_confounded"
+    assert "X" in narrow["event"]["message"] and "estimate_anchor_bias" in narrow["event"]["message"]
+    assert wide["inflation"] < 2.0 and wide["event"] is None
+    # The mean line of sight of the box points from it to the anchor.
+    d = a - box.mean(axis=0)
+    assert np.dot(narrow["mean_los"], d / np.linalg.norm(d)) > 0.99
 
 
 def test_coplanar_motion_is_refused_without_a_prior():

@@ -17,6 +17,10 @@ Conventions (docs/calibrate.md, "Anchor self-survey"):
   to the next anchor with coordinates (that anchor's y is constrained to the
   origin anchor's y).  The file's coordinates are rotated/translated into that
   frame for the initial guess; the result (anchors and trajectory) is in it.
+* **Bias / distance confounding** (:func:`bias_confounding`): when the anchor's constant
+  range bias is estimated too, its distance along the mean line of sight rests only on
+  the spread of viewing directions; the sd inflation against a known bias is reported
+  (event ``anchor_bias_confounded`` above ``BIAS_INFLATION``; a warning, never a refusal).
 * **Degenerate geometry** (:func:`geometry_checks`): an estimated anchor seen
   from too few directions (its worst-direction sd, from the Fisher information of
   its ranges, is not small against its distance) or lying off a (near-)planar
@@ -44,6 +48,10 @@ MIRROR_CHI2 = 9.0
 #: An anchor is "located" when this many worst-direction sds stay below its distance to the
 #: trajectory (beyond it, the linearised line-of-sight directions themselves are unknown).
 DIRECTION_SIGMAS = 3.0
+#: sd inflation (bias estimated against bias known) above which an anchor's constant range bias and
+#: its distance along the mean line of sight count as confounded (:func:`bias_confounding`): the
+#: multiple correlation of the bias with the position is then above sqrt(1 - 1/10^2) = 0.995.
+BIAS_INFLATION = 10.0
 
 
 @dataclass
@@ -313,3 +321,52 @@ def geometry_checks(anchor_id: str, a: np.ndarray, P: np.ndarray, rho: np.ndarra
                                   f"fits the ranges as well (delta chi2 {dchi2:.2g} < {MIRROR_CHI2:g}): its side "
                                   "(height) is ambiguous; vary the height of the motion"})
     return events
+
+
+def bias_confounding(anchor_id: str, a: np.ndarray, P: np.ndarray, threshold: float = BIAS_INFLATION) -> dict:
+    """How far an anchor's constant range bias and its position are confounded (scale-free).
+
+    With ranges ``|P_i - a| + b`` the information of ``(a, b)`` has rows ``[-n_i, 1]`` (unit lines of
+    sight ``n_i`` from the antenna positions to the anchor).  The multiple correlation ``R`` of the bias
+    with the position is ``R^2 = q / (1 + q)``, ``q = m' C^-1 m``, ``m`` and ``C`` the mean and covariance
+    of the ``n_i``; estimating the bias inflates the sd of the position's most correlated combination
+    (about the distance along the mean line of sight) by ``1 / sqrt(1 - R^2)`` against a known bias.  A
+    trajectory seen from the anchor in a narrow cone (a small flight volume far away, or an anchor in a
+    corner) gives a large inflation: the white-noise sd grows by that factor, and any range error that is
+    not white (direction dependent, slowly varying) is no longer averaged down along that direction.
+
+    Parameters
+    ----------
+    anchor_id : the anchor's id (for the event).
+    a : (3,) anchor position [m]; P : (M, 3) antenna positions [m] (same frame).
+    threshold : inflation above which the event ``anchor_bias_confounded`` is returned.
+
+    Returns
+    -------
+    dict with ``inflation`` (>= 1), ``correlation`` (R), ``mean_los_length`` (|m|, 1 for a single direction),
+    ``mean_los`` (unit mean line of sight, tag -> anchor) and, above ``threshold``, ``event`` (a dict with
+    ``kind: anchor_bias_confounded`` and a message naming the anchor and what helps); else ``event: None``.
+    """
+    u = np.asarray(a, float) - np.asarray(P, float)
+    n = u / np.linalg.norm(u, axis=1)[:, None]
+    m = n.mean(axis=0)
+    C = np.cov(n.T, bias=True)
+    lam, V = np.linalg.eigh(C)
+    q = float(np.sum((V.T @ m) ** 2 / np.maximum(lam, 1e-300)))
+    r2 = q / (1.0 + q)
+    infl = float(np.sqrt(1.0 + q))  # 1 / sqrt(1 - R^2)
+    ml = float(np.linalg.norm(m))
+    out = {"anchor": anchor_id, "inflation": infl, "correlation": float(np.sqrt(r2)), "mean_los_length": ml,
+           "mean_los": [float(v) for v in m / max(ml, 1e-300)], "event": None}
+    if infl > threshold:
+        out["event"] = {
+            "kind": "anchor_bias_confounded", "anchor": anchor_id, "inflation": infl,
+            "correlation": float(np.sqrt(r2)), "mean_los_length": ml,
+            "message": f"anchor {anchor_id}: its constant range bias and its distance along the mean line of sight "
+                       f"are confounded (bias-position correlation {np.sqrt(r2):.4f}; the trajectory is seen from "
+                       f"the anchor in a narrow cone, mean line-of-sight length {ml:.2f}): that distance's sd is "
+                       f"{infl:.0f}x the one with a known bias, and range errors that are not white (direction-"
+                       "dependent antenna delay, multipath) are not averaged down along it; move on more sides "
+                       "of the anchor, or fix its bias (estimate_anchor_bias: false: a constant bias then shifts it "
+                       "along the line of sight by about that bias)"}
+    return out
