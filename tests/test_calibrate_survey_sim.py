@@ -72,3 +72,23 @@ def test_anchors_estimated_csv_is_a_dataset_anchor_table(survey, tmp_path):
     back = load_dataset(folder)
     np.testing.assert_allclose(back.anchors[["x", "y", "z"]].to_numpy(), res.anchors[["x", "y", "z"]].to_numpy(),
                                atol=1e-8)
+
+
+def test_bias_confounding_is_named_as_a_warning():
+    """An estimated anchor whose bias is estimated too and that sees the motion in a narrow cone is named
+    (event ``anchor_bias_confounded``, a warning with its inflation), solved, not refused; none without
+    the bias."""
+    from uwbimu.calibration import anchors as AN
+
+    ds = walk_around(duration=20.0, seed=2)
+    base = {"td_profile": {"enabled": False}, "estimate_anchors": ["A0", "A4"]}
+    res = calibrate(ds, CalibrationOptions.model_validate(base))
+    ev = {e["anchor"]: e for e in res.events if e["kind"] == "anchor_bias_confounded"}
+    tab = ds.anchors.set_index("anchor")
+    P = res.trajectory[["px", "py", "pz"]].to_numpy()  # IMU positions: the cone is the same to a few cm
+    for a in ("A0", "A4"):  # inflation about 18 and 4 (threshold 10)
+        infl = AN.bias_confounding(a, tab.loc[a, ["x", "y", "z"]].to_numpy(float), P)["inflation"]
+        assert (a in ev) == (infl > AN.BIAS_INFLATION), (a, infl, sorted(ev))
+    assert ev and all(e["severity"] == "warning" and e["inflation"] > AN.BIAS_INFLATION for e in ev.values())
+    res0 = calibrate(ds, CalibrationOptions.model_validate(base | {"estimate_anchor_bias": False}), eskf=res.eskf)
+    assert not [e for e in res0.events if e["kind"] == "anchor_bias_confounded"]

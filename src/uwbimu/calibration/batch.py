@@ -450,6 +450,11 @@ def _initial_anchors(dataset, eskf, o: CalibrationOptions, setup) -> list[dict]:
         for ev in found:
             ev["severity"] = "warning" if has_prior or o.degenerate_anchors == "warn" else "refused"
             ev["has_prior"] = has_prior
+        if bias_sd is not None:
+            # bias and distance confounded (narrow cone of lines of sight): solvable, but say so (never refused)
+            conf = AN.bias_confounding(a_id, a0, P)["event"]
+            if conf is not None:
+                found.append(conf | {"severity": "warning", "has_prior": has_prior})
         refused = [ev for ev in found if ev["severity"] == "refused"]
         if refused:
             raise InputError("anchor self-survey refused: " + "; ".join(ev["message"] for ev in refused),
