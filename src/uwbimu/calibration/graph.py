@@ -330,17 +330,17 @@ def build_problem(dataset, eskf, options: CalibrationOptions, anchors: Optional[
     knot, n_knots = None, 0
     dr = options.range_bias_drift
     if dr is not None:
-        if bj is not None or (anchors is not None and any(anchors.estimated)) or not options.group_range_factors:
-            raise UsageError("calibrate: range_bias_drift works with ranges to fixed anchors and grouped range "
-                             "factors only (not with TDoA, --estimate-anchors or group_range_factors: false)")
+        if bj is not None or not options.group_range_factors:
+            raise UsageError("calibrate: range_bias_drift works with ranges and grouped range factors only "
+                             "(not with TDoA or group_range_factors: false)")
         knot = np.rint((t_r - t_r.min()) / dr.knot_spacing).astype(np.int64)
         n_knots = int(knot.max()) + 1
     for fld in ("direction", "anchor_direction"):
         if getattr(options.range_model, fld) is None:
             continue
-        if bj is not None or (anchors is not None and any(anchors.estimated)) or not options.group_range_factors:
-            raise UsageError(f"calibrate: range_model.{fld} works with ranges to fixed anchors and grouped range "
-                             "factors only (not with TDoA, --estimate-anchors or group_range_factors: false)")
+        if bj is not None or not options.group_range_factors:
+            raise UsageError(f"calibrate: range_model.{fld} works with ranges and grouped range factors only "
+                             "(not with TDoA or group_range_factors: false)")
     rot = None
     if options.range_model.anchor_direction is not None:
         rot = _anchor_rotations(dataset, ids, sorted({ids[j] for j in np.unique(aj)}), anchors)
@@ -485,7 +485,7 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
     assoc.groups = {}
     grouped = np.zeros(len(assoc.used), bool)
     if o.group_range_factors:
-        plain = np.array([not pb.is_tdoa(m) and not pb.estimated(int(pb.anchor_j[m])) for m in assoc.used], bool)
+        plain = np.array([not pb.is_tdoa(m) for m in assoc.used], bool)
         rows = np.flatnonzero(plain)
         if len(rows):
             keys_of = np.asarray(assoc.key)[rows]
@@ -522,6 +522,11 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
                     dkw |= {"anchor_direction": (amod.orders, amod.powers), "anchor_rot": pb.anchor_rot[js],
                             "adir_col": col}
                     bkeys += [adir_key(int(j)) for j in ujs]
+                uest = np.array([pb.estimated(int(j)) for j in ujs], bool)
+                if uest.any():  # self-survey: the estimated anchors' positions are variables of the group
+                    avar = np.where(uest, np.cumsum(uest) - 1, -1)[col]
+                    dkw["anchor_var"] = avar
+                    bkeys += [P(int(j)) for j in ujs[uest]]
                 grp = RangeGroup([assoc.deltas[i] for i in chunk], pb.anchor_pos[js], pb.rho[ms], col, assoc.td0,
                                  bias_matrix=bmat, kf=kf, **dkw)
                 keys = [key for k in kfs for key in (X(int(k)), V(int(k)))] + [L(tag)] + \
@@ -564,7 +569,7 @@ def _group_coefs(grp: RangeGroup, ks, values):
     ones), or None."""
     if not grp.n_dir:
         return None
-    off = len(ks) - grp.n_adir - grp.n_dir
+    off = len(ks) - grp.n_apos - grp.n_adir - grp.n_dir
     return np.array([values.atVector(ks[off + i]) for i in range(grp.n_dir)])
 
 
@@ -572,7 +577,15 @@ def _group_acoefs(grp: RangeGroup, ks, values):
     """(n_adir, P_a) anchor-side direction-bias coefficients of a grouped range factor (its last keys), or None."""
     if not grp.n_adir:
         return None
-    return np.array([values.atVector(ks[len(ks) - grp.n_adir + i]) for i in range(grp.n_adir)])
+    off = len(ks) - grp.n_apos - grp.n_adir
+    return np.array([values.atVector(ks[off + i]) for i in range(grp.n_adir)])
+
+
+def _group_apos(grp: RangeGroup, ks, values):
+    """(n_apos, 3) positions [m] of a grouped range factor's estimated anchors (its last keys), or None."""
+    if not grp.n_apos:
+        return None
+    return np.array([values.atPoint3(ks[len(ks) - grp.n_apos + i]) for i in range(grp.n_apos)])
 
 
 def _group_lever(grp: RangeGroup, ks, values) -> np.ndarray:
@@ -592,10 +605,11 @@ def range_residuals(graph, assoc: Association, values, td: float) -> np.ndarray:
     out = np.empty(len(assoc.used))
     for fi, grp in assoc.groups.items():
         ks = graph.at(int(fi)).keys()
-        nb_off = len(ks) - grp.n_bias - grp.n_dir - grp.n_adir
+        nb_off = len(ks) - grp.n_bias - grp.n_dir - grp.n_adir - grp.n_apos
         biases = np.array([values.atVector(ks[nb_off + i])[0] for i in range(grp.n_bias)])
         e = grp.evaluate(*_group_states(grp, ks, values), _group_lever(grp, ks, values), td, biases,
-                         dir_coefs=_group_coefs(grp, ks, values), adir_coefs=_group_acoefs(grp, ks, values))
+                         dir_coefs=_group_coefs(grp, ks, values), adir_coefs=_group_acoefs(grp, ks, values),
+                         anchor_pos=_group_apos(grp, ks, values))
         rows = np.flatnonzero(assoc.slots[:, 0] == fi)
         out[rows] = e[assoc.slots[rows, 1]]
     single = np.flatnonzero(~np.isin(assoc.slots[:, 0], list(assoc.groups)))
@@ -622,7 +636,8 @@ def anchor_direction_terms(graph, assoc: Association, values, td: float) -> np.n
     def term(grp, ks):
         if grp.anchor_direction is None:
             return None
-        u = grp._geometry(*_group_states(grp, ks, values), _group_lever(grp, ks, values), td)["u"]
+        u = grp._geometry(*_group_states(grp, ks, values), _group_lever(grp, ks, values), td,
+                          _group_apos(grp, ks, values))["u"]
         return grp.anchor_term(u, _group_acoefs(grp, ks, values))
 
     return _row_terms(graph, assoc, term)
@@ -633,7 +648,8 @@ def direction_terms(graph, assoc: Association, values, td: float) -> np.ndarray:
     def term(grp, ks):
         if grp.direction is None:
             return None
-        wb = grp.line_of_sight_body(*_group_states(grp, ks, values), _group_lever(grp, ks, values), td)
+        wb = grp.line_of_sight_body(*_group_states(grp, ks, values), _group_lever(grp, ks, values), td,
+                                    _group_apos(grp, ks, values))
         F, _ = direction_features(wb, *grp.direction)
         return np.einsum("np,np->n", F, _group_coefs(grp, ks, values)[grp.dir_col])
 

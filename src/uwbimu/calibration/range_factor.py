@@ -237,7 +237,8 @@ USE_KERNEL = True
 #: NumPy path until the kernel learns it.
 _KERNEL_ATTRS = frozenset({"tau", "dR", "dv", "dp", "acc", "omega", "dRacc", "anchor", "rho", "bias_col", "td0",
                            "bias_matrix", "kf", "n_kf", "kf_mask", "direction", "dir_col", "n_dir", "dir_mask",
-                           "anchor_direction", "anchor_rot", "adir_col", "n_adir", "adir_mask"})
+                           "anchor_direction", "anchor_rot", "adir_col", "n_adir", "adir_mask",
+                           "anchor_var", "n_apos", "apos_mask"})
 
 
 class RangeGroup:
@@ -265,10 +266,14 @@ class RangeGroup:
         from the anchor to the tag antenna in the anchor's antenna frame.
     anchor_rot : (N, 3, 3) each row's anchor antenna orientation ``R_a`` (antenna frame -> world).
     adir_col : (N,) index of each row's anchor-side coefficient vector among the group's anchor-side keys.
+    anchor_var : optional (N,) index of each row's anchor among the group's anchor-position variables
+        (``Point3``, world [m]; self-survey), -1 for a row whose anchor is fixed at ``anchors``.  Those rows'
+        anchors are then the ``anchor_pos`` given to :meth:`evaluate` (``anchors`` ignored for them).
     """
 
     def __init__(self, deltas, anchors, rho, bias_col, td0: float, bias_matrix=None, kf=None,
-                 direction=None, dir_col=None, anchor_direction=None, anchor_rot=None, adir_col=None):
+                 direction=None, dir_col=None, anchor_direction=None, anchor_rot=None, adir_col=None,
+                 anchor_var=None):
         self.tau = np.array([d.tau for d in deltas])
         self.dR = np.array([d.dR for d in deltas])
         self.dv = np.array([d.dv for d in deltas])
@@ -302,6 +307,24 @@ class RangeGroup:
             self.adir_mask = [(self.adir_col == i)[:, None].astype(float) for i in range(self.n_adir)]
         else:
             self.anchor_rot, self.adir_col, self.n_adir, self.adir_mask = None, None, 0, []
+        av = None if anchor_var is None else np.asarray(anchor_var, np.int64)
+        if av is not None and np.any(av >= 0):
+            self.anchor_var = av
+            self.n_apos = int(av.max()) + 1
+            self.apos_mask = [(av == i)[:, None].astype(float) for i in range(self.n_apos)]
+        else:
+            self.anchor_var, self.n_apos, self.apos_mask = None, 0, []
+
+    def row_anchors(self, anchor_pos=None) -> np.ndarray:
+        """(N, 3) each row's anchor position [m] (world): fixed ones from ``anchors``, estimated ones from
+        ``anchor_pos`` (n_apos, 3), the current values of the group's anchor-position variables."""
+        if self.anchor_var is None:
+            return self.anchor
+        if anchor_pos is None:
+            raise ValueError("RangeGroup: this group has estimated anchors; pass anchor_pos")
+        ap = np.asarray(anchor_pos, float).reshape(self.n_apos, 3)
+        est = self.anchor_var >= 0
+        return np.where(est[:, None], ap[np.maximum(self.anchor_var, 0)], self.anchor)
 
     @property
     def n_bias(self) -> int:
@@ -311,13 +334,13 @@ class RangeGroup:
     def __len__(self) -> int:
         return len(self.rho)
 
-    def line_of_sight_body(self, R_k, p_k, v_k, lever, td: float) -> np.ndarray:
+    def line_of_sight_body(self, R_k, p_k, v_k, lever, td: float, anchor_pos=None) -> np.ndarray:
         """(N, 3) vector from the tag antenna to the anchor in the body (IMU) frame at the range instant [m]."""
-        return self._geometry(R_k, p_k, v_k, lever, td)["wb"]
+        return self._geometry(R_k, p_k, v_k, lever, td, anchor_pos)["wb"]
 
-    def line_of_sight_anchor(self, R_k, p_k, v_k, lever, td: float) -> np.ndarray:
+    def line_of_sight_anchor(self, R_k, p_k, v_k, lever, td: float, anchor_pos=None) -> np.ndarray:
         """(N, 3) vector from the anchor to the tag antenna in the anchor's antenna frame [m]."""
-        return np.einsum("nji,nj->ni", self.anchor_rot, self._geometry(R_k, p_k, v_k, lever, td)["u"])
+        return np.einsum("nji,nj->ni", self.anchor_rot, self._geometry(R_k, p_k, v_k, lever, td, anchor_pos)["u"])
 
     def anchor_term(self, u, adir_coefs, jacobian: bool = False):
         """Anchor-side direction bias (N,) [m] of the world lines of sight ``u = p_U - anchor`` (N, 3) and, on
@@ -330,7 +353,7 @@ class RangeGroup:
             return term
         return term, F, np.einsum("nij,nj->ni", self.anchor_rot, np.einsum("np,npi->ni", C, dF))
 
-    def _geometry(self, R_k, p_k, v_k, lever, td):
+    def _geometry(self, R_k, p_k, v_k, lever, td, anchor_pos=None):
         g = G_WORLD
         R_k = np.asarray(R_k, float).reshape(-1, 3, 3)[self.kf]
         p_k = np.asarray(p_k, float).reshape(-1, 3)[self.kf]
@@ -344,13 +367,16 @@ class RangeGroup:
         M = self.dR @ so3_exp_batch(self.omega * delta)
         R_s = R_k @ M
         p_U = p_s0 + v_s0 * delta + 0.5 * a_s0 * delta**2 + R_s @ lever
-        u = p_U - self.anchor
+        u = p_U - self.row_anchors(anchor_pos)
         wb = -np.einsum("nij,ni->nj", R_s, u)  # R_s^T (anchor - p_U)
         return {"R_k": R_k, "delta": delta, "tau": tau, "v_s0": v_s0, "a_s0": a_s0, "M": M, "R_s": R_s,
                 "u": u, "wb": wb}
 
-    def _evaluate_kernel(self, R_k, p_k, v_k, lever, td: float, biases, jacobians: bool):
-        """:meth:`evaluate` without a direction model, by the compiled row loop (:mod:`.range_kernel`)."""
+    def _evaluate_kernel(self, R_k, p_k, v_k, lever, td: float, biases, jacobians: bool, anchor_pos=None):
+        """:meth:`evaluate` without a direction model, by the compiled row loop (:mod:`.range_kernel`).
+
+        With estimated anchors the rows' current anchor positions go to the kernel and the anchor Jacobian
+        ``-n`` is recovered exactly from the pose Jacobian's position block ``R_k^T n``."""
         from uwbimu.calibration.range_kernel import group_rows
 
         n = len(self.rho)
@@ -364,13 +390,18 @@ class RangeGroup:
             Jp = Jv = Jl = np.empty((0, 6))
             Jt = np.empty(0)
         group_rows(R_k, p_k, v_k, self.kf, self.tau, self.dR, self.dv, self.dp, self.acc, self.omega, self.dRacc,
-                   self.anchor, np.ascontiguousarray(lever, dtype=float).reshape(3), float(td - self.td0),
+                   np.ascontiguousarray(self.row_anchors(anchor_pos)), np.ascontiguousarray(lever, dtype=float).reshape(3), float(td - self.td0),
                    float(G_WORLD[2]), jacobians, r, Jp, Jv, Jl, Jt)
         e = r + self.bias_matrix @ np.asarray(biases, float) - self.rho
-        return (e, Jp, Jv, Jl, Jt) if jacobians else e
+        if not jacobians:
+            return e
+        if self.anchor_var is None:
+            return e, Jp, Jv, Jl, Jt
+        Rk = R_k[self.kf]
+        return e, Jp, Jv, Jl, Jt, -np.einsum("nij,nj->ni", Rk, Jp[:, 3:6]) * (self.anchor_var >= 0)[:, None]
 
     def evaluate(self, R_k, p_k, v_k, lever, td: float, biases, jacobians: bool = False, dir_coefs=None,
-                 adir_coefs=None):
+                 adir_coefs=None, anchor_pos=None):
         """Residuals ``e`` (N,) [m] and, on request, Jacobians ``(J_pose (N, 6), J_vel (N, 3),
         J_lever (N, 3), J_td (N,))`` on the GTSAM tangents (see :func:`range_error`); each row's
         pose and velocity Jacobians are with respect to its own keyframe.
@@ -380,15 +411,19 @@ class RangeGroup:
         (the features: each row's derivative with respect to its own coefficient vector) is appended.
         With an anchor-side model, ``adir_coefs`` (n_adir, P_a) likewise: its term is added to ``e``; it is
         a function of ``u = p_U - anchor`` only, so its derivatives are the range's own with ``n = u / |u|``
-        replaced by ``n + R_a dg/dw_a``; its features ``F_a`` (N, P_a) come last.
+        replaced by ``n + R_a dg/dw_a``; its features ``F_a`` (N, P_a) follow.
+        With estimated anchors (``anchor_var``), ``anchor_pos`` (n_apos, 3) are their current positions
+        [m] (world) and the Jacobian of every row with respect to its own anchor's position, (N, 3),
+        comes last: ``-(n + R_a dg/dw_a) + R_s dF/dw_b c`` (range, anchor-side and tag-side terms; zero for
+        the rows whose anchor is fixed).
 
         ``R_k, p_k, v_k``: the keyframes' states, (K, 3, 3), (K, 3), (K, 3) with K = ``n_kf``
         (or (3, 3), (3,), (3,) for one keyframe).
         """
         if USE_KERNEL and self.direction is None and self.anchor_direction is None \
                 and set(vars(self)) <= _KERNEL_ATTRS and np.size(lever) == 3:
-            return self._evaluate_kernel(R_k, p_k, v_k, lever, td, biases, jacobians)
-        geo = self._geometry(R_k, p_k, v_k, lever, td)
+            return self._evaluate_kernel(R_k, p_k, v_k, lever, td, biases, jacobians, anchor_pos)
+        geo = self._geometry(R_k, p_k, v_k, lever, td, anchor_pos)
         R_k, delta, tau, v_s0, a_s0, M, R_s, u = (geo[k] for k in ("R_k", "delta", "tau", "v_s0", "a_s0", "M",
                                                                     "R_s", "u"))
         r = np.sqrt(np.einsum("ni,ni->n", u, u))
@@ -413,8 +448,10 @@ class RangeGroup:
         J_td = np.einsum("ni,ni->n", n, v_s0 + a_s0 * delta
                          + np.einsum("nij,nj->ni", R_s, np.cross(self.omega, lever)))
         extra = (at[1],) if self.anchor_direction is not None else ()
+        est = None if self.anchor_var is None else (self.anchor_var >= 0)[:, None]
+        J_anc = None if est is None else -n * est
         if self.direction is None:
-            return (e, J_pose, J_vel, J_lever, J_td) + extra
+            return (e, J_pose, J_vel, J_lever, J_td) + extra + (() if est is None else (J_anc,))
         # direction term F(w_b) c with w_b = R_s^T (anchor - p_U) = M^T R_k^T q - M^T b1 - lever, where
         # q = anchor - p_k - v_k (tau + delta) + g (tau + delta)^2 / 2 (world) and b1 = body - M lever:
         # dw_b/dtheta = M^T [R_k^T q]x = M^T [M w_b + body]x, dw_b/dp = -M^T, dw_b/dv = -(tau + delta) R_s^T,
@@ -428,7 +465,9 @@ class RangeGroup:
         J_lever = J_lever - gv
         J_td = J_td - np.einsum("ni,ni->n", gv, np.cross(self.omega, geo["wb"] + lever)) \
             - np.einsum("ni,ni->n", Rg, v_s0 + a_s0 * delta)
-        return (e, J_pose, J_vel, J_lever, J_td, F) + extra
+        if est is not None:
+            J_anc = J_anc + Rg * est  # dw_b/danchor = R_s^T
+        return (e, J_pose, J_vel, J_lever, J_td, F) + extra + (() if est is None else (J_anc,))
 
 
 def direction_features(wb: np.ndarray, orders, elevation, jacobian: bool = False):
@@ -487,9 +526,9 @@ def make_gtsam_group_factor(keys, group: RangeGroup, sigma: float, huber_k: floa
     """A ``gtsam.CustomFactor`` of a group's ranges.
 
     Keys: ``[pose_0, velocity_0, ..., pose_{K-1}, velocity_{K-1}, lever arm, (t_d), bias_0, bias_1, ...,
-    (dir_0, dir_1, ...), (adir_0, ...)]`` (K = ``group.n_kf`` keyframes; the direction-coefficient vectors
-    last, one per ``group.n_dir``, with a direction model, then the anchor-side ones, one per
-    ``group.n_adir``).  The robust loss is applied per range inside the factor: the returned residual
+    (dir_0, dir_1, ...), (adir_0, ...), (anchor_0, ...)]`` (K = ``group.n_kf`` keyframes; the
+    direction-coefficient vectors, one per ``group.n_dir``, with a direction model, then the anchor-side ones,
+    one per ``group.n_adir``, then the estimated anchors' ``Point3`` positions, one per ``group.n_apos``).  The robust loss is applied per range inside the factor: the returned residual
     is ``huber_sqrt(e / sigma)`` with a unit noise model, so the factor's error is
     the sum of the rows' Huber losses (equal to one ``Robust(Huber(k), Isotropic(sigma))`` factor per
     range) with the same gradient; its Gauss-Newton weight of a down-weighted row is ``k / (2|z| - k)``
@@ -501,8 +540,9 @@ def make_gtsam_group_factor(keys, group: RangeGroup, sigma: float, huber_k: floa
     K = group.n_kf
     il = 2 * K  # index of the lever-arm key
     off = il + (2 if has_td else 1)
-    nd, nad = group.n_dir, group.n_adir
-    nb = len(keys) - off - nd - nad
+    nd, nad, nap = group.n_dir, group.n_adir, group.n_apos
+    nb = len(keys) - off - nd - nad - nap
+    ia = off + nb + nd + nad  # index of the first anchor-position key
     n = len(group)
     onehot = group.bias_matrix
     assert onehot.shape[1] == nb, "one key per column of the group's bias matrix"
@@ -519,8 +559,9 @@ def make_gtsam_group_factor(keys, group: RangeGroup, sigma: float, huber_k: floa
         biases = np.array([values.atVector(ks[off + i])[0] for i in range(nb)])
         coefs = np.array([values.atVector(ks[off + nb + i]) for i in range(nd)]) if nd else None
         acoefs = np.array([values.atVector(ks[off + nb + nd + i]) for i in range(nad)]) if nad else None
+        apos = np.array([values.atPoint3(ks[ia + i]) for i in range(nap)]) if nap else None
         res = group.evaluate(R, P, Vv, values.atVector(ks[il]), td, biases, jacobians=H is not None,
-                             dir_coefs=coefs, adir_coefs=acoefs)
+                             dir_coefs=coefs, adir_coefs=acoefs, anchor_pos=apos)
         if H is None:
             return huber_sqrt(res / sigma, huber_k)[0]
         e, Jp, Jv, Jl, Jt = res[:5]
@@ -540,8 +581,11 @@ def make_gtsam_group_factor(keys, group: RangeGroup, sigma: float, huber_k: floa
             H[off + i] = w * onehot[:, i:i + 1]
         for i in range(nd):
             H[off + nb + i] = w * res[5] * group.dir_mask[i]
+        ja = len(res) - 1 if nap else len(res)  # the anchor Jacobian is last
         for i in range(nad):
-            H[off + nb + nd + i] = w * res[-1] * group.adir_mask[i]
+            H[off + nb + nd + i] = w * res[ja - 1] * group.adir_mask[i]
+        for i in range(nap):
+            H[ia + i] = w * res[ja] * group.apos_mask[i]
         return s
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(n), gtsam.KeyVector(keys), error)

@@ -1,0 +1,159 @@
+"""Anchor self-survey through the grouped (vectorised) range factor: anchor-position Jacobians, kernel path,
+and the same survey as one CustomFactor per range."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from test_calibrate_factor import _imu  # same synthetic IMU stream
+
+from uwbimu.calibration import range_factor as RF
+from uwbimu.calibration.range_factor import RangeGroup, imu_deltas, so3_exp
+
+ANCHORS = np.array([[4.0, -1.0, 2.5], [-3.0, 2.0, 0.3], [0.5, 5.0, -1.0]])
+
+
+def _group(rng, n=12, **kw):
+    """Rows to 3 anchors; anchors 0 and 2 estimated (variables 0 and 1), anchor 1 fixed."""
+    t, u = _imu(rng)
+    s0 = np.sort(rng.uniform(0.01, 0.18, n))
+    _k, deltas = imu_deltas(t, u, np.array([0.05, -0.03, 0.02]), np.array([0.01, -0.02, 0.005]),
+                            np.array([0.0]), s0)
+    col = np.arange(n) % 3
+    rho = np.linalg.norm(ANCHORS[col] - [1.0, 2.0, 1.5], axis=1) + rng.normal(0, 0.05, n)
+    avar = np.array([0, -1, 1])[col]
+    return RangeGroup(deltas, ANCHORS[col], rho, col, 0.02, anchor_var=avar, **kw)
+
+
+STATE = (so3_exp(np.array([0.3, 0.1, -0.7])), np.array([1.0, 2.0, 1.5]), np.array([0.4, -0.3, 0.2]),
+         np.array([0.12, -0.08, 0.14]), 0.033, np.array([0.03, -0.05, 0.01]))
+#: the estimated anchors' current values, away from their initial ``anchors`` (those must not be used)
+APOS = ANCHORS[[0, 2]] + np.array([[0.3, -0.2, 0.1], [-0.1, 0.25, 0.4]])
+
+MODELS = {
+    "range": {},
+    "tag_direction": {"direction": ((1, 2), True), "dir_col": np.arange(12) % 3},
+    "anchor_direction": {"anchor_direction": ((1, 2), (1,)), "adir_col": np.arange(12) % 3,
+                         "anchor_rot": np.array([so3_exp(np.array([0.2 * i, -0.3, 0.5])) for i in range(12)])},
+}
+
+
+def _coefs(grp, rng):
+    kw = {}
+    if grp.direction is not None:
+        kw["dir_coefs"] = rng.normal(0, 0.05, (grp.n_dir, 5))
+    if grp.anchor_direction is not None:
+        kw["adir_coefs"] = rng.normal(0, 0.05, (grp.n_adir, 5))
+    return kw
+
+
+@pytest.mark.parametrize("model", list(MODELS))
+@pytest.mark.parametrize("kernel", [True, False])
+def test_anchor_jacobian_matches_finite_differences(model, kernel, monkeypatch):
+    """d e / d anchor (last Jacobian) against central differences of the estimated anchors' positions, with the
+    range alone (kernel or NumPy), the tag-side and the anchor-side direction terms; zero on fixed-anchor rows."""
+    monkeypatch.setattr(RF, "USE_KERNEL", kernel)
+    rng = np.random.default_rng(7)
+    grp = _group(rng, **MODELS[model])
+    kw = _coefs(grp, rng)
+    R, p, v, lev, td, b = STATE
+    calls = []
+    if kernel and model == "range":
+        real = RangeGroup._evaluate_kernel
+        monkeypatch.setattr(RangeGroup, "_evaluate_kernel", lambda *a, **k: calls.append(1) or real(*a, **k))
+    res = grp.evaluate(R, p, v, lev, td, b, jacobians=True, anchor_pos=APOS, **kw)
+    assert calls == ([1] if kernel and model == "range" else [])
+    e, Ja = res[0], res[-1]
+    assert Ja.shape == (12, 3)
+    np.testing.assert_allclose(e, grp.evaluate(R, p, v, lev, td, b, anchor_pos=APOS, **kw), atol=1e-12)
+    # the estimated rows use anchor_pos, the fixed ones their own anchor
+    ra = grp.row_anchors(APOS)
+    np.testing.assert_array_equal(ra[1::3], ANCHORS[[1] * 4])
+    np.testing.assert_array_equal(ra[0::3], APOS[[0] * 4])
+    np.testing.assert_array_equal(Ja[1::3], 0.0)
+    h = 1e-6
+    for a in range(2):
+        for i in range(3):
+            d = np.zeros((2, 3))
+            d[a, i] = h
+            fd = (grp.evaluate(R, p, v, lev, td, b, anchor_pos=APOS + d, **kw)
+                  - grp.evaluate(R, p, v, lev, td, b, anchor_pos=APOS - d, **kw)) / 2 / h
+            np.testing.assert_allclose(np.where(grp.anchor_var == a, Ja[:, i], 0.0), fd, atol=1e-7)
+    if model != "range":  # the direction term moves the anchor Jacobian off -n
+        u = grp._geometry(R, p, v, lev, td, APOS)["u"]
+        n = u / np.linalg.norm(u, axis=1)[:, None]
+        assert np.max(np.abs(Ja[0::3] + n[0::3])) > 1e-4
+
+
+def test_kernel_and_numpy_agree_with_estimated_anchors(monkeypatch):
+    rng = np.random.default_rng(3)
+    grp = _group(rng)
+    R, p, v, lev, td, b = STATE
+    monkeypatch.setattr(RF, "USE_KERNEL", True)
+    a = grp.evaluate(R, p, v, lev, td, b, jacobians=True, anchor_pos=APOS)
+    monkeypatch.setattr(RF, "USE_KERNEL", False)
+    c = grp.evaluate(R, p, v, lev, td, b, jacobians=True, anchor_pos=APOS)
+    assert len(a) == len(c) == 6
+    for x, y in zip(a, c):
+        np.testing.assert_allclose(x, y, atol=1e-12)
+
+
+def test_group_with_estimated_anchors_needs_their_positions():
+    grp = _group(np.random.default_rng(1))
+    with pytest.raises(ValueError, match="anchor_pos"):
+        grp.evaluate(*STATE)
+
+
+def test_gtsam_group_factor_anchor_keys():
+    """The factor's Jacobian blocks of the Point3 keys are the rows' anchor Jacobians (whitened), from the
+    values of those keys."""
+    gtsam = pytest.importorskip("gtsam")
+    from gtsam.symbol_shorthand import A, L, P, T, V, X
+
+    grp = _group(np.random.default_rng(2))
+    R, p, v, lev, td, b = STATE
+    keys = [X(0), V(0), L(0), T(0), A(0), A(1), A(2), P(0), P(2)]
+    f = RF.make_gtsam_group_factor(keys, grp, 0.1, 100.0)
+    vals = gtsam.Values()
+    vals.insert(X(0), gtsam.Pose3(gtsam.Rot3(R), p))
+    vals.insert(V(0), v)
+    vals.insert(L(0), lev)
+    vals.insert(T(0), np.array([td]))
+    for j in range(3):
+        vals.insert(A(j), np.array([b[j]]))
+    vals.insert(P(0), APOS[0])
+    vals.insert(P(2), APOS[1])
+    lin = f.linearize(vals)
+    Ab = lin.jacobian()[0]
+    res = grp.evaluate(R, p, v, lev, td, b, jacobians=True, anchor_pos=APOS)
+    np.testing.assert_allclose(-lin.jacobian()[1], res[0] / 0.1, atol=1e-9)  # b = -e/sigma (Huber off)
+    Ja = res[-1] / 0.1
+    np.testing.assert_allclose(Ab[:, -6:-3], Ja * (grp.anchor_var == 0)[:, None], atol=1e-9)
+    np.testing.assert_allclose(Ab[:, -3:], Ja * (grp.anchor_var == 1)[:, None], atol=1e-9)
+
+
+def test_grouped_survey_matches_the_per_range_graph():
+    """A short walk-around self-survey (3 surveyed, 5 unknown anchors): grouped range factors and one CustomFactor
+    per range reach the same anchors within 1e-6 m, and the grouped graph has no per-range factor left."""
+    from test_calibrate_survey_sim import SURVEYED, walk_around
+
+    from uwbimu.calibration import CalibrationOptions, calibrate
+
+    ds = walk_around(duration=12.0, seed=3)
+    an = ds.anchors.copy()
+    an["surveyed"] = an["anchor"].isin(SURVEYED)
+    m = ~an["surveyed"].to_numpy()
+    an.loc[m, ["x", "y", "z"]] = an.loc[m, ["x", "y", "z"]].to_numpy() \
+        + np.random.default_rng(0).normal(0, 0.3, (m.sum(), 3))
+    ds = dataclasses.replace(ds, anchors=an)
+    base = {"td_profile": {"enabled": False}, "max_iterations": 200}
+    grp = calibrate(ds, CalibrationOptions.model_validate(base))
+    per = calibrate(ds, CalibrationOptions.model_validate(base | {"group_range_factors": False}), eskf=grp.eskf)
+    assert grp.anchors["estimated"].sum() == 5
+    np.testing.assert_allclose(grp.anchors[["x", "y", "z"]].to_numpy(), per.anchors[["x", "y", "z"]].to_numpy(),
+                               atol=1e-6)
+    assert grp.calibration["solver"]["final_cost"] == pytest.approx(per.calibration["solver"]["final_cost"],
+                                                                    rel=1e-6)
