@@ -135,9 +135,15 @@ def test_gtsam_group_factor_anchor_keys():
     np.testing.assert_allclose(Ab[:, -3:], Ja * (grp.anchor_var == 1)[:, None], atol=1e-9)
 
 
-def test_grouped_survey_matches_the_per_range_graph():
+@pytest.mark.parametrize("huber_k, bias, atol", [(100.0, True, 1e-6), (1.345, False, 1e-4)])
+def test_grouped_survey_matches_the_per_range_graph(huber_k, bias, atol):
     """A short walk-around self-survey (3 surveyed, 5 unknown anchors): grouped range factors and one CustomFactor
-    per range reach the same anchors within 1e-6 m, and the grouped graph has no per-range factor left."""
+    per range reach the same anchors.  With the loss quadratic on every row (huber_k 100) the two graphs give the
+    same linear systems, so the same iterates: within 1e-6 m (measured ~1e-10 m, anchor biases estimated, 40
+    iterations).  With the default Huber the Gauss-Newton weights of down-weighted rows differ by design
+    (:func:`make_gtsam_group_factor`), so only the optimum is shared, reached to the LM stopping rule: 1e-4 m
+    (measured ~2e-5 m, biases fixed; with biases estimated the flat bias/distance valley lets the per-range
+    graph stop 5 cm short at a higher cost, so that case is not compared)."""
     from test_calibrate_survey_sim import SURVEYED, walk_around
 
     from uwbimu.calibration import CalibrationOptions, calibrate
@@ -149,11 +155,12 @@ def test_grouped_survey_matches_the_per_range_graph():
     an.loc[m, ["x", "y", "z"]] = an.loc[m, ["x", "y", "z"]].to_numpy() \
         + np.random.default_rng(0).normal(0, 0.3, (m.sum(), 3))
     ds = dataclasses.replace(ds, anchors=an)
-    base = {"td_profile": {"enabled": False}, "max_iterations": 200}
+    base = {"td_profile": {"enabled": False}, "max_iterations": 200, "huber_k": huber_k, "estimate_anchor_bias": bias}
     grp = calibrate(ds, CalibrationOptions.model_validate(base))
     per = calibrate(ds, CalibrationOptions.model_validate(base | {"group_range_factors": False}), eskf=grp.eskf)
     assert grp.anchors["estimated"].sum() == 5
-    np.testing.assert_allclose(grp.anchors[["x", "y", "z"]].to_numpy(), per.anchors[["x", "y", "z"]].to_numpy(),
-                               atol=1e-6)
+    pos = grp.anchors[["x", "y", "z"]].to_numpy()
+    assert np.max(np.abs(pos - an[["x", "y", "z"]].to_numpy())) > 0.1  # the survey moved them
+    np.testing.assert_allclose(pos, per.anchors[["x", "y", "z"]].to_numpy(), atol=atol)
     assert grp.calibration["solver"]["final_cost"] == pytest.approx(per.calibration["solver"]["final_cost"],
-                                                                    rel=1e-6)
+                                                                    rel=1e-7)
