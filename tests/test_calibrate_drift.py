@@ -65,11 +65,10 @@ def test_injected_slow_bias_is_tracked_and_sigma_grows():
         ds, white.eskf, CalibrationOptions(range_bias_drift={"sd": 0.08, "correlation_time": 3.0})).n_knots
 
 
-def test_drift_refused_with_tdoa_or_self_survey():
+def test_drift_refused_without_grouped_factors():
     from uwbimu.errors import UsageError
 
     ds = simulate(builtin_scenario("calibration-flight").model_copy(update={"duration": 4.0}))
-    a0 = str(ds.anchors["anchor"].iloc[0])
     with pytest.raises(UsageError, match="range_bias_drift"):
-        calibrate(ds, CalibrationOptions(td_profile={"enabled": False}, estimate_anchors=[a0],
+        calibrate(ds, CalibrationOptions(td_profile={"enabled": False}, group_range_factors=False,
                                          range_bias_drift={"sd": 0.05}))

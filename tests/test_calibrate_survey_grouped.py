@@ -164,3 +164,34 @@ def test_grouped_survey_matches_the_per_range_graph(huber_k, bias, atol):
     np.testing.assert_allclose(pos, per.anchors[["x", "y", "z"]].to_numpy(), atol=atol)
     assert grp.calibration["solver"]["final_cost"] == pytest.approx(per.calibration["solver"]["final_cost"],
                                                                     rel=1e-7)
+
+
+def test_survey_with_drift_and_tag_direction_and_anchor_direction_refused():
+    """range_bias_drift and the tag-side range_model.direction now run with estimated anchors (grouped factors);
+    on a log without such errors they move the surveyed anchors little (measured <= 2.5 cm on this 20 s walk).
+    The anchor-side model stays refused: to first order it is a shift of the anchor's position."""
+    from test_calibrate_survey_sim import SURVEYED, walk_around
+
+    from uwbimu.calibration import CalibrationOptions, calibrate
+    from uwbimu.errors import UsageError
+
+    ds = walk_around(duration=20.0, seed=4)
+    an = ds.anchors.copy()
+    an["surveyed"] = an["anchor"].isin(SURVEYED)
+    m = ~an["surveyed"].to_numpy()
+    an.loc[m, ["x", "y", "z"]] = an.loc[m, ["x", "y", "z"]].to_numpy() \
+        + np.random.default_rng(0).normal(0, 0.3, (m.sum(), 3))
+    ds = dataclasses.replace(ds, anchors=an)
+    base = {"td_profile": {"enabled": False}, "estimate_anchor_bias": False}
+    plain = calibrate(ds, CalibrationOptions.model_validate(base))
+    pos0 = plain.anchors[["x", "y", "z"]].to_numpy()
+    for extra, col in (({"range_bias_drift": {"sd": 0.03}}, "bias_drift"),
+                       ({"range_model": {"direction": {"harmonics": 2}}}, "bias_direction")):
+        r = calibrate(ds, CalibrationOptions.model_validate(base | extra), eskf=plain.eskf)
+        assert col in r.residuals.columns and r.anchors["estimated"].sum() == 5
+        pos = r.anchors[["x", "y", "z"]].to_numpy()
+        assert np.all(np.linalg.norm(pos - pos0, axis=1) < 0.05), (extra, pos - pos0)
+        assert np.max(np.abs(pos - pos0)) > 1e-5  # the term is in the survey's graph
+    with pytest.raises(UsageError, match="anchor_direction.*estimate-anchors"):
+        calibrate(ds, CalibrationOptions.model_validate(base | {"range_model": {"anchor_direction": {}}}),
+                  eskf=plain.eskf)

@@ -341,6 +341,12 @@ def build_problem(dataset, eskf, options: CalibrationOptions, anchors: Optional[
         if bj is not None or not options.group_range_factors:
             raise UsageError(f"calibrate: range_model.{fld} works with ranges and grouped range factors only "
                              "(not with TDoA or group_range_factors: false)")
+        if fld == "anchor_direction" and anchors is not None and any(anchors.estimated):
+            # its first azimuth harmonic and elevation at the anchor are, to first order, a shift of the anchor
+            # along its lines of sight: with the position estimated only the priors would separate them
+            raise UsageError("calibrate: range_model.anchor_direction is not supported with --estimate-anchors "
+                             "(an anchor-side direction bias and the anchor's position are confounded)",
+                             hint="survey with range_model.direction (tag side) or fix the anchors")
     rot = None
     if options.range_model.anchor_direction is not None:
         rot = _anchor_rotations(dataset, ids, sorted({ids[j] for j in np.unique(aj)}), anchors)
