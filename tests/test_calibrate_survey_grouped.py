@@ -195,3 +195,33 @@ def test_survey_with_drift_and_tag_direction_and_anchor_direction_refused():
     with pytest.raises(UsageError, match="anchor_direction.*estimate-anchors"):
         calibrate(ds, CalibrationOptions.model_validate(base | {"range_model": {"anchor_direction": {}}}),
                   eskf=plain.eskf)
+
+
+def test_surveyed_only_bias_holds_the_estimated_anchors_bias():
+    """``estimate_anchor_bias: surveyed_only``: a fixed anchor's constant bias (0.15 m injected on A0) is
+    estimated, an estimated anchor's is held at 0; ``true`` estimates both, the default is unchanged."""
+    from test_calibrate_survey_sim import SURVEYED, walk_around
+
+    from uwbimu.calibration import CalibrationOptions, calibrate
+    from uwbimu.errors import ConfigError
+
+    assert CalibrationOptions().estimate_anchor_bias is True
+    with pytest.raises((ConfigError, ValueError)):
+        CalibrationOptions.model_validate({"estimate_anchor_bias": "fixed_only"})
+    ds = walk_around(duration=15.0, seed=5)
+    uwb = ds.uwb.copy()
+    uwb.loc[uwb["anchor"].astype(str) == "A0", "range"] += 0.15
+    an = ds.anchors.copy()
+    an["surveyed"] = an["anchor"].isin(SURVEYED)
+    m = ~an["surveyed"].to_numpy()
+    an.loc[m, ["x", "y", "z"]] = an.loc[m, ["x", "y", "z"]].to_numpy() \
+        + np.random.default_rng(0).normal(0, 0.3, (m.sum(), 3))
+    ds = dataclasses.replace(ds, anchors=an, uwb=uwb)
+    unknown = [a for a in an["anchor"] if a not in SURVEYED]
+    base = {"td_profile": {"enabled": False}}
+    so = calibrate(ds, CalibrationOptions.model_validate(base | {"estimate_anchor_bias": "surveyed_only"}))
+    both = calibrate(ds, CalibrationOptions.model_validate(base), eskf=so.eskf)
+    b, sd = so.calibration["anchor_bias"], so.calibration["anchor_bias_sd"]
+    assert abs(b["A0"] - 0.15) < max(3 * sd["A0"], 0.03), (b["A0"], sd["A0"])
+    assert all(abs(b[a]) < 1e-5 for a in unknown), b
+    assert max(abs(both.calibration["anchor_bias"][a]) for a in unknown) > 1e-3  # estimated with `true`

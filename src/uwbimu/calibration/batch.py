@@ -426,7 +426,7 @@ def _initial_anchors(dataset, eskf, o: CalibrationOptions, setup) -> list[dict]:
     from uwbimu.errors import InputError
 
     sigma = float(o.range_sigma or dataset.meta.range_sigma or 0.1)
-    bias_sd = o.anchor_bias_prior_sd if o.estimate_anchor_bias else None
+    bias_sd = o.anchor_bias_prior_sd if o.anchor_bias_estimated(True) else None
     uwb = dataset.uwb
     aid = uwb["anchor"].astype(str).to_numpy()
     events = []

@@ -462,8 +462,8 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
     if td_fixed is None:
         g.add(gtsam.PriorFactorVector(T(0), np.array([o.time_offset_prior]),
                                       gtsam.noiseModel.Isotropic.Sigma(1, o.time_offset_prior_sd)))
-    bias_sd = o.anchor_bias_prior_sd if o.estimate_anchor_bias else 1e-6
     for j in range(len(pb.anchor_ids)):
+        bias_sd = o.anchor_bias_prior_sd if o.anchor_bias_estimated(pb.estimated(j)) else 1e-6
         g.add(gtsam.PriorFactorVector(A(j), np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, bias_sd)))
     if pb.anchors is not None:
         for f in anchor_factors(pb):

@@ -164,7 +164,11 @@ class CalibrationOptions(BaseModel):
     time_offset_prior: float = Field(0.0, description="t_d prior mean [s]")
     time_offset_prior_sd: float = Field(0.5, gt=0, description="[s]")
     anchor_bias_prior_sd: float = Field(0.3, gt=0, description="per-anchor constant range bias prior sd [m]")
-    estimate_anchor_bias: bool = True
+    estimate_anchor_bias: bool | Literal["surveyed_only"] = Field(
+        True, description="estimate each anchor's constant range bias (prior sd anchor_bias_prior_sd): true every "
+                          "anchor's, false none (held at 0), surveyed_only those of the fixed anchors only (an "
+                          "estimated anchor's bias held at 0: it is confounded with its distance along the mean "
+                          "line of sight, see docs/calibrate.md 'Anchor self-survey')")
     range_bias_drift: Optional[RangeBiasDrift] = Field(
         None, description="slowly varying per-anchor bias (correlated range errors of real data); none: white "
                           "range noise plus a constant bias per anchor")
@@ -197,6 +201,13 @@ class CalibrationOptions(BaseModel):
     max_iterations: int = Field(50, ge=1)
     reassociate_max: int = Field(3, ge=0, description="re-attach ranges when t_d moved > half a keyframe step")
     td_profile: TdProfileOptions = Field(default_factory=TdProfileOptions)
+
+    def anchor_bias_estimated(self, anchor_estimated: bool) -> bool:
+        """Whether the constant range bias of an anchor is estimated (``estimate_anchor_bias``), its position
+        estimated (self-survey) or fixed."""
+        if self.estimate_anchor_bias == "surveyed_only":
+            return not anchor_estimated
+        return bool(self.estimate_anchor_bias)
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "CalibrationOptions":
