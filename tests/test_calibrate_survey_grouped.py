@@ -135,6 +135,19 @@ def test_gtsam_group_factor_anchor_keys():
     np.testing.assert_allclose(Ab[:, -3:], Ja * (grp.anchor_var == 1)[:, None], atol=1e-9)
 
 
+def _survey(duration: float, seed: int):
+    """A walk-around log (room8) with the anchors but SURVEYED marked ``surveyed: false`` at 0.3-m-sd guesses."""
+    from test_calibrate_survey_sim import SURVEYED, walk_around
+
+    ds = walk_around(duration=duration, seed=seed)
+    an = ds.anchors.copy()
+    an["surveyed"] = an["anchor"].isin(SURVEYED)
+    m = ~an["surveyed"].to_numpy()
+    an.loc[m, ["x", "y", "z"]] = an.loc[m, ["x", "y", "z"]].to_numpy() \
+        + np.random.default_rng(0).normal(0, 0.3, (m.sum(), 3))
+    return dataclasses.replace(ds, anchors=an)
+
+
 @pytest.mark.parametrize("huber_k, bias, atol", [(100.0, True, 1e-6), (1.345, False, 1e-4)])
 def test_grouped_survey_matches_the_per_range_graph(huber_k, bias, atol):
     """A short walk-around self-survey (3 surveyed, 5 unknown anchors): grouped range factors and one CustomFactor
@@ -144,23 +157,15 @@ def test_grouped_survey_matches_the_per_range_graph(huber_k, bias, atol):
     (:func:`make_gtsam_group_factor`), so only the optimum is shared, reached to the LM stopping rule: 1e-4 m
     (measured ~2e-5 m, biases fixed; with biases estimated the flat bias/distance valley lets the per-range
     graph stop 5 cm short at a higher cost, so that case is not compared)."""
-    from test_calibrate_survey_sim import SURVEYED, walk_around
-
     from uwbimu.calibration import CalibrationOptions, calibrate
 
-    ds = walk_around(duration=12.0, seed=3)
-    an = ds.anchors.copy()
-    an["surveyed"] = an["anchor"].isin(SURVEYED)
-    m = ~an["surveyed"].to_numpy()
-    an.loc[m, ["x", "y", "z"]] = an.loc[m, ["x", "y", "z"]].to_numpy() \
-        + np.random.default_rng(0).normal(0, 0.3, (m.sum(), 3))
-    ds = dataclasses.replace(ds, anchors=an)
+    ds = _survey(12.0, 3)
     base = {"td_profile": {"enabled": False}, "max_iterations": 200, "huber_k": huber_k, "estimate_anchor_bias": bias}
     grp = calibrate(ds, CalibrationOptions.model_validate(base))
     per = calibrate(ds, CalibrationOptions.model_validate(base | {"group_range_factors": False}), eskf=grp.eskf)
     assert grp.anchors["estimated"].sum() == 5
     pos = grp.anchors[["x", "y", "z"]].to_numpy()
-    assert np.max(np.abs(pos - an[["x", "y", "z"]].to_numpy())) > 0.1  # the survey moved them
+    assert np.max(np.abs(pos - ds.anchors[["x", "y", "z"]].to_numpy())) > 0.1  # the survey moved them
     np.testing.assert_allclose(pos, per.anchors[["x", "y", "z"]].to_numpy(), atol=atol)
     assert grp.calibration["solver"]["final_cost"] == pytest.approx(per.calibration["solver"]["final_cost"],
                                                                     rel=1e-7)
@@ -170,18 +175,10 @@ def test_survey_with_drift_and_tag_direction_and_anchor_direction_refused():
     """range_bias_drift and the tag-side range_model.direction now run with estimated anchors (grouped factors);
     on a log without such errors they move the surveyed anchors little (measured <= 2.5 cm on this 20 s walk).
     The anchor-side model stays refused: to first order it is a shift of the anchor's position."""
-    from test_calibrate_survey_sim import SURVEYED, walk_around
-
     from uwbimu.calibration import CalibrationOptions, calibrate
     from uwbimu.errors import UsageError
 
-    ds = walk_around(duration=20.0, seed=4)
-    an = ds.anchors.copy()
-    an["surveyed"] = an["anchor"].isin(SURVEYED)
-    m = ~an["surveyed"].to_numpy()
-    an.loc[m, ["x", "y", "z"]] = an.loc[m, ["x", "y", "z"]].to_numpy() \
-        + np.random.default_rng(0).normal(0, 0.3, (m.sum(), 3))
-    ds = dataclasses.replace(ds, anchors=an)
+    ds = _survey(20.0, 4)
     base = {"td_profile": {"enabled": False}, "estimate_anchor_bias": False}
     plain = calibrate(ds, CalibrationOptions.model_validate(base))
     pos0 = plain.anchors[["x", "y", "z"]].to_numpy()
@@ -200,24 +197,17 @@ def test_survey_with_drift_and_tag_direction_and_anchor_direction_refused():
 def test_surveyed_only_bias_holds_the_estimated_anchors_bias():
     """``estimate_anchor_bias: surveyed_only``: a fixed anchor's constant bias (0.15 m injected on A0) is
     estimated, an estimated anchor's is held at 0; ``true`` estimates both, the default is unchanged."""
-    from test_calibrate_survey_sim import SURVEYED, walk_around
-
     from uwbimu.calibration import CalibrationOptions, calibrate
     from uwbimu.errors import ConfigError
 
     assert CalibrationOptions().estimate_anchor_bias is True
     with pytest.raises((ConfigError, ValueError)):
         CalibrationOptions.model_validate({"estimate_anchor_bias": "fixed_only"})
-    ds = walk_around(duration=15.0, seed=5)
+    ds = _survey(15.0, 5)
     uwb = ds.uwb.copy()
     uwb.loc[uwb["anchor"].astype(str) == "A0", "range"] += 0.15
-    an = ds.anchors.copy()
-    an["surveyed"] = an["anchor"].isin(SURVEYED)
-    m = ~an["surveyed"].to_numpy()
-    an.loc[m, ["x", "y", "z"]] = an.loc[m, ["x", "y", "z"]].to_numpy() \
-        + np.random.default_rng(0).normal(0, 0.3, (m.sum(), 3))
-    ds = dataclasses.replace(ds, anchors=an, uwb=uwb)
-    unknown = [a for a in an["anchor"] if a not in SURVEYED]
+    ds = dataclasses.replace(ds, uwb=uwb)
+    unknown = list(ds.anchors.loc[~ds.anchors["surveyed"], "anchor"])
     base = {"td_profile": {"enabled": False}}
     so = calibrate(ds, CalibrationOptions.model_validate(base | {"estimate_anchor_bias": "surveyed_only"}))
     both = calibrate(ds, CalibrationOptions.model_validate(base), eskf=so.eskf)
