@@ -390,7 +390,8 @@ class RangeGroup:
             Jp = Jv = Jl = np.empty((0, 6))
             Jt = np.empty(0)
         group_rows(R_k, p_k, v_k, self.kf, self.tau, self.dR, self.dv, self.dp, self.acc, self.omega, self.dRacc,
-                   np.ascontiguousarray(self.row_anchors(anchor_pos)), np.ascontiguousarray(lever, dtype=float).reshape(3), float(td - self.td0),
+                   np.ascontiguousarray(self.row_anchors(anchor_pos)),
+                   np.ascontiguousarray(lever, dtype=float).reshape(3), float(td - self.td0),
                    float(G_WORLD[2]), jacobians, r, Jp, Jv, Jl, Jt)
         e = r + self.bias_matrix @ np.asarray(biases, float) - self.rho
         if not jacobians:
@@ -528,7 +529,8 @@ def make_gtsam_group_factor(keys, group: RangeGroup, sigma: float, huber_k: floa
     Keys: ``[pose_0, velocity_0, ..., pose_{K-1}, velocity_{K-1}, lever arm, (t_d), bias_0, bias_1, ...,
     (dir_0, dir_1, ...), (adir_0, ...), (anchor_0, ...)]`` (K = ``group.n_kf`` keyframes; the
     direction-coefficient vectors, one per ``group.n_dir``, with a direction model, then the anchor-side ones,
-    one per ``group.n_adir``, then the estimated anchors' ``Point3`` positions, one per ``group.n_apos``).  The robust loss is applied per range inside the factor: the returned residual
+    one per ``group.n_adir``, then the estimated anchors' ``Point3`` positions, one per ``group.n_apos``).
+    The robust loss is applied per range inside the factor: the returned residual
     is ``huber_sqrt(e / sigma)`` with a unit noise model, so the factor's error is
     the sum of the rows' Huber losses (equal to one ``Robust(Huber(k), Isotropic(sigma))`` factor per
     range) with the same gradient; its Gauss-Newton weight of a down-weighted row is ``k / (2|z| - k)``
