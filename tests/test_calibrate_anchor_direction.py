@@ -8,20 +8,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from test_calibrate_factor import _imu  # same synthetic IMU stream
+from test_calibrate_factor import GROUP_ANCHORS as ANCHORS  # noqa: E402
+from test_calibrate_factor import assert_state_jacobians, group_inputs, retraction_differences  # shared
 
-from uwbimu.calibration.range_factor import RangeGroup, direction_features, imu_deltas, so3_exp
+from uwbimu.calibration.range_factor import RangeGroup, direction_features, so3_exp
 
-ANCHORS = np.array([[4.0, -1.0, 2.5], [-3.0, 2.0, 0.3], [0.5, 5.0, -1.0]])
 
 
 def _group(rng, n=9, direction=None, anchor_direction=((1, 2), 2)):
-    t, u = _imu(rng)
-    s0 = np.sort(rng.uniform(0.01, 0.18, n))
-    _k, deltas = imu_deltas(t, u, np.array([0.05, -0.03, 0.02]), np.array([0.01, -0.02, 0.005]),
-                            np.array([0.0]), s0)
-    col = np.arange(n) % 3
-    rho = np.linalg.norm(ANCHORS[col] - [1.0, 2.0, 1.5], axis=1) + rng.normal(0, 0.05, n)
+    deltas, col, rho = group_inputs(rng, n)
     rot = np.array([so3_exp(w) for w in ([0.3, -1.2, 0.4], [2.0, 0.1, -0.5], [-0.7, 0.6, 2.2])])
     return RangeGroup(deltas, ANCHORS[col], rho, col, 0.02, direction=direction, dir_col=col,
                       anchor_direction=anchor_direction, anchor_rot=rot[col], adir_col=col)
@@ -74,14 +69,7 @@ def test_anchor_direction_jacobians_match_finite_differences(direction):
     tip = np.einsum("nij,nj->ni", grp.anchor_rot, wa) + grp.anchor
     assert np.max(np.linalg.norm(tip - (p + R @ lev), axis=1)) < 0.3
     h = 1e-6
-    for i in range(3):
-        dx = np.zeros(3)
-        dx[i] = h
-        np.testing.assert_allclose(Jp[:, i], (f(R=R @ so3_exp(dx)) - f(R=R @ so3_exp(-dx))) / 2 / h, atol=1e-6)
-        np.testing.assert_allclose(Jp[:, 3 + i], (f(p=p + R @ dx) - f(p=p - R @ dx)) / 2 / h, atol=1e-6)
-        np.testing.assert_allclose(Jv[:, i], (f(v=v + dx) - f(v=v - dx)) / 2 / h, atol=1e-6)
-        np.testing.assert_allclose(Jl[:, i], (f(lev=lev + dx) - f(lev=lev - dx)) / 2 / h, atol=1e-6)
-    np.testing.assert_allclose(Jt, (f(td=td + h) - f(td=td - h)) / 2 / h, atol=1e-6)
+    assert_state_jacobians(f, (Jp, Jv, Jl, Jt), R, p, v, lev, td, h=h)
     for j in range(3):
         for q in range(Pa):
             dC = np.zeros_like(Ca)
@@ -128,17 +116,8 @@ def test_gtsam_group_factor_with_anchor_direction_keys(td_fixed):
         keys, dims = keys + [adir_key(j)], dims + [3]
     f = make_gtsam_group_factor(keys, grp, 0.1, 1e6, td_fixed=td_fixed)
     Aj, _b = f.linearize(vals).jacobian()
-    h, cols = 1e-6, []
-    for k, dim in zip(keys, dims):
-        for i in range(dim):
-            out = []
-            for sgn in (1, -1):
-                dx = gtsam.VectorValues()
-                for kk, dd in zip(keys, dims):
-                    dx.insert(kk, sgn * h * np.eye(dd)[i] if kk == k else np.zeros(dd))
-                out.append(f.unwhitenedError(vals.retract(dx)))
-            cols.append((out[0] - out[1]) / (2 * h))
-    np.testing.assert_allclose(Aj, np.array(cols).T, atol=1e-5)
+    cols = retraction_differences(f, vals, keys, dims)
+    np.testing.assert_allclose(Aj, cols, atol=1e-5)
 
 
 def test_options_and_refusals(tmp_path):

@@ -5,20 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from test_calibrate_factor import _imu  # same synthetic IMU stream
+from test_calibrate_factor import GROUP_ANCHORS, assert_state_jacobians, group_inputs, retraction_differences  # shared
 
-from uwbimu.calibration.range_factor import RangeGroup, direction_features, imu_deltas, so3_exp
+from uwbimu.calibration.range_factor import RangeGroup, direction_features, so3_exp
 
 
 def _group(rng, n=9, direction=((1, 2), True)):
-    t, u = _imu(rng)
-    s0 = np.sort(rng.uniform(0.01, 0.18, n))
-    _k, deltas = imu_deltas(t, u, np.array([0.05, -0.03, 0.02]), np.array([0.01, -0.02, 0.005]),
-                            np.array([0.0]), s0)
-    anchors = np.array([[4.0, -1.0, 2.5], [-3.0, 2.0, 0.3], [0.5, 5.0, -1.0]])
-    col = np.arange(n) % 3
-    rho = np.linalg.norm(anchors[col] - [1.0, 2.0, 1.5], axis=1) + rng.normal(0, 0.05, n)
-    return RangeGroup(deltas, anchors[col], rho, col, 0.02, direction=direction, dir_col=col)
+    deltas, col, rho = group_inputs(rng, n)
+    return RangeGroup(deltas, GROUP_ANCHORS[col], rho, col, 0.02, direction=direction, dir_col=col)
 
 
 def test_features_derivative_matches_finite_differences():
@@ -57,14 +51,7 @@ def test_direction_jacobians_match_finite_differences(direction):
     _e, Jp0, *_ = e0.evaluate(R, p, v, lev, td, b, jacobians=True)
     assert np.max(np.abs(Jp - Jp0)) > 1e-4  # and moves the attitude Jacobian
     h = 1e-6
-    for i in range(3):
-        dx = np.zeros(3)
-        dx[i] = h
-        np.testing.assert_allclose(Jp[:, i], (f(R=R @ so3_exp(dx)) - f(R=R @ so3_exp(-dx))) / 2 / h, atol=1e-6)
-        np.testing.assert_allclose(Jp[:, 3 + i], (f(p=p + R @ dx) - f(p=p - R @ dx)) / 2 / h, atol=1e-6)
-        np.testing.assert_allclose(Jv[:, i], (f(v=v + dx) - f(v=v - dx)) / 2 / h, atol=1e-6)
-        np.testing.assert_allclose(Jl[:, i], (f(lev=lev + dx) - f(lev=lev - dx)) / 2 / h, atol=1e-6)
-    np.testing.assert_allclose(Jt, (f(td=td + h) - f(td=td - h)) / 2 / h, atol=1e-6)
+    assert_state_jacobians(f, (Jp, Jv, Jl, Jt), R, p, v, lev, td, h=h)
     for j in range(3):
         for q in range(P):
             dC = np.zeros_like(C)
@@ -212,15 +199,6 @@ def test_gtsam_group_factor_with_direction_keys(td_fixed):
         keys, dims = keys + [dir_key(j)], dims + [5]
     f = make_gtsam_group_factor(keys, grp, sigma, 1e6, td_fixed=td_fixed)  # Huber threshold out of reach
     Aj, _b = f.linearize(vals).jacobian()
-    h, cols = 1e-6, []
-    for k, dim in zip(keys, dims):
-        for i in range(dim):
-            out = []
-            for sgn in (1, -1):
-                dx = gtsam.VectorValues()
-                for kk, dd in zip(keys, dims):
-                    dx.insert(kk, sgn * h * np.eye(dd)[i] if kk == k else np.zeros(dd))
-                out.append(f.unwhitenedError(vals.retract(dx)))
-            cols.append((out[0] - out[1]) / (2 * h))
+    cols = retraction_differences(f, vals, keys, dims)
     # unit noise model: the factor returns e / sigma (Huber inactive), so both sides are whitened
-    np.testing.assert_allclose(Aj, np.array(cols).T, atol=1e-5)
+    np.testing.assert_allclose(Aj, cols, atol=1e-5)

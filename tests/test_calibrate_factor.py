@@ -17,6 +17,58 @@ def _imu(rng, n=41, rate=200.0):
     return t, u
 
 
+#: three anchors of the synthetic group tests (world, m)
+GROUP_ANCHORS = np.array([[4.0, -1.0, 2.5], [-3.0, 2.0, 0.3], [0.5, 5.0, -1.0]])
+
+
+def group_inputs(rng, n: int):
+    """(deltas, col, rho) of ``n`` ranges 0.01-0.18 s after one keyframe, row m to anchor ``m % 3`` of
+    ``GROUP_ANCHORS`` (shared by the grouped-factor tests)."""
+    from uwbimu.calibration.range_factor import imu_deltas
+
+    t, u = _imu(rng)
+    s0 = np.sort(rng.uniform(0.01, 0.18, n))
+    _k, deltas = imu_deltas(t, u, np.array([0.05, -0.03, 0.02]), np.array([0.01, -0.02, 0.005]),
+                            np.array([0.0]), s0)
+    col = np.arange(n) % 3
+    rho = np.linalg.norm(GROUP_ANCHORS[col] - [1.0, 2.0, 1.5], axis=1) + rng.normal(0, 0.05, n)
+    return deltas, col, rho
+
+
+def retraction_differences(f, vals, keys, dims, h=1e-6):
+    """Central differences of a GTSAM factor's unwhitened error through ``vals.retract`` along every tangent
+    direction of ``keys`` (dimensions ``dims``): the columns its linearised Jacobian must match."""
+    import gtsam
+
+    cols = []
+    for k, dim in zip(keys, dims):
+        for i in range(dim):
+            out = []
+            for sgn in (1, -1):
+                dx = gtsam.VectorValues()
+                for kk, dd in zip(keys, dims):
+                    dx.insert(kk, sgn * h * np.eye(dd)[i] if kk == k else np.zeros(dd))
+                out.append(f.unwhitenedError(vals.retract(dx)))
+            cols.append((out[0] - out[1]) / (2 * h))
+    return np.array(cols).T
+
+
+def assert_state_jacobians(f, jac, R, p, v, lev, td, h=1e-6, atol=1e-6):
+    """Central differences of ``f(R=, p=, v=, lev=, td=)`` against ``jac = (J_pose, J_vel, J_lever, J_td)`` on
+    the GTSAM tangents (attitude right-perturbed, position along the body axes)."""
+    from uwbimu.calibration.range_factor import so3_exp
+
+    Jp, Jv, Jl, Jt = jac
+    for i in range(3):
+        dx = np.zeros(3)
+        dx[i] = h
+        np.testing.assert_allclose(Jp[:, i], (f(R=R @ so3_exp(dx)) - f(R=R @ so3_exp(-dx))) / 2 / h, atol=atol)
+        np.testing.assert_allclose(Jp[:, 3 + i], (f(p=p + R @ dx) - f(p=p - R @ dx)) / 2 / h, atol=atol)
+        np.testing.assert_allclose(Jv[:, i], (f(v=v + dx) - f(v=v - dx)) / 2 / h, atol=atol)
+        np.testing.assert_allclose(Jl[:, i], (f(lev=lev + dx) - f(lev=lev - dx)) / 2 / h, atol=atol)
+    np.testing.assert_allclose(Jt, (f(td=td + h) - f(td=td - h)) / 2 / h, atol=atol)
+
+
 @pytest.fixture(scope="module")
 def case():
     rng = np.random.default_rng(7)

@@ -8,22 +8,17 @@ import dataclasses
 import numpy as np
 import pytest
 
-from test_calibrate_factor import _imu  # same synthetic IMU stream
+from test_calibrate_factor import GROUP_ANCHORS as ANCHORS  # noqa: E402
+from test_calibrate_factor import group_inputs  # shared synthetic group
 
 from uwbimu.calibration import range_factor as RF
-from uwbimu.calibration.range_factor import RangeGroup, imu_deltas, so3_exp
+from uwbimu.calibration.range_factor import RangeGroup, so3_exp
 
-ANCHORS = np.array([[4.0, -1.0, 2.5], [-3.0, 2.0, 0.3], [0.5, 5.0, -1.0]])
 
 
 def _group(rng, n=12, **kw):
     """Rows to 3 anchors; anchors 0 and 2 estimated (variables 0 and 1), anchor 1 fixed."""
-    t, u = _imu(rng)
-    s0 = np.sort(rng.uniform(0.01, 0.18, n))
-    _k, deltas = imu_deltas(t, u, np.array([0.05, -0.03, 0.02]), np.array([0.01, -0.02, 0.005]),
-                            np.array([0.0]), s0)
-    col = np.arange(n) % 3
-    rho = np.linalg.norm(ANCHORS[col] - [1.0, 2.0, 1.5], axis=1) + rng.normal(0, 0.05, n)
+    deltas, col, rho = group_inputs(rng, n)
     avar = np.array([0, -1, 1])[col]
     return RangeGroup(deltas, ANCHORS[col], rho, col, 0.02, anchor_var=avar, **kw)
 
