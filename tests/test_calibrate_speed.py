@@ -113,12 +113,26 @@ def test_profile_sharper_than_its_step_is_zoomed(problem):
     assert abs(p.vertex - ds.meta.truth.time_offset) < 3 * p.sigma_curvature
 
 
+#: Group variants of the kernel check: (tag-side direction model, per-anchor coefficient columns, estimated anchors).
+KERNEL_VARIANTS = {
+    "range": (None, False, False),
+    "direction-elevation-per-anchor": (((1, 2), True), True, False),
+    "direction-one-column": (((2, 3), False), False, False),
+    "direction-per-anchor-estimated-anchors": (((1, 2), True), True, True),
+    "estimated-anchors": (None, False, True),
+}
+
+
+@pytest.mark.parametrize("variant", list(KERNEL_VARIANTS))
 @pytest.mark.parametrize("td", [0.02, 0.047, -0.013])
-def test_numba_group_kernel_equals_the_numpy_group(monkeypatch, td):
+def test_numba_group_kernel_equals_the_numpy_group(monkeypatch, td, variant):
     """The compiled row loop (range_kernel.group_rows) against RangeGroup's NumPy implementation: residuals and
-    every Jacobian on rows of three keyframes, at the association's t_d (delta = 0) and away from it."""
+    every Jacobian on rows of three keyframes, at the association's t_d (delta = 0) and away from it; without
+    and with the tag-side direction model (elevation feature or not, per-anchor or one coefficient column) and
+    with estimated anchors (two of the four anchors estimated)."""
     from uwbimu.calibration import range_factor as RF
 
+    direction, per_anchor, survey = KERNEL_VARIANTS[variant]
     rng = np.random.default_rng(21)
     t = np.arange(61) / 200.0
     u = np.empty((61, 6))
@@ -128,15 +142,30 @@ def test_numba_group_kernel_equals_the_numpy_group(monkeypatch, td):
                                np.array([0.0, 0.1, 0.2]), np.sort(rng.uniform(0.0, 0.29, 40)))
     anchors = rng.uniform(-5, 5, (4, 3))
     col = np.arange(40) % 4
-    grp = RF.RangeGroup(deltas, anchors[col], rng.normal(4.0, 1.0, 40), col, 0.02, kf=kk)
+    kw, call = {}, {}
+    if direction is not None:
+        kw = {"direction": direction, "dir_col": col if per_anchor else np.zeros(40, np.int64)}
+        n_dir = 4 if per_anchor else 1
+        call["dir_coefs"] = rng.normal(0, 0.05, (n_dir, 2 * len(direction[0]) + int(direction[1])))
+    if survey:
+        kw["anchor_var"] = np.array([0, -1, 1, -1])[col]
+        call["anchor_pos"] = anchors[[0, 2]] + rng.normal(0, 0.3, (2, 3))
+    grp = RF.RangeGroup(deltas, anchors[col], rng.normal(4.0, 1.0, 40), col, 0.02, kf=kk, **kw)
     state = (np.array([RF.so3_exp(rng.normal(size=3)) for _ in range(3)]), rng.normal(size=(3, 3)),
              rng.normal(size=(3, 3)), np.array([0.12, -0.08, 0.14]), td, rng.normal(0, 0.05, 4))
-    fast = grp.evaluate(*state, jacobians=True)
-    e_fast = grp.evaluate(*state)
+    calls = []
+    kernel = RF.RangeGroup._evaluate_kernel
+    monkeypatch.setattr(RF.RangeGroup, "_evaluate_kernel", lambda *a, **k: calls.append(1) or kernel(*a, **k))
+    fast = grp.evaluate(*state, jacobians=True, **call)
+    e_fast = grp.evaluate(*state, **call)
+    assert calls == [1, 1]  # this group takes the compiled path
     monkeypatch.setattr(RF, "USE_KERNEL", False)
-    ref = grp.evaluate(*state, jacobians=True)
+    ref = grp.evaluate(*state, jacobians=True, **call)
+    assert calls == [1, 1]
+    assert len(fast) == len(ref) == 5 + (direction is not None) + survey
     np.testing.assert_allclose(e_fast, ref[0], rtol=0, atol=1e-12)
     for a, b in zip(fast, ref):
+        assert a.shape == b.shape
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
 
 

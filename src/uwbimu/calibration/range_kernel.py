@@ -1,8 +1,9 @@
 """Numba kernel of the grouped range factor: residuals and Jacobians of :class:`RangeGroup` rows.
 
-:meth:`uwbimu.calibration.range_factor.RangeGroup.evaluate` without a direction model spends most of
-its time in NumPy call overhead (~50 array operations on ~85 rows per call, called once per group and
-LM evaluation).  :func:`group_rows` does the same arithmetic row by row in one compiled loop.  It is
+:meth:`uwbimu.calibration.range_factor.RangeGroup.evaluate` spends most of its time in NumPy call
+overhead (~50 array operations on ~85 rows per call, called once per group and LM evaluation).
+:func:`group_rows` does the same arithmetic row by row in one compiled loop; with the tag-side direction
+model it also returns each row's geometry, on which the caller adds the (vectorised) direction term.  It is
 the model of :func:`uwbimu.calibration.range_factor.range_error` (which is pinned to
 :mod:`uwbimu.models.reference` by ``tests/test_calibrate_factor.py``) and is pinned to the NumPy
 implementation of ``RangeGroup.evaluate`` by ``tests/test_calibrate_speed.py`` (1e-12), on top of
@@ -24,7 +25,7 @@ from uwbimu.models.kernels import _mm3, refresh_stale_cache
 
 @njit(cache=True)
 def group_rows(R_k, p_k, v_k, kf, tau, dR, dv, dp, acc, omega, dRacc, anchor, lever, delta, g, jac,
-               r_out, Jp, Jv, Jl, Jt):
+               r_out, Jp, Jv, Jl, Jt, geo, u_out, Rs_out, M_out, v_out, a_out, body_out):
     """Distance ``|p_U - anchor|`` of every row and, with ``jac``, its Jacobians (GTSAM tangents).
 
     Parameters
@@ -39,6 +40,11 @@ def group_rows(R_k, p_k, v_k, kf, tau, dR, dv, dp, acc, omega, dRacc, anchor, le
     r_out : (N,) output distances [m] (the residual is ``r + bias - rho``, added by the caller).
     Jp, Jv, Jl, Jt : (N, 6), (N, 3), (N, 3), (N,) outputs (written only with ``jac``): pose ``[theta, p]``,
         velocity, lever arm, t_d.
+    geo : also write every row's geometry (for the tag-side direction term, evaluated by the caller):
+    u_out, Rs_out, M_out, v_out, a_out, body_out : (N, 3), (N, 3, 3), (N, 3, 3), (N, 3), (N, 3), (N, 3)
+        outputs (written only with ``geo``): ``u = p_U - anchor`` [m] (world), ``R_s`` (body -> world) and
+        ``M = dR Exp(omega delta)`` at the range instant, ``v_s0`` [m/s], ``a_s0`` [m/s^2] (world, gravity
+        removed) and ``body = dp + delta dv + delta^2/2 dR acc + M lever`` [m] (keyframe body frame).
     """
     E = np.empty((3, 3))
     M = np.empty((3, 3))
@@ -86,13 +92,23 @@ def group_rows(R_k, p_k, v_k, kf, tau, dR, dv, dp, acc, omega, dRacc, anchor, le
         u0, u1, u2 = u[0], u[1], u[2]
         r = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
         r_out[i] = r
+        hd = 0.5 * delta * delta
+        if geo:
+            for a in range(3):
+                u_out[i, a] = u[a]
+                v_out[i, a] = vs[a]
+                a_out[i, a] = asv[a]
+                body_out[i, a] = (dp[i, a] + delta * dv[i, a] + hd * dRacc[i, a]
+                                  + M[a, 0] * lever[0] + M[a, 1] * lever[1] + M[a, 2] * lever[2])
+                for b in range(3):
+                    Rs_out[i, a, b] = Rs[a, b]
+                    M_out[i, a, b] = M[a, b]
         if not jac:
             continue
         n0, n1, n2 = u0 / r, u1 / r, u2 / r
         m0 = R[0, 0] * n0 + R[1, 0] * n1 + R[2, 0] * n2
         m1 = R[0, 1] * n0 + R[1, 1] * n1 + R[2, 1] * n2
         m2 = R[0, 2] * n0 + R[1, 2] * n1 + R[2, 2] * n2
-        hd = 0.5 * delta * delta
         b0 = dp[i, 0] + delta * dv[i, 0] + hd * dRacc[i, 0] + M[0, 0] * lever[0] + M[0, 1] * lever[1] + M[0, 2] * lever[2]
         b1 = dp[i, 1] + delta * dv[i, 1] + hd * dRacc[i, 1] + M[1, 0] * lever[0] + M[1, 1] * lever[1] + M[1, 2] * lever[2]
         b2 = dp[i, 2] + delta * dv[i, 2] + hd * dRacc[i, 2] + M[2, 0] * lever[0] + M[2, 1] * lever[1] + M[2, 2] * lever[2]
