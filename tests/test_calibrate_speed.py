@@ -118,6 +118,7 @@ KERNEL_VARIANTS = {
     "range": (None, False, False),
     "direction-elevation-per-anchor": (((1, 2), True), True, False),
     "direction-one-column": (((2, 3), False), False, False),
+    "direction-elevation-powers": (((1, 3), (1, 2)), True, False),
     "direction-per-anchor-estimated-anchors": (((1, 2), True), True, True),
     "estimated-anchors": (None, False, True),
 }
@@ -146,7 +147,8 @@ def test_numba_group_kernel_equals_the_numpy_group(monkeypatch, td, variant):
     if direction is not None:
         kw = {"direction": direction, "dir_col": col if per_anchor else np.zeros(40, np.int64)}
         n_dir = 4 if per_anchor else 1
-        call["dir_coefs"] = rng.normal(0, 0.05, (n_dir, 2 * len(direction[0]) + int(direction[1])))
+        n_el = len(direction[1]) if isinstance(direction[1], tuple) else int(direction[1])
+        call["dir_coefs"] = rng.normal(0, 0.05, (n_dir, 2 * len(direction[0]) + n_el))
     if survey:
         kw["anchor_var"] = np.array([0, -1, 1, -1])[col]
         call["anchor_pos"] = anchors[[0, 2]] + rng.normal(0, 0.3, (2, 3))

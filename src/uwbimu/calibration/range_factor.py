@@ -373,40 +373,15 @@ class RangeGroup:
         return {"R_k": R_k, "delta": delta, "tau": tau, "v_s0": v_s0, "a_s0": a_s0, "M": M, "R_s": R_s,
                 "u": u, "wb": wb}
 
-    def _direction_jacobians(self, C, dF, wb, M, R_s, body, v_s0, a_s0, delta, lever, J_pose, J_vel, J_lever, J_td,
-                             J_anc):
-        """The tag-side direction term's derivatives added to the range's Jacobians (both evaluation paths).
-
-        ``C`` (N, P) the rows' coefficient vectors, ``dF`` (N, P, 3) the features' derivatives at the body lines of
-        sight ``wb`` (N, 3) [m]; ``M``, ``R_s``, ``body``, ``v_s0``, ``a_s0`` the rows' geometry (:meth:`_geometry`),
-        ``delta`` = ``t_d - td0`` [s], ``lever`` (3,) [m]; ``J_anc`` None without estimated anchors.
-        """
-        # direction term F(w_b) c with w_b = R_s^T (anchor - p_U) = M^T R_k^T q - M^T b1 - lever, where
-        # q = anchor - p_k - v_k (tau + delta) + g (tau + delta)^2 / 2 (world) and b1 = body - M lever:
-        # dw_b/dtheta = M^T [R_k^T q]x = M^T [M w_b + body]x, dw_b/dp = -M^T, dw_b/dv = -(tau + delta) R_s^T,
-        # dw_b/dlever = -I, dw_b/dt_d = -omega x (w_b + lever) - R_s^T (v_s0 + a_s0 delta)
-        gv = np.einsum("np,npi->ni", C, dF)  # d(term)/d(w_b)
-        Mg = np.einsum("nij,nj->ni", M, gv)
-        Rg = np.einsum("nij,nj->ni", R_s, gv)
-        z = np.einsum("nij,nj->ni", M, wb) + body
-        J_pose = J_pose + np.hstack([np.cross(Mg, z), -Mg])
-        J_vel = J_vel - Rg * (self.tau[:, None] + delta)
-        J_lever = J_lever - gv
-        J_td = J_td - np.einsum("ni,ni->n", gv, np.cross(self.omega, wb + lever)) \
-            - np.einsum("ni,ni->n", Rg, v_s0 + a_s0 * delta)
-        if J_anc is not None:
-            J_anc = J_anc + Rg * (self.anchor_var >= 0)[:, None]  # dw_b/danchor = R_s^T
-        return J_pose, J_vel, J_lever, J_td, J_anc
-
     def _evaluate_kernel(self, R_k, p_k, v_k, lever, td: float, biases, jacobians: bool, anchor_pos=None,
                          dir_coefs=None):
         """:meth:`evaluate` without an anchor-side direction model, by the compiled row loop (:mod:`.range_kernel`).
 
         With estimated anchors the rows' current anchor positions go to the kernel and the anchor Jacobian
         ``-n`` is recovered exactly from the pose Jacobian's position block ``R_k^T n``.  With the tag-side
-        direction model the kernel also returns the rows' geometry and the (vectorised) direction term and its
-        derivatives are added on top, as in the NumPy path."""
-        from uwbimu.calibration.range_kernel import group_rows
+        direction model the kernel also returns the rows' geometry, on which the compiled direction term
+        (:func:`.range_kernel.direction_rows`) adds itself and its derivatives."""
+        from uwbimu.calibration.range_kernel import direction_rows, group_rows
 
         n = len(self.rho)
         R_k = np.ascontiguousarray(R_k, dtype=float).reshape(-1, 3, 3)
@@ -428,19 +403,24 @@ class RangeGroup:
                    np.ascontiguousarray(self.row_anchors(anchor_pos)), lever, delta,
                    float(G_WORLD[2]), jacobians, r, Jp, Jv, Jl, Jt, geo, u, R_s, M, v_s0, a_s0, body)
         e = r + self.bias_matrix @ np.asarray(biases, float) - self.rho
-        if geo:
-            C = np.asarray(dir_coefs, float).reshape(self.n_dir, -1)[self.dir_col]
-            wb = -np.einsum("nij,ni->nj", R_s, u)  # R_s^T (anchor - p_U)
-            F, dF = direction_features(wb, *self.direction, jacobian=jacobians)
-            e = e + np.einsum("np,np->n", F, C)
+        if not geo:
+            if not jacobians:
+                return e
+            J_anc = None if self.anchor_var is None else \
+                -np.einsum("nij,nj->ni", R_k[self.kf], Jp[:, 3:6]) * (self.anchor_var >= 0)[:, None]
+            return (e, Jp, Jv, Jl, Jt) + (() if J_anc is None else (J_anc,))
+        orders, elevation = self.direction
+        powers = tuple(elevation) if isinstance(elevation, (tuple, list)) else tuple(range(1, int(elevation) + 1))
+        C = np.ascontiguousarray(np.asarray(dir_coefs, float).reshape(self.n_dir, -1)[self.dir_col])
+        J_anc = None if not jacobians or self.anchor_var is None else \
+            -np.einsum("nij,nj->ni", R_k[self.kf], Jp[:, 3:6]) * (self.anchor_var >= 0)[:, None]
+        F, Rg = np.empty(C.shape), np.empty((n, 3))
+        direction_rows(np.array(orders, np.int64).reshape(-1), np.array(powers, np.int64).reshape(-1), C, u, R_s, M,
+                       v_s0, a_s0, body, self.omega, self.tau, lever, delta, jacobians, e, F, Jp, Jv, Jl, Jt, Rg)
         if not jacobians:
             return e
-        J_anc = None if self.anchor_var is None else \
-            -np.einsum("nij,nj->ni", R_k[self.kf], Jp[:, 3:6]) * (self.anchor_var >= 0)[:, None]
-        if not geo:
-            return (e, Jp, Jv, Jl, Jt) + (() if J_anc is None else (J_anc,))
-        Jp, Jv, Jl, Jt, J_anc = self._direction_jacobians(C, dF, wb, M, R_s, body, v_s0, a_s0, delta, lever,
-                                                          Jp, Jv, Jl, Jt, J_anc)
+        if J_anc is not None:
+            J_anc = J_anc + Rg * (self.anchor_var >= 0)[:, None]  # dw_b/danchor = R_s^T
         return (e, Jp, Jv, Jl, Jt, F) + (() if J_anc is None else (J_anc,))
 
     def evaluate(self, R_k, p_k, v_k, lever, td: float, biases, jacobians: bool = False, dir_coefs=None,
@@ -495,8 +475,21 @@ class RangeGroup:
         J_anc = None if est is None else -n * est
         if self.direction is None:
             return (e, J_pose, J_vel, J_lever, J_td) + extra + (() if est is None else (J_anc,))
-        J_pose, J_vel, J_lever, J_td, J_anc = self._direction_jacobians(
-            C, dF, geo["wb"], M, R_s, body, v_s0, a_s0, delta, lever, J_pose, J_vel, J_lever, J_td, J_anc)
+        # direction term F(w_b) c with w_b = R_s^T (anchor - p_U) = M^T R_k^T q - M^T b1 - lever, where
+        # q = anchor - p_k - v_k (tau + delta) + g (tau + delta)^2 / 2 (world) and b1 = body - M lever:
+        # dw_b/dtheta = M^T [R_k^T q]x = M^T [M w_b + body]x, dw_b/dp = -M^T, dw_b/dv = -(tau + delta) R_s^T,
+        # dw_b/dlever = -I, dw_b/dt_d = -omega x (w_b + lever) - R_s^T (v_s0 + a_s0 delta)
+        gv = np.einsum("np,npi->ni", C, dF)  # d(term)/d(w_b)
+        Mg = np.einsum("nij,nj->ni", M, gv)
+        Rg = np.einsum("nij,nj->ni", R_s, gv)
+        z = np.einsum("nij,nj->ni", M, geo["wb"]) + body
+        J_pose = J_pose + np.hstack([np.cross(Mg, z), -Mg])
+        J_vel = J_vel - Rg * (tau + delta)
+        J_lever = J_lever - gv
+        J_td = J_td - np.einsum("ni,ni->n", gv, np.cross(self.omega, geo["wb"] + lever)) \
+            - np.einsum("ni,ni->n", Rg, v_s0 + a_s0 * delta)
+        if est is not None:
+            J_anc = J_anc + Rg * est  # dw_b/danchor = R_s^T
         return (e, J_pose, J_vel, J_lever, J_td, F) + extra + (() if est is None else (J_anc,))
 
 

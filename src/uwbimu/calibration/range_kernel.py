@@ -136,4 +136,95 @@ def group_rows(R_k, p_k, v_k, kf, tau, dR, dv, dp, acc, omega, dRacc, anchor, le
         Jt[i] = jt
 
 
+@njit(cache=True)
+def direction_rows(orders, powers, C, u, Rs, M, vs, asv, body, omega, tau, lever, delta, jac,
+                   e, F, Jp, Jv, Jl, Jt, Rg_out):
+    """Tag-side direction term of every row on the geometry of :func:`group_rows` (``geo``), added in place.
+
+    The model of :func:`uwbimu.calibration.range_factor.direction_features` and of the direction part of
+    ``RangeGroup.evaluate`` (pinned to them by ``tests/test_calibrate_speed.py``, 1e-12).
+
+    Parameters
+    ----------
+    orders, powers : (n_o,), (n_q,) int64 Fourier orders in body azimuth and powers of the elevation [rad].
+    C : (N, P) each row's coefficient vector (P = 2 n_o + n_q) [m, m/rad^q].
+    u, Rs, M, vs, asv, body : the rows' geometry from :func:`group_rows` (``geo``).
+    omega : (N, 3) [rad/s]; tau : (N,) [s]; lever : (3,) [m]; delta : ``t_d - td0`` [s].
+    e : (N,) residuals [m], the term is added; F : (N, P) output features.
+    Jp, Jv, Jl, Jt : the range's Jacobians from :func:`group_rows`, the term's derivatives added (with ``jac``).
+    Rg_out : (N, 3) output ``R_s dg/dw_b`` (with ``jac``): the term's derivative with respect to the anchor.
+    """
+    n_o = orders.shape[0]
+    P = C.shape[1]
+    for i in range(e.shape[0]):
+        x = -(Rs[i, 0, 0] * u[i, 0] + Rs[i, 1, 0] * u[i, 1] + Rs[i, 2, 0] * u[i, 2])
+        y = -(Rs[i, 0, 1] * u[i, 0] + Rs[i, 1, 1] * u[i, 1] + Rs[i, 2, 1] * u[i, 2])
+        z = -(Rs[i, 0, 2] * u[i, 0] + Rs[i, 1, 2] * u[i, 1] + Rs[i, 2, 2] * u[i, 2])
+        h2 = max(x * x + y * y, 1e-12)
+        az = math.atan2(y, x)
+        g0 = 0.0
+        g1 = 0.0
+        g2 = 0.0
+        for k in range(n_o):
+            n = orders[k]
+            c, s = math.cos(n * az), math.sin(n * az)
+            F[i, 2 * k] = c
+            F[i, 2 * k + 1] = s
+            daz = -n * s * C[i, 2 * k] + n * c * C[i, 2 * k + 1]  # d(term)/d(az)
+            g0 += daz * (-y / h2)
+            g1 += daz * (x / h2)
+        if powers.shape[0] > 0:
+            h = math.sqrt(h2)
+            el = math.atan2(z, h)
+            r2 = h2 + z * z
+            d0, d1, d2 = -x * z / (r2 * h), -y * z / (r2 * h), h / r2
+            for k in range(powers.shape[0]):
+                q = powers[k]
+                F[i, 2 * n_o + k] = el ** q
+                de = q * el ** (q - 1) * C[i, 2 * n_o + k]
+                g0 += de * d0
+                g1 += de * d1
+                g2 += de * d2
+        term = 0.0
+        for p in range(P):
+            term += F[i, p] * C[i, p]
+        e[i] += term
+        if not jac:
+            continue
+        Mg0 = M[i, 0, 0] * g0 + M[i, 0, 1] * g1 + M[i, 0, 2] * g2
+        Mg1 = M[i, 1, 0] * g0 + M[i, 1, 1] * g1 + M[i, 1, 2] * g2
+        Mg2 = M[i, 2, 0] * g0 + M[i, 2, 1] * g1 + M[i, 2, 2] * g2
+        Rg0 = Rs[i, 0, 0] * g0 + Rs[i, 0, 1] * g1 + Rs[i, 0, 2] * g2
+        Rg1 = Rs[i, 1, 0] * g0 + Rs[i, 1, 1] * g1 + Rs[i, 1, 2] * g2
+        Rg2 = Rs[i, 2, 0] * g0 + Rs[i, 2, 1] * g1 + Rs[i, 2, 2] * g2
+        # z = M w_b + body (see RangeGroup.evaluate for the derivatives of w_b)
+        z0 = M[i, 0, 0] * x + M[i, 0, 1] * y + M[i, 0, 2] * z + body[i, 0]
+        z1 = M[i, 1, 0] * x + M[i, 1, 1] * y + M[i, 1, 2] * z + body[i, 1]
+        z2 = M[i, 2, 0] * x + M[i, 2, 1] * y + M[i, 2, 2] * z + body[i, 2]
+        Jp[i, 0] += Mg1 * z2 - Mg2 * z1
+        Jp[i, 1] += Mg2 * z0 - Mg0 * z2
+        Jp[i, 2] += Mg0 * z1 - Mg1 * z0
+        Jp[i, 3] -= Mg0
+        Jp[i, 4] -= Mg1
+        Jp[i, 5] -= Mg2
+        s = tau[i] + delta
+        Jv[i, 0] -= Rg0 * s
+        Jv[i, 1] -= Rg1 * s
+        Jv[i, 2] -= Rg2 * s
+        Jl[i, 0] -= g0
+        Jl[i, 1] -= g1
+        Jl[i, 2] -= g2
+        # omega x (w_b + lever)
+        a0, a1, a2 = x + lever[0], y + lever[1], z + lever[2]
+        o0, o1, o2 = omega[i, 0], omega[i, 1], omega[i, 2]
+        c0 = o1 * a2 - o2 * a1
+        c1 = o2 * a0 - o0 * a2
+        c2 = o0 * a1 - o1 * a0
+        Jt[i] -= g0 * c0 + g1 * c1 + g2 * c2 + Rg0 * (vs[i, 0] + asv[i, 0] * delta) \
+            + Rg1 * (vs[i, 1] + asv[i, 1] * delta) + Rg2 * (vs[i, 2] + asv[i, 2] * delta)
+        Rg_out[i, 0] = Rg0
+        Rg_out[i, 1] = Rg1
+        Rg_out[i, 2] = Rg2
+
+
 refresh_stale_cache(globals(), [_physics])
