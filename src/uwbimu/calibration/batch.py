@@ -211,7 +211,7 @@ def _indexed_walk_task(task):
 
 
 def run_profile(pb, imf, free_values, centre: float, progress=None, workers: int = 1,
-                executor: Optional[dict] = None, mode: str = "fast") -> TdProfile:
+                executor: Optional[dict] = None, mode: str = "fast", chi2_scale: float = 1.0) -> TdProfile:
     """Profile of t_d on the grid ``prior +/- half_width``, warm-started outward from ``centre``.
 
     With ``td_profile.coarse_step`` larger than ``step``: first the whole range at ``coarse_step``,
@@ -231,6 +231,9 @@ def run_profile(pb, imf, free_values, centre: float, progress=None, workers: int
     :func:`uwbimu.studies.executors.execute`, e.g. ``{"dask_local": True}``) runs them as tasks on the
     Monte Carlo executors, ``workers == 1`` here; the points and values are the same either way (at
     most two walks run at once, so more than 2 workers gain nothing here).
+
+    ``chi2_scale``: the honesty correction of the white-noise profile (:func:`_profile_chi2_scale`); the zoom
+    decision and the verdict both read the scaled profile (:func:`profile_verdict`).
     """
     po = pb.options.td_profile
     o = pb.options
@@ -275,8 +278,8 @@ def run_profile(pb, imf, free_values, centre: float, progress=None, workers: int
     for _level in range(PROFILE_ZOOM_LEVELS):
         grid = np.array(sorted(found))
         chi2 = np.array([found[g][0] for g in grid])
-        verdict, best, vertex, sig = profile_verdict(grid, chi2, po.confidence_chi2)
-        if verdict != "identified" or np.sum(chi2 - chi2.min() < po.confidence_chi2) > 1:
+        verdict, best, vertex, sig = profile_verdict(grid, chi2, po.confidence_chi2, chi2_scale=chi2_scale)
+        if verdict != "identified" or np.sum(chi2_scale * (chi2 - chi2.min()) < po.confidence_chi2) > 1:
             break
         # The confidence set is one grid point: the profile is sharper than the step (a long log), its
         # interpolated interval too narrow and the vertex a fit over points tens of sigma out.  Zoom in.
@@ -293,7 +296,7 @@ def run_profile(pb, imf, free_values, centre: float, progress=None, workers: int
     grid = np.array(sorted(found))
     chi2 = np.array([found[g][0] for g in grid])
     iters = np.array([found[g][1] for g in grid], int)
-    verdict, best, vertex, sig = profile_verdict(grid, chi2, po.confidence_chi2)
+    verdict, best, vertex, sig = profile_verdict(grid, chi2, po.confidence_chi2, chi2_scale=chi2_scale)
     return TdProfile(grid=grid, chi2=chi2, iterations=iters, verdict=verdict, best=best, vertex=vertex,
                      sigma_curvature=sig, confidence_chi2=po.confidence_chi2)
 
@@ -349,10 +352,7 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
         # honesty correction of the white-noise profile: model / sandwich variance of t_d at the free solve
         chi2_scale = _profile_chi2_scale(pb, graph, values, assoc)
         prof = run_profile(pb, imf, values, free_td, progress, workers=workers, executor=executor,
-                           mode="reference" if reference_solver else "fast")
-        if chi2_scale != 1.0:
-            prof.verdict, prof.best, prof.vertex, prof.sigma_curvature = profile_verdict(
-                prof.grid, prof.chi2, prof.confidence_chi2, chi2_scale=chi2_scale)
+                           mode="reference" if reference_solver else "fast", chi2_scale=chi2_scale)
         if prof.identified:
             graph, values, assoc, iters = _solve(pb, imf, G.with_td(values, prof.vertex), prof.vertex, None,
                                                  engine=engine)
@@ -464,17 +464,19 @@ def _initial_anchors(dataset, eskf, o: CalibrationOptions, setup) -> list[dict]:
     return events
 
 
-def _calibration_covariance(pb, graph, values, assoc, keys, td: float, td_free: bool):
+def _calibration_covariance(pb, graph, values, assoc, keys, td: float, td_free: bool, marg=None):
     """Covariance of ``keys`` by ``options.covariance``: (cov, cov_model, yaml section).
 
     ``sandwich``: :func:`uwbimu.calibration.covariance.sandwich_covariance` over the range/TDoA rows
     (Huber inliers ``|z| <= huber_k`` in the bread; bandwidth from the lever arm's and t_d's score series).
+    ``marg``: the graph's marginals when the caller already has them (:func:`_marginals`).
     """
     import gtsam
 
     from uwbimu.calibration import covariance as CV
 
-    cov_model = _marginals(pb, graph, values).jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
+    marg = marg if marg is not None else _marginals(pb, graph, values)
+    cov_model = marg.jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
     if pb.options.covariance == "model":
         return cov_model, cov_model, {"method": "model", "description": "GTSAM marginals of the white range-noise model"}
     e = G.range_residuals(graph, assoc, values, td)
@@ -541,7 +543,7 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset, chi2_
         names += [f"lever_arm_{tag}_{c}" for c in "xyz"]
     lever = values.atVector(L(0))
     td = float(values.atVector(T(0))[0]) if td_free else pb.options.time_offset_prior
-    cov, cov_model, cov_sec = _calibration_covariance(pb, graph, values, assoc, keys, td, td_free)
+    cov, cov_model, cov_sec = _calibration_covariance(pb, graph, values, assoc, keys, td, td_free, marg=marg)
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     sd_model = np.sqrt(np.diag(cov_model))
     corr = cov / np.outer(sd, sd)

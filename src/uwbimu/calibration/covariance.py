@@ -45,11 +45,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-#: Tangent dimension of every variable, by the GTSAM symbol letter (see graph.py); others (``h``, the
-#: direction-bias coefficients) are vectors whose length is read from the values.
-_DIMS = {"x": 6, "v": 3, "b": 6, "l": 3, "t": 1, "a": 1, "p": 3, "d": 1}
-
-
 
 class _SymmetricFactor:
     """``splu`` of a sparse symmetric positive definite ``H`` in a banded ordering.
@@ -108,12 +103,10 @@ class SandwichInfo:
 
 def column_map(values) -> tuple[dict, int]:
     """Columns of each key in ``GaussianFactorGraph.sparseJacobian_`` (ordered by key), and their total."""
-    import gtsam
-
+    zero = values.zeroVectors()  # one tangent vector per variable: its dimension, whatever the type
     cols, off = {}, 0
     for k in sorted(int(k) for k in values.keys()):
-        c = chr(gtsam.Symbol(k).chr())
-        d = _DIMS[c] if c in _DIMS else len(values.atVector(k))
+        d = int(zero.at(k).shape[0])
         cols[k] = np.arange(off, off + d)
         off += d
     return cols, off
@@ -138,6 +131,15 @@ def linear_system(graph, values):
     return J, b, row0, cols
 
 
+def lag1_coefficients(S: np.ndarray, center: bool) -> np.ndarray:
+    """Least-squares lag-1 AR coefficient of each column of ``S`` (T, q) (0 for a zero column)."""
+    S = np.asarray(S, float)
+    X = S - S.mean(axis=0) if center else S
+    den = np.einsum("ta,ta->a", X[:-1], X[:-1])
+    num = np.einsum("ta,ta->a", X[1:], X[:-1])
+    return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+
+
 def andrews_bandwidth(S: np.ndarray) -> tuple[float, np.ndarray]:
     """Andrews (1991) AR(1) plug-in bandwidth [bins] of the Bartlett kernel for the series ``S`` (T, q).
 
@@ -146,12 +148,7 @@ def andrews_bandwidth(S: np.ndarray) -> tuple[float, np.ndarray]:
     """
     S = np.asarray(S, float)
     T = len(S)
-    rho = np.zeros(S.shape[1])
-    for a in range(S.shape[1]):
-        x = S[:, a] - S[:, a].mean()
-        den = float(x[:-1] @ x[:-1])
-        rho[a] = float(x[1:] @ x[:-1]) / den if den > 0 else 0.0
-    rho = np.clip(rho, -0.97, 0.97)
+    rho = np.clip(lag1_coefficients(S, center=True), -0.97, 0.97)
     s4 = (1.0 - rho**2) ** 2  # innovation variance^2 of a unit-variance AR(1)
     num = np.sum(4 * rho**2 * s4 / ((1 - rho) ** 6 * (1 + rho) ** 2))
     den = np.sum(s4 / (1 - rho) ** 4)
@@ -259,11 +256,7 @@ def sandwich_covariance(graph, values, keys, slots: np.ndarray, row_time: np.nda
     if prewhiten:
         # Andrews-Monahan prewhitening with one AR(1) per column: s*_t = s_t - rho s_{t-1}, recoloured
         # by D = diag(1 / (1 - rho)) (exact for the long-run variance whatever the filter)
-        rho_pw = np.zeros(S.shape[1])
-        for a in range(S.shape[1]):
-            den = float(S[:-1, a] @ S[:-1, a])
-            rho_pw[a] = float(S[1:, a] @ S[:-1, a]) / den if den > 0 else 0.0
-        rho_pw = np.clip(rho_pw, -0.9, 0.9)
+        rho_pw = np.clip(lag1_coefficients(S, center=False), -0.9, 0.9)
         S = S[1:] - S[:-1] * rho_pw
         D = np.diag(1.0 / (1.0 - rho_pw))
     bw_a, rho = andrews_bandwidth(S[:, sel])
