@@ -112,15 +112,17 @@ def test_direction_model_per_tag():
     assert "bias_direction" in res.residuals.columns
 
 
-def test_several_tags_refusals():
-    """Self-survey with several tags, and a tdoa.csv without tag column next to a two-tag uwb.csv, are refused
-    naming what is not supported."""
+def test_several_tags_self_survey_runs_and_tdoa_refusal():
+    """Self-survey with several tags now calibrates (one lever arm per tag, the named anchor estimated for all
+    tags; tests/test_calibrate_survey_tags.py checks the values); a tdoa.csv without tag column next to a
+    two-tag uwb.csv is still refused, naming what is not supported."""
     from uwbimu.errors import InputError
 
     ds = _two_tags(5, duration=4.0)
     a0 = str(ds.anchors["anchor"].iloc[0])
-    with pytest.raises(InputError, match="estimate_anchors"):
-        calibrate(ds, CalibrationOptions(**NOPROF, estimate_anchors=[a0]))
+    res = calibrate(ds, CalibrationOptions(**NOPROF, estimate_anchors=[a0]))
+    assert res.calibration["anchors"]["estimated"] == [a0] and list(res.calibration["tags"]) == ["front", "back"]
+    assert set(res.residuals.loc[res.residuals["anchor"] == a0, "tag"]) == {"front", "back"}
     import pandas as pd
 
     u = ds.uwb

@@ -203,10 +203,12 @@ def eskf_dataset(dataset, s: AnchorSetup, with_unsurveyed: bool):
     return replace(dataset, anchors=an.reset_index(drop=True), uwb=uwb, groundtruth=None, anchor_ranges=None)
 
 
-def antenna_positions(eskf, t_uwb: np.ndarray, with_sd: bool = False):
+def antenna_positions(eskf, t_uwb: np.ndarray, with_sd: bool = False, lever_arm: Optional[np.ndarray] = None):
     """(M, 3) antenna positions of the ESKF trajectory at UWB stamps ``t_uwb`` (its t_d and lever arm).
 
     With ``with_sd`` also the (M, 3) position sds of the ESKF (world frame) at those instants.
+    ``lever_arm``: (3,) or (M, 3) lever arm(s) p_IU [m, IMU frame] to use instead of the ESKF's
+    (several tags: each row its own tag's, :func:`tag_lever_arms`).
     """
     from scipy.spatial.transform import Rotation, Slerp
 
@@ -218,11 +220,21 @@ def antenna_positions(eskf, t_uwb: np.ndarray, with_sd: bool = False):
     q = st[:, 6:10] / np.linalg.norm(st[:, 6:10], axis=1, keepdims=True)
     _, first = np.unique(t_e, return_index=True)
     rot = Slerp(t_e[first], Rotation.from_quat(q[first][:, [1, 2, 3, 0]]))(s)
-    pu = p + rot.apply(np.asarray(eskf.calibration["lever_arm"], float))
+    lev = np.asarray(eskf.calibration["lever_arm"] if lever_arm is None else lever_arm, float)
+    pu = p + rot.apply(lev)
     if not with_sd:
         return pu
     sd = np.column_stack([np.interp(s, t_e, np.nan_to_num(eskf.sd[:, c])) for c in range(3)])
     return pu, sd
+
+
+def tag_lever_arms(eskf, names: list[str], tag_i: np.ndarray) -> np.ndarray:
+    """(M, 3) lever arm p_IU [m, IMU frame] of each row from the ESKF: its ``calibration["tags"]`` entry of the
+    row's tag ``names[tag_i]`` (several tags: one lever arm each), else its (single) ``lever_arm``."""
+    cal = eskf.calibration
+    etag = cal.get("tags") or {}
+    lev = np.array([etag[n]["lever_arm"] if n in etag else cal["lever_arm"] for n in names], float).reshape(-1, 3)
+    return lev[np.asarray(tag_i, np.int64)]
 
 
 def multilaterate(P: np.ndarray, rho: np.ndarray, iterations: int = 20) -> tuple[np.ndarray, float]:

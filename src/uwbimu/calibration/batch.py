@@ -393,15 +393,11 @@ def _bootstrap(dataset, o: CalibrationOptions, setup, eo, eskf, events: list):
     trajectory to a few tens of cm, which the joint batch solve then refines.  The unsurveyed
     anchors start at the multilateration of their ranges from that trajectory, followed by the
     geometry checks (:func:`_initial_anchors`).  A given ``eskf`` (same frame) is used as is.
+    Several tags: the ESKF estimates one lever arm per tag (unless its option ``tag`` picks one), and
+    each range is placed at its own tag's antenna.
     """
     from uwbimu.estimation import run_eskf
 
-    names, _ = G.tag_names(dataset)
-    if len(names) > 1 and getattr(eo, "tag", None) is None:
-        from uwbimu.errors import InputError
-
-        raise InputError(f"calibrate: anchor self-survey (estimate_anchors / --estimate-anchors) with several tags "
-                         f"({names}) is not supported", hint="calibrate one tag (ESKF option tag) or fix the anchors")
     if eskf is None:
         guesses = int(setup.surveyed.sum()) < 4 and bool((setup.estimated & ~setup.surveyed).any())
         if guesses:
@@ -419,7 +415,9 @@ def _initial_anchors(dataset, eskf, o: CalibrationOptions, setup) -> list[dict]:
     """Initial guesses of the estimated anchors (multilateration of the ESKF trajectory) and geometry checks.
 
     An anchor without prior (``surveyed: false``) starts at the multilateration of its ranges from the
-    ESKF antenna positions; one with a prior starts at its ``anchors.csv`` position.  Degenerate
+    ESKF antenna positions; one with a prior starts at its ``anchors.csv`` position.  Several tags: the
+    ranges of the tags the ESKF used (:func:`uwbimu.calibration.graph.tag_names`), each at its own tag's
+    antenna (the ESKF's lever arm of that tag), all of them in the multilateration and the checks.  Degenerate
     geometry (:func:`uwbimu.calibration.anchors.geometry_checks`) refuses an anchor without prior unless
     ``degenerate_anchors: warn``; with a prior it is a warning (the prior decides).
     """
@@ -428,6 +426,13 @@ def _initial_anchors(dataset, eskf, o: CalibrationOptions, setup) -> list[dict]:
     sigma = float(o.range_sigma or dataset.meta.range_sigma or 0.1)
     bias_sd = o.anchor_bias_prior_sd if o.anchor_bias_estimated(True) else None
     uwb = dataset.uwb
+    names, tag_column = G.tag_names(dataset, eskf)
+    levers = None  # one tag: the ESKF's lever arm
+    if tag_column and "tag" in uwb.columns:
+        uwb = uwb[uwb["tag"].astype(str).isin(names).to_numpy()]
+        if len(names) > 1:
+            ti = uwb["tag"].astype(str).map({n: i for i, n in enumerate(names)}).to_numpy(np.int64)
+            levers = AN.tag_lever_arms(eskf, names, ti)
     aid = uwb["anchor"].astype(str).to_numpy()
     events = []
     for j in np.flatnonzero(setup.estimated):
@@ -440,7 +445,8 @@ def _initial_anchors(dataset, eskf, o: CalibrationOptions, setup) -> list[dict]:
                              "(from different places) are needed to locate it without a prior")
         if not sel.any():
             continue  # a prior and no ranges: the prior alone places it (its sd says so)
-        P, P_sd = AN.antenna_positions(eskf, uwb["t"].to_numpy(float)[sel], with_sd=True)
+        P, P_sd = AN.antenna_positions(eskf, uwb["t"].to_numpy(float)[sel], with_sd=True,
+                                       lever_arm=None if levers is None else levers[sel])
         if has_prior:
             a0 = setup.pos[j]
         else:
@@ -704,8 +710,14 @@ def _anchor_positions(pb, values) -> np.ndarray:
 
 
 def _anchor_report(pb, values, sd_p: dict, dataset):
-    """``calibration.yaml``'s ``anchors`` section and the ``anchors_estimated.csv`` table."""
+    """``calibration.yaml``'s ``anchors`` section and the ``anchors_estimated.csv`` table.
+
+    Each anchor's entry says whether its constant range bias ``A(j)`` was estimated (``bias_estimated``;
+    ``estimate_anchor_bias: false`` holds every bias at 0, ``surveyed_only`` those of the estimated anchors),
+    and ``bias_held_at_zero`` lists the anchors whose bias was held at 0.
+    """
     s = pb.anchors
+    bias_est = [pb.options.anchor_bias_estimated(bool(s.estimated[j])) for j in range(len(pb.anchor_ids))]
     pos = _anchor_positions(pb, values)
     R = s.transform[0]
     file_ids = [str(a) for a in dataset.anchors["anchor"]]
@@ -714,12 +726,13 @@ def _anchor_report(pb, values, sd_p: dict, dataset):
         e = {"position": [float(v) for v in pos[j]],
              "sd": [float(v) for v in sd_p[j]] if j in sd_p else [0.0, 0.0, 0.0],
              "estimated": bool(s.estimated[j]), "surveyed": bool(s.surveyed[j]),
-             "prior_sd": float(s.prior_sd[j]) if np.isfinite(s.prior_sd[j]) else None}
+             "prior_sd": float(s.prior_sd[j]) if np.isfinite(s.prior_sd[j]) else None,
+             "bias_estimated": bool(bias_est[j])}
         if s.estimated[j] and s.surveyed[j]:
             e["moved_from_anchors_csv"] = [float(v) for v in pos[j] - s.pos[j]]
         per[a] = e
     out = {"gauge": s.gauge, "estimated": [a for j, a in enumerate(pb.anchor_ids) if s.estimated[j]],
-           "positions": per}
+           "positions": per, "bias_held_at_zero": [a for j, a in enumerate(pb.anchor_ids) if not bias_est[j]]}
     if s.pairs is not None:
         out["anchor_ranges"] = [
             {"anchor_a": pb.anchor_ids[int(a)], "anchor_b": pb.anchor_ids[int(b)], "range": float(r), "sd": float(sd),

@@ -276,10 +276,6 @@ def build_problem(dataset, eskf, options: CalibrationOptions, anchors: Optional[
         ti = uwb["tag"].astype(str).map(tmap).to_numpy(np.int64)
     else:
         ti = np.zeros(len(uwb), np.int64)
-    if len(names) > 1 and anchors is not None and any(anchors.estimated):
-        raise InputError(f"calibrate: anchor self-survey (estimate_anchors / --estimate-anchors) with several tags "
-                         f"({names}) is not supported",
-                         hint="calibrate one tag (ESKF option tag) or fix the anchors")
     jmap = {a: j for j, a in enumerate(ids)}
     t_e = eskf.t_imu if eskf.t_imu is not None else eskf.t + eskf.calibration["time_offset"]
     tk = t_imu[key_idx]
