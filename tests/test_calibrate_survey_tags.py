@@ -47,7 +47,8 @@ def seeded_surveys():
 def test_lever_arms_and_anchors_within_three_sigma(seeded_surveys):
     """On every seed: both tags' lever arms and both estimated anchors within 3 sigma of the truth, the tags'
     lever arms distinct (their difference within 3 cm of the true one), the fixed anchors untouched, and both
-    tags' ranges reach each estimated anchor; RMS(error / sigma) over the 36 components in (0.3, 2)."""
+    tags' ranges reach each estimated anchor; RMS(error / sigma) over the 36 components in (0.3, 2) (measured:
+    largest |error / sigma| 2.4, RMS 1.2)."""
     zs = []
     for truth, ds, res in seeded_surveys:
         cal = res.calibration
@@ -81,9 +82,9 @@ def test_lever_arms_and_anchors_within_three_sigma(seeded_surveys):
 def test_grouped_matches_the_per_range_graph(seeded_surveys, huber_k, bias, atol, monkeypatch):
     """Grouped range factors (one group per block of keyframes and tag, the estimated anchors' positions keys of
     the groups of both tags) and one CustomFactor per range reach the same anchors and lever arms.  Quadratic
-    loss (huber_k 100): the same linear systems, within 1e-6 m (measured ~1e-9 m); default Huber: the weights of
-    down-weighted rows differ by design, the optimum is shared to the LM stopping rule, 1e-4 m (measured
-    ~1e-5 m)."""
+    loss (huber_k 100, every bias estimated): the same linear systems, within 1e-6 m (measured 6e-14 m); default
+    Huber (surveyed_only): the weights of down-weighted rows differ by design, the optimum is shared to the LM
+    stopping rule, 1e-4 m (measured 1.5e-5 m)."""
     from gtsam.symbol_shorthand import L, P
 
     from uwbimu.calibration import graph as G

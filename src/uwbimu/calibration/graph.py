@@ -248,7 +248,8 @@ def build_problem(dataset, eskf, options: CalibrationOptions, anchors: Optional[
 
     ``anchors`` (self-survey): anchor ids, fixed positions and initial guesses in the
     gauge frame; default: every anchor fixed at its ``anchors.csv`` position.  Several tags
-    (:func:`tag_names`): every row keeps its tag, each tag has its own lever arm.
+    (:func:`tag_names`): every row keeps its tag, each tag has its own lever arm; the estimated anchors
+    (self-survey) are shared by the tags.
     """
     from uwbimu.errors import InputError, UsageError
 
