@@ -107,6 +107,7 @@ def full_log(ds, kind: str, opts, eo, save_dir=None) -> dict:
            "eskf_lever_arm_sd": e.calibration["lever_arm_sd"], "eskf_td": e.calibration["time_offset"],
            "eskf_td_sd": e.calibration["time_offset_sd"], "residuals_per_anchor": per_anchor,
            "downweighted": c["ranges"]["downweighted"], "expected_downweighted": c["ranges"]["expected_downweighted"]}
+    out["imu_noise_scale"] = c["imu_noise"]["scale"]
     out["direction"] = direction_table(res, ds)
     out["range_model_direction"] = c["range_model"].get("direction")
     if save_dir is not None:
@@ -176,8 +177,16 @@ def windows(ds, opts, eo, k: int) -> dict:
     from uwbimu.eval.repeatability import repeatability
 
     c0 = time.process_time()
-    rep = repeatability(ds, k, lambda w: flat_calibration(calibrate(w, opts, eskf_options=eo)), level=0.01)
+    scales = []
+
+    def one(w):
+        res = calibrate(w, opts, eskf_options=eo)
+        scales.append(res.calibration["imu_noise"]["scale"])
+        return flat_calibration(res)
+
+    rep = repeatability(ds, k, one, level=0.01)
     rep["cpu_s"] = time.process_time() - c0
+    rep["imu_noise_scale"] = scales
     return rep
 
 
@@ -220,6 +229,10 @@ def main(argv=None) -> int:
         print(f"  t_d {1000 * td['value']:.1f} ms, verdict {td['verdict']}, sd marginal {sdm} ms, curvature {sdc} ms")
         print(f"  ATE batch {f['ate_batch']:.3f} m, ESKF {f['ate_eskf']:.3f} m, multilateration "
               f"{f['ate_multilateration']:.3f} m ({ALIGN[a.kind]})")
+        sc_ = f["imu_noise_scale"]
+        print(f"  IMU noise scale {sc_['scale']:.2f}" + (f" +/- {sc_['scale_sd']:.2f} (chi2 {sc_['chi2']:.0f}, "
+              f"redundancy {sc_['redundancy']:.0f}, {sc_['steps']} steps)" if sc_.get("scale_sd") else
+              f" ({sc_['method']})"))
         print("  residual median / MAD per anchor [cm]: " + ", ".join(
             f"{k}: {v['median_cm']:+.1f}/{v['mad_cm']:.1f}" for k, v in f["residuals_per_anchor"].items()))
         print("  residual vs line of sight per anchor (spread of 45-deg sector medians [cm], share of variance; "
@@ -238,6 +251,7 @@ def main(argv=None) -> int:
         report["repeatability"] = rep
         print(f"repeatability over {a.windows} windows of {rep['window_s']:.0f} s ({rep['cpu_s']:.0f} s CPU, "
               f"{rep['n_failed']} failed):")
+        print("  IMU noise scale per window: " + ", ".join(f"{x['scale']:.1f}" for x in rep["imu_noise_scale"]))
         for w in rep["windows"]:
             if "error" in w:
                 print(f"  window {w['i'] + 1}: {w['error']}")

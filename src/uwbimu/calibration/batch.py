@@ -13,6 +13,7 @@ import pandas as pd
 
 from uwbimu.calibration import anchors as AN
 from uwbimu.calibration import graph as G
+from uwbimu.calibration import noise_scale as NS
 from uwbimu.calibration.options import CalibrationOptions
 from uwbimu.calibration.profile import TdProfile, confidence_interval, motion_advice, profile_verdict
 
@@ -91,6 +92,12 @@ def profile_rows(pb, lo: float, hi: float) -> np.ndarray:
     return np.flatnonzero((pb.t_range + lo >= pb.t_key[0]) & (pb.t_range + hi < pb.t_imu[-1]))
 
 
+#: The fast profile extrapolates a point's start along the last two solutions only when its distance from the
+#: last point is at most this multiple of theirs: a walk's first step leaves a free solution a fraction of a
+#: millisecond from the first grid point, and a secant scaled by hundreds sent the INRoL solve (IMU noise
+#: scale 24) into a wrong minimum (chi2 +98 000, then every later point of the walk warm-started from it).
+PROFILE_MAX_EXTRAPOLATION = 2.0
+
 #: Zoom of a profile whose confidence set is one grid point (:func:`run_profile`): step divisor, number of
 #: zoom passes at most, smallest step [s].
 PROFILE_ZOOM, PROFILE_ZOOM_LEVELS, PROFILE_MIN_STEP = 5, 3, 1e-4
@@ -128,11 +135,20 @@ def _walk(pb, imf, points, start, prev, mode: str = "fast", on_point=None, rows=
     for g in points:
         g = float(g)
         init = start[1]
-        if fast and prev is not None and start[0] != prev[0]:
+        ratio = (g - start[0]) / (start[0] - prev[0]) if prev is not None and start[0] != prev[0] else 0.0
+        extrapolated = fast and 0.0 < abs(ratio) <= PROFILE_MAX_EXTRAPOLATION
+        if extrapolated:
             step = prev[1].localCoordinates(start[1])  # prev -> start, in start's tangent convention
-            step.scaleInPlace((g - start[0]) / (start[0] - prev[0]))
+            step.scaleInPlace(ratio)
             init = start[1].retract(step)
         graph, vals, _assoc, it = _solve(pb, imf, init, g, g, None, predicted_tol=tol, engine=engine, rows=rows)
+        if extrapolated and it >= o.max_iterations:
+            # the extrapolated start led the solve astray (it ran out of iterations): start again from the
+            # previous point's solution and keep the better of the two
+            g2, v2, _a2, it2 = _solve(pb, imf, start[1], g, g, None, predicted_tol=tol, engine=engine, rows=rows)
+            if g2.error(v2) < graph.error(vals):
+                graph, vals = g2, v2
+            it += it2
         chi2 = 2.0 * graph.error(vals) + ((g - mu) / o.time_offset_prior_sd) ** 2
         out.append((g, chi2, it, vals))
         prev, start = start, (g, vals)
@@ -344,6 +360,14 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
     X, V, B, L, T, A = G._keys()
     engine = "gtsam" if reference_solver else "python"
     graph, values, assoc, iters = _solve(pb, imf, G.initial_values(pb), pb.td0, None, engine=engine)
+    imu_scale = None
+    if o.imu_noise_scale == "estimate":
+        pb, imf, graph, values, assoc, iters, imu_scale = NS.estimate_imu_noise_scale(
+            pb, imf, graph, values, assoc, iters, build_imu=G._imu_factors,
+            solve=lambda p, f, v, td, a: _solve(p, f, v, td, None, assoc=a, engine=engine))
+        ev = NS.scale_event(imu_scale)
+        if ev is not None:
+            events.append(ev)
     free_td = float(values.atVector(T(0))[0])
     prof = None
     td_free = True
@@ -370,6 +394,7 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
     if progress is not None:
         progress(0.9)
     cal, traj, res, anchors = _report(pb, graph, values, assoc, td_free, prof, iters, dataset, chi2_scale=chi2_scale)
+    cal["imu_noise"] = _imu_noise_report(pb, imu_scale)
     for ev in events:
         if ev["kind"] == "time_offset_not_identified":
             cal["time_offset"]["advice"] = ev["advice"]
@@ -380,6 +405,17 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
                             events=events, anchors=anchors)
     from_graph_frame(out, frame)
     out.runtime_s = time.perf_counter() - t_start
+    return out
+
+
+def _imu_noise_report(pb, scale_info: Optional[dict]) -> dict:
+    """calibration.yaml ``imu_noise``: the densities the graph used and, when estimated, how."""
+    infl = float(pb.options.imu_noise_inflation)
+    out = {"accel_noise_density": pb.imu_noise["accel_noise_density"] * infl,
+           "gyro_noise_density": pb.imu_noise["gyro_noise_density"] * infl,
+           "accel_bias_rw": pb.imu_noise["accel_bias_rw"] * infl, "gyro_bias_rw": pb.imu_noise["gyro_bias_rw"] * infl,
+           "configured": dict(pb.imu_noise), "inflation": infl}
+    out["scale"] = scale_info if scale_info is not None else {"method": "fixed"}
     return out
 
 

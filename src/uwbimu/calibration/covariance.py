@@ -121,7 +121,7 @@ def linear_system(graph, values):
     ijs = lin.sparseJacobian_()
     cols, n = column_map(values)
     rows, cc = ijs[0].astype(np.int64) - 1, ijs[1].astype(np.int64) - 1
-    nrow = np.array([lin.at(i).rows() for i in range(lin.size())], np.int64)
+    nrow = np.array([graph.at(i).dim() for i in range(graph.size())], np.int64)  # rows of each linearised factor
     m = int(nrow.sum())
     keep = cc < n  # the last column is the right-hand side b
     J = sp.csr_matrix((ijs[2][keep], (rows[keep], cc[keep])), shape=(m, n))
@@ -191,6 +191,16 @@ def bartlett_long_run(S: np.ndarray, bandwidth: float) -> np.ndarray:
     return om
 
 
+def leverages(J, lu: _SymmetricFactor, rows, n_probes: int = 64, seed: int = 0) -> np.ndarray:
+    """Leverages ``h_i = J_i H^-1 J_i^T`` of the rows ``rows`` (sparse, a subset of ``J``'s rows), ``H = J^T J``
+    factored in ``lu``, without forming ``H^-1``: ``w = H^-1 J^T xi`` with ``xi ~ N(0, I)`` has covariance
+    ``H^-1``, so ``h_i = E (J_i w)^2``, averaged over ``n_probes`` probes of a fixed ``seed`` (deterministic).
+    Each ``h_i`` has a relative sd of ``sqrt(2 / n_probes)``; a sum over many rows is far tighter."""
+    rng = np.random.default_rng(seed)
+    W = lu.solve(np.asarray(J.T @ rng.standard_normal((J.shape[0], n_probes))))
+    return np.mean(np.square(np.asarray(rows @ W)), axis=1)
+
+
 def sandwich_covariance(graph, values, keys, slots: np.ndarray, row_time: np.ndarray, bin_s: float,
                         inlier: np.ndarray | None = None, interest: np.ndarray | None = None,
                         bandwidth: str = "andrews", prewhiten: bool = True, n_probes: int = 64, seed: int = 0,
@@ -240,11 +250,7 @@ def sandwich_covariance(graph, values, keys, slots: np.ndarray, row_time: np.nda
     A = np.asarray(JR @ X)  # (m_R, p): a_i^T
     A_in = A if inlier is None else A[np.asarray(inlier, bool)]
     r = b[row_index]
-    # leverage h_i = J_i H^-1 J_i^T from probes w ~ N(0, H^-1)
-    rng = np.random.default_rng(seed)
-    W = lu.solve(np.asarray(Jb.T @ rng.standard_normal((J.shape[0], n_probes))))
-    h = np.mean(np.square(np.asarray(JR @ W)), axis=1)
-    h = np.clip(h, 0.0, 0.9)
+    h = np.clip(leverages(Jb, lu, JR, n_probes=n_probes, seed=seed), 0.0, 0.9)
     U = A * (r / np.sqrt(1.0 - h))[:, None]
     t = np.asarray(row_time, float)
     tb = np.floor((t - t.min()) / bin_s + 1e-9).astype(np.int64)  # (1e-9: stamps on the bin grid)

@@ -365,7 +365,8 @@ def _pose(s):
 
 
 def _imu_factors(pb: Problem):
-    """One CombinedImuFactor per keyframe interval (independent of t_d)."""
+    """One CombinedImuFactor per keyframe interval (independent of t_d); noise densities and bias random walks
+    times ``imu_noise_inflation``."""
     import gtsam
 
     X, V, B, *_ = _keys()
@@ -376,8 +377,10 @@ def _imu_factors(pb: Problem):
     params.setAccelerometerCovariance(np.eye(3) * (infl * n["accel_noise_density"]) ** 2)
     params.setGyroscopeCovariance(np.eye(3) * (infl * n["gyro_noise_density"]) ** 2)
     params.setIntegrationCovariance(np.eye(3) * INTEGRATION_COV)
-    params.setBiasAccCovariance(np.eye(3) * n["accel_bias_rw"] ** 2)
-    params.setBiasOmegaCovariance(np.eye(3) * n["gyro_bias_rw"] ** 2)
+    # the inflation scales the whole IMU noise model (readings and bias walk), so that the factor's covariance is
+    # exactly infl^2 times the configured one: what the noise-scale estimate assumes (calibration/noise_scale.py)
+    params.setBiasAccCovariance(np.eye(3) * (infl * n["accel_bias_rw"]) ** 2)
+    params.setBiasOmegaCovariance(np.eye(3) * (infl * n["gyro_bias_rw"]) ** 2)
     del rate
     factors = []
     u = pb.u_imu

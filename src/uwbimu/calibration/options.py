@@ -158,7 +158,19 @@ class CalibrationOptions(BaseModel):
     gyro_noise_density: Optional[float] = Field(None, gt=0, description="rad/s/sqrt(Hz); default dataset's")
     accel_bias_rw: Optional[float] = Field(None, gt=0, description="m/s^3/sqrt(Hz); default dataset's")
     gyro_bias_rw: Optional[float] = Field(None, gt=0, description="rad/s^2/sqrt(Hz); default dataset's")
-    imu_noise_inflation: float = Field(1.0, gt=0, description="multiplies the IMU noise densities")
+    imu_noise_inflation: float = Field(1.0, gt=0, description="multiplies the IMU noise densities and bias random "
+                                                                "walks (the starting point when imu_noise_scale is "
+                                                                "'estimate')")
+    imu_noise_scale: Literal["estimate", "fixed"] = Field(
+        "estimate", description="'estimate': the factor on the IMU noise model (densities and bias random walks) "
+                                "is estimated from the log "
+                                "(variance component estimation at the free solve: the IMU factors' chi2 equals "
+                                "their redundancy; in flight vibration and IMU errors exceed at-rest densities, see "
+                                "docs/calibrate.md 'IMU noise scale'); 'fixed': imu_noise_inflation as given")
+    imu_noise_prior_dof: float = Field(
+        10.0, ge=0, description="weight of the configured IMU densities in the estimated scale, in degrees of freedom "
+                                "of a scaled inverse chi-square prior (0: none); the IMU factors' redundancy is the "
+                                "data's weight (a few on a 20 s flight, ~350 on INRoL's 190 s)")
     lever_arm_prior: list[float] = Field(default_factory=lambda: [0.0, 0.0, 0.0], min_length=3, max_length=3)
     lever_arm_prior_sd: float = Field(0.5, gt=0, description="[m] per axis")
     time_offset_prior: float = Field(0.0, description="t_d prior mean [s]")
