@@ -230,7 +230,7 @@ def main(argv=None) -> int:
         print(f"  ATE batch {f['ate_batch']:.3f} m, ESKF {f['ate_eskf']:.3f} m, multilateration "
               f"{f['ate_multilateration']:.3f} m ({ALIGN[a.kind]})")
         sc_ = f["imu_noise_scale"]
-        print(f"  IMU noise scale {sc_['scale']:.2f}" + (f" +/- {sc_['scale_sd']:.2f} (chi2 {sc_['chi2']:.0f}, "
+        print(f"  IMU noise scale {sc_.get('scale', 1.0):.2f}" + (f" +/- {sc_['scale_sd']:.2f} (chi2 {sc_['chi2']:.0f}, "
               f"redundancy {sc_['redundancy']:.0f}, {sc_['steps']} steps)" if sc_.get("scale_sd") else
               f" ({sc_['method']})"))
         print("  residual median / MAD per anchor [cm]: " + ", ".join(
@@ -251,7 +251,7 @@ def main(argv=None) -> int:
         report["repeatability"] = rep
         print(f"repeatability over {a.windows} windows of {rep['window_s']:.0f} s ({rep['cpu_s']:.0f} s CPU, "
               f"{rep['n_failed']} failed):")
-        print("  IMU noise scale per window: " + ", ".join(f"{x['scale']:.1f}" for x in rep["imu_noise_scale"]))
+        print("  IMU noise scale per window: " + ", ".join(f"{x.get('scale', 1.0):.1f}" for x in rep["imu_noise_scale"]))
         for w in rep["windows"]:
             if "error" in w:
                 print(f"  window {w['i'] + 1}: {w['error']}")
