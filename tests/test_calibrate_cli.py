@@ -89,3 +89,29 @@ def test_repeatability_with_the_batch_method(dataset_dir, tmp_path):
     bad = CliRunner().invoke(app, ["repeatability", str(dataset_dir), "--out", str(tmp_path / "x"),
                                    "--method", "nope"])
     assert bad.exit_code != 0 and "--method" in bad.output
+
+
+def test_repeatability_batch_takes_the_initialising_eskf_preset(dataset_dir, tmp_path, monkeypatch):
+    """``--preset`` with ``--method batch`` is the initialising ESKF's options (``init_eskf``): every window's
+    filter runs with the preset (its white range sd 0.05 m), the batch options still come from --config."""
+    import json
+
+    from uwbimu.calibration import frames
+
+    seen = []
+
+    orig = frames.to_graph_frame
+
+    def spy(dataset, eskf_options, eskf):
+        seen.append(eskf_options)
+        return orig(dataset, eskf_options, eskf)
+
+    monkeypatch.setattr(frames, "to_graph_frame", spy)
+    cfg = tmp_path / "calibrate.yaml"
+    cfg.write_text(yaml.safe_dump({"td_profile": {"enabled": False}, "max_iterations": 10}))
+    out = tmp_path / "rep"
+    r = CliRunner().invoke(app, ["repeatability", str(dataset_dir), "--out", str(out), "--windows", "2",
+                                 "--method", "batch", "--config", str(cfg), "--preset", "real"])
+    assert r.exit_code == 0, r.output
+    assert json.loads((out / "repeatability.json").read_text())["n_failed"] == 0
+    assert len(seen) == 2 and all(o.range_sigma == 0.05 and o.anchor_bias.mode == "estimate" for o in seen)

@@ -85,7 +85,7 @@ def test_profile_refuses_td_on_a_hover():
     td = res.calibration["time_offset"]
     assert res.profile.verdict != "identified"
     assert td["held_at_prior"] and td["value"] == 0.0 and td["sd"] is None
-    assert res.events and res.events[0]["kind"] == "time_offset_not_identified"
+    assert [e["kind"] for e in res.events].count("time_offset_not_identified") == 1
 
 
 def test_sparse_marginals_match_gtsam(seeded_runs):

@@ -7,6 +7,8 @@ from typing import Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from uwbimu.estimation.options import EskfOptions
+
 
 class TdProfileOptions(BaseModel):
     """Time-offset profile likelihood (see docs/calibrate.md)."""
@@ -210,6 +212,16 @@ class CalibrationOptions(BaseModel):
                                 "sigma, which a short log's noisy sandwich can undercut; the t_d profile's chi2 is "
                                 "scaled by model / sandwich variance, at most 1) or 'model' (GTSAM marginals of the "
                                 "white range-noise model); calibration.yaml keeps both (sd, sd_model)")
+    init_eskf: Optional[EskfOptions] = Field(
+        None, description="options of the initialising ESKF (as examples/estimator*.yaml; none: its defaults); "
+                          "calibrate(eskf_options=...) and `uwbimu calibrate --eskf-config` take precedence. A "
+                          "filter that diverges on a short window leaves the graph in a wrong minimum (ISAS-Walk's "
+                          "last 15 s window: lever arm 72 cm off with the defaults, within 1 sigma with the "
+                          "isas-walk preset)")
+    second_start: bool = Field(
+        True, description="also initialise from an ESKF with the real-data preset's robust range model (white 5 cm "
+                          "+ slowly varying anchor bias) and keep the lower-cost first solve (not with a given ESKF "
+                          "result or anchor self-survey); event second_start_won")
     max_iterations: int = Field(50, ge=1)
     reassociate_max: int = Field(3, ge=0, description="re-attach ranges when t_d moved > half a keyframe step")
     td_profile: TdProfileOptions = Field(default_factory=TdProfileOptions)

@@ -60,7 +60,9 @@ def register(app: typer.Typer) -> None:
         windows: int = typer.Option(4, "--windows", "-k", min=2, help="Number of windows."),
         method: str = typer.Option("eskf", "--method", help="Estimator: eskf (the filter) or batch (uwbimu calibrate, GTSAM)."),
         config: Optional[Path] = typer.Option(None, "--config", help="Estimator options YAML."),
-        preset: Optional[str] = typer.Option(None, "--preset", help="Shipped estimator options: default, real, isas-walk."),
+        preset: Optional[str] = typer.Option(
+            None, "--preset", help="Shipped ESKF options: default, real, isas-walk (with --method batch: the "
+                                   "initialising ESKF's)."),
         level: float = typer.Option(0.01, "--level", help="Significance level of the chi-square test."),
         workers: int = typer.Option(1, "--workers", min=1, help="Windows calibrated in parallel (process pool)."),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
@@ -87,18 +89,20 @@ def register(app: typer.Typer) -> None:
             from uwbimu.calibration import CalibrationOptions
             from uwbimu.errors import UsageError
 
-            if preset is not None:
-                raise UsageError("--preset applies to --method eskf; give the batch options with --config")
             try:
                 opts = CalibrationOptions.from_yaml(config) if config is not None else CalibrationOptions()
             except (OSError, ValueError) as exc:
                 raise UsageError(f"--config {config}: {exc}") from None
+            if preset is not None:  # the initialising ESKF's options (the batch options come from --config)
+                opts = opts.model_copy(update={"init_eskf": estimator_options("eskf", None, preset)})
         else:
             opts = estimator_options("eskf", config, preset)
         ds = load(dataset, load_options)
         print_load_warnings(console, ds)
         if method == "eskf":
             opts = apply_dataset_properties(opts, ds, console)
+        elif opts.init_eskf is not None:
+            opts = opts.model_copy(update={"init_eskf": apply_dataset_properties(opts.init_eskf, ds, console)})
         with Progress(console=console) as prog:
             task = prog.add_task("calibrating windows", total=windows)
             rep = repeatability(ds, windows, method, options=opts, level=level, workers=workers,
