@@ -121,6 +121,13 @@ def register(app: typer.Typer) -> None:
         for ev in res.events:
             if ev["kind"].startswith("anchor_"):
                 console.print(f"[yellow]{ev['kind']}:[/] {ev['message']}")
+        sc = cal.get("imu_noise", {}).get("scale", {})
+        if sc.get("method") == "variance_component":
+            console.print(f"IMU noise model scaled by {sc['scale']:.3g}" + (f" ± {sc['scale_sd']:.2g}" if sc.get("scale_sd")
+                          else "") + " (estimated from the log; imu_noise_scale: fixed to keep the stated one)")
+        if any(ev["kind"] == "second_start_won" for ev in res.events):
+            console.print("note: the solve started from the robust-range ESKF reached a lower cost and was used "
+                          "(event second_start_won)")
         r = cal["ranges"]
         console.print(f"{r['used']} ranges ({r['downweighted']} down-weighted by Huber, "
                       f"{r['expected_downweighted']:.0f} expected from Gaussian noise), {len(written)} files "
