@@ -86,6 +86,7 @@ def test_repeatability_with_the_batch_method(dataset_dir, tmp_path):
     assert rep["method"] == "batch" and rep["n_failed"] == 0
     assert set(rep["parameters"]) == {"lx", "ly", "lz", "td"}
     assert all(p["n"] == 2 for p in rep["parameters"].values())
+    assert all(w["imu_noise_scale"] > 0 for w in rep["windows"])  # each window's estimated IMU noise scale
     bad = CliRunner().invoke(app, ["repeatability", str(dataset_dir), "--out", str(tmp_path / "x"),
                                    "--method", "nope"])
     assert bad.exit_code != 0 and "--method" in bad.output

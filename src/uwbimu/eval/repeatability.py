@@ -147,8 +147,12 @@ def _run_window(i: int, w: Dataset, estimator: Callable[[Dataset], Any]) -> dict
     rec = _window_frame(i, w)
     try:
         res = estimator(w)
-        vals, sds = _values(_calibration_of(res))
+        cal = _calibration_of(res)
+        vals, sds = _values(cal)
         rec["values"], rec["sd"] = vals, sds
+        scale = (cal.get("imu_noise") or {}).get("scale") or {}
+        if scale.get("method") == "variance_component":  # the batch's IMU noise scale of this window
+            rec["imu_noise_scale"] = float(scale["scale"])
         rec["warnings"] = list(getattr(res, "warnings", []) or [])
     except Exception as exc:  # a window that fails is reported, not fatal
         rec["error"] = f"{type(exc).__name__}: {exc}"
