@@ -116,3 +116,13 @@ def test_repeatability_batch_takes_the_initialising_eskf_preset(dataset_dir, tmp
     assert r.exit_code == 0, r.output
     assert json.loads((out / "repeatability.json").read_text())["n_failed"] == 0
     assert len(seen) == 2 and all(o.range_sigma == 0.05 and o.anchor_bias.mode == "estimate" for o in seen)
+
+
+def test_example_calibrate_yaml_is_the_defaults():
+    """examples/calibrate.yaml lists the defaults it claims (a changed default must change the example)."""
+    from pathlib import Path
+
+    from uwbimu.calibration import CalibrationOptions
+
+    ex = Path(__file__).resolve().parents[1] / "examples" / "calibrate.yaml"
+    assert CalibrationOptions.from_yaml(ex) == CalibrationOptions()
