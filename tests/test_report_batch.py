@@ -101,6 +101,8 @@ def test_section_has_its_four_parts(batch_out):
     assert set(PARTS) <= set(doc.parts)
     cal = yaml.safe_load((out / "calibration.yaml").read_text())
     assert doc.parts["td-profile"]["verdict"] == cal["time_offset"]["verdict"]
+    # the IMU noise scale the profile was computed under (estimated by default)
+    assert float(doc.parts["td-profile"]["imu-noise-scale"]) == cal["imu_noise"]["scale"]["scale"]
     # attitude in trajectory.csv and anchors in anchors_estimated.csv: angle, not time
     assert doc.parts["residual-angle"]["x-axis"] == "azimuth"
     assert doc.parts["residual-angle"]["anchors-from"] == "anchors_estimated.csv"

@@ -792,13 +792,19 @@ def _batch_profile_part(inp: ReportInputs) -> Markup:
             ["profile interval [ms]", "–" if ci is None else f"{ms(ci[0])} … {ms(ci[1])}"],
             ["grid [ms]", f"{ms(np.nanmin(g))} … {ms(np.nanmax(g))} ({len(g)} points)"],
             ["held at prior", "yes" if held else "no"]]
+    scale = ((inp.calibration or {}).get("imu_noise") or {}).get("scale") or {}
+    if scale.get("method") == "variance_component":  # the IMU model the profile was computed under
+        sd_s = scale.get("scale_sd")
+        rows.append(["IMU noise scale (estimated)", _fmt(float(scale["scale"]), 3)
+                     + ("" if sd_s is None else f" ± {_fmt(float(sd_s), 2)}")])
     parts = [_table(["t_d", "value"], rows)]
     if td.get("advice"):
         parts.append(_block("warn", Markup("t_d not identified on this log: {}").format(td["advice"])))
     parts.append(_fig("batch-td-profile", fig, "Profile of the time offset: Δχ² of the solve with t_d held at each grid "
                       "point (td_profile.csv), the reported value (dashed when held at its prior) and the profile's "
                       "confidence interval (calibration.yaml)."))
-    return _part("td-profile", "Time-offset profile", _join(parts), verdict=verdict)
+    extra = {"imu_noise_scale": repr(float(scale["scale"]))} if scale.get("method") == "variance_component" else {}
+    return _part("td-profile", "Time-offset profile", _join(parts), verdict=verdict, **extra)
 
 
 def _range_rows(res: pd.DataFrame) -> tuple[pd.DataFrame, int]:
