@@ -11,14 +11,16 @@ Method (Foerstner 1979; Koch, *Parameter Estimation and Hypothesis Testing in Li
 sec. 3.6): for a group ``g`` of whitened rows whose covariance is ``s^2`` times the modelled one, the
 least-squares solution has ``E[r_g^T r_g] = s^2 rho_g`` with the group's redundancy
 ``rho_g = n_g - tr(J_g H^-1 J_g^T)`` (``n_g`` rows minus their leverages).  Here the group is every
-row of the IMU preintegration factors (``ImuFactor``: exactly ``s^2`` times their modelled covariance)
-and ``s`` multiplies the accelerometer and gyroscope noise densities (``imu_noise_inflation``; the bias
-random walks, separate ``BetweenFactorConstantBias`` rows, keep their values).  The configured densities
+row of the IMU preintegration factors (``CombinedImuFactor``: readings and bias walk) and ``s``
+multiplies the whole IMU noise model, the accelerometer and gyroscope densities and the bias random
+walks (``imu_noise_inflation``), so that the group's covariance is exactly ``s^2`` times the configured
+one.  (Scaling the densities alone leaves the bias part of the same whitened rows at its model and the
+estimate comes out low: 5.0 for a true 8 in simulation.)  The configured densities
 enter as a conjugate (scaled inverse chi-square) prior worth ``nu0 = imu_noise_prior_dof`` degrees of
 freedom: the fixed point ``(chi2_g(s) + nu0 / s^2) / (rho_g(s) + nu0) = 1`` (``chi2_g`` whitened at
 ``s``) is found in ``log s`` (Foerstner's step ``log s += log(chi2 / rho) / 2``
 first, then secant steps), each point a warm-started solve, until the step is below a quarter of the
-estimate's own statistical sd (``1 / sqrt(2 rho)`` in ``log s``): the stopping rule scales with
+estimate's own statistical sd (``1 / sqrt(2 (rho + nu0))`` in ``log s``): the stopping rule scales with
 what the log can tell, not with a fixed tolerance.  The leverages come from random probes (as the
 sandwich's, :func:`uwbimu.calibration.covariance.leverages`): their sum over thousands of rows is
 exact to well under that sd
@@ -26,11 +28,11 @@ exact to well under that sd
 
 The IMU redundancy is small: the trajectory's 15 states per keyframe absorb nearly all of the IMU
 rows, and only where the ranges pin the position over several keyframes do the IMU residuals show
-(INRoL, 190 s: about 100 of 28 710 rows at the at-rest densities, 350 at the estimate; a 20 s
-simulated flight: 3).  The prior keeps such short logs near the configured model; long logs decide
+(INRoL, 190 s: about 100 of 28 710 rows at the at-rest densities, 318 at the estimate; a 30 s
+simulated flight: 5).  The prior keeps such short logs near the configured model; long logs decide
 by themselves.  ``s`` measures any disagreement between the IMU and the ranges at the keyframe
 scale, whatever its source: with a 15-25 cm unmodelled direction-dependent range bias in simulation it
-reached 30 (docs/calibrate.md 'IMU noise scale').
+reached 25 (1.07 with the bias modelled; docs/calibrate.md 'IMU noise scale').
 """
 
 from __future__ import annotations
@@ -48,8 +50,8 @@ LIMIT = 1e3
 
 
 def imu_rows(graph, row0: np.ndarray) -> np.ndarray:
-    """Indices of the whitened rows of the IMU preintegration factors (``ImuFactor``: the readings' white
-    noise, not the bias walk) in ``graph``'s linear system (``row0``: first row of every factor,
+    """Indices of the whitened rows of the IMU preintegration factors (``CombinedImuFactor``, or ``ImuFactor``)
+    in ``graph``'s linear system (``row0``: first row of every factor,
     :func:`uwbimu.calibration.covariance.linear_system`)."""
     import gtsam
 
@@ -89,7 +91,7 @@ def imu_variance_ratio(graph, values, n_probes: int = 128, seed: int = 0) -> tup
 
 
 def estimate_imu_noise_scale(pb, imf, graph, values, assoc, iters: int, solve: Callable, build_imu: Callable):
-    """Solve with the IMU noise densities scaled so that the IMU factors' chi2 equals their redundancy.
+    """Solve with the IMU noise model scaled so that the IMU factors' chi2 equals their redundancy (plus prior).
 
     Parameters
     ----------
