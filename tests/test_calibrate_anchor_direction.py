@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from test_calibrate_factor import GROUP_ANCHORS as ANCHORS  # noqa: E402
-from test_calibrate_factor import assert_state_jacobians, group_inputs, retraction_differences  # shared
+from test_calibrate_factor import assert_state_jacobians, group_inputs, group_values, retraction_differences  # shared
 
 from uwbimu.calibration.range_factor import RangeGroup, direction_features, so3_exp
 
@@ -89,28 +89,13 @@ def test_anchor_direction_jacobians_match_finite_differences(direction):
 def test_gtsam_group_factor_with_anchor_direction_keys(td_fixed):
     """The CustomFactor's whitened Jacobian, with tag-side and anchor-side coefficient keys, equals central
     differences through GTSAM's retraction of every key (pins the key order: ..., biases, h, g)."""
-    gtsam = pytest.importorskip("gtsam")
-    from gtsam.symbol_shorthand import A, L, T, V, X
-
-    from uwbimu.calibration.graph import adir_key, dir_key
+    pytest.importorskip("gtsam")
+    from uwbimu.calibration.graph import adir_key
     from uwbimu.calibration.range_factor import make_gtsam_group_factor
 
     rng = np.random.default_rng(13)
     grp = _group(rng, direction=((1, 2), True), anchor_direction=((1,), 1))
-    vals = gtsam.Values()
-    vals.insert(X(0), gtsam.Pose3(gtsam.Rot3(so3_exp(np.array([0.2, -0.4, 1.1]))), np.array([1.0, 2.0, 1.5])))
-    vals.insert(V(0), np.array([0.4, -0.3, 0.2]))
-    vals.insert(L(0), np.array([0.12, -0.08, 0.14]))
-    keys, dims = [X(0), V(0), L(0)], [6, 3, 3]
-    if td_fixed is None:
-        vals.insert(T(0), np.array([0.027]))
-        keys, dims = keys + [T(0)], dims + [1]
-    for j in range(3):
-        vals.insert(A(j), np.array([0.01 * j]))
-        keys, dims = keys + [A(j)], dims + [1]
-    for j in range(3):
-        vals.insert(dir_key(j), rng.normal(0, 0.05, 5))
-        keys, dims = keys + [dir_key(j)], dims + [5]
+    vals, keys, dims = group_values(rng, td_fixed)
     for j in range(3):
         vals.insert(adir_key(j), rng.normal(0, 0.05, 3))
         keys, dims = keys + [adir_key(j)], dims + [3]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from test_calibrate_factor import GROUP_ANCHORS, assert_state_jacobians, group_inputs, retraction_differences  # shared
+from test_calibrate_factor import GROUP_ANCHORS, assert_state_jacobians, group_inputs, group_values, retraction_differences  # shared
 
 from uwbimu.calibration.range_factor import RangeGroup, direction_features, so3_exp
 
@@ -173,30 +173,13 @@ def test_direction_with_drift_keeps_both_terms():
 def test_gtsam_group_factor_with_direction_keys(td_fixed):
     """The CustomFactor's whitened Jacobian, direction-coefficient keys included, equals central differences
     through GTSAM's own retraction of every key (pins the key order of the wrapper)."""
-    gtsam = pytest.importorskip("gtsam")
-    from gtsam.symbol_shorthand import A, L, T, V, X
-
-    from uwbimu.calibration.graph import dir_key
+    pytest.importorskip("gtsam")
     from uwbimu.calibration.range_factor import make_gtsam_group_factor
 
     rng = np.random.default_rng(11)
     grp = _group(rng, direction=((1, 2), True))
     sigma = 0.1
-    vals = gtsam.Values()
-    vals.insert(X(0), gtsam.Pose3(gtsam.Rot3(so3_exp(np.array([0.2, -0.4, 1.1]))), np.array([1.0, 2.0, 1.5])))
-    vals.insert(V(0), np.array([0.4, -0.3, 0.2]))
-    vals.insert(L(0), np.array([0.12, -0.08, 0.14]))
-    keys = [X(0), V(0), L(0)]
-    dims = [6, 3, 3]
-    if td_fixed is None:
-        vals.insert(T(0), np.array([0.027]))
-        keys, dims = keys + [T(0)], dims + [1]
-    for j in range(3):
-        vals.insert(A(j), np.array([0.01 * j]))
-        keys, dims = keys + [A(j)], dims + [1]
-    for j in range(3):
-        vals.insert(dir_key(j), rng.normal(0, 0.05, 5))
-        keys, dims = keys + [dir_key(j)], dims + [5]
+    vals, keys, dims = group_values(rng, td_fixed)
     f = make_gtsam_group_factor(keys, grp, sigma, 1e6, td_fixed=td_fixed)  # Huber threshold out of reach
     Aj, _b = f.linearize(vals).jacobian()
     cols = retraction_differences(f, vals, keys, dims)

@@ -53,6 +53,32 @@ def retraction_differences(f, vals, keys, dims, h=1e-6):
     return np.array(cols).T
 
 
+def group_values(rng, td_fixed, n_anchors: int = 3, n_dir: int = 5):
+    """GTSAM values, keys and tangent dimensions of one keyframe's group factor with tag-side direction
+    coefficients: pose, velocity, lever arm, t_d (unless ``td_fixed``), ``n_anchors`` biases and direction
+    vectors of ``n_dir`` coefficients (drawn from ``rng``).  Returns ``(vals, keys, dims)``."""
+    import gtsam
+    from gtsam.symbol_shorthand import A, L, T, V, X
+
+    from uwbimu.calibration.graph import dir_key
+
+    vals = gtsam.Values()
+    vals.insert(X(0), gtsam.Pose3(gtsam.Rot3(so3_exp(np.array([0.2, -0.4, 1.1]))), np.array([1.0, 2.0, 1.5])))
+    vals.insert(V(0), np.array([0.4, -0.3, 0.2]))
+    vals.insert(L(0), np.array([0.12, -0.08, 0.14]))
+    keys, dims = [X(0), V(0), L(0)], [6, 3, 3]
+    if td_fixed is None:
+        vals.insert(T(0), np.array([0.027]))
+        keys, dims = keys + [T(0)], dims + [1]
+    for j in range(n_anchors):
+        vals.insert(A(j), np.array([0.01 * j]))
+        keys, dims = keys + [A(j)], dims + [1]
+    for j in range(n_anchors):
+        vals.insert(dir_key(j), rng.normal(0, 0.05, n_dir))
+        keys, dims = keys + [dir_key(j)], dims + [n_dir]
+    return vals, keys, dims
+
+
 def assert_state_jacobians(f, jac, R, p, v, lev, td, h=1e-6, atol=1e-6):
     """Central differences of ``f(R=, p=, v=, lev=, td=)`` against ``jac = (J_pose, J_vel, J_lever, J_td)`` on
     the GTSAM tangents (attitude right-perturbed, position along the body axes)."""
