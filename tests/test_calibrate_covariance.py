@@ -27,8 +27,9 @@ def _ar1(rng, n, rho, sig):
     return e
 
 
-def _linear_sandwich(y):
-    """Sandwich of y = F theta + e through a GTSAM graph of one CustomFactor per row (time stamps T_LIN)."""
+def _linear_sandwich(y, blocks: int = 0):
+    """Sandwich of y = F theta + e through a GTSAM graph of one CustomFactor per row (time stamps T_LIN);
+    with ``blocks``, the block check too (``info.block``)."""
     noise = gtsam.noiseModel.Isotropic.Sigma(1, SIG)
     g = gtsam.NonlinearFactorGraph()
     for i in range(N):
@@ -41,7 +42,7 @@ def _linear_sandwich(y):
     v = gtsam.Values()
     v.insert(KEY, np.linalg.lstsq(F_LIN, y, rcond=None)[0])
     slots = np.column_stack([np.arange(N), np.zeros(N, int)])
-    return CV.sandwich_covariance(g, v, [KEY], slots, T_LIN, DT)
+    return CV.sandwich_covariance(g, v, [KEY], slots, T_LIN, DT, blocks=blocks)
 
 
 @pytest.mark.parametrize("rho", [0.8, 0.0])
@@ -99,7 +100,9 @@ def _errors_and_sds(ds, res):
 
 def test_white_simulation_sandwich_close_to_model_sigma():
     ds = _flight(1, 30.0)
-    res = calibrate(ds, CalibrationOptions.model_validate({"td_profile": {"enabled": False}}))
+    # the HAC sandwich alone (the block check, which may widen it, has its own tests below)
+    res = calibrate(ds, CalibrationOptions.model_validate({"td_profile": {"enabled": False},
+                                                           "block_check": {"blocks": 0}}))
     _err, sd, sd_model = _errors_and_sds(ds, res)
     ratio = sd / sd_model
     assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
@@ -151,3 +154,91 @@ def test_profile_chi2_scale_widens_the_confidence_set_and_the_curvature_sigma():
     lo1, hi1 = confidence_interval(grid, chi2, 9.0)
     lo2, hi2 = confidence_interval(grid, chi2, 9.0, chi2_scale=0.25)
     assert lo2 < lo1 and hi2 > hi1
+
+
+def _gauss_markov(rng, tau, sd):
+    """First-order Gauss-Markov series on the T_LIN grid: correlation time ``tau`` [s], sd ``sd``."""
+    return _ar1(rng, N, np.exp(-DT / tau), sd)
+
+
+@pytest.mark.parametrize("tau, sd_slow", [(10.0, 0.1), (0.0, 0.0)])
+def test_block_check_sees_slow_errors_the_hac_misses(tau, sd_slow):
+    """White noise plus an error correlated over 10 s (a sixth of the 60 s log): the HAC's few-second
+    bandwidth misses most of it, the 6 time blocks see it; on white noise both match the Monte Carlo spread."""
+    def noise(seed):
+        rng = np.random.default_rng(seed)
+        e = SIG * rng.standard_normal(N)
+        return e + (_gauss_markov(rng, tau, sd_slow) if sd_slow else 0.0)
+
+    sd_mc = np.array([np.linalg.lstsq(F_LIN, noise(s), rcond=None)[0] for s in range(2000)]).std(axis=0)
+    var_h, var_b = [], []
+    for s in range(10):
+        cov, _cm, info = _linear_sandwich(noise(90_000 + s), 6)
+        var_h.append(np.diag(cov))
+        var_b.append(np.diag(info.block.cov))
+        assert info.block.blocks == 6 and info.block.block_s == pytest.approx(N * DT / 6)
+    sd_h, sd_b = np.sqrt(np.mean(var_h, axis=0)), np.sqrt(np.mean(var_b, axis=0))
+    if sd_slow:
+        assert sd_h[0] < 0.3 * sd_mc[0], (sd_h, sd_mc)  # the HAC is 5x over-confident on the constant
+        assert np.all((sd_b > 0.5 * sd_mc) & (sd_b < 2.0 * sd_mc)), (sd_b, sd_mc)
+        assert np.all(sd_b > sd_h)
+    else:
+        np.testing.assert_allclose(sd_h, sd_mc, rtol=0.15)
+        np.testing.assert_allclose(sd_b, sd_mc, rtol=0.2)
+
+
+def test_block_check_null_distribution_with_unequal_blocks():
+    """Under the HAC (white scores), Satterthwaite's chi-square gives calibrated p-values even when a few blocks
+    carry most of the information, and the block leverage correction makes the variance ratio unbiased."""
+    rng = np.random.default_rng(4)
+    V = np.array([1.0, 1.0, 4.0, 0.5, 2.0, 0.2])[:, None] * np.array([1.0, 3.0])  # (K, p)
+    M = V * np.array([0.6, 0.3])  # the trajectory absorbs 40 % / 70 % of each block's score sum
+    omega = np.diag(V.sum(axis=0))
+    ratios, p = [], []
+    for _ in range(4000):
+        C = rng.standard_normal(V.shape) * np.sqrt(M)
+        bc = CV.block_check(C, V, M, omega, np.zeros((2, 2)), 0.1, 600, 0.01)
+        ratios.append(bc.ratio)
+        p.append(bc.p_value)
+    ratios, p = np.array(ratios), np.array(p)
+    np.testing.assert_allclose(ratios.mean(axis=0), 1.0, atol=0.05)
+    assert np.all(np.mean(p < 0.01, axis=0) < 0.02) and np.all(np.mean(p < 0.05, axis=0) < 0.08)
+    assert np.all(np.mean(p < 0.05, axis=0) > 0.02)
+    # equal blocks: Satterthwaite's dof is the number of blocks; unequal ones have fewer
+    assert CV.block_check(C, np.ones((6, 2)), np.ones((6, 2)), np.eye(2) * 6, np.zeros((2, 2)), 0.1, 600,
+                          0.01).dof == pytest.approx([6.0, 6.0])
+    assert np.all(bc.dof < 4.0)
+
+
+def test_block_check_only_widens_and_is_reported_per_parameter():
+    """Same ESKF, blocks 0 against the default: no sigma shrinks, every sigma the blocks widen is the blocks',
+    calibration.yaml names each parameter's ratio, dof and p-value, and the event lists the significant ones."""
+    ds = _flight(5, 20.0, ar=0.995)
+    on = calibrate(ds, CalibrationOptions.model_validate({"td_profile": {"enabled": False}}))
+    off = calibrate(ds, CalibrationOptions.model_validate({"td_profile": {"enabled": False},
+                                                           "block_check": {"blocks": 0}}), eskf=on.eskf)
+    _e, sd_on, _m = _errors_and_sds(ds, on)
+    _e, sd_off, _m = _errors_and_sds(ds, off)
+    assert "block_check" not in off.calibration["covariance"]
+    bc = on.calibration["covariance"]["block_check"]
+    assert bc["blocks"] == 6 and bc["level"] == 0.01
+    names = on.calibration["correlations"]["names"]
+    assert list(bc["parameters"]) == names
+    par = [bc["parameters"][n] for n in ("lever_arm_x", "lever_arm_y", "lever_arm_z", "time_offset")]
+    assert np.all(sd_on >= sd_off * (1 - 1e-9))
+    for p, a, b in zip(par, sd_on, sd_off):
+        assert p["widened"] == (p["variance_ratio"] > 1.0)
+        if not p["widened"]:
+            assert a == pytest.approx(b, rel=1e-9)
+    assert any(p["widened"] for p in par)
+    ev = [e for e in on.events if e["kind"] == "range_errors_correlated_over_blocks"]
+    sig = sorted(n for n, p in bc["parameters"].items() if p["significant"])
+    assert (ev[0]["parameters"] if ev else []) == sig
+
+
+def test_block_check_options():
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError):
+        CalibrationOptions.model_validate({"block_check": {"blocks": 1}})
+    assert CalibrationOptions().block_check.blocks == 6

@@ -16,7 +16,7 @@ import yaml
 
 from uwbimu.eval.report import error_ellipse, line_of_sight_azimuth, render_report
 
-PARTS = ("td-profile", "residual-angle", "anchor-ellipses", "before-after")
+PARTS = ("td-profile", "residual-angle", "anchor-ellipses", "before-after", "sigma")
 ESTIMATED = "A7"
 
 
@@ -119,6 +119,26 @@ def test_section_has_its_four_parts(batch_out):
     major = float(ell.loc[ESTIMATED, "2σ major [cm]"])
     sx, sy = an.loc[ESTIMATED, ["sd_x", "sd_y"]]
     assert 2 * 100 * max(sx, sy) - 0.05 <= major <= 2 * 100 * np.hypot(sx, sy) + 0.05
+
+
+def test_sigma_table_is_calibration_yaml(batch_out):
+    """The "how the sigma were formed" table: the model and reported sigma and the block check, per parameter."""
+    out, _ds = batch_out
+    doc = _parse(render_report(out))
+    cal = yaml.safe_load((out / "calibration.yaml").read_text())
+    bc = cal["covariance"]["block_check"]
+    assert doc.parts["sigma"]["method"] == "sandwich" and doc.parts["sigma"]["blocks"] == str(bc["blocks"])
+    assert doc.parts["sigma"]["widened"] == str(sum(p["widened"] for p in bc["parameters"].values()))
+    tab = _table(doc, "sigma").set_index("parameter")
+    assert list(tab.index) == ["lever_arm_x", "lever_arm_y", "lever_arm_z", "time_offset"]
+    for i, c in enumerate("xyz"):
+        assert float(tab.loc[f"lever_arm_{c}", "σ reported"]) == pytest.approx(100 * cal["lever_arm_sd"][i], rel=1e-3)
+        assert float(tab.loc[f"lever_arm_{c}", "σ model"]) == pytest.approx(100 * cal["lever_arm_sd_model"][i],
+                                                                            rel=1e-3)
+    p = bc["parameters"]["time_offset"]
+    assert float(tab.loc["time_offset", "σ reported"]) == pytest.approx(1000 * cal["time_offset"]["sd"], rel=1e-3)
+    assert float(tab.loc["time_offset", "block / HAC variance"]) == pytest.approx(p["variance_ratio"], rel=1e-3)
+    assert tab.loc["time_offset", "widened"] == ("yes" if p["widened"] else "no")
 
 
 def test_before_after_table_uses_the_written_columns(batch_out):

@@ -129,6 +129,9 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
         progress(0.9)
     cal, traj, res, anchors = _report(pb, graph, values, assoc, td_free, prof, iters, dataset, chi2_scale=chi2_scale)
     cal["imu_noise"] = _imu_noise_report(pb, imu_scale)
+    ev = _block_event(cal["covariance"].get("block_check"))
+    if ev is not None:
+        events.append(ev)
     for ev in events:
         if ev["kind"] == "time_offset_not_identified":
             cal["time_offset"]["advice"] = ev["advice"]
@@ -302,7 +305,17 @@ def _calibration_covariance(pb, graph, values, assoc, keys, td: float, td_free: 
     inlier = np.abs(e / sig) <= pb.options.huber_k
     cov, cov_model, info = CV.sandwich_covariance(graph, values, keys, assoc.slots, pb.t_range[assoc.used],
                                                   1.0 / pb.options.keyframe_hz, inlier=inlier,
-                                                  interest=np.arange(4 if td_free else 3), cov_model=cov_model)
+                                                  interest=np.arange(4 if td_free else 3), cov_model=cov_model,
+                                                  blocks=pb.options.block_check.blocks,
+                                                  block_level=pb.options.block_check.level)
+    if info.block is not None:
+        # where the blocks' variance is the larger, that parameter's sigma is the blocks' (the HAC's correlations kept)
+        w = info.block.widened
+        sd_h = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        sd_b = np.where(w, np.sqrt(np.maximum(np.diag(info.block.cov), 0.0)), sd_h)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            f = np.where(sd_h > 0, sd_b / sd_h, 1.0)
+        cov = cov * np.outer(f, f)
     # The sandwich may only widen the model's sigma: below it, the difference is sampling noise of the meat (a
     # 20 s white simulated flight gave 0.8x the model sigma, whose errors then reach 2.9 sigma) or an overstated
     # range_sigma, neither a reason to claim more than the model.  Its correlations are kept.
@@ -320,7 +333,28 @@ def _calibration_covariance(pb, graph, values, assoc, keys, td: float, td_free: 
            "n_bins": info.n_bins, "andrews_bandwidth_s": float(info.andrews_bins * info.bin_s),
            "plateau_bandwidth_s": float(info.plateau_bins * info.bin_s),
            "score_ar1": [round(x, 4) for x in info.rho], "mean_leverage": info.mean_leverage}
+    if info.block is not None:
+        bc = info.block
+        sec["block_check"] = {"blocks": bc.blocks, "block_s": bc.block_s, "level": bc.level,
+                              "variance_ratio": [float(x) for x in bc.ratio], "dof": [float(x) for x in bc.dof],
+                              "p_value": [float(x) for x in bc.p_value], "significant": [bool(x) for x in bc.significant],
+                              "widened": [bool(x) for x in bc.widened]}
     return cov, cov_model, sec
+
+
+def _block_event(bc: Optional[dict]) -> Optional[dict]:
+    """``range_errors_correlated_over_blocks`` when the block check rejects the HAC sandwich for a parameter."""
+    if not bc:
+        return None
+    sig = {n: p for n, p in bc["parameters"].items() if p["significant"]}
+    if not sig:
+        return None
+    return {"kind": "range_errors_correlated_over_blocks", "severity": "warning", "blocks": bc["blocks"],
+            "level": bc["level"], "parameters": sorted(sig),
+            "variance_ratio": {n: p["variance_ratio"] for n, p in sig.items()},
+            "message": f"the range scores of {len(sig)} parameter(s) vary between the {bc['blocks']} parts of the log "
+                       "more than the HAC sandwich allows (the range model misses an error that follows the motion "
+                       "for tens of seconds); their sigma is the blocks'"}
 
 
 def _profile_chi2_scale(pb, graph, values, assoc) -> float:
@@ -360,6 +394,11 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset, chi2_
     lever = values.atVector(L(0))
     td = float(values.atVector(T(0))[0]) if td_free else pb.options.time_offset_prior
     cov, cov_model, cov_sec = _calibration_covariance(pb, graph, values, assoc, keys, td, td_free, marg=marg)
+    if "block_check" in cov_sec:  # per parameter, by name
+        bc = cov_sec["block_check"]
+        per = {f: bc.pop(f) for f in ("variance_ratio", "dof", "p_value", "significant", "widened")}
+        bc["parameters"] = {n: {f: (round(v[i], 6) if isinstance(v[i], float) else v[i]) for f, v in per.items()}
+                            for i, n in enumerate(names)}
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     sd_model = np.sqrt(np.diag(cov_model))
     corr = cov / np.outer(sd, sd)

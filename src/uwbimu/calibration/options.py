@@ -25,6 +25,24 @@ class TdProfileOptions(BaseModel):
                                "(9 = 3 sigma for one parameter)")
 
 
+class BlockCheckOptions(BaseModel):
+    """Check of the sandwich sigma against the spread between parts of the log (see docs/calibrate.md
+    "Honest sigma: the block check")."""
+
+    model_config = ConfigDict(extra="forbid")
+    blocks: int = Field(6, ge=0, le=50, description="contiguous time blocks of the log (0: no check); the range "
+                                                    "scores summed per block give a cluster-robust covariance")
+    level: float = Field(0.01, gt=0, lt=0.5, description="level of the test of the HAC sandwich against the blocks "
+                                                         "(event range_errors_correlated_over_blocks); the sigma "
+                                                         "takes the blocks' variance wherever it is the larger")
+
+    @model_validator(mode="after")
+    def _at_least_two(self):
+        if self.blocks == 1:
+            raise ValueError("block_check.blocks: 0 (off) or at least 2")
+        return self
+
+
 class RangeBiasDrift(BaseModel):
     """Slowly varying part of each anchor's range bias: a first-order Gauss-Markov process per anchor.
 
@@ -212,6 +230,12 @@ class CalibrationOptions(BaseModel):
                                 "sigma, which a short log's noisy sandwich can undercut; the t_d profile's chi2 is "
                                 "scaled by model / sandwich variance, at most 1) or 'model' (GTSAM marginals of the "
                                 "white range-noise model); calibration.yaml keeps both (sd, sd_model)")
+    block_check: BlockCheckOptions = Field(
+        default_factory=BlockCheckOptions,
+        description="with covariance 'sandwich': test each parameter's HAC sigma against the spread of the range "
+                    "scores between contiguous time blocks of the log; each sigma is the larger of the two (a "
+                    "range-model error that follows the motion for tens of seconds; event "
+                    "range_errors_correlated_over_blocks where the blocks reject the HAC)")
     init_eskf: Optional[EskfOptions] = Field(
         None, description="options of the initialising ESKF (as examples/estimator*.yaml; none: its defaults); "
                           "calibrate(eskf_options=...) and `uwbimu calibrate --eskf-config` take precedence. A "

@@ -125,6 +125,11 @@ def register(app: typer.Typer) -> None:
         if sc.get("method") == "variance_component":
             console.print(f"IMU noise model scaled by {sc['scale']:.3g}" + (f" ± {sc['scale_sd']:.2g}" if sc.get("scale_sd")
                           else "") + " (estimated from the log; imu_noise_scale: fixed to keep the stated one)")
+        for ev in res.events:
+            if ev["kind"] == "range_errors_correlated_over_blocks":
+                console.print(f"[yellow]{ev['kind']}:[/] sigma of {', '.join(ev['parameters'])} widened to the "
+                              f"spread between the {ev['blocks']} parts of the log (the range model misses an error "
+                              "that follows the motion; see calibration.yaml covariance.block_check)")
         if any(ev["kind"] == "second_start_won" for ev in res.events):
             console.print("note: the solve started from the robust-range ESKF reached a lower cost and was used "
                           "(event second_start_won)")

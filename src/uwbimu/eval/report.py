@@ -1104,6 +1104,46 @@ def _batch_before_after_part(inp: ReportInputs) -> Markup:
                  drift="present" if drift is not None else "absent")
 
 
+def _batch_sigma_part(inp: ReportInputs) -> Markup:
+    """How each calibration sigma was formed: white model, HAC sandwich, block check (calibration.yaml)."""
+    cal = inp.calibration or {}
+    cov = cal.get("covariance") or {}
+    method = str(cov.get("method", "unknown"))
+    bc = cov.get("block_check") or {}
+    per = bc.get("parameters") or {}
+    names = (cal.get("correlations") or {}).get("names") or []
+    sd_lever, sd_lever_m = cal.get("lever_arm_sd") or [], cal.get("lever_arm_sd_model") or []
+    td = _batch_td(cal)
+    sd, sd_m = {}, {}
+    for i, c in enumerate("xyz"):
+        if i < len(sd_lever):
+            sd[f"lever_arm_{c}"] = (sd_lever[i], 100.0, "cm")
+        if i < len(sd_lever_m):
+            sd_m[f"lever_arm_{c}"] = sd_lever_m[i]
+    if td.get("sd") is not None:
+        sd["time_offset"] = (td["sd"], 1000.0, "ms")
+        sd_m["time_offset"] = td.get("sd_model")
+    rows = []
+    for n in [n for n in names if n in sd]:
+        v, k, unit = sd[n]
+        b = per.get(n) or {}
+        rows.append([n, unit, _fmt(k * float(sd_m[n]), 3) if sd_m.get(n) is not None else "–", _fmt(k * float(v), 3),
+                     _fmt(b["variance_ratio"], 3) if b else "–", _fmt(b["dof"], 3) if b else "–",
+                     _fmt(b["p_value"], 3) if b else "–",
+                     (_span("bad", "yes") if b.get("widened") else "no") if b else "–"])
+    if not rows:
+        return _part("sigma", "How the σ were formed", _missing("calibration.yaml has no lever-arm σ."), method=method)
+    note = Markup('<p class="note">σ of the white range-noise model (GTSAM marginals), and the reported σ ({}). '
+                  "The block check sums the range scores over {} contiguous parts of the log ({} s each): "
+                  "where their variance exceeds the HAC sandwich's (ratio &gt; 1) the reported σ is the blocks'; "
+                  "p is the test of the sandwich against them (see docs/calibrate.md, \"The block check\").</p>").format(
+        method, bc.get("blocks", "–"), _fmt(bc.get("block_s"), 3))
+    tab = _table(["parameter", "unit", "σ model", "σ reported", "block / HAC variance", "dof", "p", "widened"], rows)
+    widened = sum(1 for b in per.values() if b.get("widened"))
+    return _part("sigma", "How the σ were formed", note + tab, method=method, blocks=bc.get("blocks", 0),
+                 widened=widened)
+
+
 def _batch_section(inp: ReportInputs) -> Optional[Markup]:
     """The ``uwbimu calibrate`` section, or None when the folder holds no batch-calibration output."""
     if not is_batch_output(inp):
@@ -1112,7 +1152,8 @@ def _batch_section(inp: ReportInputs) -> Optional[Markup]:
     for key, title, fn in (("td-profile", "Time-offset profile", _batch_profile_part),
                            ("residual-angle", "Residual vs line-of-sight angle", _batch_angle_part),
                            ("anchor-ellipses", "Anchor error ellipses", _batch_ellipse_part),
-                           ("before-after", "Residuals without / with the range bias", _batch_before_after_part)):
+                           ("before-after", "Residuals without / with the range bias", _batch_before_after_part),
+                           ("sigma", "How the σ were formed", _batch_sigma_part)):
         try:
             parts.append(fn(inp))
         except EvalInputError:
