@@ -7,12 +7,12 @@ bound at the end of the log, which for constant parameters is the full-log bound
 scenario and quantity: RMS error, RMS reported sigma, sqrt(mean CRLB^2), RMS error / CRLB and
 RMS(error / sigma).
 
-    PYTHONPATH=src python benchmarks/check_calibrate_mc.py [--seeds 20] [--workers 2]
+    PYTHONPATH=src python benchmarks/check_calibrate_mc.py [--seeds 20] [--first-seed 0] [--workers 2]
         [--scenarios calibration-flight,excited-90s,lissajous] [--duration 60] [--config C.yaml] [--json OUT]
 
 ``--config``: calibrator options (``CalibrationOptions`` YAML) on top of the profile-off default, e.g.
 ``huber_k: 100`` to measure what the robust loss costs on Gaussian ranges (same seeds, paired).
-``--from-json OUT``: the tables again from a saved run (no calibration).
+``--from-json OUT [OUT2 ...]``: the tables again from saved runs, pooled (no calibration).
 
 Sampling: for an efficient estimator ``sum (e_i / CRLB_i)^2`` over ``n`` seeds is chi-square with ``n``
 degrees of freedom, so RMS(error / CRLB) has the two-sided 95 % band ``sqrt(chi2_{0.025, n} / n) ..
@@ -63,17 +63,22 @@ def one(args) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--first-seed", type=int, default=0, help="noise seeds 1000 + first-seed ... (an independent "
+                                                                "replication: e.g. --first-seed 100)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--scenarios", default="calibration-flight,excited-90s,lissajous")
     ap.add_argument("--duration", type=float, default=0.0, help="override the scenarios' duration [s] (0: keep)")
     ap.add_argument("--config", default=None, help="CalibrationOptions YAML merged over the profile-off default")
     ap.add_argument("--json", default=None)
-    ap.add_argument("--from-json", default=None, help="print the tables of a saved --json run")
+    ap.add_argument("--from-json", default=None, nargs="+",
+                    help="print the tables of saved --json runs (several: pooled, e.g. two seed ranges)")
     a = ap.parse_args()
     if a.from_json:
-        with open(a.from_json) as fh:
-            saved = json.load(fh)
-        tables(saved["rows"])
+        rows = []
+        for path in a.from_json:
+            with open(path) as fh:
+                rows += json.load(fh)["rows"]
+        tables(rows)
         return
     config = {}
     if a.config:
@@ -81,7 +86,7 @@ def main() -> None:
 
         with open(a.config) as fh:
             config = yaml.safe_load(fh) or {}
-    jobs = [(n.strip(), s, a.duration, config) for n in a.scenarios.split(",") for s in range(a.seeds)]
+    jobs = [(n.strip(), s, a.duration, config) for n in a.scenarios.split(",") for s in range(a.first_seed, a.first_seed + a.seeds)]
     t0 = time.perf_counter()
     with ProcessPoolExecutor(a.workers) as ex:
         rows = list(ex.map(one, jobs))

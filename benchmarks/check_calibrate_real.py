@@ -95,9 +95,21 @@ def full_log(ds, kind: str, opts, eo, save_dir=None) -> dict:
         Path(save_dir).mkdir(parents=True, exist_ok=True)
         r.to_csv(Path(save_dir) / "residuals.csv", index=False)
         res.trajectory.to_csv(Path(save_dir) / "trajectory.csv", index=False)
-    per_anchor = {str(a): {"median_cm": 100 * float(np.median(g.residual)),
-                           "mad_cm": 100 * float(np.median(np.abs(g.residual - np.median(g.residual)))),
-                           "n": int(len(g))} for a, g in r.groupby("anchor")}
+    # "before" the range model: the residual without the estimated constant bias, slowly varying bias and
+    # direction terms (each already inside "predicted"), as the report's before/after table
+    model = r["anchor"].astype(str).map({str(k): v for k, v in c["anchor_bias"].items()}).to_numpy(float)
+    for col in ("bias_drift", "bias_direction", "bias_anchor_direction"):
+        if col in r.columns:
+            model = model + r[col].to_numpy(float)
+    r = r.assign(residual_before=r["residual"].to_numpy(float) - model)
+
+    def _mad(x):
+        return 100 * float(np.median(np.abs(x - np.median(x))))
+
+    per_anchor = {str(a): {"median_cm": 100 * float(np.median(g.residual)), "mad_cm": _mad(g.residual),
+                           "median_before_cm": 100 * float(np.median(g.residual_before)),
+                           "mad_before_cm": _mad(g.residual_before), "n": int(len(g))}
+                  for a, g in r.groupby("anchor")}
     out = {"cpu_s": cpu, "wall_s": wall, "n_ranges": int(c["ranges"]["used"]), "keyframes": c["solver"]["keyframes"],
            "lever_arm": c["lever_arm"], "lever_arm_sd": c["lever_arm_sd"],
            "documented_lever_arm": list(ds.meta.truth.lever_arm) if ds.meta.truth and ds.meta.truth.lever_arm else None,
@@ -233,8 +245,9 @@ def main(argv=None) -> int:
         print(f"  IMU noise scale {sc_.get('scale', 1.0):.2f}" + (f" +/- {sc_['scale_sd']:.2f} (chi2 {sc_['chi2']:.0f}, "
               f"redundancy {sc_['redundancy']:.0f}, {sc_['steps']} steps)" if sc_.get("scale_sd") else
               f" ({sc_['method']})"))
-        print("  residual median / MAD per anchor [cm]: " + ", ".join(
-            f"{k}: {v['median_cm']:+.1f}/{v['mad_cm']:.1f}" for k, v in f["residuals_per_anchor"].items()))
+        print("  residual median / MAD per anchor [cm], before -> after the range model: " + ", ".join(
+            f"{k}: {v['median_before_cm']:+.1f}/{v['mad_before_cm']:.1f} -> {v['median_cm']:+.1f}/{v['mad_cm']:.1f}"
+            for k, v in f["residuals_per_anchor"].items()))
         print("  residual vs line of sight per anchor (spread of 45-deg sector medians [cm], share of variance; "
               "autocorrelation at 1 s):")
         dm = f.get("range_model_direction")

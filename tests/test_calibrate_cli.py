@@ -87,6 +87,10 @@ def test_repeatability_with_the_batch_method(dataset_dir, tmp_path):
     assert set(rep["parameters"]) == {"lx", "ly", "lz", "td"}
     assert all(p["n"] == 2 for p in rep["parameters"].values())
     assert all(w["imu_noise_scale"] > 0 for w in rep["windows"])  # each window's estimated IMU noise scale
+    # and which sigma its block check widened: names of calibration.yaml's parameters
+    assert all(set(w["sigma_widened_by_blocks"]) <= {"lever_arm_x", "lever_arm_y", "lever_arm_z", "time_offset"}
+               | {f"anchor_bias_{a}" for a in ("A0", "A1", "A2", "A3", "A4", "A5", "A6", "A7")}
+               for w in rep["windows"])
     bad = CliRunner().invoke(app, ["repeatability", str(dataset_dir), "--out", str(tmp_path / "x"),
                                    "--method", "nope"])
     assert bad.exit_code != 0 and "--method" in bad.output

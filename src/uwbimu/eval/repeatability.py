@@ -153,6 +153,9 @@ def _run_window(i: int, w: Dataset, estimator: Callable[[Dataset], Any]) -> dict
         scale = (cal.get("imu_noise") or {}).get("scale") or {}
         if scale.get("method") == "variance_component":  # the batch's IMU noise scale of this window
             rec["imu_noise_scale"] = float(scale["scale"])
+        blocks = ((cal.get("covariance") or {}).get("block_check") or {}).get("parameters") or {}
+        if blocks:  # the batch's block check of this window: which sigma it widened (calibration/covariance.py)
+            rec["sigma_widened_by_blocks"] = sorted(n for n, b in blocks.items() if b.get("widened"))
         rec["warnings"] = list(getattr(res, "warnings", []) or [])
     except Exception as exc:  # a window that fails is reported, not fatal
         rec["error"] = f"{type(exc).__name__}: {exc}"
