@@ -141,6 +141,21 @@ def test_sigma_table_is_calibration_yaml(batch_out):
     assert tab.loc["time_offset", "widened"] == ("yes" if p["widened"] else "no")
 
 
+def test_sigma_part_without_a_block_check(batch_out, tmp_path):
+    """A calibration.yaml without ``covariance.block_check`` (blocks 0, model, or an older file): the part says
+    so and shows the sigma without block columns' values."""
+    out, _ds = batch_out
+    o = _copy(out, tmp_path / "noblocks")
+    cal = yaml.safe_load((o / "calibration.yaml").read_text())
+    del cal["covariance"]["block_check"]
+    (o / "calibration.yaml").write_text(yaml.safe_dump(cal, sort_keys=False))
+    doc = _parse(render_report(o))
+    assert doc.parts["sigma"]["blocks"] == "0" and doc.parts["sigma"]["widened"] == "0"
+    tab = _table(doc, "sigma").set_index("parameter")
+    assert (tab["widened"] == "–").all()
+    assert float(tab.loc["lever_arm_x", "σ reported"]) == pytest.approx(100 * cal["lever_arm_sd"][0], rel=1e-3)
+
+
 def test_before_after_table_uses_the_written_columns(batch_out):
     """"with" = residual as written (bias inside); "without" = residual - anchor_bias, per anchor."""
     out, _ds = batch_out

@@ -1133,11 +1133,16 @@ def _batch_sigma_part(inp: ReportInputs) -> Markup:
                      (_span("bad", "yes") if b.get("widened") else "no") if b else "–"])
     if not rows:
         return _part("sigma", "How the σ were formed", _missing("calibration.yaml has no lever-arm σ."), method=method)
-    note = Markup('<p class="note">σ of the white range-noise model (GTSAM marginals), and the reported σ ({}). '
-                  "The block check sums the range scores over {} contiguous parts of the log ({} s each): "
-                  "where their variance exceeds the HAC sandwich's (ratio &gt; 1) the reported σ is the blocks'; "
-                  "p is the test of the sandwich against them (see docs/calibrate.md, \"The block check\").</p>").format(
-        method, bc.get("blocks", "–"), _fmt(bc.get("block_s"), 3))
+    if bc:
+        note = Markup('<p class="note">σ of the white range-noise model (GTSAM marginals), and the reported σ ({}). '
+                      "The block check sums the range scores over {} contiguous parts of the log ({} s each): "
+                      "where their variance exceeds the HAC sandwich's (ratio &gt; 1) the reported σ is the blocks'; "
+                      "p is the test of the sandwich against them (see docs/calibrate.md, \"The block check\").</p>"
+                      ).format(method, bc.get("blocks"), _fmt(bc.get("block_s"), 3))
+    else:
+        note = Markup('<p class="note">σ of the white range-noise model (GTSAM marginals), and the reported σ ({}); '
+                      "no block check in this calibration.yaml (<code>block_check: {{blocks: 0}}</code>, "
+                      "<code>covariance: model</code>, or written before it existed).</p>").format(method)
     tab = _table(["parameter", "unit", "σ model", "σ reported", "block / HAC variance", "dof", "p", "widened"], rows)
     widened = sum(1 for b in per.values() if b.get("widened"))
     return _part("sigma", "How the σ were formed", note + tab, method=method, blocks=bc.get("blocks", 0),
