@@ -135,6 +135,9 @@ def test_sigma_table_is_calibration_yaml(batch_out):
         assert float(tab.loc[f"lever_arm_{c}", "σ reported"]) == pytest.approx(100 * cal["lever_arm_sd"][i], rel=1e-3)
         assert float(tab.loc[f"lever_arm_{c}", "σ model"]) == pytest.approx(100 * cal["lever_arm_sd_model"][i],
                                                                             rel=1e-3)
+    assert [tab.loc[f"lever_arm_{c}", "verdict"] for c in "xyz"] == \
+        [cal["identifiability"]["lever_arm"][c]["verdict"] for c in "xyz"]
+    assert tab.loc["time_offset", "verdict"] == cal["time_offset"]["verdict"]
     p = bc["parameters"]["time_offset"]
     assert float(tab.loc["time_offset", "σ reported"]) == pytest.approx(1000 * cal["time_offset"]["sd"], rel=1e-3)
     assert float(tab.loc["time_offset", "block / HAC variance"]) == pytest.approx(p["variance_ratio"], rel=1e-3)

@@ -15,6 +15,7 @@ import pandas as pd
 from uwbimu.calibration import anchors as AN
 from uwbimu.calibration import graph as G
 from uwbimu.calibration import noise_scale as NS
+from uwbimu.calibration.identifiability import identifiability
 from uwbimu.calibration.options import CalibrationOptions
 from uwbimu.calibration.profile import TdProfile, confidence_interval, motion_advice
 # the solves and the profile walk (re-exported: tests and benchmarks address them here)
@@ -132,6 +133,8 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
     ev = _block_event(cal["covariance"].get("block_check"))
     if ev is not None:
         events.append(ev)
+    cal["identifiability"], id_events = identifiability(cal, o)
+    events += id_events
     for ev in events:
         if ev["kind"] == "time_offset_not_identified":
             cal["time_offset"]["advice"] = ev["advice"]

@@ -204,7 +204,8 @@ class BlockCheck:
     ``cov``: the sandwich with the block long-run covariance in place of the HAC's; ``ratio``: per parameter,
     block / HAC variance of the range scores' sum; ``dof``: Satterthwaite's effective degrees of freedom of the
     block estimate; ``statistic`` = ``dof * ratio`` (chi-square with ``dof`` degrees of freedom when the HAC is
-    right); ``p_value``; ``significant``: ``p_value < level`` (the blocks reject the HAC); ``widened``:
+    right); ``p_value``; ``significant``: ``p_value < level / p`` (the blocks reject the HAC; Bonferroni over the
+    ``p`` parameters, so that on a correct model any parameter is flagged in at most ``level`` of the logs); ``widened``:
     ``ratio > 1`` (the blocks' variance is the larger: the calibrator's sigma takes it).
     """
 
@@ -244,7 +245,7 @@ def block_check(C: np.ndarray, Vk: np.ndarray, Mk: np.ndarray, omega_hac: np.nda
     did not.  **Test** (reported, and the event): Satterthwaite's ``nu_j = (sum_k V_kj)^2 / sum_k V_kj^2``
     (K for equal blocks, fewer when a few blocks carry the information) and ``nu_j Omega_B,jj /
     Omega_HAC,jj ~ chi2(nu_j)`` under the HAC; ``significant`` where its upper tail probability is below
-    ``level``.  Scale-free: ratios of variances of the same quantity.
+    ``level / p`` (Bonferroni over the ``p`` parameters).  Scale-free: ratios of variances of the same quantity.
 
     Parameters
     ----------
@@ -269,8 +270,8 @@ def block_check(C: np.ndarray, Vk: np.ndarray, Mk: np.ndarray, omega_hac: np.nda
     p_value = chi2.sf(stat, dof)
     cov = cov_rest + omega_b
     return BlockCheck(blocks=K, block_s=float(n_bins * bin_s / K), level=float(level), cov=0.5 * (cov + cov.T),
-                      ratio=ratio, dof=dof, statistic=stat, p_value=p_value, significant=p_value < level,
-                      widened=ratio > 1.0)
+                      ratio=ratio, dof=dof, statistic=stat, p_value=p_value,
+                      significant=p_value < level / max(1, len(ratio)), widened=ratio > 1.0)
 
 
 def leverages(J, lu: _SymmetricFactor, rows, n_probes: int = 64, seed: int = 0) -> np.ndarray:

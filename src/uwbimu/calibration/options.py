@@ -32,9 +32,10 @@ class BlockCheckOptions(BaseModel):
     model_config = ConfigDict(extra="forbid")
     blocks: int = Field(6, ge=0, le=50, description="contiguous time blocks of the log (0: no check); the range "
                                                     "scores summed per block give a cluster-robust covariance")
-    level: float = Field(0.01, gt=0, lt=0.5, description="level of the test of the HAC sandwich against the blocks "
-                                                         "(event range_errors_correlated_over_blocks); the sigma "
-                                                         "takes the blocks' variance wherever it is the larger")
+    level: float = Field(0.01, gt=0, lt=0.5, description="family-wise level of the test of the HAC sandwich against "
+                                                         "the blocks (Bonferroni over the parameters; event "
+                                                         "range_errors_correlated_over_blocks); the sigma takes the "
+                                                         "blocks' variance wherever it is the larger")
 
     @model_validator(mode="after")
     def _at_least_two(self):

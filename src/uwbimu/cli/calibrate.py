@@ -126,6 +126,8 @@ def register(app: typer.Typer) -> None:
             console.print(f"IMU noise model scaled by {sc['scale']:.3g}" + (f" ± {sc['scale_sd']:.2g}" if sc.get("scale_sd")
                           else "") + " (estimated from the log; imu_noise_scale: fixed to keep the stated one)")
         for ev in res.events:
+            if ev["kind"] == "lever_arm_not_identified":
+                console.print(f"[yellow]{ev['kind']}:[/] {ev['message']}")
             if ev["kind"] == "range_errors_correlated_over_blocks":
                 console.print(f"[yellow]{ev['kind']}:[/] sigma of {', '.join(ev['parameters'])} widened to the "
                               f"spread between the {ev['blocks']} parts of the log (the range model misses an error "

@@ -119,6 +119,25 @@ def _out(status, td, sd, reason, tds, m, counts, delta=None) -> dict:
             "delta_nats": None if delta is None else [float(v) for v in delta]}
 
 
+#: Information gain of the data over the prior, ``(sd_prior / sd_post)^2 - 1``, from which a parameter counts as
+#: identified (the data carry >= 99x the prior's information: the prior sets under 1 % of it) and weakly
+#: identified (as much as the prior or more).  One convention for every estimator's verdicts.
+GAIN_IDENTIFIED, GAIN_WEAK = 99.0, 1.0
+
+
+def information_verdict(sd_post: float, sd_prior: float) -> tuple[str, float]:
+    """``(verdict, gain)``: ``identified | weakly identified | not identified`` from the information gain
+    ``(sd_prior / sd_post)^2 - 1`` of the data over the prior (scale-free; NaN gain: not identified)."""
+    if not (np.isfinite(sd_post) and sd_post > 0 and np.isfinite(sd_prior) and sd_prior > 0):
+        return "not identified", float("nan")
+    gain = float((sd_prior / sd_post) ** 2 - 1.0)
+    if gain >= GAIN_IDENTIFIED:
+        return "identified", gain
+    if gain >= GAIN_WEAK:
+        return "weakly identified", gain
+    return "not identified", gain
+
+
 def time_offset_verdict(sd_post: float, sd_prior: float, fixed: bool = False,
                         init_status: Optional[str] = None) -> tuple[str, str]:
     """Verdict on the time offset from the information gained relative to the prior.
@@ -131,12 +150,7 @@ def time_offset_verdict(sd_post: float, sd_prior: float, fixed: bool = False,
     if init_status == "not identified":
         return "not identified", ("the initial grid search could not locate it; held at its prior (consider "
                                   "mode, not updated by the data)")
-    if not (np.isfinite(sd_post) and sd_post > 0 and np.isfinite(sd_prior) and sd_prior > 0):
-        return "not identified", "no finite posterior/prior sd"
-    gain = (sd_prior / sd_post) ** 2 - 1.0
-    note = f"sd {sd_post * 1e3:.3g} ms from prior {sd_prior * 1e3:.3g} ms (information gain {gain:.3g}x the prior)"
-    if gain >= 99.0:
-        return "identified", note
-    if gain >= 1.0:
-        return "weakly identified", note
-    return "not identified", note
+    verdict, gain = information_verdict(sd_post, sd_prior)
+    if not np.isfinite(gain):
+        return verdict, "no finite posterior/prior sd"
+    return verdict, f"sd {sd_post * 1e3:.3g} ms from prior {sd_prior * 1e3:.3g} ms (information gain {gain:.3g}x the prior)"

@@ -1123,11 +1123,17 @@ def _batch_sigma_part(inp: ReportInputs) -> Markup:
     if td.get("sd") is not None:
         sd["time_offset"] = (td["sd"], 1000.0, "ms")
         sd_m["time_offset"] = td.get("sd_model")
+    idf = cal.get("identifiability") or {}
+    lever_v = idf.get("lever_arm") or {}
+    lever_v = lever_v if set(lever_v) <= {"x", "y", "z"} else next(iter(lever_v.values()), {})  # several tags: the first's
+    verdict = {f"lever_arm_{c}": (lever_v.get(c) or {}).get("verdict", "–") for c in "xyz"}
+    verdict["time_offset"] = str(td.get("verdict", "–"))
     rows = []
     for n in [n for n in names if n in sd]:
         v, k, unit = sd[n]
         b = per.get(n) or {}
         rows.append([n, unit, _fmt(k * float(sd_m[n]), 3) if sd_m.get(n) is not None else "–", _fmt(k * float(v), 3),
+                     verdict.get(n, "–"),
                      _fmt(b["variance_ratio"], 3) if b else "–", _fmt(b["dof"], 3) if b else "–",
                      _fmt(b["p_value"], 3) if b else "–",
                      (_span("bad", "yes") if b.get("widened") else "no") if b else "–"])
@@ -1143,7 +1149,8 @@ def _batch_sigma_part(inp: ReportInputs) -> Markup:
         note = Markup('<p class="note">σ of the white range-noise model (GTSAM marginals), and the reported σ ({}); '
                       "no block check in this calibration.yaml (<code>block_check: {{blocks: 0}}</code>, "
                       "<code>covariance: model</code>, or written before it existed).</p>").format(method)
-    tab = _table(["parameter", "unit", "σ model", "σ reported", "block / HAC variance", "dof", "p", "widened"], rows)
+    tab = _table(["parameter", "unit", "σ model", "σ reported", "verdict", "block / HAC variance", "dof", "p",
+                  "widened"], rows)
     widened = sum(1 for b in per.values() if b.get("widened"))
     return _part("sigma", "How the σ were formed", note + tab, method=method, blocks=bc.get("blocks", 0),
                  widened=widened)

@@ -1,0 +1,67 @@
+"""Identifiability verdicts of the batch calibration (calibration.yaml ``identifiability``).
+
+Each lever-arm axis (every tag) and each estimated constant anchor bias gets the verdict the ESKF uses for
+its time offset (:func:`uwbimu.estimation.timeoffset.information_verdict`): the information gain of the
+data over the parameter's prior, ``(sd_prior / sd)^2 - 1``, with the reported (honest) sigma.  It is
+scale-free (a ratio of variances of the same parameter) and says how much of the answer is the prior's.
+The time offset keeps its profile verdict (:mod:`uwbimu.calibration.profile`).
+
+A lever-arm component is seen only through rotations that move the antenna along the lines of sight: the
+component along body axis ``a`` through rotations about the two other axes (for a multirotor, z through
+roll and pitch, i.e. tilt).  An axis that is not identified is named in an event with that advice.
+"""
+
+from __future__ import annotations
+
+from uwbimu.estimation.timeoffset import information_verdict
+
+#: The rotations that reveal each lever-arm component (body axes).
+_ROTATIONS = {"x": "pitch and yaw (rotation about body y and z)", "y": "roll and yaw (rotation about body x and z)",
+              "z": "roll and pitch (tilt about body x and y)"}
+
+
+def _entry(sd: float, prior_sd: float) -> dict:
+    verdict, gain = information_verdict(float(sd), float(prior_sd))
+    return {"verdict": verdict, "information_gain": round(gain, 4), "sd": float(sd), "prior_sd": float(prior_sd)}
+
+
+def identifiability(cal: dict, options) -> tuple[dict, list[dict]]:
+    """The ``identifiability`` section of calibration.yaml and the events of the axes not identified.
+
+    Parameters
+    ----------
+    cal : the calibration dict of :func:`uwbimu.calibration.batch._report` (``lever_arm_sd``, ``tags``,
+        ``anchor_bias_sd``, ``time_offset``).
+    options : the :class:`~uwbimu.calibration.options.CalibrationOptions` (the priors' sd).
+
+    Returns
+    -------
+    (section, events) with section ``{lever_arm: {TAG: {x|y|z: {verdict, information_gain, sd, prior_sd}}},
+    time_offset: {verdict}, anchor_bias: {ID: {...}}}`` (anchor biases held at zero are left out).
+    """
+    tags = cal.get("tags") or {"": {"lever_arm_sd": cal["lever_arm_sd"]}}
+    lever = {tag: {c: _entry(s, options.lever_arm_prior_sd) for c, s in zip("xyz", t["lever_arm_sd"])}
+             for tag, t in tags.items()}
+    held = set((cal.get("anchors") or {}).get("bias_held_at_zero") or [])
+    bias = {}
+    if options.estimate_anchor_bias is not False:
+        bias = {a: _entry(s, options.anchor_bias_prior_sd) for a, s in cal["anchor_bias_sd"].items()
+                if str(a) not in held and s > 0}
+    section = {"rule": "information gain (prior_sd / sd)^2 - 1 of the data over the prior: identified >= 99, "
+                       "weakly identified >= 1, else not identified",
+               "lever_arm": lever if cal.get("tags") else lever[""],
+               "time_offset": {"verdict": cal["time_offset"]["verdict"]},
+               "anchor_bias": bias}
+    events = []
+    for tag, axes in lever.items():
+        weak = {c: e for c, e in axes.items() if e["verdict"] != "identified"}
+        if not weak:
+            continue
+        name = f"tag {tag}'s lever arm" if tag else "lever arm"
+        parts = [f"{c} {e['verdict']} (sd {100 * e['sd']:.1f} cm against the prior's {100 * e['prior_sd']:.0f} cm, "
+                 f"information gain {e['information_gain']:.3g})" for c, e in weak.items()]
+        events.append({"kind": "lever_arm_not_identified", "severity": "warning", "tag": tag or None,
+                       "axes": {c: e["verdict"] for c, e in weak.items()},
+                       "message": f"{name}: " + "; ".join(parts) + ": mostly the prior; the log needs more "
+                                  + " and ".join(_ROTATIONS[c] for c in weak) + " while ranging"})
+    return section, events
