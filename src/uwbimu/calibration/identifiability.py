@@ -20,6 +20,11 @@ _ROTATIONS = {"x": "pitch and yaw (rotation about body y and z)", "y": "roll and
               "z": "roll and pitch (tilt about body x and y)"}
 
 
+def _prior_share(gain: float) -> str:
+    """The prior's share of a parameter's information, ``1 / (1 + gain)``, in words."""
+    return "all" if not gain == gain else f"{100.0 / (1.0 + max(gain, 0.0)):.2g} %"
+
+
 def _entry(sd: float, prior_sd: float) -> dict:
     verdict, gain = information_verdict(float(sd), float(prior_sd))
     return {"verdict": verdict, "information_gain": round(gain, 4), "sd": float(sd), "prior_sd": float(prior_sd)}
@@ -58,10 +63,10 @@ def identifiability(cal: dict, options) -> tuple[dict, list[dict]]:
         if not weak:
             continue
         name = f"tag {tag}'s lever arm" if tag else "lever arm"
-        parts = [f"{c} {e['verdict']} (sd {100 * e['sd']:.1f} cm against the prior's {100 * e['prior_sd']:.0f} cm, "
-                 f"information gain {e['information_gain']:.3g})" for c, e in weak.items()]
+        parts = [f"{c} {e['verdict']} (sd {100 * e['sd']:.1f} cm against the prior's {100 * e['prior_sd']:.0f} cm: "
+                 f"the prior carries {_prior_share(e['information_gain'])} of its information)" for c, e in weak.items()]
         events.append({"kind": "lever_arm_not_identified", "severity": "warning", "tag": tag or None,
                        "axes": {c: e["verdict"] for c, e in weak.items()},
-                       "message": f"{name}: " + "; ".join(parts) + ": mostly the prior; the log needs more "
-                                  + " and ".join(_ROTATIONS[c] for c in weak) + " while ranging"})
+                       "message": f"{name}: " + "; ".join(parts) + "; more "
+                                  + " and ".join(_ROTATIONS[c] for c in weak) + " while ranging would pin it"})
     return section, events
