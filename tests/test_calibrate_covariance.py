@@ -234,6 +234,19 @@ def test_block_check_only_widens_and_is_reported_per_parameter():
     ev = [e for e in on.events if e["kind"] == "range_errors_correlated_over_blocks"]
     sig = sorted(n for n, p in bc["parameters"].items() if p["significant"])
     assert (ev[0]["parameters"] if ev else []) == sig
+    assert not ev or "range_bias_drift" in ev[0]["advice"]  # the drift model is off here: it is what to try
+
+
+def test_block_event_advice_depends_on_the_range_model():
+    from uwbimu.calibration.batch import _block_event
+
+    bc = {"blocks": 6, "level": 0.01, "parameters": {
+        "lever_arm_x": {"variance_ratio": 3.0, "significant": True}, "time_offset": {"variance_ratio": 0.9,
+                                                                                     "significant": False}}}
+    off, on = _block_event(bc), _block_event(bc, drift_on=True)
+    assert off["parameters"] == on["parameters"] == ["lever_arm_x"]
+    assert "range_bias_drift" in off["advice"] and "range_model.direction" in on["advice"]
+    assert _block_event({**bc, "parameters": {"time_offset": {"variance_ratio": 0.9, "significant": False}}}) is None
 
 
 def test_block_check_options():

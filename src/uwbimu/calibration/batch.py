@@ -130,7 +130,7 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
         progress(0.9)
     cal, traj, res, anchors = _report(pb, graph, values, assoc, td_free, prof, iters, dataset, chi2_scale=chi2_scale)
     cal["imu_noise"] = _imu_noise_report(pb, imu_scale)
-    ev = _block_event(cal["covariance"].get("block_check"))
+    ev = _block_event(cal["covariance"].get("block_check"), drift_on=o.range_bias_drift is not None)
     if ev is not None:
         events.append(ev)
     cal["identifiability"], id_events = identifiability(cal, o)
@@ -345,19 +345,27 @@ def _calibration_covariance(pb, graph, values, assoc, keys, td: float, td_free: 
     return cov, cov_model, sec
 
 
-def _block_event(bc: Optional[dict]) -> Optional[dict]:
-    """``range_errors_correlated_over_blocks`` when the block check rejects the HAC sandwich for a parameter."""
+def _block_event(bc: Optional[dict], drift_on: bool = False) -> Optional[dict]:
+    """``range_errors_correlated_over_blocks`` when the block check rejects the HAC sandwich for a parameter.
+
+    Its advice: a slowly varying anchor bias (``range_bias_drift``) when it is off.  Measured (docs/calibrate.md
+    "The block check"): on both shared real logs it removes what the blocks see (INRoL lever ratios 2.7-3.1 ->
+    0.7-1.4, ISAS-Walk's 4 flagged anchor biases -> none, every p > 0.02)."""
     if not bc:
         return None
     sig = {n: p for n, p in bc["parameters"].items() if p["significant"]}
     if not sig:
         return None
+    advice = ("the range model already has a slowly varying bias: look for direction-dependent range errors "
+              "(range_model.direction) or a changing IMU error" if drift_on else
+              "model a slowly varying anchor bias (range_bias_drift: {sd: 0.1, correlation_time: 2.0}, "
+              "docs/calibrate.md)")
     return {"kind": "range_errors_correlated_over_blocks", "severity": "warning", "blocks": bc["blocks"],
             "level": bc["level"], "parameters": sorted(sig),
-            "variance_ratio": {n: p["variance_ratio"] for n, p in sig.items()},
+            "variance_ratio": {n: p["variance_ratio"] for n, p in sig.items()}, "advice": advice,
             "message": f"the range scores of {len(sig)} parameter(s) vary between the {bc['blocks']} parts of the log "
                        "more than the HAC sandwich allows (the range model misses an error that follows the motion "
-                       "for tens of seconds); their sigma is the blocks'"}
+                       f"for tens of seconds); their sigma is the blocks'; {advice}"}
 
 
 def _profile_chi2_scale(pb, graph, values, assoc) -> float:

@@ -131,7 +131,7 @@ def register(app: typer.Typer) -> None:
             if ev["kind"] == "range_errors_correlated_over_blocks":
                 console.print(f"[yellow]{ev['kind']}:[/] sigma of {', '.join(ev['parameters'])} widened to the "
                               f"spread between the {ev['blocks']} parts of the log (the range model misses an error "
-                              "that follows the motion; see calibration.yaml covariance.block_check)")
+                              f"that follows the motion; see calibration.yaml covariance.block_check); {ev['advice']}")
         if any(ev["kind"] == "second_start_won" for ev in res.events):
             console.print("note: the solve started from the robust-range ESKF reached a lower cost and was used "
                           "(event second_start_won)")
