@@ -379,28 +379,27 @@ def test_group_factor_jacobians_match_finite_differences():
     np.testing.assert_allclose(Jt, fd, atol=1e-6)
 
 
-def test_group_factor_over_several_keyframes():
-    """Rows attached to three keyframes in one factor: each row's pose/velocity Jacobian lands on its own
-    keyframe's keys, and residuals, error and whitened Jacobians equal one factor per range."""
-    gtsam = pytest.importorskip("gtsam")
-    from gtsam.symbol_shorthand import A, L, T, V, X
-
-    from uwbimu.calibration.range_factor import RangeGroup, make_gtsam_group_factor
-
-    rng = np.random.default_rng(11)
+def _three_keyframes(rng):
+    """Nine rows after three keyframes (0, 0.06, 0.12 s), their deltas, three anchors and the keyframes' states."""
     t, u = _imu(rng)
     t_key = np.array([0.0, 0.06, 0.12])
     s0 = np.sort(rng.uniform(0.0, 0.19, 9))
     kk, deltas = imu_deltas(t, u, np.zeros(3), np.zeros(3), t_key, s0)
     anchors = np.array([[4.0, -1.0, 2.5], [-3.0, 2.0, 0.3], [0.5, 5.0, 2.8]])
-    col = np.arange(9) % 3
-    R = [so3_exp(rng.normal(size=3) * 0.5) for _ in range(3)]
-    P = [np.array([1.0, 2.0, 1.5]) + 0.05 * i for i in range(3)]
-    Vv = [np.array([0.4, -0.3, 0.2]) * (1 + 0.1 * i) for i in range(3)]
-    lev, td, td0, b = np.array([0.12, -0.08, 0.14]), 0.027, 0.02, np.array([0.03, -0.05, 0.01])
-    grp0 = RangeGroup(deltas, anchors[col], np.zeros(9), col, td0, kf=kk)
-    rho = grp0.evaluate(np.array(R), np.array(P), np.array(Vv), lev, td, b) + rng.uniform(-0.05, 0.05, 9)
-    grp = RangeGroup(deltas, anchors[col], rho, col, td0, kf=kk)
+    R = np.array([so3_exp(rng.normal(size=3) * 0.5) for _ in range(3)])
+    P = np.array([[1.0, 2.0, 1.5]]) + 0.05 * np.arange(3)[:, None]
+    Vv = np.array([[0.4, -0.3, 0.2]]) * (1 + 0.1 * np.arange(3))[:, None]
+    return kk, deltas, anchors, R, P, Vv
+
+
+def _three_keyframe_factor(grp, R, P, Vv, lev, td, b):
+    """The group factor of ``grp`` on keys X0..2, V0..2, L0, T0, A0..2, a GTSAM Values at the given state, and the
+    Robust(Huber 1.345, sd 0.1) noise of the equivalent per-row factors."""
+    import gtsam
+    from gtsam.symbol_shorthand import A, L, T, V, X
+
+    from uwbimu.calibration.range_factor import make_gtsam_group_factor
+
     keys = [X(0), V(0), X(1), V(1), X(2), V(2), L(0), T(0), A(0), A(1), A(2)]
     fg = make_gtsam_group_factor(keys, grp, 0.1, 1.345)
     vals = gtsam.Values()
@@ -412,6 +411,25 @@ def test_group_factor_over_several_keyframes():
     vals.insert(T(0), np.array([td]))
     noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(1.345),
                                            gtsam.noiseModel.Isotropic.Sigma(1, 0.1))
+    return fg, vals, noise
+
+
+def test_group_factor_over_several_keyframes():
+    """Rows attached to three keyframes in one factor: each row's pose/velocity Jacobian lands on its own
+    keyframe's keys, and residuals, error and whitened Jacobians equal one factor per range."""
+    pytest.importorskip("gtsam")
+    from gtsam.symbol_shorthand import A, L, T, V, X
+
+    from uwbimu.calibration.range_factor import RangeGroup
+
+    rng = np.random.default_rng(11)
+    kk, deltas, anchors, R, P, Vv = _three_keyframes(rng)
+    col = np.arange(9) % 3
+    lev, td, td0, b = np.array([0.12, -0.08, 0.14]), 0.027, 0.02, np.array([0.03, -0.05, 0.01])
+    grp0 = RangeGroup(deltas, anchors[col], np.zeros(9), col, td0, kf=kk)
+    rho = grp0.evaluate(np.array(R), np.array(P), np.array(Vv), lev, td, b) + rng.uniform(-0.05, 0.05, 9)
+    grp = RangeGroup(deltas, anchors[col], rho, col, td0, kf=kk)
+    fg, vals, noise = _three_keyframe_factor(grp, R, P, Vv, lev, td, b)
     singles = [make_gtsam_factor([X(int(k)), V(int(k)), L(0), T(0), A(int(c))], anchors[c], r, d, td0, noise)
                for k, d, c, r in zip(kk, deltas, col, rho)]
     assert fg.error(vals) == pytest.approx(sum(f.error(vals) for f in singles), rel=1e-12)
@@ -427,3 +445,35 @@ def test_group_factor_over_several_keyframes():
             row[lo:lo + n] = A1[0][[0, 6, 9, 12, 13][blk]:[0, 6, 9, 12, 13][blk] + n]
         np.testing.assert_allclose(Ag[i], row, atol=1e-9)
     assert set(kk) == {0, 1, 2}
+
+
+def test_tdoa_group_equals_the_per_row_tdoa_factors():
+    """The grouped TDoA rows (two range groups on the same deltas, signed bias matrix) over three keyframes:
+    residuals and Jacobians equal tdoa_error row by row, and the GTSAM factor's error equals one Robust(Huber)
+    TDoA CustomFactor per row."""
+    pytest.importorskip("gtsam")
+    from gtsam.symbol_shorthand import A, L, T, V, X
+
+    from uwbimu.calibration.tdoa_factor import TdoaGroup, make_gtsam_tdoa_factor, tdoa_error
+
+    rng = np.random.default_rng(13)
+    kk, deltas, anchors, R, P, Vv = _three_keyframes(rng)
+    ja, jb = np.arange(9) % 3, (np.arange(9) + 1) % 3
+    lev, td, td0, b = np.array([0.12, -0.08, 0.14]), 0.027, 0.02, np.array([0.03, -0.05, 0.01])
+    z = rng.uniform(-1.0, 1.0, 9)
+    bmat = np.zeros((9, 3))
+    bmat[np.arange(9), jb] += 1.0
+    bmat[np.arange(9), ja] -= 1.0
+    grp = TdoaGroup(deltas, anchors[ja], anchors[jb], z, bmat, td0, kf=kk)
+    e, Jp, Jv, Jl, Jt = grp.evaluate(R, P, Vv, lev, td, b, jacobians=True)
+    for i in range(9):
+        k = kk[i]
+        ref = tdoa_error(R[k], P[k], Vv[k], lev, td, b[ja[i]], b[jb[i]], anchors[ja[i]], anchors[jb[i]], z[i],
+                         deltas[i], td0, jacobians=True)
+        assert e[i] == pytest.approx(ref[0], abs=1e-12)
+        for got, want in zip((Jp[i], Jv[i], Jl[i], Jt[i]), ref[1:]):
+            np.testing.assert_allclose(got, want, atol=1e-10)
+    fg, vals, noise = _three_keyframe_factor(grp, R, P, Vv, lev, td, b)
+    singles = [make_gtsam_tdoa_factor([X(int(k)), V(int(k)), L(0), T(0), A(int(a)), A(int(c))], anchors[a], anchors[c],
+                                      zz, d, td0, noise) for k, d, a, c, zz in zip(kk, deltas, ja, jb, z)]
+    assert fg.error(vals) == pytest.approx(sum(f.error(vals) for f in singles), rel=1e-12)

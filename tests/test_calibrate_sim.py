@@ -124,6 +124,28 @@ def test_calibrate_accepts_tdoa():
     assert set(r.residuals["kind"]) == {"tdoa"} and (r.residuals["anchor_b"] != "").all()
 
 
+def test_grouped_tdoa_factors_match_the_per_row_graph():
+    """TDoA rows grouped per block of keyframes (default) and one factor per row (``group_range_factors: false``)
+    reach the same solution on a short Loco TDoA3 flight (same cost, lever arm and t_d); the grouped graph has
+    far fewer factors."""
+    import numpy as np
+
+    from uwbimu.calibration import CalibrationOptions, calibrate
+    from uwbimu.sim import builtin_scenario, simulate
+
+    ds = simulate(builtin_scenario("crazyflie-tdoa3").model_copy(update={"duration": 6.0}))
+    base = {"td_profile": {"enabled": False}, "second_start": False, "imu_noise_scale": "fixed", "block_check":
+            {"blocks": 0}}
+    g = calibrate(ds, CalibrationOptions.model_validate(base)).calibration
+    s = calibrate(ds, CalibrationOptions.model_validate(base | {"group_range_factors": False})).calibration
+    assert g["solver"]["final_cost"] == pytest.approx(s["solver"]["final_cost"], rel=1e-6)
+    # within the solvers' stopping tolerance: 0.1 mm, far below the lever arm's sd (cm)
+    np.testing.assert_allclose(g["lever_arm"], s["lever_arm"], atol=1e-4)
+    assert np.all(np.array(g["lever_arm_sd"]) > 50 * 1e-4)
+    assert g["time_offset"]["value"] == pytest.approx(s["time_offset"]["value"], abs=1e-4)
+    np.testing.assert_allclose(g["lever_arm_sd_model"], s["lever_arm_sd_model"], rtol=0.05)
+
+
 def test_profile_minimum_at_the_grid_edge_is_held_at_prior(tmp_path):
     """True t_d 30 ms, grid 0.2..0.4 s: the minimum is the grid's first point; nothing is reported as found,
     t_d stays at the prior and the advice says to widen the grid."""

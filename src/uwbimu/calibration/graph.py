@@ -27,7 +27,7 @@ from uwbimu.calibration.anchors import GAUGE_SIGMA, AnchorSetup
 from uwbimu.calibration.options import CalibrationOptions
 from uwbimu.calibration.range_factor import (RangeGroup, direction_features, imu_cumulative, imu_deltas,
                                               make_gtsam_factor, make_gtsam_group_factor, so3_exp)
-from uwbimu.calibration.tdoa_factor import make_gtsam_tdoa_factor
+from uwbimu.calibration.tdoa_factor import TdoaGroup, make_gtsam_tdoa_factor
 from uwbimu.models.reference import GRAVITY
 
 #: IMU noise used when neither the options nor dataset.yaml document it (consumer MEMS).
@@ -535,14 +535,9 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
                     bkeys += [P(int(j)) for j in ujs[uest]]
                 grp = RangeGroup([assoc.deltas[i] for i in chunk], pb.anchor_pos[js], pb.rho[ms], col, assoc.td0,
                                  bias_matrix=bmat, kf=kf, **dkw)
-                keys = [key for k in kfs for key in (X(int(k)), V(int(k)))] + [L(tag)] + \
-                    ([T(0)] if td_fixed is None else []) + bkeys
-                fi = g.size()
-                g.add(make_gtsam_group_factor(keys, grp, pb.range_sigma, o.huber_k, td_fixed=td_fixed))
-                assoc.groups[fi] = grp
-                slots[chunk, 0] = fi
-                slots[chunk, 1] = np.arange(len(chunk))
+                _add_group(g, assoc, slots, chunk, grp, kfs, tag, bkeys, pb.range_sigma, o.huber_k, td_fixed)
             grouped[rows] = True
+        _group_tdoa(pb, assoc, g, slots, grouped, td_fixed)
     for i, (m, k, d) in enumerate(zip(assoc.used, assoc.key, assoc.deltas)):
         if grouped[i]:
             continue
@@ -561,6 +556,56 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
                                 anchor_variable=est))
     assoc.slots = slots
     return g
+
+
+def _group_tdoa(pb: Problem, assoc: Association, g, slots: np.ndarray, grouped: np.ndarray, td_fixed) -> None:
+    """One :class:`~uwbimu.calibration.tdoa_factor.TdoaGroup` factor per block of ``range_group_keyframes``
+    keyframes and tag for the TDoA rows between fixed anchors with constant biases (the same model as one
+    :func:`make_gtsam_tdoa_factor` per row, pinned by ``tests/test_calibrate_factor.py``; ~10x fewer Python
+    callbacks).  Fills ``slots`` and ``grouped`` for them; the others keep one factor per row."""
+    if pb.anchor_b is None or pb.drift_knot is not None:
+        return
+    X, V, B, L, T, A = _keys()
+    o = pb.options
+    used = assoc.used
+    ok = np.array([pb.is_tdoa(m) and not pb.estimated(int(pb.anchor_j[m])) and not pb.estimated(int(pb.anchor_b[m]))
+                   for m in used], bool) & ~grouped
+    rows = np.flatnonzero(ok)
+    if not len(rows):
+        return
+    keys_of = np.asarray(assoc.key)[rows]
+    tg = pb.tag_i[used[rows]] if pb.tag_i is not None else np.zeros(len(rows), np.int64)
+    order = rows[np.lexsort((keys_of, tg, keys_of // o.range_group_keyframes))]
+    gk = np.asarray(assoc.key)[order] // o.range_group_keyframes
+    if pb.tag_i is not None:
+        gk = gk * pb.n_tags + pb.tag_i[used[order]]
+    for chunk in np.split(order, np.flatnonzero(np.diff(gk)) + 1):
+        kfs, kf = np.unique(np.asarray(assoc.key)[chunk], return_inverse=True)
+        ms = used[chunk]
+        ja, jb = pb.anchor_j[ms].astype(np.int64), pb.anchor_b[ms].astype(np.int64)
+        uj, inv = np.unique(np.concatenate([ja, jb]), return_inverse=True)
+        bmat = np.zeros((len(ms), len(uj)))
+        bmat[np.arange(len(ms)), inv[len(ms):]] += 1.0
+        bmat[np.arange(len(ms)), inv[:len(ms)]] -= 1.0
+        grp = TdoaGroup([assoc.deltas[i] for i in chunk], pb.anchor_pos[ja], pb.anchor_pos[jb], pb.rho[ms], bmat,
+                        assoc.td0, kf=kf)
+        _add_group(g, assoc, slots, chunk, grp, kfs, pb.tag_of(int(ms[0])), [A(int(j)) for j in uj], pb.tdoa_sigma,
+                   o.huber_k, td_fixed)
+        grouped[chunk] = True
+
+
+def _add_group(g, assoc: Association, slots: np.ndarray, chunk: np.ndarray, grp, kfs, tag: int, extra_keys: list,
+               sigma: float, huber_k: float, td_fixed) -> None:
+    """Add one grouped factor (keys: its keyframes' pose and velocity, the tag's lever arm, t_d when free, then
+    ``extra_keys``) and record where its rows' residuals live (``assoc.groups``, ``slots``)."""
+    X, V, B, L, T, A = _keys()
+    keys = [key for k in kfs for key in (X(int(k)), V(int(k)))] + [L(tag)] + \
+        ([T(0)] if td_fixed is None else []) + list(extra_keys)
+    fi = g.size()
+    g.add(make_gtsam_group_factor(keys, grp, sigma, huber_k, td_fixed=td_fixed))
+    assoc.groups[fi] = grp
+    slots[chunk, 0] = fi
+    slots[chunk, 1] = np.arange(len(chunk))
 
 
 def _group_states(grp: RangeGroup, ks, values):

@@ -219,8 +219,9 @@ class CalibrationOptions(BaseModel):
         0.5, gt=0, description="[m] range sd of the initialising ESKF when it must use rough anchors.csv guesses "
                                "(fewer than 4 surveyed anchors); about the guesses' error")
     group_range_factors: bool = Field(
-        True, description="one vectorised factor per keyframe for the ranges to fixed anchors (same model, ~10x "
-                          "faster); false: one GTSAM CustomFactor per range (the reference implementation)")
+        True, description="one vectorised factor per keyframe for the ranges to fixed anchors and the TDoA rows "
+                          "between fixed anchors (same model, ~10x faster); false: one GTSAM CustomFactor per row "
+                          "(the reference implementation)")
     range_group_keyframes: int = Field(
         5, ge=1, le=50, description="consecutive keyframes whose ranges share one vectorised factor (fewer, larger "
                                     "Python callbacks; same model)")

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from uwbimu.calibration.range_factor import RangeDelta, range_error
+from uwbimu.calibration.range_factor import RangeDelta, RangeGroup, range_error
 
 
 def tdoa_error(R_k, p_k, v_k, lever, td, bias_a, bias_b, anchor_a, anchor_b, z, d: RangeDelta, td0: float,
@@ -65,3 +65,52 @@ def make_gtsam_tdoa_factor(keys, anchor_a, anchor_b, z, d: RangeDelta, td0: floa
         return np.array([e])
 
     return gtsam.CustomFactor(noise, gtsam.KeyVector(keys), error)
+
+
+class TdoaGroup:
+    """The TDoA rows of a few consecutive keyframes, evaluated together: each row is :func:`tdoa_error`, i.e. the
+    range to anchor b minus the range to anchor a at the same instant, computed by two
+    :class:`~uwbimu.calibration.range_factor.RangeGroup` (compiled row loop) on the same IMU deltas.
+
+    It offers what :func:`~uwbimu.calibration.range_factor.make_gtsam_group_factor` and the graph's residual
+    helpers use of a ``RangeGroup`` (no direction model, no estimated anchors: those keep one factor per row).
+
+    Parameters
+    ----------
+    deltas : the rows' :class:`RangeDelta`.
+    anchors_a, anchors_b : (N, 3) positions of each row's anchors a and b [m] (world).
+    z : (N,) measured TDoA [m].
+    bias_matrix : (N, nb) signed: +1 in anchor b's bias column, -1 in anchor a's (``e`` gains ``b_b - b_a``).
+    td0 : the association's time offset [s].
+    kf : (N,) each row's keyframe among the group's keyframes.
+    """
+
+    direction = anchor_direction = anchor_var = None
+    n_dir = n_adir = n_apos = 0
+    dir_mask: list = []
+
+    def __init__(self, deltas, anchors_a, anchors_b, z, bias_matrix, td0: float, kf=None):
+        n = len(z)
+        self.bias_matrix = np.asarray(bias_matrix, float)
+        zero = np.zeros(n, np.int64)
+        self._a = RangeGroup(deltas, anchors_a, np.zeros(n), zero, td0, bias_matrix=np.zeros_like(self.bias_matrix),
+                             kf=kf)
+        self._b = RangeGroup(deltas, anchors_b, z, zero, td0, bias_matrix=self.bias_matrix, kf=kf)
+        self.n_kf, self.kf_mask = self._b.n_kf, self._b.kf_mask
+
+    @property
+    def n_bias(self) -> int:
+        return int(self.bias_matrix.shape[1])
+
+    def __len__(self) -> int:
+        return len(self._b)
+
+    def evaluate(self, R_k, p_k, v_k, lever, td: float, biases, jacobians: bool = False, dir_coefs=None,
+                 adir_coefs=None, anchor_pos=None):
+        """Residuals (N,) [m] and, on request, the Jacobians ``(J_pose, J_vel, J_lever, J_td)`` as
+        :meth:`RangeGroup.evaluate` (each the b row's minus the a row's)."""
+        rb = self._b.evaluate(R_k, p_k, v_k, lever, td, biases, jacobians)
+        ra = self._a.evaluate(R_k, p_k, v_k, lever, td, np.zeros(self.n_bias), jacobians)
+        if not jacobians:
+            return rb - ra
+        return tuple(b - a for b, a in zip(rb, ra))
