@@ -27,7 +27,7 @@ def _ar1(rng, n, rho, sig):
     return e
 
 
-def _linear_sandwich(y, blocks: int = 0):
+def _linear_sandwich(y, blocks: int = 0, bin_s: float = DT):
     """Sandwich of y = F theta + e through a GTSAM graph of one CustomFactor per row (time stamps T_LIN);
     with ``blocks``, the block check too (``info.block``)."""
     noise = gtsam.noiseModel.Isotropic.Sigma(1, SIG)
@@ -42,7 +42,7 @@ def _linear_sandwich(y, blocks: int = 0):
     v = gtsam.Values()
     v.insert(KEY, np.linalg.lstsq(F_LIN, y, rcond=None)[0])
     slots = np.column_stack([np.arange(N), np.zeros(N, int)])
-    return CV.sandwich_covariance(g, v, [KEY], slots, T_LIN, DT, blocks=blocks)
+    return CV.sandwich_covariance(g, v, [KEY], slots, T_LIN, bin_s, blocks=blocks)
 
 
 @pytest.mark.parametrize("rho", [0.8, 0.0])
@@ -185,6 +185,15 @@ def test_block_check_sees_slow_errors_the_hac_misses(tau, sd_slow):
     else:
         np.testing.assert_allclose(sd_h, sd_mc, rtol=0.15)
         np.testing.assert_allclose(sd_b, sd_mc, rtol=0.2)
+
+
+def test_block_check_needs_two_bins():
+    """Every row in one score bin (bin as long as the log): no block check, the HAC sandwich unchanged."""
+    y = SIG * np.random.default_rng(7).standard_normal(N)
+    cov6, _m, info6 = _linear_sandwich(y, 6, bin_s=100.0)
+    cov0, _m, info0 = _linear_sandwich(y, 0, bin_s=100.0)
+    assert info6.n_bins == 1 and info6.block is None and info0.block is None
+    np.testing.assert_allclose(cov6, cov0)
 
 
 def test_block_check_null_distribution_with_unequal_blocks():

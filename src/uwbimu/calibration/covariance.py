@@ -360,7 +360,7 @@ def sandwich_covariance(graph, values, keys, slots: np.ndarray, row_time: np.nda
     info = SandwichInfo(bin_s=float(bin_s), n_bins=nb, bandwidth_bins=bw, rho=[float(x) for x in rho],
                         mean_leverage=float(h.mean()), n_rows=int(len(row_index)), method=bandwidth,
                         andrews_bins=bw_a, plateau_bins=bw_p, curve=curve, prewhiten=prewhiten)
-    if blocks >= 2:
+    if blocks >= 2 and nb >= 2:  # a log shorter than two score bins has no blocks to compare
         K = int(min(blocks, nb))
         blk = np.searchsorted(np.round(np.linspace(0, nb, K + 1)).astype(np.int64)[1:-1], tb, side="right")
         C = np.zeros((K, A.shape[1]))
