@@ -130,3 +130,33 @@ def test_example_calibrate_yaml_is_the_defaults():
 
     ex = Path(__file__).resolve().parents[1] / "examples" / "calibrate.yaml"
     assert CalibrationOptions.from_yaml(ex) == CalibrationOptions()
+
+
+def test_summary_says_what_set_each_sigma_and_the_verdict():
+    """The console table: per lever-arm axis, t_d and range bias, whether the block check set its sigma or the
+    sandwich did, and the identifiability verdict of calibration.yaml."""
+    from rich.console import Console
+
+    from uwbimu.cli.calibrate import calibration_summary
+
+    par = {"lever_arm_x": {"variance_ratio": 4.0, "widened": True}, "lever_arm_y": {"variance_ratio": 0.5,
+                                                                                    "widened": False},
+           "lever_arm_z": {"variance_ratio": 0.9, "widened": False}, "time_offset": {"variance_ratio": 1.0,
+                                                                                     "widened": False},
+           "anchor_bias_A0": {"variance_ratio": 2.25, "widened": True}}
+    cal = {"lever_arm": [0.1, 0.2, 0.3], "lever_arm_sd": [0.02, 0.01, 0.01],
+           "time_offset": {"value": 0.01, "sd": 0.002, "sd_curvature": None, "held_at_prior": False,
+                           "verdict": "identified"},
+           "anchor_bias": {"A0": 0.05}, "anchor_bias_sd": {"A0": 0.01},
+           "covariance": {"block_check": {"parameters": par}},
+           "identifiability": {"lever_arm": {"x": {"verdict": "identified"}, "y": {"verdict": "weakly identified"},
+                                             "z": {"verdict": "identified"}},
+                               "anchor_bias": {"A0": {"verdict": "identified"}}}}
+    con = Console(record=True, width=200)
+    con.print(calibration_summary(cal))
+    lines = {ln.split("│")[1].strip(): [c.strip() for c in ln.split("│")[2:-1]] for ln in con.export_text().splitlines()
+             if ln.count("│") >= 5}
+    assert lines["lever arm x (cm)"][2:] == ["blocks", "identified"]
+    assert lines["lever arm y (cm)"][2:] == ["sandwich", "weakly identified"]
+    assert lines["time offset (ms)"][2:] == ["sandwich", "identified"]
+    assert lines["range bias A0 (cm)"][2:] == ["blocks", "identified"]

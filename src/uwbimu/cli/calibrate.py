@@ -18,19 +18,31 @@ def calibration_summary(cal: dict, truth=None) -> Table:
     """Rich table "value ± σ" (and the truth when the dataset documents it); one lever arm per tag when
     the calibration has several (``cal["tags"]``)."""
     t = Table(title="Batch calibration (value ± 1σ, marginal)")
-    for c in ("parameter", "estimate ± σ", "truth"):
+    for c in ("parameter", "estimate ± σ", "truth", "σ from", "verdict"):
         t.add_column(c, justify="left" if c == "parameter" else "right")
+    per = ((cal.get("covariance") or {}).get("block_check") or {}).get("parameters") or {}
+    idf = (cal.get("identifiability") or {}).get("lever_arm") or {}
+
+    def source(name: str) -> str:  # what set this sigma: the blocks (widened) or the sandwich / model
+        b = per.get(name)
+        if b is None:
+            return "-"
+        return "blocks" if b["widened"] else "sandwich"
+
     tags = cal.get("tags") or {}
     blocks = list(tags.items()) if len(tags) > 1 else [(None, cal)]  # several tags: one lever arm each
-    for name, blk in blocks:
+    for k, (name, blk) in enumerate(blocks):
         t_lever = truth.lever_arm if truth is not None else None
         if name is not None:
             t_lever = (truth.tags or {}).get(name) if truth is not None else None
+        verdicts = idf.get(name, {}) if name is not None else idf
         for i, c in enumerate("xyz"):
             tv = t_lever[i] if t_lever is not None else None
             label = f"lever arm {c} (cm)" if name is None else f"lever arm {c}, {name} (cm)"
+            pname = f"lever_arm_{c}" if k == 0 else f"lever_arm_{name}_{c}"
             t.add_row(label, f"{100 * blk['lever_arm'][i]:.2f} ± {100 * blk['lever_arm_sd'][i]:.2f}",
-                      "-" if tv is None else f"{100 * tv:.2f}")
+                      "-" if tv is None else f"{100 * tv:.2f}", source(pname),
+                      (verdicts.get(c) or {}).get("verdict", "-"))
     td = cal["time_offset"]
     tv = truth.time_offset if truth is not None else None
     if td["held_at_prior"]:
@@ -40,9 +52,12 @@ def calibration_summary(cal: dict, truth=None) -> Table:
                f"profile curvature")
     else:
         val = f"{1000 * td['value']:.1f} ± {1000 * td['sd']:.1f} marginal ({td['verdict']})"
-    t.add_row("time offset (ms)", val, "-" if tv is None else f"{1000 * tv:.1f}")
+    t.add_row("time offset (ms)", val, "-" if tv is None else f"{1000 * tv:.1f}",
+              "-" if td["held_at_prior"] else source("time_offset"), td["verdict"])
+    bias_v = (cal.get("identifiability") or {}).get("anchor_bias") or {}
     for a, b in cal["anchor_bias"].items():
-        t.add_row(f"range bias {a} (cm)", f"{100 * b:.2f} ± {100 * cal['anchor_bias_sd'][a]:.2f}", "-")
+        t.add_row(f"range bias {a} (cm)", f"{100 * b:.2f} ± {100 * cal['anchor_bias_sd'][a]:.2f}", "-",
+                  source(f"anchor_bias_{a}"), (bias_v.get(a) or bias_v.get(str(a)) or {}).get("verdict", "-"))
     return t
 
 
