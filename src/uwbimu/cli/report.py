@@ -122,4 +122,10 @@ def register(app: typer.Typer) -> None:
         for w in rep["windows"]:
             if "error" in w:
                 console.print(f"[yellow]window {w['i'] + 1} failed:[/yellow] {w['error']}")
+        pname = {"lx": "lever_arm_x", "ly": "lever_arm_y", "lz": "lever_arm_z", "td": "time_offset"}
+        wid = {k: sum(pname[k] in (w.get("sigma_widened_by_blocks") or []) for w in rep["windows"])
+               for k in rep["parameters"] if k in pname}
+        if any("sigma_widened_by_blocks" in w for w in rep["windows"]):  # batch: each window's block check
+            console.print("sigma set by the block check (windows of " + str(len(rep["windows"])) + "): "
+                          + ", ".join(f"{k} {n}" for k, n in wid.items()))
         console.print(f"wrote {out / 'repeatability.json'}")
