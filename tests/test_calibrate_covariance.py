@@ -187,6 +187,7 @@ def test_block_check_sees_slow_errors_the_hac_misses(tau, sd_slow):
         np.testing.assert_allclose(sd_b, sd_mc, rtol=0.2)
 
 
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # one bin: the HAC's AR(1) fit has no pairs (floored at the model)
 def test_block_check_needs_two_bins():
     """Every row in one score bin (bin as long as the log): no block check, the HAC sandwich unchanged."""
     y = SIG * np.random.default_rng(7).standard_normal(N)
