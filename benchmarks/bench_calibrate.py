@@ -5,6 +5,7 @@
     python benchmarks/bench_calibrate.py full DATASET      # ATE of batch vs ESKF (slow: ~10 min)
     python benchmarks/bench_calibrate.py profile DATASET [--workers N] [--baseline]
     python benchmarks/bench_calibrate.py long [--duration 600] [--imu-rate 1000] [--workers N] [--baseline]
+    python benchmarks/bench_calibrate.py tdoa [--duration 30]
 
 DATASET: an imported INRoL folder (``uwbimu import inrol ../shared/datasets/inrol_uwb_imu DIR``).
 
@@ -20,6 +21,10 @@ is in the workers, so only the wall time means something then).
 ``long`` (target: a 10-minute 1 kHz log in < 5 minutes): the built-in ``calibration-flight``
 simulated with ``--duration`` and an IMU at ``--imu-rate``; the same figures, the result against
 the simulation's truth (lever arm and t_d error in sigmas, ATE).  The simulation is not timed.
+``tdoa``: the built-in ``crazyflie-tdoa3`` (Loco TDoA3, 400 TDoA/s) simulated for ``--duration`` s,
+calibrated (profile off) with the TDoA rows grouped per block of keyframes (default) and, in the same run,
+with one factor per row (``group_range_factors: false``, the baseline): CPU of each, their ratio, and the
+difference of the results (final cost, lever arm, t_d).
 State the machine load (``uptime``) next to any figure.  Nothing is hard-coded: every number is
 measured in the run (docs/calibrate.md holds the tables).
 """
@@ -182,21 +187,45 @@ def long(duration: float, imu_rate: float, workers: int, baseline: bool) -> None
     _profile_bench(ds, EskfOptions(), workers, baseline)
 
 
+def tdoa(duration: float) -> None:
+    from uwbimu.calibration import CalibrationOptions, calibrate
+    from uwbimu.sim import builtin_scenario, simulate
+
+    ds = simulate(builtin_scenario("crazyflie-tdoa3").model_copy(update={"duration": float(duration)}))
+    base = {"td_profile": {"enabled": False}}
+    print(f"load before: {os.getloadavg()}; {len(ds.tdoa)} TDoA rows over {duration:g} s")
+    out = {}
+    for label, extra in (("grouped", {}), ("per-row (baseline)", {"group_range_factors": False})):
+        c0 = time.process_time()
+        r = calibrate(ds, CalibrationOptions.model_validate(base | extra))
+        out[label] = (time.process_time() - c0, r.calibration)
+        c = r.calibration
+        print(f"{label}: {out[label][0]:.1f} s CPU; lever arm [mm] {np.round(1000 * np.array(c['lever_arm']), 3)} "
+              f"+/- {np.round(1000 * np.array(c['lever_arm_sd']), 3)}; t_d {1000 * c['time_offset']['value']:.3f} ms; "
+              f"cost {c['solver']['final_cost']:.4f}")
+    (tg, cg), (tp, cp) = out["grouped"], out["per-row (baseline)"]
+    print(f"speed-up {tp / tg:.1f}x; |lever arm difference| {1000 * np.max(np.abs(np.subtract(cg['lever_arm'], cp['lever_arm']))):.4f} mm, "
+          f"|t_d difference| {1000 * abs(cg['time_offset']['value'] - cp['time_offset']['value']):.4f} ms; "
+          f"load after: {os.getloadavg()}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["cost", "shift", "full", "profile", "long"])
+    ap.add_argument("what", choices=["cost", "shift", "full", "profile", "long", "tdoa"])
     ap.add_argument("dataset", nargs="?")
     ap.add_argument("--window", type=float, default=40.0)
     ap.add_argument("--shifts", default="0,0.05,-0.05,0.1,-0.1")
     ap.add_argument("--workers", type=int, default=1, help="profile / long: processes for the t_d profile")
     ap.add_argument("--baseline", action="store_true", help="profile / long: also the reference solver, same run")
-    ap.add_argument("--duration", type=float, default=600.0, help="long: simulated log length [s]")
+    ap.add_argument("--duration", type=float, default=None, help="long / tdoa: simulated log length [s] (600 / 30)")
     ap.add_argument("--imu-rate", type=float, default=1000.0, help="long: IMU rate [Hz]")
     a = ap.parse_args(argv)
     if a.what == "cost":
         cost()
+    elif a.what == "tdoa":
+        tdoa(a.duration or 30.0)
     elif a.what == "long":
-        long(a.duration, a.imu_rate, a.workers, a.baseline)
+        long(a.duration or 600.0, a.imu_rate, a.workers, a.baseline)
     elif a.dataset is None:
         ap.error("shift, full and profile need DATASET")
     elif a.what == "profile":
