@@ -96,12 +96,10 @@ def full_log(ds, kind: str, opts, eo, save_dir=None) -> dict:
         r.to_csv(Path(save_dir) / "residuals.csv", index=False)
         res.trajectory.to_csv(Path(save_dir) / "trajectory.csv", index=False)
     # "before" the range model: the residual without the estimated constant bias, slowly varying bias and
-    # direction terms (each already inside "predicted"), as the report's before/after table
-    model = r["anchor"].astype(str).map({str(k): v for k, v in c["anchor_bias"].items()}).to_numpy(float)
-    for col in ("bias_drift", "bias_direction", "bias_anchor_direction"):
-        if col in r.columns:
-            model = model + r[col].to_numpy(float)
-    r = r.assign(residual_before=r["residual"].to_numpy(float) - model)
+    # direction terms (each already inside "predicted")
+    from uwbimu.calibration.outputs import residual_without
+
+    r = r.assign(residual_before=residual_without(r, {str(k): v for k, v in c["anchor_bias"].items()}))
 
     def _mad(x):
         return 100 * float(np.median(np.abs(x - np.median(x))))

@@ -305,3 +305,17 @@ def test_a_malformed_input_fails_its_part_only(batch_out, tmp_path):
     doc = _parse(render_report(o))
     assert doc.parts["anchor-ellipses"].get("failed") == "yes"
     assert all("failed" not in doc.parts[k] for k in PARTS if k != "anchor-ellipses")
+
+
+def test_residual_without_removes_the_named_model_terms():
+    """calibration.outputs.residual_without: residual - anchor bias - each present model column; an anchor without
+    a bias and a non-numeric cell give NaN (never silently 0)."""
+    from uwbimu.calibration.outputs import residual_without
+
+    res = pd.DataFrame({"anchor": ["A", "B", "C", "A"], "residual": [0.10, -0.20, 0.05, "x"],
+                        "bias_drift": [0.01, 0.02, 0.0, 0.0], "bias_direction": [0.03, 0.0, 0.0, 0.0]})
+    out = residual_without(res, {"A": 0.05, "B": -0.1})
+    np.testing.assert_allclose(out[:2], [0.10 - 0.05 - 0.01 - 0.03, -0.20 + 0.1 - 0.02])
+    assert np.isnan(out[2]) and np.isnan(out[3])
+    only_drift = residual_without(res, {"A": 0.05, "B": -0.1}, columns=("bias_drift",))
+    assert only_drift[0] == pytest.approx(0.10 - 0.05 - 0.01)

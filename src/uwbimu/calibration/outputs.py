@@ -13,6 +13,25 @@ OUTPUT_FILES = ("calibration.yaml", "trajectory.csv", "residuals.csv", "anchors_
                 "td_profile.png")
 
 
+#: residuals.csv columns that hold a part of the range model already inside ``predicted`` (and ``residual``)
+RANGE_MODEL_COLUMNS = ("bias_drift", "bias_direction", "bias_anchor_direction")
+
+
+def residual_without(res, anchor_bias: dict, columns=RANGE_MODEL_COLUMNS) -> np.ndarray:
+    """Residual [m] of each row of a batch ``residuals.csv`` without the estimated range model: ``residual`` minus
+    the anchor's constant bias (``anchor_bias``: calibration.yaml's, by anchor id; NaN for an anchor not in it)
+    minus the per-row terms of ``columns`` that the table has (non-numeric cells become NaN)."""
+    import pandas as pd
+
+    e = pd.to_numeric(res["residual"], errors="coerce").to_numpy(float)
+    b = np.array([float(anchor_bias.get(a, np.nan)) for a in res["anchor"].astype(str)])
+    out = e - b
+    for c in columns:
+        if c in res.columns:
+            out = out - pd.to_numeric(res[c], errors="coerce").to_numpy(float)
+    return out
+
+
 def write_calibration(result, out_dir, plots: bool = True) -> list[Path]:
     """Write the result's files into ``out_dir`` (an existing folder); returns the paths."""
     out = Path(out_dir)

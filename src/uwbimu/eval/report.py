@@ -1067,9 +1067,10 @@ def _batch_before_after_part(inp: ReportInputs) -> Markup:
     drift = pd.to_numeric(rr["bias_drift"], errors="coerce").to_numpy(float) if "bias_drift" in rr.columns else None
     down = _as_bool(rr["outlier"]) if "outlier" in rr.columns else None
     before = None
-    if bias is not None:
-        b = np.array([float(bias.get(a, np.nan)) for a in aid])
-        before = e - b - (drift if drift is not None else 0.0)
+    if bias is not None:  # the constant and the slowly varying bias (this part's "without")
+        from uwbimu.calibration.outputs import residual_without
+
+        before = residual_without(rr, {str(k): v for k, v in bias.items()}, columns=("bias_drift",))
     rows = []
     ids = _anchor_order(aid)
     for a in ids + ["all"]:
