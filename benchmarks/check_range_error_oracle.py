@@ -1,6 +1,6 @@
 """What a range-error model could reach on a real log: oracle corrections fitted to the ground truth.
 
-    python benchmarks/check_range_error_oracle.py DATASET [--models none,constant,...] [--json OUT.json]
+    python benchmarks/check_range_error_oracle.py DATASET [--models none,constant,...] [--epoch-s 0.1] [--json OUT.json]
 
 Why: the batch calibrator estimates a constant range bias per anchor (optionally a slowly varying
 one and a low-order direction-dependent term) from the log alone.  When the fused trajectory stays
@@ -103,7 +103,7 @@ def oracle_correction(model: str, res, ds) -> np.ndarray:
     return corr
 
 
-def run(ds, models: list[str], progress=print) -> list[dict]:
+def run(ds, models: list[str], progress=print, epoch_s: float = 0.1) -> list[dict]:
     from uwbimu.calibration import CalibrationOptions, calibrate
     from uwbimu.eval.baseline import multilaterate
     from uwbimu.io.check import range_residuals
@@ -134,7 +134,7 @@ def run(ds, models: list[str], progress=print) -> list[dict]:
         out = calibrate(dsc, CalibrationOptions.model_validate({"td_profile": {"enabled": False},
                                                                 "estimate_anchor_bias": False}))
         cal = out.calibration
-        row = {"model": m, "ate_batch": ate(out.trajectory), "ate_multilateration": ate(multilaterate(dsc, epoch_s=0.1)),
+        row = {"model": m, "ate_batch": ate(out.trajectory), "ate_multilateration": ate(multilaterate(dsc, epoch_s=epoch_s)),
                "residual_mad_cm": 100 * float(np.median(np.abs(left - np.median(left)))),
                "lever_arm_cm": [100 * x for x in cal["lever_arm"]], "lever_arm_sd_cm": [100 * x for x in cal["lever_arm_sd"]],
                "td_ms": 1000 * cal["time_offset"]["value"], "cpu_s": time.process_time() - t0}
@@ -148,6 +148,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("dataset")
     ap.add_argument("--models", default="none,constant,distance,direction,smooth:20,smooth:5,smooth:1")
+    ap.add_argument("--epoch-s", type=float, default=0.1,
+                    help="multilateration epoch [s] (0.1 for INRoL's 1-3 ranges per stamp, as benchmarks/real_data.py)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     from uwbimu.io.loader import load_dataset
@@ -156,7 +158,7 @@ def main(argv=None) -> int:
     print("| oracle range model | ATE batch (m) | ATE multilateration (m) | residual MAD left (cm) | lever arm (cm) | t_d (ms) | CPU (s) |")
     print("|---|---|---|---|---|---|---|")
     sys.stdout.flush()
-    rows = run(ds, [m.strip() for m in a.models.split(",")], progress=lambda s: print(s, flush=True))
+    rows = run(ds, [m.strip() for m in a.models.split(",")], progress=lambda s: print(s, flush=True), epoch_s=a.epoch_s)
     if a.json:
         with open(a.json, "w") as fh:
             json.dump({"dataset": a.dataset, "rows": rows}, fh, indent=1)
