@@ -81,6 +81,9 @@ def oracle_correction(model: str, res, ds) -> np.ndarray:
     """Per-row correction (m) of ``res``'s ranges under ``model``, fitted per anchor to the residuals."""
     import pandas as pd
 
+    if model not in ("none", "constant", "distance", "direction") and not (
+            model.startswith("smooth:") and model[7:].replace(".", "", 1).isdigit() and float(model[7:]) > 0):
+        raise ValueError(f"unknown oracle model {model!r}: none, constant, distance, direction or smooth:T (T > 0 s)")
     r = res["residual"].to_numpy(float)
     corr = np.zeros(len(res))
     if model == "none":

@@ -70,3 +70,9 @@ def test_refuses_a_ground_truth_in_another_frame(biased):
     ds.groundtruth["px"] = ds.groundtruth["px"] + 5.0
     with pytest.raises(SystemExit, match="anchors' frame"):
         run(ds, ["none"], progress=lambda s: None)
+
+
+@pytest.mark.parametrize("bad", ["foo", "smooth:", "smooth:-1", "smooth:x"])
+def test_unknown_model_is_refused(biased, bad):
+    with pytest.raises(ValueError, match="unknown oracle model"):
+        oracle_correction(bad, range_residuals(biased), biased)
