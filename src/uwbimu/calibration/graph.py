@@ -494,15 +494,7 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
         plain = np.array([not pb.is_tdoa(m) for m in assoc.used], bool)
         rows = np.flatnonzero(plain)
         if len(rows):
-            keys_of = np.asarray(assoc.key)[rows]
-            # one group per block of keyframes and tag (each tag's ranges depend on its own lever arm)
-            tg = pb.tag_i[assoc.used[rows]] if pb.tag_i is not None else np.zeros(len(rows), np.int64)
-            order = rows[np.lexsort((keys_of, tg, keys_of // o.range_group_keyframes))]
-            gk = np.asarray(assoc.key)[order] // o.range_group_keyframes
-            if pb.tag_i is not None:
-                gk = gk * pb.n_tags + pb.tag_i[assoc.used[order]]
-            bounds = np.flatnonzero(np.diff(gk)) + 1
-            for chunk in np.split(order, bounds):
+            for chunk in _group_chunks(pb, assoc, rows):
                 kfs, kf = np.unique(np.asarray(assoc.key)[chunk], return_inverse=True)
                 ms = assoc.used[chunk]
                 tag = pb.tag_of(int(ms[0]))
@@ -573,13 +565,7 @@ def _group_tdoa(pb: Problem, assoc: Association, g, slots: np.ndarray, grouped: 
     rows = np.flatnonzero(ok)
     if not len(rows):
         return
-    keys_of = np.asarray(assoc.key)[rows]
-    tg = pb.tag_i[used[rows]] if pb.tag_i is not None else np.zeros(len(rows), np.int64)
-    order = rows[np.lexsort((keys_of, tg, keys_of // o.range_group_keyframes))]
-    gk = np.asarray(assoc.key)[order] // o.range_group_keyframes
-    if pb.tag_i is not None:
-        gk = gk * pb.n_tags + pb.tag_i[used[order]]
-    for chunk in np.split(order, np.flatnonzero(np.diff(gk)) + 1):
+    for chunk in _group_chunks(pb, assoc, rows):
         kfs, kf = np.unique(np.asarray(assoc.key)[chunk], return_inverse=True)
         ms = used[chunk]
         ja, jb = pb.anchor_j[ms].astype(np.int64), pb.anchor_b[ms].astype(np.int64)
@@ -592,6 +578,20 @@ def _group_tdoa(pb: Problem, assoc: Association, g, slots: np.ndarray, grouped: 
         _add_group(g, assoc, slots, chunk, grp, kfs, pb.tag_of(int(ms[0])), [A(int(j)) for j in uj], pb.tdoa_sigma,
                    o.huber_k, td_fixed)
         grouped[chunk] = True
+
+
+def _group_chunks(pb: Problem, assoc: Association, rows: np.ndarray) -> list[np.ndarray]:
+    """The rows (indices into ``assoc.used``) of one grouped factor each: one group per block of
+    ``range_group_keyframes`` keyframes and tag (each tag's rows depend on its own lever arm), rows in keyframe
+    order within a group."""
+    n = pb.options.range_group_keyframes
+    keys_of = np.asarray(assoc.key)[rows]
+    tg = pb.tag_i[assoc.used[rows]] if pb.tag_i is not None else np.zeros(len(rows), np.int64)
+    order = rows[np.lexsort((keys_of, tg, keys_of // n))]
+    gk = np.asarray(assoc.key)[order] // n
+    if pb.tag_i is not None:
+        gk = gk * pb.n_tags + pb.tag_i[assoc.used[order]]
+    return np.split(order, np.flatnonzero(np.diff(gk)) + 1)
 
 
 def _add_group(g, assoc: Association, slots: np.ndarray, chunk: np.ndarray, grp, kfs, tag: int, extra_keys: list,
