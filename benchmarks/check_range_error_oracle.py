@@ -43,38 +43,29 @@ import numpy as np
 
 
 def _features(model: str, res, ds) -> np.ndarray:
-    """Design matrix of one oracle model for the rows of ``res`` (``range_residuals`` output)."""
+    """Design matrix of one oracle model for the rows of ``res`` (``range_residuals`` output); the direction
+    terms are the calibrator's own (:func:`uwbimu.calibration.range_factor.direction_features`)."""
+    from uwbimu.calibration.range_factor import direction_features
     from uwbimu.io.check import interpolate_pose
-    from uwbimu.models.quaternion import quat_rotate
+    from uwbimu.models.quaternion import quat_conjugate, quat_rotate
 
     n = len(res)
-    cols = [np.ones(n)]
+    cols = [np.ones((n, 1))]
     A = np.array([ds.anchor_positions()[a] for a in res["anchor"]]).reshape(-1, 3)
     ant = res[["ux", "uy", "uz"]].to_numpy(float)
     d = np.linalg.norm(A - ant, axis=1)
     if model == "distance":
-        cols.append(d)
+        cols.append(d[:, None])
     elif model == "direction":
         _, q, _ = interpolate_pose(ds.groundtruth, res["t"].to_numpy(float))
-        q_inv = q * np.array([1.0, -1.0, -1.0, -1.0])
-        los_body = quat_rotate(q_inv, (A - ant) / d[:, None])  # tag -> anchor, IMU body frame
-        cols += _angles(los_body, harmonics=2, elevation=2)
+        los_body = quat_rotate(quat_conjugate(q), A - ant)  # tag -> anchor, IMU body frame
+        cols.append(direction_features(los_body, (1, 2), 2)[0])
         anc = ds.anchors.set_index("anchor")
         if {"qw", "qx", "qy", "qz"} <= set(anc.columns) and anc[["qw", "qx", "qy", "qz"]].notna().all().all():
             qa = np.array([anc.loc[a, ["qw", "qx", "qy", "qz"]].to_numpy(float) for a in res["anchor"]])
-            los_anchor = quat_rotate(qa * np.array([1.0, -1.0, -1.0, -1.0]), (ant - A) / d[:, None])
-            cols += _angles(los_anchor, harmonics=1, elevation=1)
-    return np.column_stack(cols)
-
-
-def _angles(u: np.ndarray, harmonics: int, elevation: int) -> list:
-    az = np.arctan2(u[:, 1], u[:, 0])
-    el = np.arcsin(np.clip(u[:, 2], -1.0, 1.0))
-    out = []
-    for k in range(1, harmonics + 1):
-        out += [np.cos(k * az), np.sin(k * az)]
-    out += [el ** j for j in range(1, elevation + 1)]
-    return out
+            los_anchor = quat_rotate(quat_conjugate(qa), ant - A)  # anchor -> tag, anchor antenna frame
+            cols.append(direction_features(los_anchor, (1,), 1)[0])
+    return np.hstack(cols)
 
 
 def oracle_correction(model: str, res, ds) -> np.ndarray:
@@ -110,7 +101,7 @@ def run(ds, models: list[str], progress=print, epoch_s: float = 0.1) -> list[dic
     from uwbimu.calibration import CalibrationOptions, calibrate
     from uwbimu.eval.baseline import multilaterate
     from uwbimu.io.check import range_residuals
-    from uwbimu.metrics.trajectory import evaluate_trajectory
+    from check_calibrate_real import _ate
 
     res = range_residuals(ds)
     # each compared range's row in uwb.csv (those outside the ground truth keep a zero correction: counted)
@@ -121,9 +112,8 @@ def run(ds, models: list[str], progress=print, epoch_s: float = 0.1) -> list[dic
         raise SystemExit("the ground-truth range residuals have a median above 0.5 m: is the ground truth in the "
                          "anchors' frame? (this oracle needs it there)")
 
-    def ate(traj):
-        ev = evaluate_trajectory(traj, ds.groundtruth, align="none", compare_attitude=False)
-        return float(ev.summary["ate_position"]["rmse"])
+    def ate(traj):  # the ground truth is in the anchors' frame (checked above): no alignment
+        return _ate(traj, ds, "none")
 
     rows = []
     for m in models:
