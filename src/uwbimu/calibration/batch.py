@@ -12,6 +12,7 @@ from math import erfc
 import numpy as np
 import pandas as pd
 
+from uwbimu.calibration import anchor_loo as AL
 from uwbimu.calibration import anchors as AN
 from uwbimu.calibration import graph as G
 from uwbimu.calibration import noise_scale as NS
@@ -320,6 +321,18 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset, chi2_
         per = {f: bc.pop(f) for f in ("variance_ratio", "dof", "p_value", "significant", "widened")}
         bc["parameters"] = {n: {f: (round(v[i], 6) if isinstance(v[i], float) else v[i]) for f, v in per.items()}
                             for i, n in enumerate(names)}
+    systematic = None
+    if est:
+        # the self-survey's systematic error, measured on the surveyed anchors (anchor_loo.py)
+        disp = AL.surveyed_anchor_displacements(pb, graph, values, assoc, td)
+        s2, raw = AL.systematic_variance(disp)
+        applied = pb.options.anchor_systematic == "surveyed" and s2 is not None
+        if applied:
+            first = 3 + (1 if td_free else 0) + len(pb.anchor_ids)  # the estimated positions follow the biases
+            ia = np.arange(first, first + 3 * len(est))
+            cov = cov.copy()
+            cov[ia, ia] += s2
+        systematic = AL.report(disp, s2, raw, applied)
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     sd_model = np.sqrt(np.diag(cov_model))
     corr = cov / np.outer(sd, sd)
@@ -400,6 +413,8 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset, chi2_
     off_p = offs + len(pb.anchor_ids)
     sd_p = {j: sd[off_p + 3 * i: off_p + 3 * i + 3] for i, j in enumerate(est)}
     cal["anchors"], anchors = _anchor_report(pb, values, sd_p, dataset)
+    if systematic is not None:
+        cal["anchors"]["systematic"] = systematic
     traj = _trajectory(pb, values, marg, td)
     return cal, traj, res, anchors
 

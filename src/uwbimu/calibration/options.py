@@ -209,6 +209,11 @@ class CalibrationOptions(BaseModel):
     estimate_anchors: list[str] = Field(
         default_factory=list, description="anchor ids whose positions are estimated (self-survey; anchors marked "
                                           "surveyed: false in anchors.csv are always estimated)")
+    anchor_systematic: Literal["surveyed", "none"] = Field(
+        "surveyed", description="sigma of the estimated anchors: 'surveyed' adds the range model's systematic error "
+                                "measured on the surveyed anchors (linearised leave-one-out: where the log would put "
+                                "each surveyed anchor had it been estimated, beyond the white model; "
+                                "calibration.yaml anchors.systematic); 'none': the white model's (and sandwich's) only")
     anchor_prior_sd: float = Field(0.5, gt=0, description="[m] per axis: weak prior of an estimated anchor around "
                                                           "its anchors.csv position (none when surveyed: false)")
     anchor_range_sigma: float = Field(0.05, gt=0, description="[m] sd of an anchor_ranges.csv range without sd")
