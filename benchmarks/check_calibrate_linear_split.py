@@ -29,27 +29,22 @@ PLAIN = {"td_profile": {"enabled": False}, "imu_noise_scale": "fixed", "huber_k"
          "block_check": {"blocks": 0}, "estimate_anchor_bias": False, "second_start": False}
 
 
-def one(args) -> dict:
-    name, seed, config = args
+def truth_step(sim, sc, eskf, options) -> dict:
+    """The graph of ``options`` built with every variable at the truth of the simulated flight ``sim`` (scenario
+    ``sc``; ``eskf``: any ESKF result of it, for the problem's layout) and its Gauss-Newton step, for lever arm and
+    t_d: ``gn`` (the whole step), ``gn_range`` (the part of the range rows: a fixed linear map of the simulated
+    range noise), ``pred_range`` (that part's exact sd under the white model), ``sd_model`` and the IMU factors'
+    chi2 per row at the truth."""
     import scipy.sparse.linalg as spl
 
     import uwbimu.calibration.anchors as AN
     import uwbimu.calibration.graph as G
-    from uwbimu.calibration import CalibrationOptions, calibrate
     from uwbimu.calibration.covariance import linear_system
-    from uwbimu.sim import builtin_scenario, simulate_full
-    from uwbimu.studies.crlb import posterior_bound
 
-    sc = builtin_scenario(name)
-    sc = sc.model_copy(update={"seeds": sc.seeds.model_copy(update={"noise": 1000 + seed})})
-    sim = simulate_full(sc)
     ds = sim.dataset
-    o = CalibrationOptions.model_validate(PLAIN | dict(config))
-    res = calibrate(ds, o)
     truth = ds.meta.truth
     td, lev = float(truth.time_offset), np.asarray(truth.lever_arm, float)
-    e_batch = np.append(np.subtract(res.calibration["lever_arm"], lev), res.calibration["time_offset"]["value"] - td)
-    pb = G.build_problem(ds, res.eskf, o, AN.plan_anchors(ds, o))
+    pb = G.build_problem(ds, eskf, options, AN.plan_anchors(ds, options))
     k = pb.key_idx
     t_uwb = pb.t_imu[k] - td
     p, q = sim.trajectory.pose(t_uwb)
@@ -59,8 +54,7 @@ def one(args) -> dict:
     pb.init_states, pb.td0, pb.lever0, pb.levers0, pb._imu_cum = st, td, lev, lev[None].copy(), None
     assoc = G.associate(pb, td)
     graph = G.build_graph(pb, assoc, imu_factors=G._imu_factors(pb))
-    vals = G.initial_values(pb)
-    J, b, row0, cols = linear_system(graph, vals)
+    J, b, row0, cols = linear_system(graph, G.initial_values(pb))
     X, V, B, L, T, A = G._keys()
     lu = spl.splu((J.T @ J).tocsc())
     idx = np.concatenate([cols[int(L(0))], cols[int(T(0))]])
@@ -74,12 +68,29 @@ def one(args) -> dict:
     E[idx, np.arange(len(idx))] = 1.0
     Xs = lu.solve(E)  # H^-1 restricted to the calibration columns
     AR = np.asarray(J[rr] @ Xs)
+    return {"gn": step.tolist(), "gn_range": step_r.tolist(), "gn_imu": (step - step_r).tolist(),
+            "pred_range": np.sqrt(np.diag(AR.T @ AR)).tolist(), "sd_model": np.sqrt(np.diag(Xs[idx])).tolist(),
+            "imu_chi2_per_row": float(np.sum(b[~is_r] ** 2) / max(1, int((~is_r).sum())))}
+
+
+def one(args) -> dict:
+    name, seed, config = args
+    from uwbimu.calibration import CalibrationOptions, calibrate
+    from uwbimu.sim import builtin_scenario, simulate_full
+    from uwbimu.studies.crlb import posterior_bound
+
+    sc = builtin_scenario(name)
+    sc = sc.model_copy(update={"seeds": sc.seeds.model_copy(update={"noise": 1000 + seed})})
+    sim = simulate_full(sc)
+    ds = sim.dataset
+    o = CalibrationOptions.model_validate(PLAIN | dict(config))
+    res = calibrate(ds, o)
+    truth = ds.meta.truth
+    e_batch = np.append(np.subtract(res.calibration["lever_arm"], truth.lever_arm),
+                        res.calibration["time_offset"]["value"] - truth.time_offset)
     bound = posterior_bound(sim, sc)
     return {"seed": seed, "crlb": np.append(bound["lever_arm_sd"], bound["time_offset_sd"]).tolist(),
-            "batch": e_batch.tolist(), "gn": step.tolist(), "gn_range": step_r.tolist(),
-            "gn_imu": (step - step_r).tolist(), "pred_range": np.sqrt(np.diag(AR.T @ AR)).tolist(),
-            "sd_model": np.sqrt(np.diag(Xs[idx])).tolist(),
-            "imu_chi2_per_row": float(np.sum(b[~is_r] ** 2) / max(1, int((~is_r).sum())))}
+            "batch": e_batch.tolist()} | truth_step(sim, sc, res.eskf, o)
 
 
 def main() -> None:
