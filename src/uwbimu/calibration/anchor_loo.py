@@ -53,7 +53,8 @@ class AnchorDisplacement:
 
 def lines_of_sight(pb, assoc, values, td: float, rows: np.ndarray) -> np.ndarray:
     """(n, 3) unit vectors from the anchor to the tag antenna [world] of the used range rows ``rows`` (indices into
-    ``assoc.used``), at the solution ``values`` and time offset ``td`` (the range factors' own kinematics)."""
+    ``assoc.used``), at the solution ``values`` and time offset ``td`` (the range factors' own kinematics, in the
+    graph's blocks of keyframes)."""
     X, V, B, L, T, A = G._keys()
     K = len(pb.key_idx)
     poses = [values.atPose3(X(k)) for k in range(K)]
@@ -61,15 +62,16 @@ def lines_of_sight(pb, assoc, values, td: float, rows: np.ndarray) -> np.ndarray
     p_k = np.array([q.translation() for q in poses])
     v_k = np.array([values.atVector(V(k)) for k in range(K)])
     rows = np.asarray(rows, np.int64)
+    pos = np.full(len(assoc.used), -1, np.int64)
+    pos[rows] = np.arange(len(rows))
     out = np.zeros((len(rows), 3))
-    used = assoc.used[rows]
-    tag = pb.tag_i[used] if pb.tag_i is not None else np.zeros(len(rows), np.int64)
-    for i in np.unique(tag):
-        sel = np.flatnonzero(tag == i)
-        grp = RangeGroup([assoc.deltas[r] for r in rows[sel]], pb.anchor_pos[pb.anchor_j[used[sel]]],
-                         pb.rho[used[sel]], np.zeros(len(sel), np.int64), assoc.td0, kf=np.asarray(assoc.key)[rows[sel]])
-        u = grp._geometry(R_k, p_k, v_k, values.atVector(G.lever_key(int(i))), td)["u"]
-        out[sel] = u / np.linalg.norm(u, axis=1)[:, None]
+    for chunk in G._group_chunks(pb, assoc, rows):
+        used = assoc.used[chunk]
+        kfs, kf = np.unique(np.asarray(assoc.key)[chunk], return_inverse=True)
+        grp = RangeGroup([assoc.deltas[r] for r in chunk], pb.anchor_pos[pb.anchor_j[used]], pb.rho[used],
+                         np.zeros(len(chunk), np.int64), assoc.td0, kf=kf)
+        u = grp._geometry(R_k[kfs], p_k[kfs], v_k[kfs], values.atVector(G.lever_key(pb.tag_of(int(used[0])))), td)["u"]
+        out[pos[chunk]] = u / np.linalg.norm(u, axis=1)[:, None]
     return out
 
 
