@@ -58,7 +58,7 @@ def off(log):
 
 def test_white_log_displacements_are_the_white_models(white):
     sy = white.calibration["anchors"]["systematic"]
-    assert sy["applied"] and sy["surveyed_anchors_used"] == len(SURVEYED)
+    assert sy["applied"] and sy["surveyed_anchors_used"] == len(SURVEYED) and sy["surveyed_anchors_skipped"] == {}
     d = sy["displacements"]
     assert set(d) == set(SURVEYED)
     # sum of the squared Mahalanobis distances ~ chi2(3 n) under the white model
@@ -115,3 +115,13 @@ def test_systematic_variance_pools_the_excess_over_the_white_model():
 def test_option_is_validated():
     with pytest.raises(ValidationError):
         CalibrationOptions.model_validate({"anchor_systematic": "bogus"})
+
+
+def test_a_surveyed_anchor_with_few_ranges_is_reported_skipped(log):
+    ds, _truth = log
+    u = ds.uwb
+    keep = (u["anchor"] != "A0").to_numpy() | (np.cumsum((u["anchor"] == "A0").to_numpy()) <= 5)
+    res = _run(dataclasses.replace(ds, uwb=u[keep].reset_index(drop=True)))
+    sy = res.calibration["anchors"]["systematic"]
+    assert set(sy["surveyed_anchors_skipped"]) == {"A0"}
+    assert sy["surveyed_anchors_used"] == len(SURVEYED) - 1 and "A0" not in sy["displacements"]

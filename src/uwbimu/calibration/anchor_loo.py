@@ -75,13 +75,15 @@ def lines_of_sight(pb, assoc, values, td: float, rows: np.ndarray) -> np.ndarray
     return out
 
 
-def surveyed_anchor_displacements(pb, graph, values, assoc, td: float) -> list[AnchorDisplacement]:
+def surveyed_anchor_displacements(pb, graph, values, assoc, td: float) -> tuple[list[AnchorDisplacement], dict]:
     """Linearised leave-one-out displacement of every surveyed (fixed) anchor with ranges (module docstring).
 
     Each range row of anchor ``j`` gains the column block ``s_i (-u_i^T)``, ``s_i`` the row's whitening and IRLS
     weight as linearised (read off its anchor-bias column, ``d e / d bias = 1``); with ``J``, ``b`` the solved
     system, ``S = A^T A - A^T J H^-1 J^T A`` and ``d = S^-1 (A^T b - A^T J H^-1 J^T b)``, ``C = S^-1``.
-    TDoA rows are not used (their anchor enters twice); an anchor with fewer than 10 range rows is skipped.
+    TDoA rows are not used (their anchor enters twice); an anchor with fewer than 10 range rows, or whose ranges do
+    not define its position (a singular ``S``), is skipped; returns the displacements and ``{anchor: reason}`` of
+    the surveyed anchors skipped.
     """
     X, V, B, L, T, A = G._keys()
     J, b, row0, cols = linear_system(graph, values)
@@ -90,27 +92,37 @@ def surveyed_anchor_displacements(pb, graph, values, assoc, td: float) -> list[A
     is_range = np.ones(len(assoc.used), bool) if pb.anchor_b is None else pb.anchor_b[assoc.used] < 0
     aj = pb.anchor_j[assoc.used]
     lu = None
-    out = []
+    out, skipped = [], {}
     Jc = J.tocsc()
     for j, aid in enumerate(pb.anchor_ids):
         if pb.estimated(j):
             continue
         m = np.flatnonzero(is_range & (aj == j))
         if len(m) < 10:
+            skipped[str(aid)] = f"{len(m)} range rows (TDoA rows are not used)"
             continue
         if lu is None:
             lu = _SymmetricFactor((J.T @ J).tocsc())
             hb = lu.solve(np.asarray(J.T @ b).ravel())
         s = np.asarray(Jc[row_index[m]][:, cols[int(A(j))]].todense()).ravel()
+        if not np.any(s):  # no bias column to read the rows' weights from: nothing to free
+            skipped[str(aid)] = "its range rows carry no weight"
+            continue
         u = lines_of_sight(pb, assoc, values, td, m)
         vals = (-u * s[:, None]).ravel()
         Aj = sp.csr_matrix((vals, (np.repeat(row_index[m], 3), np.tile(np.arange(3), len(m)))), shape=(J.shape[0], 3))
         JA = np.asarray((J.T @ Aj).todense())
         S = np.asarray((Aj.T @ Aj).todense()) - JA.T @ lu.solve(JA)
         g = np.asarray(Aj.T @ b).ravel() - JA.T @ hb
-        C = np.linalg.inv(0.5 * (S + S.T))
+        try:
+            C = np.linalg.inv(0.5 * (S + S.T))
+        except np.linalg.LinAlgError:  # seen from one direction only: its position is not defined by its ranges
+            C = np.full((3, 3), np.nan)
+        if not np.all(np.isfinite(C)):
+            skipped[str(aid)] = "its ranges do not define its position"
+            continue
         out.append(AnchorDisplacement(anchor=str(aid), displacement=C @ g, cov_white=0.5 * (C + C.T), rows=len(m)))
-    return out
+    return out, skipped
 
 
 def systematic_variance(disp: list[AnchorDisplacement]) -> tuple[float | None, float]:
@@ -122,7 +134,7 @@ def systematic_variance(disp: list[AnchorDisplacement]) -> tuple[float | None, f
     return max(0.0, raw), raw
 
 
-def report(disp: list[AnchorDisplacement], s2: float | None, raw: float, applied: bool) -> dict:
+def report(disp: list[AnchorDisplacement], s2: float | None, raw: float, applied: bool, skipped: dict) -> dict:
     """``calibration.yaml`` ``anchors.systematic``."""
     return {
         "method": "linearised leave-one-out of the surveyed anchors",
@@ -130,6 +142,7 @@ def report(disp: list[AnchorDisplacement], s2: float | None, raw: float, applied
         "sd": None if s2 is None else float(np.sqrt(s2)),
         "variance_raw": raw if np.isfinite(raw) else None,
         "surveyed_anchors_used": len(disp),
+        "surveyed_anchors_skipped": dict(skipped),
         "displacements": {d.anchor: {"displacement": [float(x) for x in d.displacement],
                                      "sd_white": [float(x) for x in np.sqrt(np.diag(d.cov_white))],
                                      "mahalanobis": d.mahalanobis, "rows": d.rows} for d in disp},

@@ -324,7 +324,7 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset, chi2_
     systematic = None
     if est:
         # the self-survey's systematic error, measured on the surveyed anchors (anchor_loo.py)
-        disp = AL.surveyed_anchor_displacements(pb, graph, values, assoc, td)
+        disp, skipped = AL.surveyed_anchor_displacements(pb, graph, values, assoc, td)
         s2, raw = AL.systematic_variance(disp)
         applied = pb.options.anchor_systematic == "surveyed" and s2 is not None
         if applied:
@@ -332,7 +332,7 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset, chi2_
             ia = np.arange(first, first + 3 * len(est))
             cov = cov.copy()
             cov[ia, ia] += s2
-        systematic = AL.report(disp, s2, raw, applied)
+        systematic = AL.report(disp, s2, raw, applied, skipped)
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     sd_model = np.sqrt(np.diag(cov_model))
     corr = cov / np.outer(sd, sd)
