@@ -107,6 +107,10 @@ def test_section_has_its_four_parts(batch_out):
     assert doc.parts["residual-angle"]["x-axis"] == "azimuth"
     assert doc.parts["residual-angle"]["anchors-from"] == "anchors_estimated.csv"
     assert doc.parts["anchor-ellipses"]["estimated"] == "1"
+    # the systematic part of the estimated anchor's sigma, from calibration.yaml anchors.systematic
+    sysm = cal["anchors"]["systematic"]
+    assert doc.parts["anchor-ellipses"]["surveyed-used"] == str(sysm["surveyed_anchors_used"]) == "7"
+    assert doc.parts["anchor-ellipses"]["systematic-sd-cm"] == f"{100 * sysm['sd']:.1f}"
     assert doc.parts["before-after"]["before"] == "present"
     assert doc.parts["before-after"]["drift"] == "absent"  # the writer adds bias_drift only with range_bias_drift
     for name in ("fig-batch-td-profile", "fig-batch-residual-angle", "fig-batch-anchor-ellipses"):

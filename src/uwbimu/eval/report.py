@@ -1036,12 +1036,28 @@ def _batch_ellipse_part(inp: ReportInputs) -> Markup:
                      "2σ major [cm]", "2σ minor [cm]", "major axis [deg from x]"], rows, left=2)]
     if not est.any():
         parts.insert(0, Markup('<p class="note">No anchor was estimated: every anchor is fixed.</p>'))
+    sys_attrs = {}
+    sysm = ((cal.get("anchors") or {}).get("systematic") or {}) if isinstance(cal.get("anchors"), dict) else {}
+    if sysm:
+        disp = sysm.get("displacements") or {}
+        big = max(disp.items(), key=lambda kv: np.linalg.norm(kv[1].get("displacement", [0.0])), default=None)
+        sd_sys = sysm.get("sd")
+        sys_attrs = {"systematic_sd_cm": _fmt(100 * float(sd_sys), 1) if sd_sys is not None else "–",
+                     "surveyed_used": int(sysm.get("surveyed_anchors_used", 0))}
+        text = Markup('<p class="note">The σ of the estimated anchors {} a systematic part of {} cm per axis, '
+                      "measured on {} surveyed anchors: had each been estimated, the log would have moved it{} "
+                      '(linearised leave-one-out; docs/calibrate.md "The self-survey\'s systematic sigma").</p>').format(
+            "include" if sysm.get("applied") else "do not include (anchor_systematic: none)",
+            sys_attrs["systematic_sd_cm"], sys_attrs["surveyed_used"],
+            Markup(" by up to {} cm (anchor {})").format(_fmt(100 * float(np.linalg.norm(big[1]["displacement"])), 1),
+                                                        big[0]) if big else "")
+        parts.insert(0, text)
     parts.append(_fig("batch-anchor-ellipses", fig,
                       f"Top view of the anchors (anchors_estimated.csv, calibration frame): fixed anchors as triangles, "
                       f"estimated ones with their horizontal 2σ marginal ellipse (x-y correlation from calibration.yaml "
                       f"correlations), drawn ×{mag:g}."))
     return _part("anchor-ellipses", "Anchor error ellipses", _join(parts), estimated=str(int(est.sum())),
-                 magnification=f"{mag:g}")
+                 magnification=f"{mag:g}", **sys_attrs)
 
 
 def _med_mad(x: np.ndarray) -> tuple[float, float]:
