@@ -328,8 +328,7 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset, chi2_
         s2, raw = AL.systematic_variance(disp)
         applied = pb.options.anchor_systematic == "surveyed" and s2 is not None
         if applied:
-            first = 3 + (1 if td_free else 0) + len(pb.anchor_ids)  # the estimated positions follow the biases
-            ia = np.arange(first, first + 3 * len(est))
+            ia = [names.index(f"anchor_{c}_{pb.anchor_ids[j]}") for j in est for c in "xyz"]
             cov = cov.copy()
             cov[ia, ia] += s2
         systematic = AL.report(disp, s2, raw, applied, skipped)
