@@ -18,8 +18,8 @@ axis)::
 
 and the calibrator adds ``s^2 I`` to every estimated anchor's covariance (``calibration.yaml``
 ``anchors.systematic``).  Assumption (stated in the report): the estimated anchors' range errors are like the
-surveyed ones'.  On INRoL (all 8 anchors surveyed) the displacements were 8-78 cm and matched the errors of the
-same anchors when actually self-surveyed (docs/calibrate.md).
+surveyed ones'.  On INRoL (all 8 anchors surveyed) the displacements were 8-54 cm, of the order of the errors of
+the same anchors when actually self-surveyed (docs/calibrate.md).
 """
 
 from __future__ import annotations
@@ -91,6 +91,11 @@ def surveyed_anchor_displacements(pb, graph, values, assoc, td: float) -> tuple[
     row_index = row0[slots[:, 0]] + slots[:, 1]
     is_range = np.ones(len(assoc.used), bool) if pb.anchor_b is None else pb.anchor_b[assoc.used] < 0
     aj = pb.anchor_j[assoc.used]
+    fixed = np.array([not pb.estimated(j) for j in range(len(pb.anchor_ids))], bool)
+    cand = np.flatnonzero(is_range & fixed[aj])  # every range row of a surveyed anchor: lines of sight at once
+    U = lines_of_sight(pb, assoc, values, td, cand) if len(cand) else np.zeros((0, 3))
+    at = np.full(len(assoc.used), -1, np.int64)
+    at[cand] = np.arange(len(cand))
     lu = None
     out, skipped = [], {}
     Jc = J.tocsc()
@@ -108,7 +113,7 @@ def surveyed_anchor_displacements(pb, graph, values, assoc, td: float) -> tuple[
         if not np.any(s):  # no bias column to read the rows' weights from: nothing to free
             skipped[str(aid)] = "its range rows carry no weight"
             continue
-        u = lines_of_sight(pb, assoc, values, td, m)
+        u = U[at[m]]
         vals = (-u * s[:, None]).ravel()
         Aj = sp.csr_matrix((vals, (np.repeat(row_index[m], 3), np.tile(np.arange(3), len(m)))), shape=(J.shape[0], 3))
         JA = np.asarray((J.T @ Aj).todense())

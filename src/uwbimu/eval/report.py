@@ -1047,7 +1047,8 @@ def _batch_ellipse_part(inp: ReportInputs) -> Markup:
         text = Markup('<p class="note">The σ of the estimated anchors {} a systematic part of {} cm per axis, '
                       "measured on {} surveyed anchors: had each been estimated, the log would have moved it{} "
                       '(linearised leave-one-out; docs/calibrate.md "The self-survey\'s systematic sigma").</p>').format(
-            "include" if sysm.get("applied") else "do not include (anchor_systematic: none)",
+            "include" if sysm.get("applied") else ("do not include (anchor_systematic: none)" if sd_sys is not None
+                                                   else "do not include (no surveyed anchor with ranges to measure)"),
             sys_attrs["systematic_sd_cm"], sys_attrs["surveyed_used"],
             Markup(" by up to {} cm (anchor {})").format(_fmt(100 * float(np.linalg.norm(big[1]["displacement"])), 1),
                                                         big[0]) if big else "")
