@@ -10,6 +10,11 @@ RMS(error / sigma).
     PYTHONPATH=src python benchmarks/check_calibrate_mc.py [--seeds 20] [--first-seed 0] [--workers 2]
         [--scenarios calibration-flight,excited-90s,lissajous] [--duration 60] [--config C.yaml] [--json OUT]
 
+``crlb_bias`` (TWR, when the calibrator estimates every anchor's bias): the second baseline, the bound with an
+unknown constant bias per anchor (prior ``anchor_bias_prior_sd``; ``posterior_bound(..., anchor_bias_sd=)``), the
+bound of the calibrator's own parameterisation; the control-variate table quotes the ratio to it as well.
+``--max-seeds N`` with ``--from-json``: the tables of the first N seeds of each scenario only.
+
 ``--config``: calibrator options (``CalibrationOptions`` YAML) on top of the profile-off default, e.g.
 ``huber_k: 100`` to measure what the robust loss costs on Gaussian ranges (same seeds, paired).
 ``--from-json OUT [OUT2 ...]``: the tables again from saved runs, pooled (no calibration).
@@ -65,7 +70,12 @@ def one(args) -> dict:
     b = posterior_bound(sim, sc)
     crlb = np.append(b["lever_arm_sd"], b["time_offset_sd"])
     row = {"scenario": name, "seed": seed, "err": err.tolist(), "sd": sd.tolist(), "sd_model": sd_model.tolist(),
-           "crlb": crlb.tolist(), "cpu_s": cpu}
+           "crlb": crlb.tolist(), "cpu_s": cpu, "huber_k": cal["ranges"]["huber_k"]}
+    o = CalibrationOptions.model_validate(dict(config))
+    if o.estimate_anchor_bias is True and sc.uwb.mode == "twr":
+        # the second baseline: the bound of the calibrator's own parameterisation (an unknown bias per anchor)
+        bb = posterior_bound(sim, sc, anchor_bias_sd=o.anchor_bias_prior_sd)
+        row["crlb_bias"] = np.append(bb["lever_arm_sd"], bb["time_offset_sd"]).tolist()
     if control_variate:
         # the range noise's part of the error to first order: a fixed linear map of the draws, exact sd known
         import sys
@@ -93,12 +103,19 @@ def main() -> None:
                     help="also RMS error / CRLB with the range noise's sampling removed (control variate, see above)")
     ap.add_argument("--from-json", default=None, nargs="+",
                     help="print the tables of saved --json runs (several: pooled, e.g. two seed ranges)")
+    ap.add_argument("--max-seeds", type=int, default=0,
+                    help="with --from-json: only the first N seeds of each scenario (e.g. 20: the issue's count)")
     a = ap.parse_args()
     if a.from_json:
         rows = []
         for path in a.from_json:
             with open(path) as fh:
                 rows += json.load(fh)["rows"]
+        if a.max_seeds:
+            first = {}
+            for r in sorted(rows, key=lambda r: r["seed"]):
+                first.setdefault(r["scenario"], []).append(r)
+            rows = [r for R in first.values() for r in R[:a.max_seeds]]
         tables(rows)
         return
     config = {}
@@ -160,17 +177,24 @@ def tables(rows: list) -> None:
     print(f"cells outside their band: {outside} of {len(NAMES) * (len(groups) - 1)} (about 5 % expected by chance)")
     if all("cv" in r for r in rows):
         print()
+        with_bias = all("crlb_bias" in r for r in rows)
         print("| cells | quantity | seeds | RMS(error / CRLB) | with the control variate | its bootstrap sd | "
-              "range part / its exact sd |")
-        print("|---|---|---|---|---|---|---|")
+              "range part / its exact sd |" + (" with the control variate, against the CRLB with anchor biases |"
+                                               if with_bias else ""))
+        print("|---|---|---|---|---|---|---|" + ("---|" if with_bias else ""))
         for name, R in groups:
-            E, C = np.array([r["err"] for r in R]) / np.array([r["crlb"] for r in R]), np.array([r["crlb"] for r in R])
+            C = np.array([r["crlb"] for r in R])
+            E = np.array([r["err"] for r in R]) / C
             G_, P_ = np.array([r["cv"] for r in R]) / C, np.array([r["cv_sd"] for r in R]) / C
             est, sd = control_variate_rms(E, G_, P_)
             part = np.sqrt(np.mean(G_**2, axis=0) / np.mean(P_**2, axis=0))
+            est_b = None
+            if with_bias:
+                f = C / np.array([r["crlb_bias"] for r in R])
+                est_b = control_variate_rms(E * f, G_ * f, P_ * f)[0]
             for j, q in enumerate(NAMES):
                 print(f"| {name} | {q} | {len(R)} | {np.sqrt(np.mean(E[:, j] ** 2)):.3f} | {est[j]:.3f} | {sd[j]:.3f} | "
-                      f"{part[j]:.3f} |")
+                      f"{part[j]:.3f} |" + (f" {est_b[j]:.3f} |" if est_b is not None else ""))
 
 
 def control_variate_rms(E: np.ndarray, G_: np.ndarray, P_: np.ndarray, n_boot: int = 2000) -> tuple:

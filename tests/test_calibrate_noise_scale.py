@@ -104,7 +104,10 @@ def test_scale_stays_near_one_on_a_correct_model():
         assert sc["prior_dof"] == 10.0 and sc["converged"]
         assert abs(sc["scale"] - 1.0) < 3.0 * sc["scale_sd"], (seed, sc)
         assert not any(e["kind"] == "imu_noise_scaled" for e in res.calibration["events"])
-    res0 = calibrate(ds, CalibrationOptions.model_validate(NO_PROFILE | {"imu_noise_prior_dof": 0}), eskf=res.eskf)
+    # the ill-posed case is seed 3 under Huber's 1.345 (with the adaptive threshold, near least squares here, the
+    # same log converges to 0.43 +/- 0.23): the threshold is pinned so that the drop path stays tested
+    res0 = calibrate(ds, CalibrationOptions.model_validate(NO_PROFILE | {"imu_noise_prior_dof": 0, "huber_k": 1.345}),
+                     eskf=res.eskf)
     sc0 = res0.calibration["imu_noise"]["scale"]
     assert not sc0["converged"] and sc0["scale"] == 1.0 and res0.calibration["imu_noise"]["inflation"] == 1.0
 

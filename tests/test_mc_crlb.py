@@ -51,3 +51,28 @@ def test_inside_hull_fraction():
     box = np.array([[x, y, z] for x in (0, 4) for y in (0, 4) for z in (0, 2)], float)
     pts = np.array([[2, 2, 1], [5, 2, 1], [1, 1, 1], [2, 2, 3]], float)
     assert inside_hull_fraction(pts, box) == 0.5
+
+
+def test_anchor_bias_bound_contains_the_bias_free_one():
+    """The bound with an unknown constant bias per anchor (the batch calibrator's parameterisation) is the larger:
+    its lever-arm / t_d block minus the bias-free one is positive semi-definite; with a vanishing bias prior it is
+    the bias-free bound; the bias states are learnt from the data (final sd well below the prior's)."""
+    import pytest
+
+    from uwbimu.sim import builtin_scenario, simulate_full
+    from uwbimu.studies.crlb import posterior_bound
+
+    sc = builtin_scenario("calibration-flight").model_copy(update={"duration": 10.0})
+    sim = simulate_full(sc)
+    free = posterior_bound(sim, sc)
+    biased = posterior_bound(sim, sc, anchor_bias_sd=0.3)
+    tight = posterior_bound(sim, sc, anchor_bias_sd=1e-6)
+    sl = slice(15, 19)  # lever arm and t_d in the 19-dim error state
+    d = biased["P_final"][sl, sl] - free["P_final"][sl, sl]
+    assert np.linalg.eigvalsh(d).min() > -1e-9 * np.abs(free["P_final"][sl, sl]).max()
+    np.testing.assert_allclose(tight["P_final"][sl, sl], free["P_final"][sl, sl], rtol=1e-4)
+    assert len(biased["anchor_bias_sd_final"]) == len(sc.anchor_ids())
+    assert np.all(biased["anchor_bias_sd_final"] < 0.1 * 0.3)
+    tdoa = builtin_scenario("crazyflie-tdoa3").model_copy(update={"duration": 1.0})
+    with pytest.raises(ValueError):  # TDoA has its packet states in those slots
+        posterior_bound(simulate_full(tdoa), tdoa, anchor_bias_sd=0.3)

@@ -16,6 +16,7 @@ from uwbimu.calibration import anchor_loo as AL
 from uwbimu.calibration import anchors as AN
 from uwbimu.calibration import graph as G
 from uwbimu.calibration import noise_scale as NS
+from uwbimu.calibration import robust_loss as RL
 from uwbimu.calibration.identifiability import identifiability
 from uwbimu.calibration.uncertainty import (SparseMarginals, _block_event, _calibration_covariance,  # noqa: F401
                                            _marginals, _profile_chi2_scale)
@@ -98,6 +99,11 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
     if o.second_start and not given_eskf and not setup.any_estimated:
         pb, imf, eskf, graph, values, assoc, iters = _second_start(dataset, o, setup, eo, pb, imf, eskf, graph,
                                                                    values, assoc, iters, engine, events)
+    huber = {"selection": "fixed", "k": float(pb.options.huber_k)}
+    if o.huber_k == "adaptive":
+        pb, graph, values, assoc, iters, huber = RL.adapt_huber(
+            pb, imf, graph, values, assoc, iters,
+            solve=lambda p, f, v, td, a: _solve(p, f, v, td, None, assoc=a, engine=engine))
     imu_scale = None
     if o.imu_noise_scale == "estimate":
         pb, imf, graph, values, assoc, iters, imu_scale = NS.estimate_imu_noise_scale(
@@ -133,6 +139,7 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
         progress(0.9)
     cal, traj, res, anchors = _report(pb, graph, values, assoc, td_free, prof, iters, dataset, chi2_scale=chi2_scale)
     cal["imu_noise"] = _imu_noise_report(pb, imu_scale)
+    cal["range_model"]["huber"] = huber
     ev = _block_event(cal["covariance"].get("block_check"), drift_on=o.range_bias_drift is not None)
     if ev is not None:
         events.append(ev)
@@ -343,13 +350,12 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset, chi2_
     if pb.tag_column:  # the log names its tags: so does residuals.csv
         ti = pb.tag_i[used] if pb.tag_i is not None else np.zeros(len(used), np.int64)
         res.insert(2, "tag", np.array(pb.tag_names, dtype=object)[ti])
-    sig = np.full(len(res), pb.range_sigma)
+    sig = RL.row_sigma(pb, assoc)
     if pb.anchor_b is not None:
         # TDoA rows: "anchor" is anchor_a, "range" the measured TDoA [m]
         b = pb.anchor_b[assoc.used]
         res["kind"] = np.where(b >= 0, "tdoa", "range")
         res["anchor_b"] = np.where(b >= 0, np.array(pb.anchor_ids, dtype=object)[np.maximum(b, 0)], "")
-        sig[b >= 0] = pb.tdoa_sigma
     if pb.drift_knot is not None:
         # the slowly varying bias of each row (already inside "predicted" and "residual")
         res["bias_drift"] = [float(values.atVector(G.drift_key(j, n))[0])

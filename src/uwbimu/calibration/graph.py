@@ -251,8 +251,11 @@ def build_problem(dataset, eskf, options: CalibrationOptions, anchors: Optional[
     (:func:`tag_names`): every row keeps its tag, each tag has its own lever arm; the estimated anchors
     (self-survey) are shared by the tags.
     """
+    from uwbimu.calibration.robust_loss import HUBER_START
     from uwbimu.errors import InputError, UsageError
 
+    if options.huber_k == "adaptive":  # the first solves' threshold; calibrate() then chooses the final one
+        options = options.model_copy(update={"huber_k": HUBER_START})
     imu = dataset.imu
     t_imu = imu["t"].to_numpy(float)
     u_imu = imu[["ax", "ay", "az", "wx", "wy", "wz"]].to_numpy(float)

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal, Optional, Union
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, model_validator
 
 from uwbimu.estimation.options import EskfOptions
 
@@ -174,7 +174,11 @@ class CalibrationOptions(BaseModel):
     range_sigma: Optional[float] = Field(None, gt=0, description="range noise sd [m]; default dataset's or 0.1")
     tdoa_sigma: Optional[float] = Field(
         None, gt=0, description="TDoA noise sd [m]; default the dataset's extra.tdoa_sigma, else sqrt(2) range_sigma")
-    huber_k: float = Field(1.345, gt=0, description="Huber threshold in sigmas (outliers: |e| > k sigma)")
+    huber_k: Union[Literal["adaptive"], PositiveFloat] = Field(
+        "adaptive", description="Huber threshold in sigmas (down-weighted: |e| > k sigma): a number, or 'adaptive': "
+                                "the threshold that minimises the M-estimator's asymptotic variance on the residuals "
+                                "of a first solve at 1.345 (uwbimu.calibration.robust_loss; near least squares on "
+                                "Gaussian errors, smaller on heavy-tailed ones; calibration.yaml range_model.huber)")
     accel_noise_density: Optional[float] = Field(None, gt=0, description="m/s^2/sqrt(Hz); default dataset's")
     gyro_noise_density: Optional[float] = Field(None, gt=0, description="rad/s/sqrt(Hz); default dataset's")
     accel_bias_rw: Optional[float] = Field(None, gt=0, description="m/s^3/sqrt(Hz); default dataset's")

@@ -30,11 +30,9 @@ def _calibration_covariance(pb, graph, values, assoc, keys, td: float, td_free: 
     cov_model = marg.jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
     if pb.options.covariance == "model":
         return cov_model, cov_model, {"method": "model", "description": "GTSAM marginals of the white range-noise model"}
-    e = G.range_residuals(graph, assoc, values, td)
-    sig = np.full(len(e), pb.range_sigma)
-    if pb.anchor_b is not None:
-        sig[pb.anchor_b[assoc.used] >= 0] = pb.tdoa_sigma
-    inlier = np.abs(e / sig) <= pb.options.huber_k
+    from uwbimu.calibration.robust_loss import whitened_residuals
+
+    inlier = np.abs(whitened_residuals(pb, graph, assoc, values, td)) <= pb.options.huber_k
     cov, cov_model, info = CV.sandwich_covariance(graph, values, keys, assoc.slots, pb.t_range[assoc.used],
                                                   1.0 / pb.options.keyframe_hz, inlier=inlier,
                                                   interest=np.arange(4 if td_free else 3), cov_model=cov_model,

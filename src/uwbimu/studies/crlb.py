@@ -20,6 +20,11 @@ Measurement noise is modelled exactly as the simulator draws it:
   treating them as independent with variance ``2 sigma^2`` would not give a
   lower bound.
 
+Optionally (TWR, ``anchor_bias_sd``) one unknown constant range bias per
+anchor is added as an extra state: the bound of the parameterisation the batch
+calibrator estimates by default, against which its efficiency is fairly
+measured (the bias-free bound is the other, lower, baseline).
+
 Prior at the first IMU sample (stated; the bound depends on it): the ESKF's
 initialisation sds (:class:`uwbimu.estimation.EskfOptions` defaults) --
 position 0.3 m, velocity 0.5 m/s, roll/pitch 5 deg, yaw 15 deg, biases from
@@ -87,7 +92,9 @@ def _recursion(P, X, U, dt, noise, meas_step, H, r_var, refresh, refresh_var, po
     return P
 
 
-def _prior(noise, M: int, packet_var: float) -> np.ndarray:
+def _prior(noise, M: int, extra_var: float) -> np.ndarray:
+    """Prior at the first IMU sample; ``M`` extra states (TDoA packet errors or TWR anchor biases) of
+    variance ``extra_var``."""
     sd = np.concatenate([
         np.full(3, 0.3), np.full(3, 0.5), np.radians([5.0, 5.0, 15.0]),
         np.full(3, noise.accel_bias_sigma0), np.full(3, noise.gyro_bias_sigma0), np.full(3, 0.3), [0.03],
@@ -95,22 +102,28 @@ def _prior(noise, M: int, packet_var: float) -> np.ndarray:
     P = np.diag(sd**2)
     if M:
         P = np.pad(P, ((0, M), (0, M)))
-        P[ST.ERROR_DIM:, ST.ERROR_DIM:] = np.eye(M) * packet_var
+        P[ST.ERROR_DIM:, ST.ERROR_DIM:] = np.eye(M) * extra_var
     return np.maximum(P, 0.0)
 
 
-def posterior_bound(sim_result, scenario) -> dict[str, Any]:
+def posterior_bound(sim_result, scenario, anchor_bias_sd: float | None = None) -> dict[str, Any]:
     """Posterior CRLB along a simulated flight.
 
     Parameters
     ----------
     sim_result : :class:`uwbimu.sim.SimResult` of ``scenario`` (its schedule is used).
     scenario : the :class:`uwbimu.sim.Scenario`.
+    anchor_bias_sd : TWR only.  None: the ranges' model is the simulator's (no bias), the bound of an
+        estimator that knows there is none.  A number [m]: every anchor also has an unknown constant range
+        bias with prior ``N(0, anchor_bias_sd^2)`` (true value 0 in the simulation), the bound of an estimator
+        that estimates them, as the batch calibrator does by default (``anchor_bias_prior_sd``).  It is the
+        larger of the two; both are Cramer-Rao bounds, of two parameterisations of the same data.
 
     Returns
     -------
     dict with ``t`` (IMU instants, UWB clock) and ``pos_sd`` (N, 3) [m]; final
-    ``lever_arm_sd`` (3,) [m] and ``time_offset_sd`` [s]; ``P_final`` (19, 19).
+    ``lever_arm_sd`` (3,) [m] and ``time_offset_sd`` [s]; ``P_final`` (19, 19); with ``anchor_bias_sd``
+    also ``anchor_bias_sd_final`` (M,) [m], in ``scenario.anchor_ids()`` order.
     """
     ds = sim_result.dataset
     mo = sim_result.motion
@@ -132,7 +145,10 @@ def posterior_bound(sim_result, scenario) -> dict[str, Any]:
     q = np.array([noise.accel_noise_density**2, noise.gyro_noise_density**2, noise.accel_bias_rw**2,
                   noise.gyro_bias_rw**2, 0.0, 0.0])
     tdoa_mode = u.mode != "twr"
-    M = len(ids) if tdoa_mode else 0
+    if tdoa_mode and anchor_bias_sd is not None:
+        raise ValueError("posterior_bound: anchor_bias_sd is for TWR scenarios (TDoA has its packet states there)")
+    with_bias = anchor_bias_sd is not None
+    M = len(ids) if (tdoa_mode or with_bias) else 0
     D = 19 + M
     packet_var = float(u.sigma**2 + u.clock_sigma**2)
 
@@ -185,13 +201,16 @@ def posterior_bound(sim_result, scenario) -> dict[str, Any]:
                     held[anc] = pk
         else:
             H[m, :19] = hb
+            if with_bias:
+                H[m, 19 + ib[m]] = 1.0  # the anchor's constant bias adds to its range
     r_var = np.zeros(n) if tdoa_mode else np.full(n, float(u.sigma**2))
     order = np.argsort(meas_step, kind="stable")
-    P = _prior(noise, M, packet_var)
+    P = _prior(noise, M, float(anchor_bias_sd) ** 2 if with_bias else packet_var)
     pos_var = np.zeros((N, 3))
     P = _recursion(P, X, U, dt, q, meas_step[order].astype(np.int64), np.ascontiguousarray(H[order]),
                    r_var[order], refresh[order], packet_var, pos_var)
-    return {
+    out = {} if not with_bias else {"anchor_bias_sd_final": np.sqrt(np.maximum(np.diag(P)[19:], 0.0))}
+    return out | {
         "t": mo.t,
         "pos_sd": np.sqrt(np.maximum(pos_var, 0.0)),
         "lever_arm_sd": np.sqrt(np.maximum(np.diag(P)[ST.EPIU], 0.0)),
