@@ -118,6 +118,7 @@ def full_log(ds, kind: str, opts, eo, save_dir=None) -> dict:
            "eskf_td_sd": e.calibration["time_offset_sd"], "residuals_per_anchor": per_anchor,
            "downweighted": c["ranges"]["downweighted"], "expected_downweighted": c["ranges"]["expected_downweighted"]}
     out["imu_noise_scale"] = c["imu_noise"]["scale"]
+    out["huber"] = {k: v for k, v in c["range_model"]["huber"].items() if k not in ("grid", "variance_factor")}
     out["direction"] = direction_table(res, ds)
     out["range_model_direction"] = c["range_model"].get("direction")
     if save_dir is not None:
@@ -243,6 +244,12 @@ def main(argv=None) -> int:
         print(f"  IMU noise scale {sc_.get('scale', 1.0):.2f}" + (f" +/- {sc_['scale_sd']:.2f} (chi2 {sc_['chi2']:.0f}, "
               f"redundancy {sc_['redundancy']:.0f}, {sc_['steps']} steps)" if sc_.get("scale_sd") else
               f" ({sc_['method']})"))
+        h = f["huber"]
+        print(f"  Huber threshold {h['k']:.2f} sigma ({h['selection']}"
+              + (f"; minimiser {h['k_min']:.2f}, robust scale {h['robust_scale']:.2f}, variance x "
+                 f"{h['variance_vs_start']:.2f} of 1.345's, x {h['variance_vs_least_squares']:.2f} of least squares"
+                 if h["selection"] == "adaptive" else "")
+              + f"), {f['downweighted']} rows down-weighted ({f['expected_downweighted']:.0f} if Gaussian)")
         print("  residual median / MAD per anchor [cm], before -> after the range model: " + ", ".join(
             f"{k}: {v['median_before_cm']:+.1f}/{v['mad_before_cm']:.1f} -> {v['median_cm']:+.1f}/{v['mad_cm']:.1f}"
             for k, v in f["residuals_per_anchor"].items()))

@@ -113,6 +113,10 @@ def test_section_has_its_four_parts(batch_out):
     assert doc.parts["anchor-ellipses"]["systematic-sd-cm"] == f"{100 * sysm['sd']:.1f}"
     assert doc.parts["before-after"]["before"] == "present"
     assert doc.parts["before-after"]["drift"] == "absent"  # the writer adds bias_drift only with range_bias_drift
+    # the Huber threshold behind the down-weighted counts, as calibration.yaml range_model.huber states it
+    hub = cal["range_model"]["huber"]
+    assert doc.parts["before-after"]["huber-k"] == f"{hub['k']:.3f}" == f"{cal['ranges']['huber_k']:.3f}"
+    assert doc.parts["before-after"]["huber-selection"] == hub["selection"] == "adaptive"
     for name in ("fig-batch-td-profile", "fig-batch-residual-angle", "fig-batch-anchor-ellipses"):
         png = base64.b64decode(doc.figures[name].split(",", 1)[1])
         assert png[:8] == b"\x89PNG\r\n\x1a\n", name

@@ -151,6 +151,8 @@ def register(app: typer.Typer) -> None:
             console.print("note: the solve started from the robust-range ESKF reached a lower cost and was used "
                           "(event second_start_won)")
         r = cal["ranges"]
-        console.print(f"{r['used']} ranges ({r['downweighted']} down-weighted by Huber, "
+        hub = cal["range_model"].get("huber", {})
+        console.print(f"{r['used']} ranges ({r['downweighted']} down-weighted by Huber at {r['huber_k']:.2f} sigma"
+                      f"{' (adaptive)' if hub.get('selection') == 'adaptive' else ''}, "
                       f"{r['expected_downweighted']:.0f} expected from Gaussian noise), {len(written)} files "
                       f"in {out}, {res.runtime_s:.1f} s")

@@ -1112,6 +1112,15 @@ def _batch_before_after_part(inp: ReportInputs) -> Markup:
     if down is None:
         notes.append(Markup("<code>residuals.csv</code> has no <code>outlier</code> column: down-weighted rows not "
                             "counted."))
+    rm = cal.get("range_model") if isinstance(cal.get("range_model"), dict) else {}
+    hub = rm.get("huber") if isinstance(rm.get("huber"), dict) else {}
+    huber_k = hub.get("k", rm.get("huber_k"))
+    if isinstance(huber_k, (int, float)):
+        how = ("chosen from this log (<code>huber_k: adaptive</code>: the smallest variance of the estimate on a "
+               "first solve's residuals, {:.2f}× least squares')").format(float(hub["variance_vs_least_squares"])) \
+            if hub.get("selection") == "adaptive" and "variance_vs_least_squares" in hub else "as configured"
+        notes.append(Markup("Down-weighted: |residual| > {:.2f} σ, the Huber threshold {}.").format(
+            float(huber_k), Markup(how)))
     if n_tdoa:
         notes.append(Markup("{} TDoA rows left out (their bias is a difference of two anchors').").format(n_tdoa))
     table = _table(["anchor", "ranges", "down-weighted", "bias ± 1σ [cm]", "median without [cm]", "MAD without [cm]",
@@ -1119,7 +1128,9 @@ def _batch_before_after_part(inp: ReportInputs) -> Markup:
     return _part("before-after", "Residuals without / with the range bias",
                  table + Markup('<p class="note">{}</p>').format(Markup(" ").join(notes)),
                  before="present" if bias is not None else "absent",
-                 drift="present" if drift is not None else "absent")
+                 drift="present" if drift is not None else "absent",
+                 huber_k=f"{float(huber_k):.3f}" if isinstance(huber_k, (int, float)) else "unknown",
+                 huber_selection=str(hub.get("selection", "unknown")))
 
 
 def _batch_sigma_part(inp: ReportInputs) -> Markup:
