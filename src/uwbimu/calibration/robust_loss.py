@@ -11,7 +11,8 @@ parameters' asymptotic covariance is ``V(k) (J^T J)^-1`` with
 its estimate).  :func:`select_huber_k` evaluates ``V`` on the whitened residuals of a first solve (made
 with :data:`HUBER_START`) over a grid of thresholds scaled by their robust scale, and returns the largest
 threshold within one standard error of the minimum: on Gaussian residuals ``V`` falls towards 1 as ``k``
-grows and the choice is (near) least squares, on heavy-tailed ones it is finite.  :func:`adapt_huber` re-solves with it, warm-started.
+grows and the choice is (near) least squares, on heavy-tailed ones it is finite.  :func:`adapt_huber`
+re-solves with it, warm-started.
 
 Assumed (stated in docs/calibrate.md): the rows' errors are independent for the purpose of the choice
 (their correlation in time scales the covariance of every threshold alike only approximately) and the first
@@ -58,20 +59,18 @@ def whitened_residuals(pb, graph, assoc, values, td: float | None = None) -> np.
 def variance_factor(z: np.ndarray, k: float) -> float:
     """``V(k) = mean(psi_k(z)^2) / mean(|z| <= k)^2``: the Huber M-estimator's asymptotic variance factor
     estimated on ``z`` (1 for least squares on unit-variance Gaussian rows); inf when no row is inside."""
-    return float(_variance_and_influence(np.asarray(z, float), np.array([float(k)]))[0][0])
+    return _variance_and_influence(np.asarray(z, float), float(k))[0]
 
 
-def _variance_and_influence(z: np.ndarray, ks: np.ndarray):
-    """``V(k)`` for every ``k`` in ``ks`` and each row's influence on it (delta method: the estimate's
-    sampling error is the mean of the influences), shapes (K,) and (K, n)."""
-    psi2 = np.minimum(z[None, :] ** 2, ks[:, None] ** 2)
-    inside = (np.abs(z)[None, :] <= ks[:, None]).astype(float)
-    a, b = psi2.mean(axis=1), inside.mean(axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        v = np.where(b > 0, a / b**2, np.inf)
-        infl = np.where(b[:, None] > 0, (psi2 - a[:, None]) / b[:, None] ** 2
-                        - 2.0 * a[:, None] * (inside - b[:, None]) / b[:, None] ** 3, 0.0)
-    return v, infl
+def _variance_and_influence(z: np.ndarray, k: float) -> tuple[float, np.ndarray]:
+    """``V(k)`` and each row's influence on it (delta method: the estimate's sampling error is the mean of
+    the influences), a float and an (n,) array (zeros when no row is inside)."""
+    psi2 = np.minimum(z**2, k * k)
+    inside = (np.abs(z) <= k).astype(float)
+    a, b = float(psi2.mean()), float(inside.mean())
+    if b <= 0.0:
+        return float("inf"), np.zeros_like(z)
+    return a / b**2, (psi2 - a) / b**2 - 2.0 * a * (inside - b) / b**3
 
 
 def select_huber_k(z: np.ndarray) -> dict:
@@ -81,7 +80,7 @@ def select_huber_k(z: np.ndarray) -> dict:
     The minimiser of the estimated ``V`` alone is noisy on a short log (the curve is flat near its minimum,
     750 Gaussian rows put it below 1.345 one time in 15), so the choice leans towards least squares, the
     efficient loss when the errors are as modelled, by no more than the estimate's own sampling error (the
-    "one standard error rule"; the error of ``V(k) - V(k_min)`` from the rows' influences).
+    "one standard error rule"; the error of ``V(k) - V(k_min)`` from the rows' influences).  Memory O(n).
 
     Returns
     -------
@@ -98,9 +97,10 @@ def select_huber_k(z: np.ndarray) -> dict:
     if not s > 0.0:  # more than half the rows fitted exactly: scale from the mean square instead
         s = float(np.sqrt(np.mean(z**2))) or 1.0
     grid = s * GRID_FACTORS
-    v, infl = _variance_and_influence(z, grid)
+    v = np.array([variance_factor(z, k) for k in grid])
     i_min = int(np.argmin(v))
-    se = (infl - infl[i_min]).std(axis=1) / np.sqrt(len(z))
+    infl_min = _variance_and_influence(z, float(grid[i_min]))[1]
+    se = np.array([(_variance_and_influence(z, float(k))[1] - infl_min).std() for k in grid]) / np.sqrt(len(z))
     i = int(np.flatnonzero(v <= v[i_min] + se).max())
     v_ls = float(np.mean(z**2))
     return {"k": float(grid[i]), "k_min": float(grid[i_min]), "start_k": HUBER_START, "robust_scale": s,

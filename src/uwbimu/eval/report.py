@@ -1117,7 +1117,8 @@ def _batch_before_after_part(inp: ReportInputs) -> Markup:
     huber_k = hub.get("k", rm.get("huber_k"))
     if isinstance(huber_k, (int, float)):
         how = ("chosen from this log (<code>huber_k: adaptive</code>: the smallest variance of the estimate on a "
-               "first solve's residuals, {:.2f}× least squares')").format(float(hub["variance_vs_least_squares"])) \
+               "first solve's residuals, {:.2f} × that of least squares)").format(
+                   float(hub["variance_vs_least_squares"])) \
             if hub.get("selection") == "adaptive" and "variance_vs_least_squares" in hub else "as configured"
         notes.append(Markup("Down-weighted: |residual| > {:.2f} σ, the Huber threshold {}.").format(
             float(huber_k), Markup(how)))
