@@ -14,7 +14,8 @@ part and the model sigma, and the IMU factors' chi2 per row at the truth.
 
 ``--config``: calibrator options on top of the plain least-squares defaults used here (profile off, fixed IMU
 noise scale, no Huber (huber_k 100), no block check, no anchor bias, no second start), so that the
-calibrator and the step from the truth minimise the same cost; e.g. ``huber_k: 1.345`` for the default loss.
+calibrator and the step from the truth minimise the same cost; e.g. ``huber_k: 1.345`` for the loss that was
+the default until session 10 (``huber_k: adaptive`` now).
 """
 
 from __future__ import annotations
