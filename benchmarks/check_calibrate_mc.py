@@ -59,7 +59,8 @@ def one(args) -> dict:
     sim = simulate_full(sc)  # the dataset and the truth the bound needs, simulated once
     ds = sim.dataset
     t0 = time.process_time()
-    res = calibrate(ds, CalibrationOptions.model_validate({"td_profile": {"enabled": False}} | dict(config)))
+    o = CalibrationOptions.model_validate({"td_profile": {"enabled": False}} | dict(config))
+    res = calibrate(ds, o)
     cpu = time.process_time() - t0
     cal, truth = res.calibration, ds.meta.truth
     err = np.append(np.subtract(cal["lever_arm"], truth.lever_arm), cal["time_offset"]["value"] - truth.time_offset)
@@ -71,7 +72,6 @@ def one(args) -> dict:
     crlb = np.append(b["lever_arm_sd"], b["time_offset_sd"])
     row = {"scenario": name, "seed": seed, "err": err.tolist(), "sd": sd.tolist(), "sd_model": sd_model.tolist(),
            "crlb": crlb.tolist(), "cpu_s": cpu, "huber_k": cal["ranges"]["huber_k"]}
-    o = CalibrationOptions.model_validate(dict(config))
     if o.estimate_anchor_bias is True and sc.uwb.mode == "twr":
         # the second baseline: the bound of the calibrator's own parameterisation (an unknown bias per anchor)
         bb = posterior_bound(sim, sc, anchor_bias_sd=o.anchor_bias_prior_sd)

@@ -24,7 +24,7 @@ from typing import Optional
 import numpy as np
 
 from uwbimu.calibration.anchors import GAUGE_SIGMA, AnchorSetup
-from uwbimu.calibration.options import CalibrationOptions
+from uwbimu.calibration.options import HUBER_START, CalibrationOptions
 from uwbimu.calibration.range_factor import (RangeGroup, direction_features, imu_cumulative, imu_deltas,
                                               make_gtsam_factor, make_gtsam_group_factor, so3_exp)
 from uwbimu.calibration.tdoa_factor import TdoaGroup, make_gtsam_tdoa_factor
@@ -251,7 +251,6 @@ def build_problem(dataset, eskf, options: CalibrationOptions, anchors: Optional[
     (:func:`tag_names`): every row keeps its tag, each tag has its own lever arm; the estimated anchors
     (self-survey) are shared by the tags.
     """
-    from uwbimu.calibration.robust_loss import HUBER_START
     from uwbimu.errors import InputError, UsageError
 
     if options.huber_k == "adaptive":  # the first solves' threshold; calibrate() then chooses the final one

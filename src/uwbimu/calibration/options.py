@@ -166,6 +166,11 @@ class RangeModelOptions(BaseModel):
                           "no anchor-side term")
 
 
+#: Huber threshold of the first solves when ``huber_k: adaptive`` (Huber's 95 %-efficiency value, robust enough that
+#: gross outliers do not shape the residuals that then choose the final threshold: uwbimu.calibration.robust_loss)
+HUBER_START = 1.345
+
+
 class CalibrationOptions(BaseModel):
     """Factor-graph settings; noise defaults come from ``dataset.yaml`` when it documents them."""
 

@@ -27,10 +27,7 @@ from typing import Callable
 import numpy as np
 
 from uwbimu.calibration import graph as G
-
-#: threshold of the first solve, whose residuals choose the final one: Huber's 95 %-efficiency value, robust
-#: enough that gross outliers do not shape those residuals
-HUBER_START = 1.345
+from uwbimu.calibration.options import HUBER_START  # noqa: F401  (the first solve's threshold; re-exported)
 
 #: candidate thresholds in units of the residuals' robust scale (1.4826 MAD), 5 % apart: from half of it to
 #: effectively least squares (at 10 robust sigma no Gaussian row is down-weighted).  Below half, V rests on the

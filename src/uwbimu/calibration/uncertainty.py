@@ -13,6 +13,7 @@ from typing import Optional
 import numpy as np
 
 from uwbimu.calibration import graph as G
+from uwbimu.calibration.robust_loss import whitened_residuals
 
 
 def _calibration_covariance(pb, graph, values, assoc, keys, td: float, td_free: bool, marg=None):
@@ -30,8 +31,6 @@ def _calibration_covariance(pb, graph, values, assoc, keys, td: float, td_free: 
     cov_model = marg.jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
     if pb.options.covariance == "model":
         return cov_model, cov_model, {"method": "model", "description": "GTSAM marginals of the white range-noise model"}
-    from uwbimu.calibration.robust_loss import whitened_residuals
-
     inlier = np.abs(whitened_residuals(pb, graph, assoc, values, td)) <= pb.options.huber_k
     cov, cov_model, info = CV.sandwich_covariance(graph, values, keys, assoc.slots, pb.t_range[assoc.used],
                                                   1.0 / pb.options.keyframe_hz, inlier=inlier,
