@@ -84,6 +84,12 @@ class DatasetMeta(BaseModel):
         description="which way the anchors' frame z axis points: '+z' (up, the convention) or '-z' "
         "(z down, e.g. ISAS-Walk's RTLS frame); None = '+z'. Every verb applies it.",
     )
+    single_clock: Optional[bool] = Field(
+        default=None,
+        description="true when every stream (IMU, UWB, ground truth) was stamped by one clock "
+        "(e.g. a Crazyflie uSD log): there is no UWB-IMU clock to drift or jump, so the clock-fault "
+        "check reports nothing and corrects nothing. None = not known.",
+    )
     extra: dict = Field(default_factory=dict)
 
     @model_validator(mode="after")
