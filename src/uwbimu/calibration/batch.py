@@ -80,6 +80,7 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
 
     t_start = time.perf_counter()
     o = options or CalibrationOptions()
+    o.check_log(dataset)  # work bounds that depend on the log (drift knots), before any solve
     given_eskf = eskf is not None
     dataset, eskf_options, eskf, frame = to_graph_frame(dataset, eskf_options or o.init_eskf or EskfOptions(), eskf)
     setup = AN.plan_anchors(dataset, o)

@@ -1,35 +1,83 @@
-"""Options of the batch calibrator (``uwbimu calibrate --config calibrate.yaml``)."""
+"""Options of the batch calibrator (``uwbimu calibrate --config calibrate.yaml``).
+
+Every number must be finite (``allow_inf_nan=False``), and the settings that size the work have
+bounds checked when the options are read: the t_d profile grid (:data:`MAX_PROFILE_POINTS` solves),
+the iteration counts, and, once the log is known, the drift knots
+(:meth:`RangeBiasDrift.knot_count`, at most :data:`MAX_DRIFT_KNOTS`).
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Literal, Optional, Union
 
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, field_validator, model_validator
 
+from uwbimu.errors import ConfigError
 from uwbimu.estimation.options import EskfOptions
+
+#: Most t_d profile points (each one a graph solve) one profile may ask for.
+MAX_PROFILE_POINTS = 401
+#: Smallest t_d profile step [s] (0.1 ms; an IMU sample is 1-10 ms).
+MIN_PROFILE_STEP = 1e-4
+#: Most knots of the slowly varying range bias per anchor (log span / knot_spacing).
+MAX_DRIFT_KNOTS = 5000
+
+_FINITE = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class TdProfileOptions(BaseModel):
     """Time-offset profile likelihood (see docs/calibrate.md)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = _FINITE
     enabled: bool = True
     half_width: float = Field(0.5, gt=0, le=2.0, description="grid spans t_d prior mean +/- this [s]")
-    step: float = Field(0.02, gt=0, description="grid step [s] (near the minimum when coarse_step is set)")
+    # coarse_step is declared before step so that step's validator sees it (the grid size needs both)
     coarse_step: Optional[float] = Field(
-        0.1, gt=0, description="[s] first pass over the whole grid at this step, then `step` within one coarse step "
-                               "of the coarse minimum; null: the whole grid at `step`")
+        0.1, ge=MIN_PROFILE_STEP, description="[s] first pass over the whole grid at this step, then `step` within "
+                                              "one coarse step of the coarse minimum; null: the whole grid at `step`")
+    step: float = Field(0.02, ge=MIN_PROFILE_STEP, description="grid step [s] (near the minimum when coarse_step is "
+                                                                "set)")
     confidence_chi2: float = Field(
         9.0, gt=0, description="points whose profile chi2 is within this of the minimum form the confidence set "
                                "(9 = 3 sigma for one parameter)")
+
+    def n_points(self) -> int:
+        """Grid points (solves) the profile asks for before any zoom, as ``profile_walk.run_profile`` builds them."""
+        return _grid_points(self.half_width, self.coarse_step, self.step)
+
+    @field_validator("coarse_step")
+    @classmethod
+    def _coarse_work(cls, v, info):
+        hw = info.data.get("half_width")
+        if v is not None and hw is not None and int(2 * hw / v) + 1 > MAX_PROFILE_POINTS // 2:
+            raise ValueError(f"the coarse grid would have {int(2 * hw / v) + 1} points (one solve each), more than "
+                             f"{MAX_PROFILE_POINTS // 2}; make coarse_step coarser (or half_width smaller)")
+        return v
+
+    @field_validator("step")
+    @classmethod
+    def _step_work(cls, v, info):
+        hw = info.data.get("half_width")
+        if hw is not None and "coarse_step" in info.data:
+            n = _grid_points(hw, info.data["coarse_step"], v)
+            if n > MAX_PROFILE_POINTS:
+                raise ValueError(f"the grid would have {n} points (one solve each), more than {MAX_PROFILE_POINTS}; "
+                                 f"make step coarser (or half_width smaller)")
+        return v
+
+
+def _grid_points(half_width: float, coarse_step: Optional[float], step: float) -> int:
+    if coarse_step is not None and coarse_step > step:
+        return int(2 * half_width / coarse_step) + 1 + 2 * int(round(coarse_step / step))
+    return int(2 * half_width / step) + 1
 
 
 class BlockCheckOptions(BaseModel):
     """Check of the sandwich sigma against the spread between parts of the log (see docs/calibrate.md
     "Honest sigma: the block check")."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = _FINITE
     blocks: int = Field(6, ge=0, le=50, description="contiguous time blocks of the log (0: no check); the range "
                                                     "scores summed per block give a cluster-robust covariance")
     level: float = Field(0.01, gt=0, lt=0.5, description="family-wise level of the test of the HAC sandwich against "
@@ -55,10 +103,20 @@ class RangeBiasDrift(BaseModel):
     ``w ~ N(0, sd^2 (1 - phi^2))`` (stationary sd ``sd``).  ``range_sigma`` is then the white part only.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = _FINITE
     sd: float = Field(..., gt=0, description="stationary sd of the slowly varying bias [m]")
     correlation_time: float = Field(2.0, gt=0, description="[s]")
-    knot_spacing: float = Field(0.5, gt=0, description="[s] (UWB clock); at most correlation_time / 2 is sensible")
+    knot_spacing: float = Field(0.5, ge=0.01, description="[s] (UWB clock); at most correlation_time / 2 is sensible")
+
+    def knot_count(self, span: float) -> int:
+        """Knots per anchor over ``span`` seconds of ranges; :class:`ConfigError` naming the field above
+        :data:`MAX_DRIFT_KNOTS` (checked before the graph is built)."""
+        n = int(round(span / self.knot_spacing)) + 1
+        if n > MAX_DRIFT_KNOTS:
+            raise ConfigError(f"range_bias_drift.knot_spacing: {self.knot_spacing:g} s over the {span:.1f} s of ranges "
+                              f"gives {n} knots per anchor, more than {MAX_DRIFT_KNOTS}",
+                              hint=f"set range_bias_drift.knot_spacing to at least {span / (MAX_DRIFT_KNOTS - 1):.3g} s")
+        return n
 
 
 class DirectionBias(BaseModel):
@@ -73,7 +131,7 @@ class DirectionBias(BaseModel):
     dz sin el``): only the prior and the spread of elevations separate them (docs/calibrate.md).
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = _FINITE
     harmonics: int = Field(2, ge=1, le=6, description="highest Fourier order in body azimuth")
     lowest_order: int = Field(1, ge=1, le=6, description="lowest Fourier order (2 leaves order 1 to the lever arm)")
     elevation: bool = Field(False, description="add a term linear in body elevation [m/rad]")
@@ -114,7 +172,7 @@ class AnchorDirectionBias(BaseModel):
     orientation in ``anchors.csv`` is refused.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = _FINITE
     harmonics: int = Field(1, ge=0, le=4, description="highest Fourier order in antenna azimuth (0: none)")
     lowest_order: int = Field(1, ge=1, le=4, description="lowest Fourier order in antenna azimuth")
     elevation_order: int = Field(1, ge=0, le=3, description="highest power q of the antenna elevation [rad] (0: none)")
@@ -158,7 +216,7 @@ class AnchorDirectionBias(BaseModel):
 class RangeModelOptions(BaseModel):
     """Extra terms of the range model (beyond the constant bias and ``range_bias_drift``)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = _FINITE
     direction: Optional[DirectionBias] = Field(
         None, description="direction-dependent bias in the tag's body frame; none: no direction term")
     anchor_direction: Optional[AnchorDirectionBias] = Field(
@@ -174,7 +232,7 @@ HUBER_START = 1.345
 class CalibrationOptions(BaseModel):
     """Factor-graph settings; noise defaults come from ``dataset.yaml`` when it documents them."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = _FINITE
     keyframe_hz: float = Field(10.0, gt=0, le=200, description="keyframe rate of the graph [Hz]")
     range_sigma: Optional[float] = Field(None, gt=0, description="range noise sd [m]; default dataset's or 0.1")
     tdoa_sigma: Optional[float] = Field(
@@ -262,9 +320,16 @@ class CalibrationOptions(BaseModel):
         True, description="also initialise from an ESKF with the real-data preset's robust range model (white 5 cm "
                           "+ slowly varying anchor bias) and keep the lower-cost first solve (not with a given ESKF "
                           "result or anchor self-survey); event second_start_won")
-    max_iterations: int = Field(50, ge=1)
-    reassociate_max: int = Field(3, ge=0, description="re-attach ranges when t_d moved > half a keyframe step")
+    max_iterations: int = Field(50, ge=1, le=1000)
+    reassociate_max: int = Field(3, ge=0, le=20, description="re-attach ranges when t_d moved > half a keyframe step")
     td_profile: TdProfileOptions = Field(default_factory=TdProfileOptions)
+
+    def check_log(self, dataset) -> None:
+        """Refuse settings whose work grows with the log beyond the bounds (:class:`ConfigError` naming the
+        field), before anything is solved: the drift knots per anchor (:meth:`RangeBiasDrift.knot_count`)."""
+        if self.range_bias_drift is not None and len(dataset.uwb):
+            t = dataset.uwb["t"].to_numpy(float)
+            self.range_bias_drift.knot_count(float(t.max() - t.min()))
 
     def anchor_bias_estimated(self, anchor_estimated: bool) -> bool:
         """Whether the constant range bias of an anchor is estimated (``estimate_anchor_bias``), its position

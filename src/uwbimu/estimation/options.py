@@ -8,6 +8,10 @@ them all with their defaults.  Calibration parameters have a *mode*:
   (Schmidt / consider update: the uncertainty of a frozen value is accounted
   for in every other state's covariance);
 * ``fixed``: taken as exactly known (zero covariance).
+
+Every number must be finite (``allow_inf_nan=False``: a NaN prior or an infinite sigma is refused
+when the options are read, naming the field, not after minutes of filtering), and the counts and
+rates that size the work have upper bounds.
 """
 
 from __future__ import annotations
@@ -17,13 +21,13 @@ from typing import Literal, Optional, Union
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from uwbimu.models.imu import ImuNoise, imu_preset
+from uwbimu.models.imu import IMU_PRESETS, ImuNoise, imu_preset
 
 Mode = Literal["estimate", "consider", "fixed"]
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class LeverArmOptions(_Strict):
@@ -95,7 +99,7 @@ class InitOptions(_Strict):
     roll_pitch_sd_deg: float = Field(default=5.0, gt=0)
     yaw: Optional[float] = Field(default=None, description="known initial yaw [rad]; None: search a bank of hypotheses")
     yaw_sd_deg: float = Field(default=15.0, gt=0, description="yaw sd after the bank search (or around `yaw`)")
-    yaw_hypotheses: int = Field(default=12, ge=1)
+    yaw_hypotheses: int = Field(default=12, ge=1, le=360)
     bank_window_s: float = Field(default=8.0, gt=0, description="length of data each hypothesis is scored on [s]")
     max_wait_s: float = Field(default=30.0, gt=0, description="how long to look for the start of motion [s]")
     refine_s: float = Field(
@@ -105,7 +109,7 @@ class InitOptions(_Strict):
     )
     search_time_offset: bool = True
     td_grid: list[float] = Field(
-        default_factory=lambda: [round(-0.25 + 0.05 * i, 3) for i in range(11)],
+        default_factory=lambda: [round(-0.25 + 0.05 * i, 3) for i in range(11)], max_length=201,
         description="time-offset hypotheses [s] of the coarse grid search",
     )
     td_sd_after_grid: float = Field(default=0.03, gt=0,
@@ -129,7 +133,7 @@ class SupervisorOptions(_Strict):
     max_position_sd: float = Field(default=20.0, gt=0, description="[m]; above: divergence")
     hull_margin: float = Field(default=10.0, gt=0, description="[m] beyond the anchors' bounding box: divergence")
     all_reject_run: int = Field(default=100, ge=1, description="consecutive rejections (all anchors): divergence")
-    max_reinit: int = Field(default=5, ge=0)
+    max_reinit: int = Field(default=5, ge=0, le=100)
 
 
 class ExcitationOptions(_Strict):
@@ -169,11 +173,22 @@ class EskfOptions(_Strict):
     )
     tag: Optional[str] = Field(default=None, description="tag to use when the log has several; None: the first")
     cov_every: int = Field(default=1, ge=1, description="IMU samples per covariance step (preintegrated block)")
-    output_rate_hz: float = Field(default=20.0, gt=0)
+    output_rate_hz: float = Field(default=20.0, gt=0, le=1000, description="[Hz] rate of the output trajectory")
     store_covariance: bool = True
     max_lookback_s: float = Field(default=0.6, gt=0, description="how far back a range may be predicted [s]")
     imu_gap_factor: float = Field(default=3.0, gt=1, description="an IMU interval longer than this many nominal periods is a gap")
     uwb_outage_s: float = Field(default=1.0, gt=0, description="no accepted range for this long: outage warning [s]")
+
+    @field_validator("imu_noise")
+    @classmethod
+    def _known_preset(cls, v):
+        if isinstance(v, str):
+            try:
+                imu_preset(v)
+            except KeyError:
+                raise ValueError(f"unknown IMU preset {v!r}; known presets: {', '.join(sorted(IMU_PRESETS))}, "
+                                 f"or give the densities as a mapping") from None
+        return v
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "EskfOptions":

@@ -10,12 +10,22 @@ field, for example::
       line 7, field 'uwb.sigma': Input should be greater than 0
 
 and the exception is a :class:`uwbimu.errors.ConfigError` (or the subclass the
-caller names), exit code 2 on the command line.
+caller names), exit code 2 on the command line.  The refusal carries the first
+problem's place as attributes too: ``file``, ``line`` (or None) and ``field``
+(dotted, e.g. ``'lever_arm.prior.0'``).
+
+A configuration holds finite numbers only: NaN and infinity (``.nan``, ``.inf``,
+or the strings ``nan`` / ``inf`` that pydantic would read as floats) are refused
+for every field, before and after validation (:func:`find_non_finite`), and a
+file that is not UTF-8 text is refused naming the byte and line
+(:func:`uwbimu.io.textio.read_text`).
 """
 
 from __future__ import annotations
 
+import math
 import os
+import re
 from pathlib import Path
 from typing import Any, Callable, Optional, TypeVar, Union
 
@@ -23,8 +33,10 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from uwbimu.errors import ConfigError
+from uwbimu.io.textio import read_text
 
-__all__ = ["load_yaml_model", "read_yaml_mapping", "validate_model", "format_validation_error", "yaml_line"]
+__all__ = ["load_yaml_model", "read_yaml_mapping", "validate_model", "format_validation_error", "yaml_line",
+           "find_non_finite"]
 
 M = TypeVar("M", bound=BaseModel)
 ErrorFactory = Callable[[str], Exception]
@@ -72,9 +84,7 @@ def read_yaml_mapping(path: Union[str, os.PathLike], *, what: str = "configurati
     (data, text) : the mapping and the file's text (for :func:`yaml_line`).
     """
     path = Path(path)
-    if not path.is_file():
-        raise error(f"{path}: {what} file not found")
-    text = path.read_text()
+    text = read_text(path, what=what, error=error)
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -106,13 +116,69 @@ def format_validation_error(err: ValidationError, source: str, what: str = "conf
     return "\n".join(lines)
 
 
+def find_non_finite(data: Any, loc: tuple = ()) -> Optional[tuple[tuple, float]]:
+    """Location and value of the first NaN or infinite float in nested mappings / sequences (None: all finite)."""
+    if isinstance(data, dict):
+        items = data.items()
+    elif isinstance(data, (list, tuple)):
+        items = enumerate(data)
+    else:
+        if isinstance(data, float) and not math.isfinite(data):  # np.float64 is a float too
+            return loc, float(data)
+        return None
+    for k, v in items:
+        found = find_non_finite(v, loc + (k,))
+        if found is not None:
+            return found
+    return None
+
+
+def _field_loc(loc) -> tuple:
+    """A pydantic error location without its union-branch tags (``literal['adaptive']``, ``list[float]``,
+    ``constrained-float``): the path of the field in the document."""
+    return tuple(x for x in loc if not (isinstance(x, str) and ("[" in x or re.fullmatch(r"[a-z]+(-[a-z]+)+", x))))
+
+
+def _refusal(error: ErrorFactory, message: str, source: str, line: Optional[int], field: Optional[str]) -> Exception:
+    exc = error(message)
+    # the place as attributes, for callers and tests that must not parse the message
+    for name, value in (("file", source), ("line", line), ("field", field)):
+        try:
+            setattr(exc, name, value)
+        except AttributeError:  # an exception type with slots: the message still names the place
+            pass
+    return exc
+
+
+def _refuse_non_finite(data: Any, source: str, what: str, text: Optional[str], error: ErrorFactory) -> None:
+    found = find_non_finite(data)
+    if found is None:
+        return
+    loc, value = found
+    name = ".".join(str(x) for x in loc) or "(top level)"
+    line = yaml_line(text, loc) if text is not None and loc else None
+    raise _refusal(error, f"{source}: invalid {what} (1 error(s))\n  {f'line {line}, ' if line else ''}field "
+                          f"'{name}': {value} is not a finite number; every number of a {what} file must be finite",
+                   source, line, name)
+
+
 def validate_model(data: Any, model: type[M], *, source: str = "<dict>", what: str = "configuration",
                    text: Optional[str] = None, error: ErrorFactory = ConfigError) -> M:
-    """``model.model_validate(data)`` with a refusal raised as ``error`` (see :func:`format_validation_error`)."""
+    """``model.model_validate(data)`` with a refusal raised as ``error`` (see :func:`format_validation_error`).
+
+    NaN and infinite numbers are refused in the input and in the validated model (strings such as
+    ``"inf"`` that the model reads as floats), naming the field.
+    """
+    _refuse_non_finite(data, source, what, text, error)
     try:
-        return model.model_validate(data)
+        out = model.model_validate(data)
     except ValidationError as err:
-        raise error(format_validation_error(err, source, what, text)) from None
+        first = _field_loc(err.errors()[0]["loc"]) if err.error_count() else ()
+        raise _refusal(error, format_validation_error(err, source, what, text), source,
+                       yaml_line(text, first) if text is not None and first else None,
+                       ".".join(str(x) for x in first) or None) from None
+    _refuse_non_finite(out.model_dump(), source, what, text, error)
+    return out
 
 
 def load_yaml_model(path: Union[str, os.PathLike], model: type[M], *, what: str = "configuration",
