@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+from rich.markup import escape
 
 from uwbimu.cli.conventions import FORCE_HELP
 
@@ -17,17 +18,20 @@ def register(app: typer.Typer) -> None:
     @app.command("check")
     @with_load_options
     def check(
-        dataset: Path = typer.Argument(..., help="Dataset folder (imu, uwb, anchors[, groundtruth] .csv/.parquet)."),
+        dataset: Path = typer.Argument(..., help="Dataset folder (imu, uwb and/or tdoa, anchors[, groundtruth] "
+                                      ".csv/.parquet)."),
         move_threshold: float = typer.Option(0.3, "--move-threshold",
                                              help="Flag anchors whose refitted position moves more than this, in m."),
-        strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when an anchor is flagged."),
-        csv: Optional[Path] = typer.Option(None, "--csv", help="Also write the per-anchor residual table here."),
+        strict: bool = typer.Option(False, "--strict", help="Exit with code 3 when an anchor or a TDoA pair is "
+                                    "flagged."),
+        csv: Optional[Path] = typer.Option(None, "--csv", help="Also write the per-anchor residual table here "
+                                           "(and the per-pair TDoA residual table next to it, NAME_tdoa.csv)."),
         fix: Optional[Path] = typer.Option(None, "--fix", help="Write a repaired copy of the dataset (the repairs "
                                            "asked for with --sort, --drop-duplicates, units, ...) to this folder."),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         load_options=None,
     ) -> None:
-        """Validate a dataset (refusing bad input) and print rates, gaps, anchors and range residuals."""
+        """Validate a dataset (refusing bad input) and print rates, gaps, anchors, range and TDoA residuals."""
         from rich.console import Console
 
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -43,7 +47,7 @@ def register(app: typer.Typer) -> None:
         protect = [dataset]
         if csv is not None:
             # Never overwrite a user's file by accident, and never a dataset's own input.
-            check_output_target(csv.parent if str(csv.parent) else Path("."), [csv.name], force, protect)
+            check_output_target(csv.parent if str(csv.parent) else Path("."), _csv_names(csv), force, protect)
         if fix is not None:
             check_output_target(fix, force=force, protect=protect, replace=True)
         try:
@@ -66,22 +70,34 @@ def register(app: typer.Typer) -> None:
             progress("validated", 0.0)
             result = check_dataset(ds, chk, progress=progress)
         print_check(console, ds, result)
-        if csv is not None and result.residual_table is not None:
-            with output_folder(csv.parent if str(csv.parent) else Path("."), force, protect, names=[csv.name],
-                               finite=False) as tmp:
-                write_csv(tmp / csv.name, result.residual_table.reset_index())
-            console.print(f"wrote {csv}")
+        tables = [] if csv is None else [(n, tab) for n, tab in zip(_csv_names(csv), (result.residual_table,
+                                                                                     result.tdoa_table))
+                                         if tab is not None]
+        if tables:
+            with output_folder(csv.parent if str(csv.parent) else Path("."), force, protect,
+                               names=[n for n, _ in tables], finite=False) as tmp:
+                for name, tab in tables:
+                    write_csv(tmp / name, tab.reset_index())
+            console.print(escape("wrote " + ", ".join(str(csv.parent / n) for n, _ in tables)))
+        elif csv is not None:
+            console.print(escape(f"note: {csv} not written: no residuals to write (no ground truth, or ground "
+                                 "truth in another frame)"))
         if fix is not None:
             with output_folder(fix, force, protect, replace=True, finite=False) as tmp:
                 write_dataset(ds, tmp, overwrite=True, fmt=_table_format(ds))
             rep = ds.report
-            console.print(f"wrote the repaired copy {fix} ({len(rep.actions)} repair(s))" if rep.actions
-                          else f"wrote {fix} (an unchanged copy: no repair was asked for or needed)")
+            console.print(escape(f"wrote the repaired copy {fix} ({len(rep.actions)} repair(s))" if rep.actions
+                                 else f"wrote {fix} (an unchanged copy: no repair was asked for or needed)"))
             for a in rep.actions:
-                console.print(f"  repaired: {a}", soft_wrap=True)
+                console.print(f"  repaired: {escape(a)}", soft_wrap=True)
         if strict and result.flags:
-            raise CheckFlagged(f"{len(result.flags)} anchor(s) flagged: "
+            raise CheckFlagged(f"{len(result.flags)} flag(s) on anchor(s) / TDoA pair(s): "
                                + ", ".join(sorted({f.anchor for f in result.flags})))
+
+
+def _csv_names(csv: Path) -> list[str]:
+    """``--csv`` file names: the per-anchor range residual table and the per-pair TDoA table."""
+    return [csv.name, f"{csv.stem}_tdoa{csv.suffix or '.csv'}"]
 
 
 def _table_format(ds) -> str:
@@ -100,21 +116,21 @@ def _f(x, fmt: str = ".3f") -> str:
 
 def print_check(console, ds, result) -> None:
     """Rich tables for a :class:`uwbimu.io.check.CheckResult`."""
-    from rich.markup import escape
     from rich.table import Table
 
     from uwbimu.cli.conventions import fit_table
 
     rep = ds.report
-    console.print(f"[bold]{ds.meta.name}[/bold] ({ds.path}): [green]valid[/green]")
+    console.print(f"[bold]{escape(ds.meta.name)}[/bold] ({escape(str(ds.path))}): [green]valid[/green]")
     if rep is not None:
-        console.print("files: " + ", ".join(rep.files.values()))
+        console.print(escape("files: " + ", ".join(rep.files.values())))
         for a in rep.actions:
-            console.print(f"[yellow]repair:[/yellow] {a}")
+            console.print(f"[yellow]repair:[/yellow] {escape(a)}")
         for n in rep.notes:
-            console.print(f"note: {n}")
+            console.print(f"note: {escape(n)}")
         for w in rep.warnings:
-            console.print(f"[yellow]warning ({w['code']}):[/yellow] {w['file']}: {w['message']}", soft_wrap=True)
+            console.print(f"[yellow]warning ({escape(w['code'])}):[/yellow] {escape(w['file'])}: "
+                          f"{escape(w['message'])}", soft_wrap=True)
 
     # Numbers are never cut short ("-0.0…"): min_width keeps a column as wide
     # as its numbers, headers wrap instead, ids fold, and collapsed padding
@@ -129,22 +145,10 @@ def print_check(console, ds, result) -> None:
                   _f(r["rate_hz"], ".1f"), _f(r["median_dt"], ".4f"), _f(r["max_gap"]), str(int(r["n_gaps"])))
     console.print(fit_table(console, t))
 
-    a = Table(title="Anchors (world frame, m) and ranges", collapse_padding=True)
-    a.add_column("id", justify="right", overflow="fold")
-    for c, w in (("x", 6), ("y", 6), ("z", 6), ("ranges", 5), ("rate [Hz]", 5), ("min [m]", 5),
-                 ("median [m]", 6), ("max [m]", 6), ("max gap [s]", 5)):
-        a.add_column(escape(c), justify="right", min_width=w)
-    for aid, r in result.anchors.iterrows():
-        a.add_row(str(aid), _f(r["x"]), _f(r["y"]), _f(r["z"]), str(int(r["ranges"])), _f(r["rate_hz"], ".1f"),
-                  _f(r["range_min"]), _f(r["range_median"]), _f(r["range_max"]), _f(r["max_gap"]))
-    console.print(a)
+    console.print(_anchor_table(ds, result))
 
     if result.residual_table is not None:
-        if result.lever_arm is None:
-            lev = f"lever arms {result.lever_arm_source}"
-        else:
-            lev = ("lever arm (" + ", ".join(f"{v:.3f}" for v in result.lever_arm)
-                   + f") m from {result.lever_arm_source}")
+        lev = _lever_text(result)
         # escape(): "[m]" would otherwise be read as rich markup and vanish.
         rt = Table(title=escape(f"Range residuals per anchor: measured - predicted from ground truth [m] "
                                 f"({lev}; {result.n_compared} ranges)"),
@@ -165,10 +169,83 @@ def print_check(console, ds, result) -> None:
                        _f(r["rms"]), _f(r["p95_abs"]), _f(r["fit_shift"]), _f(r["fit_score"]), other, other_score,
                        style=style)
         console.print(rt)
+    if result.tdoa_pairs is not None:
+        console.print(fit_table(console, _tdoa_table(result)))
+    if result.tdoa_offsets is not None and result.tdoa_offsets.notna().any():
+        offs = ", ".join(f"{a} {v:+.3f}" for a, v in result.tdoa_offsets.items() if math.isfinite(v))
+        console.print(escape(f"TDoA: per-anchor range offsets that explain the pair medians [m] (mean zero): {offs}"))
     for n in result.notes:
-        console.print(f"note: {n}")
+        console.print(f"note: {escape(n)}")
     if result.flags:
         for fl in result.flags:
-            console.print(f"[red]flag ({fl.kind}):[/red] {fl.message}", soft_wrap=True)
-    elif result.residual_table is not None:
-        console.print("[green]no anchor flagged[/green] (position refit and id cross-check agree with the survey)")
+            console.print(f"[red]flag ({fl.kind}):[/red] {escape(fl.message)}", soft_wrap=True)
+    elif result.residual_table is not None or result.tdoa_table is not None:
+        what = ("no anchor or TDoA pair flagged" if result.tdoa_table is not None else "no anchor flagged")
+        how = ", ".join(x for x in ("position refit and id cross-check" if result.residual_table is not None else "",
+                                    "TDoA pair medians and outliers" if result.tdoa_table is not None else "") if x)
+        console.print(f"[green]{what}[/green] ({how} agree with the survey)")
+
+
+def _lever_text(result) -> str:
+    if result.lever_arm is None:
+        return f"lever arms {result.lever_arm_source}"
+    return "lever arm (" + ", ".join(f"{v:.3f}" for v in result.lever_arm) + f") m from {result.lever_arm_source}"
+
+
+def _anchor_table(ds, result):
+    """Anchors with their ranges and, with ``tdoa.csv``, the TDoA rows each takes part in
+    (a TDoA-only dataset shows no empty range columns)."""
+    from rich.table import Table
+
+    has_ranges = len(ds.uwb) > 0 or ds.tdoa is None
+    has_tdoa = ds.tdoa is not None
+    what = " and ".join(x for x in ("ranges" if has_ranges else "", "TDoA rows" if has_tdoa else "") if x)
+    a = Table(title=f"Anchors (world frame, m) and {what}", collapse_padding=True)
+    a.add_column("id", justify="right", overflow="fold")
+    cols = [("x", 6), ("y", 6), ("z", 6)]
+    if has_ranges:
+        cols += [("ranges", 5), ("rate [Hz]", 5), ("min [m]", 5), ("median [m]", 6), ("max [m]", 6),
+                 ("max gap [s]", 5)]
+    if has_tdoa:
+        cols += [("TDoA rows", 5)]
+    for c, w in cols:
+        a.add_column(escape(c), justify="right", min_width=w)
+    for aid, r in result.anchors.iterrows():
+        row = [str(aid), _f(r["x"]), _f(r["y"]), _f(r["z"])]
+        if has_ranges:
+            row += [str(int(r["ranges"])), _f(r["rate_hz"], ".1f"), _f(r["range_min"]), _f(r["range_median"]),
+                    _f(r["range_max"]), _f(r["max_gap"])]
+        if has_tdoa:
+            row += [str(int(r["tdoa"]))]
+        a.add_row(*row, style="dim" if r["ranges"] == 0 and r["tdoa"] == 0 else None)
+    return a
+
+
+def _tdoa_table(result):
+    """Per TDoA pair: rows, rate, gaps and, with ground truth, the residual statistics."""
+    from rich.table import Table
+
+    tab = result.tdoa_table
+    title = "TDoA pairs (a-b: |p - b| - |p - a|): rows and rates"
+    if tab is not None:
+        title += (f"; residuals measured - predicted from ground truth [m] ({_lever_text(result)}; "
+                  f"{result.n_tdoa_compared} rows)")
+    t = Table(title=escape(title), collapse_padding=True)
+    t.add_column("pair", justify="right", overflow="fold")
+    cols = [("rows", 5), ("rate [Hz]", 5), ("max gap [s]", 5), ("gaps", 4)]
+    if tab is not None:
+        cols += [("n", 4), ("median", 6), ("robust sd", 5), ("outliers [%]", 5), ("p95 |r|", 5)]
+    for c, w in cols:
+        t.add_column(escape(c), justify="right", min_width=w)
+    flagged = {f.anchor for f in result.flags}
+    for pair, r in result.tdoa_pairs.iterrows():
+        row = [str(pair), str(int(r["samples"])), _f(r["rate_hz"], ".1f"), _f(r["max_gap"]), str(int(r["n_gaps"]))]
+        if tab is not None:
+            if pair in tab.index:
+                s = tab.loc[pair]
+                row += [str(int(s["n"])), _f(s["median"], "+.3f"), _f(s["robust_sigma"]),
+                        _f(100 * s["outlier_frac"], ".1f"), _f(s["p95_abs"])]
+            else:
+                row += ["0", "-", "-", "-", "-"]
+        t.add_row(*row, style="red" if pair in flagged else None)
+    return t

@@ -48,6 +48,7 @@ __all__ = [
     "anchor_summary",
     "lever_arm_for",
     "interpolate_pose",
+    "antenna_track",
     "range_residuals",
     "residual_stats",
     "residual_score",
@@ -75,7 +76,12 @@ class CheckOptions(BaseModel):
     min_bad_score: float = Field(default=0.15, gt=0, description="anchors with a residual score below this [m] "
                                  "are never flagged")
     bias_threshold: float = Field(default=0.3, gt=0, description="flag |median residual| above this [m]")
-    min_ranges: int = Field(default=10, ge=4, description="anchors with fewer compared ranges are not diagnosed")
+    min_ranges: int = Field(default=10, ge=4, description="anchors (TDoA pairs) with fewer compared ranges "
+                            "(TDoA rows) are not diagnosed")
+    tdoa_outlier: float = Field(default=1.0, gt=0, description="a TDoA residual further than this from its "
+                                "pair's median is an outlier [m]")
+    tdoa_max_outlier_fraction: float = Field(default=0.1, gt=0, lt=1, description="flag a TDoA pair with "
+                                             "more outliers than this fraction")
 
 
 @dataclass
@@ -102,6 +108,13 @@ class CheckResult:
     n_compared: int = 0
     n_outside_truth: int = 0
     notes: list[str] = field(default_factory=list)
+    # TDoA (tdoa.csv): per unordered pair, see uwbimu.io.check_tdoa
+    tdoa_pairs: Optional[pd.DataFrame] = None  # rows, rate, gaps per pair
+    tdoa_residuals: Optional[pd.DataFrame] = None  # per TDoA row
+    tdoa_table: Optional[pd.DataFrame] = None  # per pair residual stats
+    tdoa_offsets: Optional[pd.Series] = None  # per-anchor offsets fitted to the pair medians [m]
+    n_tdoa_compared: int = 0
+    n_tdoa_outside_truth: int = 0
 
 
 # ---------------------------------------------------------------------------
@@ -126,21 +139,28 @@ def _time_stats(t: np.ndarray, gap_factor: float) -> dict:
 
 
 def stream_summary(ds: Dataset, gap_factor: float = 5.0) -> pd.DataFrame:
-    """Per stream (imu, uwb, groundtruth): samples, start, end, duration [s], rate [Hz], gaps.
+    """Per stream (imu, uwb, tdoa, groundtruth): samples, start, end, duration [s], rate [Hz], gaps.
 
-    For UWB, ``rate_hz`` counts ranges (several may share a stamp) while
+    For UWB and TDoA, ``rate_hz`` counts rows (several may share a stamp) while
     ``median_dt``/``max_gap``/``n_gaps`` use the distinct stamps.  A gap is a
-    step longer than ``gap_factor`` times the median step.
+    step longer than ``gap_factor`` times the median step.  The ``uwb`` row is
+    left out when a TDoA-only dataset has no ranges.
     """
-    rows = {"imu": _time_stats(ds.imu["t"].to_numpy(), gap_factor),
-            "uwb": _time_stats(ds.uwb["t"].to_numpy(), gap_factor)}
+    rows = {"imu": _time_stats(ds.imu["t"].to_numpy(), gap_factor)}
+    if len(ds.uwb) or ds.tdoa is None:
+        rows["uwb"] = _time_stats(ds.uwb["t"].to_numpy(), gap_factor)
+    if ds.tdoa is not None:
+        rows["tdoa"] = _time_stats(ds.tdoa["t"].to_numpy(), gap_factor)
     if ds.groundtruth is not None:
         rows["groundtruth"] = _time_stats(ds.groundtruth["t"].to_numpy(), gap_factor)
     return pd.DataFrame.from_dict(rows, orient="index").rename_axis("stream")
 
 
 def anchor_summary(ds: Dataset, gap_factor: float = 5.0) -> pd.DataFrame:
-    """Per anchor: position, number of ranges, rate [Hz], min/median/max range [m], max gap [s]."""
+    """Per anchor: position, number of ranges, rate [Hz], min/median/max range [m], max gap [s]
+    and ``tdoa``, the number of TDoA rows it takes part in (0 without ``tdoa.csv``)."""
+    from uwbimu.io.check_tdoa import tdoa_participation  # check_tdoa builds on this module
+
     dur = float(ds.uwb["t"].max() - ds.uwb["t"].min()) if len(ds.uwb) > 1 else np.nan
     rows = []
     for r in ds.anchors.itertuples(index=False):
@@ -155,7 +175,9 @@ def anchor_summary(ds: Dataset, gap_factor: float = 5.0) -> pd.DataFrame:
             "range_max": float(rng.max()) if len(rng) else np.nan,
             "max_gap": float(np.diff(t).max()) if len(t) > 1 else np.nan,
         })
-    return pd.DataFrame(rows).set_index("anchor").sort_index(key=_natural_key)
+    df = pd.DataFrame(rows).set_index("anchor")
+    df["tdoa"] = tdoa_participation(ds).reindex(df.index, fill_value=0)
+    return df.sort_index(key=_natural_key)
 
 
 # ---------------------------------------------------------------------------
@@ -211,6 +233,39 @@ def interpolate_pose(gt: pd.DataFrame, t: np.ndarray, max_gap: float = np.inf
     return p, q, valid
 
 
+def antenna_track(ds: Dataset, table: pd.DataFrame, lever_arm: Optional[np.ndarray] = None,
+                  gt_time_shift: float = 0.0, max_gap: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """World antenna position from the ground truth at the stamps of a measurement table.
+
+    Parameters
+    ----------
+    ds : dataset with ground truth.
+    table : ``ds.uwb`` or ``ds.tdoa`` (column ``t`` [+ ``tag``]).
+    lever_arm : (3,) ``p_IU`` [m]; default from ``ds.meta`` per tag (:func:`lever_arm_for`).
+    gt_time_shift : the ground truth is read at ``t + gt_time_shift`` [s].
+    max_gap : stamps whose ground-truth bracket is longer than this [s] are not covered.
+
+    Returns
+    -------
+    ``(k, ant)``: the row positions covered by ground truth and the (len(k), 3)
+    antenna positions ``p(t) + R(q(t)) p_IU`` there.
+    """
+    if ds.groundtruth is None:
+        raise ValueError("residuals against ground truth need ground truth (groundtruth.csv)")
+    t = table["t"].to_numpy(float)
+    p, q, valid = interpolate_pose(ds.groundtruth, t + gt_time_shift, max_gap)
+    if lever_arm is not None:
+        lev = np.tile(np.asarray(lever_arm, float), (len(t), 1))
+    elif "tag" in table.columns:
+        lev = np.zeros((len(t), 3))
+        for tag in pd.unique(table["tag"]):
+            lev[(table["tag"] == tag).to_numpy()] = lever_arm_for(ds.meta, str(tag))[0]
+    else:
+        lev = np.tile(lever_arm_for(ds.meta)[0], (len(t), 1))
+    k = np.flatnonzero(valid)
+    return k, p[k] + quat_rotate(q[k], lev[k])
+
+
 def range_residuals(ds: Dataset, lever_arm: Optional[np.ndarray] = None, gt_time_shift: float = 0.0,
                     max_gap: float = 0.5) -> pd.DataFrame:
     """Measured minus predicted range for every range covered by ground truth.
@@ -229,31 +284,18 @@ def range_residuals(ds: Dataset, lever_arm: Optional[np.ndarray] = None, gt_time
     antenna position) [+ ``tag``], only for compared ranges; ``attrs['n_outside']``
     counts the ranges that could not be compared.
     """
-    if ds.groundtruth is None:
-        raise ValueError("range residuals need ground truth (groundtruth.csv)")
     uwb = ds.uwb
-    t = uwb["t"].to_numpy(float)
-    p, q, valid = interpolate_pose(ds.groundtruth, t + gt_time_shift, max_gap)
-    if lever_arm is not None:
-        lev = np.tile(np.asarray(lever_arm, float), (len(t), 1))
-    elif "tag" in uwb.columns:
-        lev = np.zeros((len(t), 3))
-        for tag in pd.unique(uwb["tag"]):
-            lev[(uwb["tag"] == tag).to_numpy()] = lever_arm_for(ds.meta, str(tag))[0]
-    else:
-        lev = np.tile(lever_arm_for(ds.meta)[0], (len(t), 1))
-    k = np.flatnonzero(valid)
-    ant = p[k] + quat_rotate(q[k], lev[k])
+    k, ant = antenna_track(ds, uwb, lever_arm, gt_time_shift, max_gap)
     pos = ds.anchor_positions()
     A = np.array([pos[a] for a in uwb["anchor"].to_numpy()[k]]).reshape(-1, 3)
     pred = np.linalg.norm(A - ant, axis=1)
-    out = pd.DataFrame({"t": t[k], "anchor": uwb["anchor"].to_numpy()[k],
+    out = pd.DataFrame({"t": uwb["t"].to_numpy(float)[k], "anchor": uwb["anchor"].to_numpy()[k],
                         "range": uwb["range"].to_numpy(float)[k], "predicted": pred})
     out["residual"] = out["range"] - out["predicted"]
     out[["ux", "uy", "uz"]] = ant
     if "tag" in uwb.columns:
         out["tag"] = uwb["tag"].to_numpy()[k]
-    out.attrs["n_outside"] = int(len(t) - len(k))
+    out.attrs["n_outside"] = int(len(uwb) - len(k))
     return out
 
 
@@ -413,28 +455,35 @@ def diagnose_anchors(res: pd.DataFrame, ds: Dataset, options: Optional[CheckOpti
 
 def check_dataset(ds: Dataset, options: Optional[CheckOptions] = None,
                   progress: Optional[Callable[[str, float], None]] = None) -> CheckResult:
-    """Stream/anchor statistics and, with ground truth, range residuals and anchor flags.
+    """Stream/anchor/TDoA-pair statistics and, with ground truth, range and TDoA residuals and flags.
 
     ``progress(stage, fraction)``, when given, is called as each stage starts
     (fraction in [0, 1]) and with ``("done", 1.0)`` at the end; the CLI draws
     its progress bar from it.
     """
+    from uwbimu.io.check_tdoa import diagnose_tdoa, tdoa_pair_summary, tdoa_residuals  # builds on this module
+
     options = options or CheckOptions()
     report = progress or (lambda stage, frac: None)
     report("stream statistics", 0.0)
     result = CheckResult(streams=stream_summary(ds, options.gap_factor),
                          anchors=anchor_summary(ds, options.gap_factor))
-    unused = [a for a, n in result.anchors["ranges"].items() if n == 0]
+    has_tdoa = ds.tdoa is not None and len(ds.tdoa) > 0
+    if has_tdoa:
+        result.tdoa_pairs = tdoa_pair_summary(ds, options.gap_factor)
+    unused = [a for a, r in result.anchors.iterrows() if r["ranges"] == 0 and r["tdoa"] == 0]
     if unused:
-        result.notes.append(f"anchors without any range: {', '.join(unused)}")
-    if "tag" in ds.uwb.columns:
+        result.notes.append(f"anchors without any range{' or TDoA' if ds.tdoa is not None else ''}: "
+                            f"{', '.join(unused)}")
+    tagged = [t for t in (ds.uwb, ds.tdoa) if t is not None and "tag" in t.columns and len(t)]
+    if tagged:
         named = {t.name for t in ds.meta.tags}
-        unnamed = sorted(set(ds.uwb["tag"]) - named)
+        unnamed = sorted(set().union(*(set(t["tag"]) for t in tagged)) - named)
         if unnamed:
-            result.notes.append(f"tag(s) {', '.join(unnamed)} in uwb have no entry in dataset.yaml tags "
+            result.notes.append(f"tag(s) {', '.join(unnamed)} in uwb/tdoa have no entry in dataset.yaml tags "
                                 f"(no nominal lever arm)")
     if ds.groundtruth is None:
-        result.notes.append("no ground truth: range residuals not computed")
+        result.notes.append("no ground truth: range and TDoA residuals not computed")
         report("done", 1.0)
         return result
     gt_frame = str((ds.meta.extra or {}).get("groundtruth_align", "none"))
@@ -442,24 +491,37 @@ def check_dataset(ds: Dataset, options: Optional[CheckOptions] = None,
         # Ground truth in another frame (e.g. a Vive tracker): predicting ranges from it would
         # flag every anchor as moved or swapped.  Say so instead of comparing.
         result.notes.append(f"ground truth is in another frame (dataset.yaml extra.groundtruth_align: {gt_frame}): "
-                            "range residuals against it not computed")
+                            "range and TDoA residuals against it not computed")
         report("done", 1.0)
         return result
-    if "tag" in ds.uwb.columns and ds.uwb["tag"].nunique() > 1:
+    tags = pd.concat([t["tag"] for t in tagged]).unique() if tagged else []
+    if len(tags) > 1:
         result.lever_arm, result.lever_arm_source = None, "per tag (dataset.yaml)"
     else:
-        tag = str(ds.uwb["tag"].iloc[0]) if "tag" in ds.uwb.columns else None
-        result.lever_arm, result.lever_arm_source = lever_arm_for(ds.meta, tag)
-    report("range residuals", 0.2)
-    res = range_residuals(ds, result.lever_arm, options.gt_time_shift, options.gt_max_gap)
-    result.residuals = res
-    result.n_compared = len(res)
-    result.n_outside_truth = int(res.attrs.get("n_outside", 0))
-    if result.n_outside_truth:
-        result.notes.append(f"{result.n_outside_truth} ranges lie outside the ground truth (or in gaps > "
-                            f"{options.gt_max_gap} s) and were not compared")
-    if len(res):
-        report("anchor refit and id cross-check", 0.5)
-        result.residual_table, result.flags = diagnose_anchors(res, ds, options)
+        result.lever_arm, result.lever_arm_source = lever_arm_for(ds.meta, str(tags[0]) if len(tags) else None)
+    if len(ds.uwb):
+        report("range residuals", 0.2)
+        res = range_residuals(ds, result.lever_arm, options.gt_time_shift, options.gt_max_gap)
+        result.residuals = res
+        result.n_compared = len(res)
+        result.n_outside_truth = int(res.attrs.get("n_outside", 0))
+        if result.n_outside_truth:
+            result.notes.append(f"{result.n_outside_truth} ranges lie outside the ground truth (or in gaps > "
+                                f"{options.gt_max_gap} s) and were not compared")
+        if len(res):
+            report("anchor refit and id cross-check", 0.4)
+            result.residual_table, result.flags = diagnose_anchors(res, ds, options)
+    if has_tdoa:
+        report("TDoA residuals", 0.7)
+        tres = tdoa_residuals(ds, result.lever_arm, options.gt_time_shift, options.gt_max_gap)
+        result.tdoa_residuals = tres
+        result.n_tdoa_compared = len(tres)
+        result.n_tdoa_outside_truth = int(tres.attrs.get("n_outside", 0))
+        if result.n_tdoa_outside_truth:
+            result.notes.append(f"{result.n_tdoa_outside_truth} TDoA rows lie outside the ground truth (or in "
+                                f"gaps > {options.gt_max_gap} s) and were not compared")
+        if len(tres):
+            result.tdoa_table, result.tdoa_offsets, tflags = diagnose_tdoa(tres, ds, options)
+            result.flags.extend(tflags)
     report("done", 1.0)
     return result
