@@ -52,6 +52,7 @@ def run_import(do_import: Callable[..., object], with_progress: bool = False, ds
     ``do_import()`` under a spinner.
     """
     from rich.console import Console
+    from rich.markup import escape
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from uwbimu.errors import OutputError
@@ -66,7 +67,7 @@ def run_import(do_import: Callable[..., object], with_progress: bool = False, ds
                           console=console, transient=True) as bar:
                 task = bar.add_task("converting", total=1.0)
                 result = do_import(lambda stage, frac: bar.update(task, completed=frac,
-                                                                  description=f"converting: {stage}"))
+                                                                  description=f"converting: {escape(stage)}"))
         else:
             with console.status("converting..."):
                 result = do_import()
@@ -74,12 +75,33 @@ def run_import(do_import: Callable[..., object], with_progress: bool = False, ds
         raise OutputError(str(exc), hint="use --force or another destination") from None
     ds = result.dataset
     for c in result.changes:
-        console.print(f"[yellow]changed:[/yellow] {c}", soft_wrap=True)
+        # messages hold units in brackets ("[ms]", "[deg/s]") that rich would take for markup
+        console.print(f"[yellow]changed:[/yellow] {escape(c)}", soft_wrap=True)
     n = {k: len(getattr(ds, k)) for k in ("imu", "uwb", "anchors")}
     if ds.groundtruth is not None:
         n["groundtruth"] = len(ds.groundtruth)
-    console.print(f"wrote {result.path}: " + ", ".join(f"{k} {v} rows" for k, v in n.items())
-                  + f"; run `uwbimu check {result.path}` to inspect it")
+    if getattr(ds, "tdoa", None) is not None:
+        n["tdoa"] = len(ds.tdoa)
+    console.print(escape(f"wrote {result.path}: " + ", ".join(f"{k} {v} rows" for k, v in n.items())
+                         + f"; run `uwbimu check {result.path}` to inspect it"), soft_wrap=True)
+
+
+_TDOA_MARGIN_HELP = ("TDoA rows whose |tdoa| exceeds the two anchors' separation by more than this [m] are "
+                     "dropped and counted per anchor pair (default 1.0, the loader's bound).")
+_QUAT_ORDER_HELP = ("Order of an_quat in an anchor survey: auto (by the file's version: anchor_MMDD of 2021 "
+                    "holds qw,qx,qy,qz; the released anchor_constN holds qx,qy,qz,qw), wxyz or xyzw.")
+
+
+def _check_import_options(tdoa_margin: float, quat_order: str) -> str:
+    """Refuse a negative margin or an unknown quaternion order (UsageError); the order in lower case."""
+    from uwbimu.errors import UsageError
+    from uwbimu.io.importers.anchors import QUAT_ORDERS
+
+    if not tdoa_margin >= 0:
+        raise UsageError(f"--tdoa-margin must be >= 0 m, got {tdoa_margin!r}")
+    if quat_order.lower() not in QUAT_ORDERS:
+        raise UsageError(f"--survey-quat-order must be one of {', '.join(QUAT_ORDERS)}, got {quat_order!r}")
+    return quat_order.lower()
 
 
 def _register_inrol(app: typer.Typer) -> None:
@@ -145,12 +167,16 @@ def _register_util(app: typer.Typer) -> None:
                                                "next to or above SRC."),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         name: Optional[str] = typer.Option(None, "--name", help="Dataset name (default from SRC)."),
+        tdoa_margin: float = typer.Option(1.0, "--tdoa-margin", help=_TDOA_MARGIN_HELP),
+        quat_order: str = typer.Option("auto", "--survey-quat-order", help=_QUAT_ORDER_HELP),
     ) -> None:
         """Convert a UTIL (Zhao et al.) TDoA flight: TDoA, IMU (g, deg/s converted), Vicon pose, anchor survey."""
         dst = _destination(dst, out)
+        order = _check_import_options(tdoa_margin, quat_order)
         from uwbimu.io.importers import util as imp
 
-        run_import(lambda: imp.import_dataset(src, dst, anchors, force=force, name=name), dst=dst, src=src, force=force)
+        run_import(lambda: imp.import_dataset(src, dst, anchors, force=force, name=name, tdoa_margin=tdoa_margin,
+                                              quat_order=order), dst=dst, src=src, force=force)
 
 
 def _register_cf_usdlog(app: typer.Typer) -> None:
@@ -159,18 +185,23 @@ def _register_cf_usdlog(app: typer.Typer) -> None:
         log: Path = typer.Argument(..., help="Crazyflie uSD-card event log (binary, e.g. log00)."),
         dst: Optional[Path] = typer.Argument(None, help="Output dataset folder (or give it with -o/--out)."),
         out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output dataset folder (instead of DST)."),
-        anchors: Path = typer.Option(..., "--anchors", help="Anchor positions, anchors.csv (anchor, x, y, z [, qw, qx, qy, qz]); ids "
-                                                            "as the Loco nodes' (0-7)."),
+        anchors: Path = typer.Option(..., "--anchors", help="Anchor positions: anchors.csv (anchor, x, y, z [, qw, qx, "
+                                                            "qy, qz]; ids as the Loco nodes', 0-7) or a UTIL survey "
+                                                            "(.npz with an_pos/an_quat, or _survey.txt)."),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         ignore_crc: bool = typer.Option(False, "--ignore-crc", help="Decode a log whose CRC does not match "
                                                                     "(e.g. cut by a power loss); recorded."),
         name: Optional[str] = typer.Option(None, "--name", help="Dataset name (default from LOG)."),
+        tdoa_margin: float = typer.Option(1.0, "--tdoa-margin", help=_TDOA_MARGIN_HELP),
+        quat_order: str = typer.Option("auto", "--survey-quat-order", help=_QUAT_ORDER_HELP),
     ) -> None:
         """Convert a Crazyflie uSD event log (estTDOA, estAcceleration in g, estGyroscope in deg/s) to a TDoA dataset."""
         dst = _destination(dst, out)
+        order = _check_import_options(tdoa_margin, quat_order)
         from uwbimu.io.importers import cf_usdlog as imp
 
-        run_import(lambda: imp.import_dataset(log, dst, anchors, force=force, ignore_crc=ignore_crc, name=name),
+        run_import(lambda: imp.import_dataset(log, dst, anchors, force=force, ignore_crc=ignore_crc, name=name,
+                                              tdoa_margin=tdoa_margin, quat_order=order),
                    dst=dst, src=log, force=force)
 
 

@@ -37,6 +37,12 @@ The accelerometer is linearly interpolated to the gyro stamps (the two
 streams are logged separately), and gyro samples outside the accelerometer's
 span are dropped; both are recorded in ``extra.import_changes``.
 
+TDoA rows whose ``|tdoa|`` exceeds the two anchors' separation plus
+``tdoa_margin`` (``--tdoa-margin``, 1 m) are dropped and counted per anchor
+pair (:mod:`uwbimu.io.importers.tdoa`); ``dataset.yaml`` says
+``single_clock: true``.  ``--anchors`` takes an ``anchors.csv`` or a UTIL
+survey (``.npz``, ``_survey.txt``; :mod:`uwbimu.io.importers.anchors`).
+
 Refused (``DatasetError`` naming the file and the record or header entry):
 bad magic, unsupported version, CRC mismatch (unless ``ignore_crc``), a
 record with an unknown event id, a truncated record, a header type code
@@ -56,12 +62,15 @@ from typing import Optional, Union
 import numpy as np
 import pandas as pd
 
-from uwbimu.io.dataset import GT_COLUMNS, IMU_COLUMNS, TDOA_COLUMNS, UWB_COLUMNS, Dataset, DatasetMeta, TagMeta
+from uwbimu.io.dataset import GT_COLUMNS, IMU_COLUMNS, UWB_COLUMNS, Dataset, DatasetMeta, TagMeta
 from uwbimu.io.importers import ImportResult, write_import
+from uwbimu.io.importers.anchors import QuatOrder, read_anchors, read_anchors_csv
+from uwbimu.io.importers.tdoa import TDOA_MARGIN_M, drop_tdoa_outliers, tdoa_load_options, tdoa_table
 from uwbimu.io.loader import DatasetError
 from uwbimu.models.imu import imu_preset
 
-__all__ = ["decode", "convert", "import_dataset", "combine_imu", "read_anchors_csv", "G_CRAZYFLIE", "encode"]
+__all__ = ["decode", "convert", "import_dataset", "combine_imu", "read_anchors_csv", "tdoa_table", "G_CRAZYFLIE",
+           "encode"]
 
 #: Standard gravity used by the Crazyflie firmware to convert g to m/s^2.
 G_CRAZYFLIE = 9.81
@@ -189,27 +198,6 @@ def combine_imu(t_acc: np.ndarray, acc_g: np.ndarray, t_gyro: np.ndarray, gyro_d
     return pd.DataFrame(np.column_stack([t, acc, gyro]), columns=IMU_COLUMNS)
 
 
-def read_anchors_csv(path: Union[str, os.PathLike]) -> pd.DataFrame:
-    """An anchors file in the dataset format (``anchor, x, y, z`` [+ ``qw, qx, qy, qz``]), ids as text."""
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetError(f"{path}: anchors file not found", file=path.name)
-    df = pd.read_csv(path, dtype={"anchor": str}, comment="#")
-    missing = [c for c in ("anchor", "x", "y", "z") if c not in df.columns]
-    if missing:
-        raise DatasetError(f"{path.name}: missing column(s) {missing}; expected anchor, x, y, z", file=path.name,
-                           row=1, column=missing[0])
-    for c in [c for c in ("x", "y", "z", "qw", "qx", "qy", "qz") if c in df.columns]:
-        vals = pd.to_numeric(df[c], errors="coerce").to_numpy(float)
-        bad = ~np.isfinite(vals)
-        if bad.any():
-            i = int(np.argmax(bad))
-            raise DatasetError(f"{path.name}, line {i + 2}, column '{c}': not a finite number ({df[c].iloc[i]!r})",
-                               file=path.name, row=i + 2, column=c)
-        df[c] = vals
-    return df
-
-
 def _need(events: dict, name: str, variables: list[str], path: Path) -> dict:
     if name not in events:
         raise DatasetError(f"{path.name}: no {name!r} events in the log (it holds: {sorted(events)})",
@@ -222,43 +210,28 @@ def _need(events: dict, name: str, variables: list[str], path: Path) -> dict:
     return ev
 
 
-def tdoa_table(t: np.ndarray, id_a, id_b, diff, anchors: pd.DataFrame, source: str, what: str,
-               first: int = 0) -> pd.DataFrame:
-    """``tdoa`` frame from id arrays; refuses non-finite values and ids not in ``anchors``.
-
-    Errors name ``source``, then ``what`` and the row number ``i + first``
-    (e.g. ``what="line", first=2`` for a CSV with a header).
-    """
-    a = np.asarray(id_a)
-    b = np.asarray(id_b)
-    diff = np.asarray(diff, dtype=float)
-    bad = ~np.isfinite(diff)
-    if bad.any():
-        i = int(np.argmax(bad))
-        raise DatasetError(f"{source}, {what} {i + first}: TDoA value is not finite ({diff[i]!r})", file=source,
-                           row=i + first, column="tdoa")
-    fmt = np.vectorize(lambda v: str(int(v)) if float(v).is_integer() else str(v), otypes=[object])
-    sa, sb = (fmt(a), fmt(b)) if len(a) else (a.astype(str), b.astype(str))
-    known = set(anchors["anchor"].astype(str))
-    for col, ids in (("anchor_a", sa), ("anchor_b", sb)):
-        unknown = ~np.isin(ids, list(known))
-        if unknown.any():
-            i = int(np.argmax(unknown))
-            raise DatasetError(f"{source}, {what} {i + first}, column '{col}': anchor id {ids[i]!r} is not in "
-                               f"the anchors file ({sorted(known)})", file=source, row=i + first, column=col)
-    return pd.DataFrame({"t": t, "anchor_a": sa.astype(str), "anchor_b": sb.astype(str), "tdoa": diff},
-                        columns=TDOA_COLUMNS)
-
-
 def convert(log: Union[str, os.PathLike], anchors: Union[str, os.PathLike], ignore_crc: bool = False,
-            name: Optional[str] = None) -> ImportResult:
-    """Convert a uSD event log plus an anchors file into a :class:`Dataset` (not written)."""
+            name: Optional[str] = None, tdoa_margin: float = TDOA_MARGIN_M,
+            quat_order: QuatOrder = "auto") -> ImportResult:
+    """Convert a uSD event log plus an anchors file into a :class:`Dataset` (not written).
+
+    Parameters
+    ----------
+    log : the binary event log.
+    anchors : ``anchors.csv``, a UTIL survey ``.npz`` or ``_survey.txt``
+        (:func:`uwbimu.io.importers.anchors.read_anchors`).
+    ignore_crc : decode the complete records of a log whose CRC does not match.
+    name : dataset name (default ``cf-usdlog:<log name>``).
+    tdoa_margin : TDoA rows with ``|tdoa|`` beyond the anchors' separation plus
+        this (m) are dropped and counted (:func:`~uwbimu.io.importers.tdoa.drop_tdoa_outliers`).
+    quat_order : ``an_quat`` order of a survey file (``auto``: by the file's version).
+    """
     log = Path(log)
     if not log.is_file():
         raise DatasetError(f"{log}: log file not found", file=log.name)
-    anchors_df = read_anchors_csv(anchors)
-    events, info = decode(log, ignore_crc=ignore_crc)
     changes: list[str] = []
+    anchors_df = read_anchors(anchors, quat_order, changes)
+    events, info = decode(log, ignore_crc=ignore_crc)
     if not info["crc_ok"]:
         changes.append(f"{log.name}: CRC mismatch ignored (--ignore-crc); {info['records']} complete records decoded")
     td = _need(events, "estTDOA", ["idA", "idB", "distanceDiff"], log)
@@ -266,10 +239,12 @@ def convert(log: Union[str, os.PathLike], anchors: Union[str, os.PathLike], igno
     gyr = _need(events, "estGyroscope", ["gyro.x", "gyro.y", "gyro.z"], log)
     t0 = min(float(e["timestamp"][0]) for e in events.values())
     sec = lambda e: (e["timestamp"] - t0) / 1000.0  # noqa: E731
-    changes.append(f"{log.name}: Crazyflie clock [ms] -> s, origin at the first record (t0 = {t0} ms)")
+    changes.append(f"{log.name}: Crazyflie clock [ms] -> s, origin at the first record (t0 = {t0} ms); IMU, TDoA "
+                   "and the pose sent to the Crazyflie share that clock (single_clock: true)")
     imu = combine_imu(sec(acc), np.column_stack([acc[f"acc.{a}"] for a in "xyz"]).astype(float), sec(gyr),
                       np.column_stack([gyr[f"gyro.{a}"] for a in "xyz"]).astype(float), log.name, changes)
     tdoa = tdoa_table(sec(td), td["idA"], td["idB"], td["distanceDiff"], anchors_df, log.name, "estTDOA event")
+    tdoa, outliers = drop_tdoa_outliers(tdoa, anchors_df, tdoa_margin, log.name, changes)
     gt = None
     pose_vars = ["locSrv.x", "locSrv.y", "locSrv.z", "locSrv.qx", "locSrv.qy", "locSrv.qz", "locSrv.qw"]
     if "estPose" in events and all(v in events["estPose"] for v in pose_vars):
@@ -281,12 +256,15 @@ def convert(log: Union[str, os.PathLike], anchors: Union[str, os.PathLike], igno
     dt = float(np.median(np.diff(imu["t"].to_numpy()))) if len(imu) > 1 else math.nan
     meta = DatasetMeta(
         name=name or f"cf-usdlog:{log.name}",
-        description="Crazyflie uSD-card event log (estTDOA, estAcceleration, estGyroscope)",
+        description="Crazyflie uSD-card event log (estTDOA, estAcceleration, estGyroscope); every stream is "
+                    "stamped by the Crazyflie's clock",
         imu_noise=imu_preset("bmi088"),
         imu_rate_hz=1.0 / dt if dt > 0 else None,
         tags=[TagMeta(name="tag0")],
         source=f"Crazyflie uSD event log {log.name} (format version {info['version']})",
-        extra={"import_changes": list(changes), "uwb_mode": "tdoa", "usd_events": sorted(events)},
+        single_clock=True,
+        extra={"import_changes": list(changes), "uwb_mode": "tdoa", "usd_events": sorted(events),
+               "tdoa_outliers": outliers},
     )
     uwb = pd.DataFrame({"t": np.zeros(0), "anchor": np.zeros(0, dtype=str), "range": np.zeros(0)},
                        columns=UWB_COLUMNS)
@@ -295,8 +273,9 @@ def convert(log: Union[str, os.PathLike], anchors: Union[str, os.PathLike], igno
 
 
 def import_dataset(log, dst, anchors, force: bool = False, ignore_crc: bool = False,
-                   name: Optional[str] = None) -> ImportResult:
+                   name: Optional[str] = None, tdoa_margin: float = TDOA_MARGIN_M,
+                   quat_order: QuatOrder = "auto") -> ImportResult:
     """Convert ``log`` and write it to ``dst`` (refuses a non-empty ``dst`` unless ``force``)."""
-    res = convert(log, anchors, ignore_crc=ignore_crc, name=name)
-    write_import(res, dst, force=force, src=log)
+    res = convert(log, anchors, ignore_crc=ignore_crc, name=name, tdoa_margin=tdoa_margin, quat_order=quat_order)
+    write_import(res, dst, force=force, src=log, load_options=tdoa_load_options(tdoa_margin))
     return res

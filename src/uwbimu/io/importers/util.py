@@ -20,9 +20,11 @@ documents and reads it (``scripts/utility/praser.py``,
 
   All times are the Crazyflie's clock (s since the log's first record).
 * the anchor survey of the constellation, ``flight-dataset/survey-results/anchor_constN.npz``
-  (``an_pos`` (8, 3) m, ``an_quat`` (8, 4) ``[qx, qy, qz, qw]`` anchor frame -> Vicon frame),
-  or its text form ``anchor_constN_survey.txt`` (lines ``anI_p,x,y,z`` and
-  ``anI_quat,qx,qy,qz,qw``).  Without ``--anchors`` the importer looks for
+  (``an_pos`` (8, 3) m, ``an_quat`` (8, 4) anchor frame -> Vicon frame, ``[qx, qy, qz, qw]``
+  in the release; the 2021 surveys named by date, ``anchor_0425.npz``, hold
+  ``[qw, qx, qy, qz]``: :mod:`uwbimu.io.importers.anchors` picks the order by the
+  file's version), or its text form ``anchor_constN_survey.txt`` (lines
+  ``anI_p,x,y,z`` and ``anI_quat,qx,qy,qz,qw``).  Without ``--anchors`` the importer looks for
   ``survey-results/anchor_constN.npz`` (then ``..._survey.txt``) in the CSV's
   folder and its parents, N from ``constN`` in the CSV's name.
 
@@ -33,7 +35,10 @@ Conversion (every choice is listed in ``extra.import_changes``): anchor ids
 ground truth = the Vicon pose of the vehicle body frame, taken as the IMU
 frame; the devkit's antenna offset ``t_uv = [-0.01245, 0.00127, 0.0908]`` m
 becomes the tag's *nominal* lever arm (a fixed setting of the devkit, not a
-measured truth).  Refusals name the file, the line and the column.
+measured truth).  TDoA rows beyond the anchors' separation plus
+``tdoa_margin`` are dropped and counted per anchor pair; all streams come from
+one Crazyflie log, so ``dataset.yaml`` says ``single_clock: true``.  Refusals
+name the file, the line and the column (an empty or cut-short CSV included).
 """
 
 from __future__ import annotations
@@ -47,8 +52,10 @@ import numpy as np
 import pandas as pd
 
 from uwbimu.io.dataset import GT_COLUMNS, UWB_COLUMNS, Dataset, DatasetMeta, TagMeta
-from uwbimu.io.importers import ImportResult, write_import
-from uwbimu.io.importers.cf_usdlog import combine_imu, tdoa_table
+from uwbimu.io.importers import ImportResult, read_csv_source, write_import
+from uwbimu.io.importers.anchors import QuatOrder, read_survey
+from uwbimu.io.importers.cf_usdlog import combine_imu
+from uwbimu.io.importers.tdoa import TDOA_MARGIN_M, drop_tdoa_outliers, tdoa_load_options, tdoa_table
 from uwbimu.io.loader import DatasetError
 from uwbimu.models.imu import imu_preset
 
@@ -65,57 +72,6 @@ GROUPS: dict[str, list[str]] = {
     "pose": ["t_pose", "pose_x", "pose_y", "pose_z", "pose_qx", "pose_qy", "pose_qz", "pose_qw"],
 }
 _REQUIRED = ("tdoa", "acc", "gyro")
-
-
-def read_survey(path: Union[str, os.PathLike]) -> pd.DataFrame:
-    """UTIL anchor survey (``.npz`` with ``an_pos``/``an_quat``, or the ``_survey.txt``) -> anchors frame."""
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetError(f"{path}: anchor survey not found", file=path.name)
-    if path.suffix == ".npz":
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                if "an_pos" not in z.files:
-                    raise DatasetError(f"{path.name}: no 'an_pos' array (holds {z.files})", file=path.name,
-                                       column="an_pos")
-                pos = np.asarray(z["an_pos"], float)
-                quat = np.asarray(z["an_quat"], float) if "an_quat" in z.files else None
-        except (OSError, ValueError) as exc:
-            raise DatasetError(f"{path.name}: not a readable .npz survey ({exc})", file=path.name) from None
-    else:
-        pos_rows: dict[int, list[float]] = {}
-        quat_rows: dict[int, list[float]] = {}
-        for ln, line in enumerate(path.read_text().splitlines(), start=1):
-            if not line.strip():
-                continue
-            parts = [p.strip() for p in line.split(",")]
-            m = re.fullmatch(r"an(\d+)_(p|quat)", parts[0])
-            want = 3 if m and m.group(2) == "p" else 4
-            if m is None or len(parts) != want + 1:
-                raise DatasetError(f"{path.name}, line {ln}: expected 'anI_p,x,y,z' or 'anI_quat,qx,qy,qz,qw', got "
-                                   f"{line!r}", file=path.name, row=ln)
-            try:
-                vals = [float(v) for v in parts[1:]]
-            except ValueError:
-                raise DatasetError(f"{path.name}, line {ln}: not a number in {line!r}", file=path.name,
-                                   row=ln) from None
-            (pos_rows if m.group(2) == "p" else quat_rows)[int(m.group(1))] = vals
-        if not pos_rows or sorted(pos_rows) != list(range(len(pos_rows))):
-            raise DatasetError(f"{path.name}: anchor positions an0_p .. anN_p expected, got ids {sorted(pos_rows)}",
-                               file=path.name)
-        pos = np.array([pos_rows[i] for i in range(len(pos_rows))])
-        quat = np.array([quat_rows[i] for i in range(len(pos_rows))]) if len(quat_rows) == len(pos_rows) else None
-    if pos.ndim != 2 or pos.shape[1] != 3 or not np.all(np.isfinite(pos)):
-        raise DatasetError(f"{path.name}: an_pos must be a finite (N, 3) array, got shape {pos.shape}",
-                           file=path.name, column="an_pos")
-    df = pd.DataFrame({"anchor": [str(i) for i in range(len(pos))], "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2]})
-    if quat is not None:
-        if quat.shape != (len(pos), 4) or not np.all(np.isfinite(quat)):
-            raise DatasetError(f"{path.name}: an_quat must be a finite ({len(pos)}, 4) array", file=path.name,
-                               column="an_quat")
-        quat = quat / np.linalg.norm(quat, axis=1, keepdims=True)
-        df["qw"], df["qx"], df["qy"], df["qz"] = quat[:, 3], quat[:, 0], quat[:, 1], quat[:, 2]
-    return df
 
 
 def find_survey(csv: Path) -> Optional[Path]:
@@ -157,8 +113,20 @@ def _stream(raw: pd.DataFrame, cols: list[str], fname: str) -> np.ndarray:
 
 
 def convert(csv: Union[str, os.PathLike], anchors: Optional[Union[str, os.PathLike]] = None,
-            name: Optional[str] = None) -> ImportResult:
-    """Convert one UTIL flight CSV (+ its anchor survey) into a :class:`Dataset` (not written)."""
+            name: Optional[str] = None, tdoa_margin: float = TDOA_MARGIN_M,
+            quat_order: QuatOrder = "auto") -> ImportResult:
+    """Convert one UTIL flight CSV (+ its anchor survey) into a :class:`Dataset` (not written).
+
+    Parameters
+    ----------
+    csv : the flight CSV.
+    anchors : the anchor survey (default: found next to or above ``csv``, :func:`find_survey`).
+    name : dataset name (default ``util:<csv stem>``).
+    tdoa_margin : TDoA rows with ``|tdoa|`` beyond the anchors' separation plus
+        this (m) are dropped and counted.
+    quat_order : ``an_quat`` order of the survey (``auto``: by the survey file's version,
+        :func:`uwbimu.io.importers.anchors.survey_quat_order`).
+    """
     csv = Path(csv)
     if not csv.is_file():
         raise DatasetError(f"{csv}: flight CSV not found", file=csv.name)
@@ -166,17 +134,14 @@ def convert(csv: Union[str, os.PathLike], anchors: Optional[Union[str, os.PathLi
     if survey is None:
         raise DatasetError(f"{csv.name}: no anchor survey given and none found (survey-results/anchor_constN.npz "
                            "next to or above the CSV)", file=csv.name, hint="pass --anchors SURVEY.npz|_survey.txt")
-    anchors_df = read_survey(survey)
-    try:
-        raw = pd.read_csv(csv, dtype=str, skip_blank_lines=False)
-    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{csv.name}: malformed CSV: {exc}", file=csv.name) from None
+    changes: list[str] = []
+    anchors_df = read_survey(survey, quat_order, changes)
+    raw = read_csv_source(csv, what="flight CSV")
     for g in _REQUIRED:
         missing = [c for c in GROUPS[g] if c not in raw.columns]
         if missing:
             raise DatasetError(f"{csv.name}, line 1: missing column(s) {missing} (a UTIL flight CSV has "
                                f"{sum(GROUPS.values(), [])} ...)", file=csv.name, row=1, column=missing[0])
-    changes: list[str] = []
     td = _stream(raw, GROUPS["tdoa"], csv.name)
     acc = _stream(raw, GROUPS["acc"], csv.name)
     gyr = _stream(raw, GROUPS["gyro"], csv.name)
@@ -190,6 +155,7 @@ def convert(csv: Union[str, os.PathLike], anchors: Optional[Union[str, os.PathLi
                            column="idA")
     tdoa = tdoa_table(td[:, 0], td[:, 1].astype(int), td[:, 2].astype(int), td[:, 3], anchors_df, csv.name,
                       "line", first=2)
+    tdoa, outliers = drop_tdoa_outliers(tdoa, anchors_df, tdoa_margin, csv.name, changes)
     imu = combine_imu(acc[:, 0], acc[:, 1:4], gyr[:, 0], gyr[:, 1:4], csv.name, changes)
     gt = None
     if all(c in raw.columns for c in GROUPS["pose"]):
@@ -201,8 +167,8 @@ def convert(csv: Union[str, os.PathLike], anchors: Optional[Union[str, os.PathLi
             changes.append(f"{csv.name}: Vicon pose of the vehicle body frame -> groundtruth.csv (taken as the IMU "
                            "frame; quaternion reordered to qw, qx, qy, qz)")
     changes.append(f"{csv.name}: tof, flow and baro columns not imported")
-    changes.append(f"anchors from {survey.name}: ids 0..{len(anchors_df) - 1}"
-                   + (", orientation qw, qx, qy, qz (anchor -> Vicon frame)" if "qw" in anchors_df else ""))
+    changes.append(f"anchors from {survey.name}: ids 0..{len(anchors_df) - 1}")
+    changes.append(f"{csv.name}: every stream on the Crazyflie's clock (one log): single_clock: true")
     mode = "tdoa3" if "tdoa3" in csv.name else ("tdoa2" if "tdoa2" in csv.name else "tdoa")
     rate = 1.0 / float(np.median(np.diff(imu["t"].to_numpy())))
     meta = DatasetMeta(
@@ -214,7 +180,9 @@ def convert(csv: Union[str, os.PathLike], anchors: Optional[Union[str, os.PathLi
         source="UTIL dataset (Zhao, Goudar, Qiao, Schoellig, IJRR 2024), https://utiasdsl.github.io/util-uwb-dataset/; "
                f"file {csv.name}, survey {survey.name}",
         license="see the UTIL dataset's website (cite the IJRR paper when using the data)",
-        extra={"import_changes": list(changes), "uwb_mode": mode, "nominal_lever_arm_source": "devkit t_uv"},
+        single_clock=True,
+        extra={"import_changes": list(changes), "uwb_mode": mode, "nominal_lever_arm_source": "devkit t_uv",
+               "tdoa_outliers": outliers},
     )
     uwb = pd.DataFrame({"t": np.zeros(0), "anchor": np.zeros(0, dtype=str), "range": np.zeros(0)},
                        columns=UWB_COLUMNS)
@@ -222,8 +190,9 @@ def convert(csv: Union[str, os.PathLike], anchors: Optional[Union[str, os.PathLi
     return ImportResult(dataset=ds, changes=changes)
 
 
-def import_dataset(csv, dst, anchors=None, force: bool = False, name: Optional[str] = None) -> ImportResult:
+def import_dataset(csv, dst, anchors=None, force: bool = False, name: Optional[str] = None,
+                   tdoa_margin: float = TDOA_MARGIN_M, quat_order: QuatOrder = "auto") -> ImportResult:
     """Convert ``csv`` and write it to ``dst`` (refuses a non-empty ``dst`` unless ``force``)."""
-    res = convert(csv, anchors, name=name)
-    write_import(res, dst, force=force, src=csv)
+    res = convert(csv, anchors, name=name, tdoa_margin=tdoa_margin, quat_order=quat_order)
+    write_import(res, dst, force=force, src=csv, load_options=tdoa_load_options(tdoa_margin))
     return res
