@@ -12,6 +12,7 @@ import os
 import sys
 
 import typer
+import typer.rich_utils
 from typer.core import TyperOption
 
 
@@ -25,8 +26,30 @@ def _flag_type_hidden(display_type_rich):
     return wrapper
 
 
-# CLI-only presentation tweak (the library never touches typer).
+def _help_is_plain_text(make_rich_text):
+    """Help texts are plain text, not rich markup.
+
+    In typer's "rich" markup mode every help text (command docstrings, option and argument
+    help) goes through ``rich.Text.from_markup``, which reads a unit such as ``[s]``, ``[m]``
+    or ``[deg/s]`` as a style tag and drops it ("Window length [s]" printed "Window length").
+    No uwbimu help uses markup, so the text is escaped on its way in; the panels, the
+    highlighting and the "[default: ...]" / "[required]" texts typer adds are unchanged.
+    ``tests/test_cli_help_units.py`` renders every verb's help and checks every bracket.
+    """
+    from rich.markup import escape
+
+    @functools.wraps(make_rich_text)
+    def wrapper(*, text: str, markup_mode, **kwargs):
+        if markup_mode == "rich":
+            text = escape(text)
+        return make_rich_text(text=text, markup_mode=markup_mode, **kwargs)
+
+    return wrapper
+
+
+# CLI-only presentation tweaks (the library never touches typer).
 TyperOption.display_type_rich = _flag_type_hidden(TyperOption.display_type_rich)
+typer.rich_utils._make_rich_text = _help_is_plain_text(typer.rich_utils._make_rich_text)
 
 app = typer.Typer(
     name="uwbimu",
