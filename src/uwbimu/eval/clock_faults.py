@@ -51,6 +51,7 @@ import copy
 from typing import Any, Callable, Optional
 
 import numpy as np
+from scipy.stats import chi2
 
 from uwbimu.eval.clock_windows import ALPHA, consistency_tests, fit_step, windowed_time_offsets
 
@@ -260,6 +261,39 @@ def _nis_cost(result) -> float:
     return float(np.mean(np.minimum(nis, gate))) if len(nis) else np.inf
 
 
+def log_likelihood(result) -> tuple[float, int]:
+    """Gaussian innovation log-likelihood of a run's UWB rows and their number.
+
+    Per row ``-0.5 (min(NIS, gate) + ln(2 pi S))`` with ``S = innovation^2 / NIS`` (the residual
+    table's own variance); the NIS is clipped at the gate so that a few outliers (NLOS) do not
+    decide between two runs.  Rows without a finite positive NIS (not processed) are left out.
+    """
+    r = _range_rows(result)
+    if r is None or len(r) == 0 or "innovation" not in r.columns:
+        return -np.inf, 0
+    nis = r["nis"].to_numpy(float)
+    inn = r["innovation"].to_numpy(float)
+    ok = np.isfinite(nis) & np.isfinite(inn) & (nis > 0) & (inn != 0)
+    if not ok.any():
+        return -np.inf, 0
+    gate = float((result.config.get("resolved") or {}).get("gate_nis") or 10.8)
+    S = inn[ok] ** 2 / nis[ok]
+    return float(-0.5 * np.sum(np.minimum(nis[ok], gate) + np.log(2 * np.pi * S))), int(ok.sum())
+
+
+def likelihood_gain(before, after) -> float:
+    """``2 (l_after - l_before)`` per row times the rows both runs processed (the stamp correction
+    can move a few rows in or out of the processed span)."""
+    (l0, n0), (l1, n1) = log_likelihood(before), log_likelihood(after)
+    if n0 == 0 or n1 == 0:
+        return -np.inf
+    return float(2 * min(n0, n1) * (l1 / n1 - l0 / n0))
+
+
+#: Parameters a correction adds: a jump's time and size, a drift's slope.
+ADDED_PARAMETERS = {"clock_jump": 2, "clock_drift": 1}
+
+
 class _Fault:
     """One corrected quantity (a jump's size or the drift's slope) and its correction rounds.
 
@@ -287,9 +321,10 @@ class _Fault:
     def update(self, measured: Optional[tuple[float, float]]) -> bool:
         """Record the residual of the run with ``next_value`` applied; True when another round is due."""
         self.applied.append(self.next_value)
-        if measured is None:
+        if measured is None or not (np.isfinite(measured[0]) and np.isfinite(measured[1]) and measured[1] > 0):
+            # the corrected run could not be measured: the last measured sd stands (never NaN)
             self.residual.append(0.0)
-            self.sd.append(float("nan"))
+            self.sd.append(self.sd[-1])
             return False
         self.residual.append(float(measured[0]))
         self.sd.append(float(measured[1]))
@@ -349,6 +384,11 @@ def handle_clock_faults(result, dataset, rerun: Callable, console=None, alpha: f
     includes the uncertainty of the correction) and the dataset it ran on.  A clean log returns
     ``result`` unchanged without any re-run.
     """
+    if getattr(getattr(dataset, "meta", None), "single_clock", None) is True:
+        result.events.append({"kind": "check_skipped", "check": "clock_faults", "reason": "single_clock",
+                              "detail": "every stream was stamped by one clock (dataset.yaml single_clock: true): "
+                                        "no UWB-IMU clock to jump or drift; nothing tested, nothing corrected"})
+        return result, dataset
     found = _candidates(result, dataset, alpha)
     if not found:
         if not len(windowed_time_offsets(result)["t"]):
@@ -358,16 +398,19 @@ def handle_clock_faults(result, dataset, rerun: Callable, console=None, alpha: f
                                    "clock jump or drift larger than the filter can follow also ends in divergence")
         return result, dataset
     tried = [_correct(result, dataset, ev, rerun, alpha, max_rounds) for ev in found]
-    costs = [_nis_cost(t[1]) for t in tried]
-    best = int(np.argmin(costs))
+    gains = [likelihood_gain(result, t[1]) for t in tried]
+    best = int(np.argmax(gains))
     fault, current, cur_ds, t0, leftover = tried[best]
     ev = _final_event(fault, current, t0, alpha)
-    ev["nis_cost"] = costs[best]
-    ev["alternatives"] = [{"kind": t[0].event["kind"], "nis_cost": c} for i, (t, c) in enumerate(zip(tried, costs))
-                          if i != best]
-    if not (costs[best] < _nis_cost(result)):
-        # the corrected log does not fit better: keep the input, report what was seen
-        ev["handled"] = "not corrected: the corrected log did not fit the ranges better (mean clipped NIS)"
+    threshold = float(chi2.isf(alpha, ADDED_PARAMETERS[ev["kind"]]))
+    ev.update({"nis_cost": _nis_cost(current), "likelihood_gain": gains[best], "likelihood_threshold": threshold,
+               "alternatives": [{"kind": t[0].event["kind"], "likelihood_gain": g}
+                                for i, (t, g) in enumerate(zip(tried, gains)) if i != best]})
+    ev["corrected"] = bool(gains[best] > threshold)
+    if not ev["corrected"]:
+        # the corrected log is not more likely by the stated margin: revert, report what was seen
+        ev["handled"] = (f"not corrected: the corrected log's innovation log-likelihood did not improve by more "
+                         f"than the chi-square threshold (2 dl = {gains[best]:.1f} <= {threshold:.1f})")
         current, cur_ds = result, dataset
     else:
         cal = current.calibration
@@ -375,7 +418,7 @@ def handle_clock_faults(result, dataset, rerun: Callable, console=None, alpha: f
         cal["time_offset"], cal["time_offset_sd"] = ev["t_d"], ev["t_d_sd"]
     current.events.append(ev)
     current.warnings.append(_message(ev))
-    if leftover and not ev["handled"].startswith("not corrected"):
+    if leftover and ev["corrected"]:
         current.warnings.append(f"clock-fault check: after the correction the log still shows a {leftover[0]['kind']} "
                                 f"(z={leftover[0]['z']:.1f}); not corrected")
     if console is not None:

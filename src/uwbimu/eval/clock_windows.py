@@ -28,6 +28,7 @@ from typing import Any, Optional
 
 import numpy as np
 from scipy.stats import norm
+from scipy.stats import t as student_t
 
 from uwbimu.models.state import BA, BG, EBA, EBG, EPIU, ETD, PIU, TD
 
@@ -39,6 +40,12 @@ _NOM = list(range(BA.start, BA.stop)) + list(range(BG.start, BG.stop)) + list(ra
 ALPHA = 1e-4
 #: Median of the chi-square distribution with one degree of freedom.
 CHI2_1_MEDIAN = 0.4549364
+#: Largest lag-1 correlation of the window residuals credited (f = sqrt(19) = 4.4 at it): beyond it
+#: the series is a random walk and no finite inflation makes a trend test honest.
+PHI_MAX = 0.9
+#: Windows after a step's split left out of the scale and correlation estimates (the filter's
+#: absorption transient).
+TRANSIENT_WINDOWS = 3
 #: Number of windows aimed at (their length adapts to the log, never below MIN_WINDOW_S).
 N_WINDOWS = 40
 #: Shortest window [s]: a window must hold enough ranges for its information increment to be
@@ -168,56 +175,100 @@ def fit_step(y, w, k: int) -> tuple[float, float, float, float]:
 
 
 def dispersion(r: np.ndarray, w: np.ndarray) -> float:
-    """Scale ``c >= 1`` of normalised residuals ``r sqrt(w)``: robust and across time scales.
+    """Scale ``c >= 1`` of normalised residuals ``r sqrt(w)``, robust (median).
 
-    ``c^2`` is the largest of 1 and the median of the squared normalised residuals over the
-    chi-square(1) median (0.455), for the windows and for pairs of adjacent windows merged (slow
-    wander that single windows hide).  The median keeps a few transient windows after a
-    jump (the filter absorbing it) from hiding the jump itself.
+    ``c^2`` is the larger of 1 and the median of the squared normalised residuals over the
+    chi-square(1) median (0.455).  The median keeps a few transient windows after a jump (the
+    filter absorbing it) from hiding the jump itself; the floor keeps the filter's own sds as a
+    lower bound (never shrunk).  Slow wander is not this scale's business: :func:`lag1_correlation`
+    accounts for it.
     """
-    c2 = [1.0]
-    for m in (1, 2):
-        nn = len(r) // m
-        if nn < 6:
-            break
-        ww = w[:nn * m].reshape(nn, m).sum(1)
-        rm = (r[:nn * m] * w[:nn * m]).reshape(nn, m).sum(1) / ww
-        c2.append(float(np.median(rm ** 2 * ww)) / CHI2_1_MEDIAN)
-    return float(np.sqrt(max(c2)))
+    e2 = r ** 2 * w
+    if len(e2) < 6:
+        return 1.0
+    return float(np.sqrt(max(1.0, float(np.median(e2)) / CHI2_1_MEDIAN)))
+
+
+def _mad(x: np.ndarray) -> float:
+    return 1.4826 * float(np.median(np.abs(x - np.median(x))))
+
+
+def lag1_correlation(e: np.ndarray) -> float:
+    """Robust lag-1 autocorrelation of a residual series, bias-corrected, in ``[0, PHI_MAX]``.
+
+    From the scales of the series and of its differences, ``Var(e_i+1 - e_i) = 2 Var(e) (1 - phi)``,
+    each by the MAD (a transient window or an outlier does not decide it); plus the small-sample
+    bias of a lag-1 estimate, ``(1 + 3 phi) / n`` (Kendall).  Negative values are set to 0: the
+    variance is never deflated.
+    """
+    n = len(e)
+    s = _mad(e)
+    if n < 6 or not s > 0:
+        return 0.0
+    phi = 1.0 - (_mad(np.diff(e)) / s) ** 2 / 2.0
+    return float(np.clip(phi + (1.0 + 3.0 * phi) / n, 0.0, PHI_MAX))
+
+
+def critical_value(p: float, scale: float, n_eff: float, n_params: int = 2) -> float:
+    """Two-sided critical value at tail probability ``p`` (each side ``p/2``).
+
+    Normal when the filter's sds stood (``scale == 1``: nothing estimated), else Student t with
+    ``n_eff - n_params`` degrees of freedom (at least 1): the scale was estimated from ``n_eff``
+    effectively independent windows, and at ``p = 1e-4`` the normal quantile of an estimated
+    scale is far too small (for 16 degrees of freedom the t quantile is 1.5 times it).
+    """
+    if scale <= 1.0:
+        return float(norm.isf(p / 2))
+    return float(student_t.isf(p / 2, max(1.0, n_eff - n_params)))
 
 
 def consistency_tests(win: dict[str, np.ndarray], t_ref: float, alpha: float = ALPHA) -> dict[str, Any]:
     """Step and trend tests on windowed offsets at false-alarm probability ``alpha`` each.
 
-    * trend: ``z = |s| / (c sd_s)`` against ``Phi^-1(1 - alpha/2)``;
-    * step: the best split's ``z = |m2 - m1| / (c sd)`` against ``Phi^-1(1 - alpha / (2 n))``
-      (Bonferroni over the ``n`` candidate splits);
+    * trend: ``z = |s| / (c f sd_s)`` against :func:`critical_value` at ``alpha``;
+    * step: the best split's ``z = |m2 - m1| / (c f sd)`` against it at ``alpha / n`` (Bonferroni
+      over the ``n`` candidate splits);
 
-    ``c`` (:func:`dispersion`) is measured on the residuals about the better of the two models:
-    the window sds are scaled by the measured scatter, never shrunk.  When both pass, the model with the lower chi2
-    (the step paying ``2 ln n`` for its searched location) is the verdict.
+    ``c`` (:func:`dispersion`) is the robust scatter of the residuals about the better of the two
+    models (the window sds scaled by it, never shrunk), ``f = sqrt((1 + phi) / (1 - phi))`` the
+    variance inflation of a mean or slope of an AR(1) series with the residuals' robust lag-1
+    correlation ``phi`` (:func:`lag1_correlation`; real logs wander: vibration, NLOS, multipath),
+    and the critical value is Student t with the effective number of windows
+    ``n_eff = n (1 - phi) / (1 + phi)`` when ``c`` was estimated.  When both pass, the model with
+    the lower chi2 (the step paying ``2 ln n`` for its searched location) is the verdict.
 
     Returns a dict: ``verdict`` (``None``, ``"jump"`` or ``"drift"``), ``n`` windows, ``scale`` c,
-    ``slope``, ``slope_sd``, ``z_drift``, ``crit_drift``, ``k`` (first window after the step),
-    ``m1``, ``m2``, ``step_sd``, ``z_jump``, ``crit_jump``.
+    ``phi``, ``inflation`` f, ``n_eff``, ``slope``, ``slope_sd``, ``z_drift``, ``crit_drift``,
+    ``k`` (first window after the step), ``m1``, ``m2``, ``step_sd``, ``z_jump``, ``crit_jump``
+    (every sd finite and positive; fewer than 6 windows or non-finite inputs: no test, no ``scale``).
     """
     y, sd, tm = win["tau"], win["sd"], win["t"]
     n = len(y)
     out: dict[str, Any] = {"verdict": None, "n": n, "alpha": alpha}
-    if n < 6:
+    if n < 6 or not (np.all(np.isfinite(y)) and np.all(np.isfinite(sd)) and np.all(sd > 0)):
         return out
     w = 1.0 / sd ** 2
     a, s, s_sd, chi_line = fit_line(tm, y, w, t_ref)
     best = min((fit_step(y, w, k) + (k,) for k in range(2, n - 1)), key=lambda r: r[3])
     m1, m2, st_sd, chi_step, k = best
     better = np.where(np.arange(n) < k, m1, m2) if chi_step < chi_line else a + s * (tm - t_ref)
-    c = dispersion(y - better, w)
+    # the filter absorbs a jump over a few windows: that transient is neither scatter nor wander
+    keep = np.ones(n, bool)
+    if chi_step < chi_line:
+        keep[k:k + TRANSIENT_WINDOWS] = False
+    c = dispersion((y - better)[keep], w[keep])
+    phi = lag1_correlation(((y - better) * np.sqrt(w))[keep])
+    f = float(np.sqrt((1 + phi) / (1 - phi)))
+    n_eff = n * (1 - phi) / (1 + phi)
     n_split = n - 3
-    out.update({"scale": c, "offset_at_ref": a, "slope": s, "slope_sd": c * s_sd, "chi2_line": chi_line,
-                "z_drift": abs(s) / (c * s_sd), "crit_drift": float(norm.isf(alpha / 2)),
-                "k": int(k), "t_split": float(win["t0"][k]), "m1": m1, "m2": m2, "step_sd": c * st_sd,
-                "chi2_step": chi_step, "z_jump": abs(m2 - m1) / (c * st_sd),
-                "crit_jump": float(norm.isf(alpha / (2 * n_split)))})
+    out.update({"scale": c, "phi": phi, "inflation": f, "n_eff": n_eff, "offset_at_ref": a, "slope": s,
+                "slope_sd": c * f * s_sd, "chi2_line": chi_line,
+                "z_drift": abs(s) / (c * f * s_sd), "crit_drift": critical_value(alpha, c, n_eff),
+                "k": int(k), "t_split": float(win["t0"][k]), "m1": m1, "m2": m2, "step_sd": c * f * st_sd,
+                "chi2_step": chi_step, "z_jump": abs(m2 - m1) / (c * f * st_sd),
+                "crit_jump": critical_value(alpha / n_split, c, n_eff)})
+    if not (np.isfinite(out["z_drift"]) and np.isfinite(out["z_jump"]) and out["slope_sd"] > 0 and out["step_sd"] > 0):
+        return {"verdict": None, "n": n, "alpha": alpha}
     jump = out["z_jump"] > out["crit_jump"]
     drift = out["z_drift"] > out["crit_drift"]
     if jump and (not drift or chi_step + 2 * np.log(n_split) < chi_line):
