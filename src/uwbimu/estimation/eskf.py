@@ -30,6 +30,7 @@ from uwbimu.estimation.options import EskfOptions
 from uwbimu.estimation.problem import make_settings, nominal_period, set_imu_timing
 from uwbimu.estimation.streaming import Eskf
 from uwbimu.estimation.result import EstimationResult
+from uwbimu.estimation.segments import segment_warning, select_segment
 from uwbimu.io.dataset import Dataset
 from uwbimu.models.quaternion import quat_multiply
 from uwbimu.models.reference import midpoint_inputs
@@ -262,9 +263,13 @@ def run_eskf(
     t_wall = time.perf_counter()
     cpu0 = time.process_time()
     cpu_filter = 0.0
+    dataset, ev_segment = select_segment(dataset, opts.segment, opts.start, opts.end)
     prob, info = build_problem(dataset, opts)
     warnings: list[str] = list(info["warnings"])
-    events: list[dict[str, Any]] = list(info["events"])
+    events: list[dict[str, Any]] = [ev_segment] + list(info["events"])
+    if ev_segment["used"] != [float(dataset.imu["t"].iloc[0]), float(dataset.imu["t"].iloc[-1])] or \
+            ev_segment.get("shadowed_before") or ev_segment.get("shadowed_after"):
+        warnings.append(segment_warning(ev_segment))
     priors = info["priors"]
     n_imu = len(prob.imu_t)
     t_imu0, t_imu1 = prob.imu_t[0], prob.imu_t[-1]

@@ -172,6 +172,15 @@ class EskfOptions(_Strict):
         "180 deg about x, and every output is turned back into the anchors' frame)",
     )
     tag: Optional[str] = Field(default=None, description="tag to use when the log has several; None: the first")
+    segment: Literal["auto", "whole"] = Field(
+        default="auto",
+        description="'auto': detect take-off and landing from the IMU and leave out the time on the floor where "
+        "the floor ranges contradict the airborne ones (a shadowed radio; uwbimu.estimation.segments); 'whole': "
+        "the whole log")
+    start: Optional[float] = Field(default=None, allow_inf_nan=False,
+                                   description="use the log from this stamp [s] (overrides segment)")
+    end: Optional[float] = Field(default=None, allow_inf_nan=False,
+                                 description="use the log up to this stamp [s] (overrides segment)")
     cov_every: int = Field(default=1, ge=1, description="IMU samples per covariance step (preintegrated block)")
     output_rate_hz: float = Field(default=20.0, gt=0, le=1000, description="[Hz] rate of the output trajectory")
     store_covariance: bool = True
