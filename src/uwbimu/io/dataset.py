@@ -47,10 +47,14 @@ GT_VEL_COLUMNS = ["vx", "vy", "vz"]
 TABLES = ("imu", "uwb", "tdoa", "anchors", "anchor_ranges", "groundtruth")
 
 
+#: dataset.yaml holds finite numbers only (a NaN lever arm would silently disable every range).
+_META_CONFIG = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
 class TagMeta(BaseModel):
     """A UWB tag on the vehicle with its nominal lever arm (IMU frame, m)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = _META_CONFIG
     name: str = "tag0"
     lever_arm: Optional[list[float]] = Field(default=None, min_length=3, max_length=3)
 
@@ -58,7 +62,7 @@ class TagMeta(BaseModel):
 class TruthMeta(BaseModel):
     """True calibration, when known (simulation), used only for evaluation."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = _META_CONFIG
     lever_arm: Optional[list[float]] = Field(default=None, min_length=3, max_length=3)
     time_offset: Optional[float] = None
     anchor_bias: Optional[dict[str, float]] = None
@@ -66,9 +70,14 @@ class TruthMeta(BaseModel):
 
 
 class DatasetMeta(BaseModel):
-    """Contents of ``dataset.yaml``."""
+    """Contents of ``dataset.yaml``.
 
-    model_config = ConfigDict(extra="forbid")
+    ``tags``: when the file lists them, every ``tag`` of uwb.csv / tdoa.csv must be one of their names
+    (checked by :func:`uwbimu.io.loader.load_dataset`, as are the ids of ``known_anchor_bias`` against
+    anchors.csv).
+    """
+
+    model_config = _META_CONFIG
     name: str = "unnamed"
     description: str = ""
     imu_noise: Optional[ImuNoise] = None
@@ -91,6 +100,14 @@ class DatasetMeta(BaseModel):
         "check reports nothing and corrects nothing. None = not known.",
     )
     extra: dict = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _unique_tags(self) -> "DatasetMeta":
+        names = [t.name for t in self.tags]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"tag name(s) {', '.join(repr(n) for n in dup)} appear more than once in tags")
+        return self
 
     @model_validator(mode="after")
     def _legacy_anchor_frame_up(self) -> "DatasetMeta":

@@ -38,7 +38,8 @@ from uwbimu.errors import InputError
 from uwbimu.optional import require
 from uwbimu.io.anchor_ranges import parse_range_sd, parse_surveyed
 from uwbimu.io import plausibility
-from uwbimu.io.yamlconfig import yaml_line
+from uwbimu.io.textio import decode_text, find_non_utf8
+from uwbimu.io.yamlconfig import find_non_finite, yaml_line
 from uwbimu.io.dataset import (
     ANCHOR_COLUMNS,
     ANCHOR_QUAT_COLUMNS,
@@ -74,6 +75,13 @@ QUAT_NORM_TOL = 1e-2
 
 #: Default margin [m] by which |tdoa| may exceed the two anchors' separation (noise, NLOS bias).
 TDOA_MARGIN_M = 1.0
+
+#: Every |tdoa| below this [m] means the column holds seconds (10 m is 33 ns).
+TDOA_SECONDS_MAX = 1e-6
+#: A median |tdoa| above this many times the largest anchor separation cannot be metres, whatever the margin.
+TDOA_UNIT_RATIO = 20.0
+#: One DW1000 time-stamp tick (1 / (128 x 499.2 MHz) = 15.65 ps) as a distance [m].
+DW1000_TICK_M = 299_792_458.0 / (128 * 499.2e6)
 
 _TEXT_COLUMNS = ("anchor", "tag", "anchor_a", "anchor_b")
 
@@ -260,14 +268,26 @@ def _read_raw(src: _Source, columns: list[str]) -> pd.DataFrame:
         if src.path.stat().st_size == 0:
             raise DatasetError(empty_msg, file=src.name, row=1, column=columns[0])
         try:
-            df = pd.read_csv(src.path, dtype={c: str for c in _TEXT_COLUMNS},
-                             skip_blank_lines=False, skipinitialspace=True)
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", pd.errors.ParserWarning)
+                # index_col=False: a first data row longer than the header must not turn the
+                # first column into the index (pandas' default); such rows are refused below
+                df = pd.read_csv(src.path, dtype={c: str for c in _TEXT_COLUMNS}, index_col=False,
+                                 skip_blank_lines=False, skipinitialspace=True)
         except pd.errors.EmptyDataError:
             raise DatasetError(empty_msg, file=src.name, row=1, column=columns[0]) from None
         except pd.errors.ParserError as exc:
-            raise DatasetError(f"{src.name}: malformed CSV: {exc}", file=src.name) from None
+            line = _first_long_line(src.path)
+            raise DatasetError(f"{src.name}{f', line {line}' if line else ''}: malformed CSV: {exc}",
+                               file=src.name, row=line) from None
         except UnicodeDecodeError as exc:
             raise DatasetError(f"{src.name}: not a text CSV file ({exc})", file=src.name) from None
+        if any(issubclass(w.category, pd.errors.ParserWarning) for w in caught):
+            # pandas dropped the extra fields of rows longer than the header: refuse instead
+            line = _first_long_line(src.path)
+            raise DatasetError(f"{src.name}{f', line {line}' if line else ''}: the row has more fields than the "
+                               f"header line; remove the extra fields or name them in the header",
+                               file=src.name, row=line)
     else:
         require("pyarrow", "parquet", f"reading {src.name}")
         try:
@@ -306,6 +326,17 @@ def _read_raw(src: _Source, columns: list[str]) -> pd.DataFrame:
                            f"(expected rows with columns {expected})",
                            file=src.name, row=2 if src.is_csv else 1, column=columns[0])
     return df
+
+
+def _first_long_line(path: Path) -> Optional[int]:
+    """Line number (header = 1) of the first row with more fields than the header (None: no such row)."""
+    with open(path, newline="", encoding="utf-8", errors="replace") as fh:
+        reader = csv.reader(fh, skipinitialspace=True)
+        header = next(reader, [])
+        for row in reader:
+            if len(row) > len(header):
+                return reader.line_num
+    return None
 
 
 def _require_columns(src: _Source, df: pd.DataFrame, required: list[str], report: LoadReport,
@@ -660,12 +691,47 @@ def _check_anchor_ids(src: _Source, df: pd.DataFrame, columns: tuple[str, ...], 
                 file=src.name, row=src.row_number(i0), column=col)
 
 
-def _check_tdoa_bound(src: _Source, tdoa: pd.DataFrame, anchors: pd.DataFrame, margin: float) -> None:
-    """|tdoa| cannot exceed the anchors' separation (triangle inequality) plus a noise margin."""
+def _tdoa_separation(tdoa: pd.DataFrame, anchors: pd.DataFrame) -> np.ndarray:
+    """Distance between the two anchors of every TDoA row [m]."""
     pos = {a: np.array([x, y, z]) for a, x, y, z in anchors[["anchor", "x", "y", "z"]].itertuples(index=False)}
     pa = np.array([pos[a] for a in tdoa["anchor_a"]])
     pb = np.array([pos[b] for b in tdoa["anchor_b"]])
-    sep = np.linalg.norm(pa - pb, axis=1)
+    return np.linalg.norm(pa - pb, axis=1)
+
+
+def _check_tdoa_unit(src: _Source, tdoa: pd.DataFrame, anchors: pd.DataFrame, margin: float) -> None:
+    """Refuse a tdoa column that is not in metres as a whole, naming the unit it looks like.
+
+    Seconds: every |tdoa| below :data:`TDOA_SECONDS_MAX` while the anchors are metres apart (a range
+    difference of metres is tens of nanoseconds).  DW1000 ticks (15.65 ps, 4.69 mm each) or raw
+    timestamps: most rows exceed the anchors' separation plus the margin, or the median |tdoa| is more
+    than :data:`TDOA_UNIT_RATIO` times the largest separation (whatever the margin).  Single rows
+    beyond the separation are left to :func:`_check_tdoa_bound` (outliers).
+    """
+    val = np.abs(tdoa["tdoa"].to_numpy(float))
+    sep = _tdoa_separation(tdoa, anchors)
+    if not len(val) or sep.max() <= 0.1:
+        return
+    first = tdoa.index[0]
+    if val.max() < TDOA_SECONDS_MAX:
+        raise src.error(
+            f"every |tdoa| is below {TDOA_SECONDS_MAX:g} (largest {val.max():.3g}) while the anchors are up to "
+            f"{sep.max():.2f} m apart: the values look like seconds; tdoa is the range difference in metres "
+            f"(time difference x c, c = 299792458 m/s)", first, "tdoa")
+    over = val > sep + margin
+    if over.mean() > 0.5 or np.median(val) > TDOA_UNIT_RATIO * sep.max():
+        in_ticks = np.mean(val * DW1000_TICK_M <= sep + margin) > 0.9
+        unit = (f"DW1000 ticks (15.65 ps, {DW1000_TICK_M * 1e3:.2f} mm each: multiply by {DW1000_TICK_M:.6g} "
+                f"to get metres)" if in_ticks else "clock ticks or raw timestamps, not a range difference in metres")
+        raise src.error(
+            f"{int(over.sum())} of {len(val)} rows have |tdoa| beyond the anchors' separation plus the {margin:g} m "
+            f"margin (median |tdoa| {np.median(val):.4g}, largest separation {sep.max():.2f} m): the values look "
+            f"like {unit}", first, "tdoa")
+
+
+def _check_tdoa_bound(src: _Source, tdoa: pd.DataFrame, anchors: pd.DataFrame, margin: float) -> None:
+    """|tdoa| cannot exceed the anchors' separation (triangle inequality) plus a noise margin."""
+    sep = _tdoa_separation(tdoa, anchors)
     val = tdoa["tdoa"].to_numpy()
     bad = np.flatnonzero(np.abs(val) > sep + margin)
     if len(bad):
@@ -715,8 +781,18 @@ def _load_groundtruth(src: _Source, options: LoadOptions, report: LoadReport) ->
 # ---------------------------------------------------------------------------
 def load_meta(path: str | Path) -> DatasetMeta:
     """Read and validate a ``dataset.yaml``; errors name the file, line and key."""
-    path = Path(path)
-    text = path.read_text()
+    return _read_meta(Path(path))[0]
+
+
+def _read_meta(path: Path) -> tuple[DatasetMeta, str]:
+    """``dataset.yaml`` as :class:`DatasetMeta` and its text (for the lines of later refusals)."""
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise DatasetError(f"{path.name}: cannot read: {exc.strerror or exc}", file=path.name) from None
+    bad = find_non_utf8(raw)
+    text = decode_text(raw, path.name, what="dataset metadata",
+                       error=lambda m: DatasetError(m, file=path.name, row=bad.line if bad else None))
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -725,12 +801,13 @@ def load_meta(path: str | Path) -> DatasetMeta:
         raise DatasetError(f"{path.name}{f', line {line}' if line else ''}: invalid YAML: {exc}",
                            file=path.name, row=line) from None
     if data is None:
-        return DatasetMeta()
+        return DatasetMeta(), text
     if not isinstance(data, dict):
         raise DatasetError(f"{path.name}: must hold a mapping of keys (name, description, ...), "
                            f"got {type(data).__name__}", file=path.name, row=1)
+    _refuse_non_finite_meta(path, data, text)
     try:
-        return DatasetMeta.model_validate(data)
+        meta = DatasetMeta.model_validate(data)
     except ValidationError as exc:
         problems = []
         first_line, first_key = None, None
@@ -746,6 +823,44 @@ def load_meta(path: str | Path) -> DatasetMeta:
         allowed = ", ".join(DatasetMeta.model_fields)
         raise DatasetError("; ".join(problems) + f". Top-level keys allowed: {allowed}",
                            file=path.name, row=first_line, column=first_key) from None
+    # strings such as "inf" that a float field read as a number
+    _refuse_non_finite_meta(path, meta.model_dump(), text)
+    return meta, text
+
+
+def _refuse_non_finite_meta(path: Path, data: dict, text: str) -> None:
+    found = find_non_finite(data)
+    if found is not None:
+        loc, value = found
+        key = ".".join(str(k) for k in loc)
+        line = yaml_line(text, loc)
+        raise DatasetError(f"{path.name}{f', line {line}' if line else ''}, key '{key}': {value} is not a finite "
+                           f"number; dataset.yaml holds finite numbers only", file=path.name, row=line, column=key)
+
+
+def _check_meta_ids(meta: DatasetMeta, meta_name: str, text: Optional[str], anchors_src: _Source, known: set[str],
+                    tagged: list[tuple[_Source, pd.DataFrame]]) -> None:
+    """dataset.yaml against the tables: ``known_anchor_bias`` ids must be anchors of anchors.csv, and the
+    ``tag`` ids of uwb.csv / tdoa.csv must be tags of dataset.yaml when the file lists its tags."""
+    for a in (meta.known_anchor_bias or {}):
+        if a not in known:
+            loc = ("known_anchor_bias", a)
+            line = yaml_line(text, loc) if text is not None else None
+            raise DatasetError(f"{meta_name}{f', line {line}' if line else ''}, key 'known_anchor_bias.{a}': anchor "
+                               f"{a!r} is not in {anchors_src.name} (which has: {', '.join(sorted(known))}); its "
+                               f"bias would be ignored", file=meta_name, row=line, column=f"known_anchor_bias.{a}")
+    if "tags" not in meta.model_fields_set:
+        return  # tags not listed: every tag of the tables takes the defaults (no lever arm)
+    declared = [t.name for t in meta.tags]
+    for src, df in tagged:
+        if "tag" not in df.columns:
+            continue
+        unknown = [g for g in pd.unique(df["tag"]) if g not in declared]
+        if unknown:
+            i0 = df.index[(df["tag"] == unknown[0]).to_numpy()][0]
+            raise src.error(f"tag id(s) {', '.join(repr(g) for g in unknown)} are not among the tags of {meta_name} "
+                            f"({', '.join(repr(g) for g in declared)}); their lever arm would be unknown", i0, "tag",
+                            hint=f"name every tag of {src.name} under tags: in {meta_name}")
 
 
 # ---------------------------------------------------------------------------
@@ -800,7 +915,7 @@ def load_dataset(path: str | Path, options: Optional[LoadOptions] = None, **kwar
             report.files[k] = s.name
 
     meta_path = next((folder / n for n in ("dataset.yaml", "dataset.yml") if (folder / n).is_file()), None)
-    meta = load_meta(meta_path) if meta_path is not None else DatasetMeta()
+    meta, meta_text = _read_meta(meta_path) if meta_path is not None else (DatasetMeta(), None)
     if meta_path is not None:
         report.files["meta"] = meta_path.name
 
@@ -822,9 +937,12 @@ def load_dataset(path: str | Path, options: Optional[LoadOptions] = None, **kwar
         _check_anchor_ids(srcs["uwb"], uwb, ("anchor",), srcs["anchors"], known)
     if tdoa is not None:
         _check_anchor_ids(srcs["tdoa"], tdoa, ("anchor_a", "anchor_b"), srcs["anchors"], known)
+        _check_tdoa_unit(srcs["tdoa"], tdoa, anchors, options.tdoa_margin)
         _check_tdoa_bound(srcs["tdoa"], tdoa, anchors, options.tdoa_margin)
     if anchor_ranges is not None:
         _check_anchor_ids(srcs["anchor_ranges"], anchor_ranges, ("anchor_a", "anchor_b"), srcs["anchors"], known)
+    _check_meta_ids(meta, meta_path.name if meta_path is not None else "dataset.yaml", meta_text, srcs["anchors"],
+                    known, [(srcs[k], df) for k, df in (("uwb", uwb), ("tdoa", tdoa)) if srcs[k] is not None])
 
     # Time base, rates and physics across tables (see uwbimu.io.plausibility).
     timed = {"imu": (srcs["imu"], imu)}

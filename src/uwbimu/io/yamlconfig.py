@@ -158,7 +158,7 @@ def _refuse_non_finite(data: Any, source: str, what: str, text: Optional[str], e
     name = ".".join(str(x) for x in loc) or "(top level)"
     line = yaml_line(text, loc) if text is not None and loc else None
     raise _refusal(error, f"{source}: invalid {what} (1 error(s))\n  {f'line {line}, ' if line else ''}field "
-                          f"'{name}': {value} is not a finite number; every number of a {what} file must be finite",
+                          f"'{name}': {value} is not a finite number (NaN and infinity are refused)",
                    source, line, name)
 
 
