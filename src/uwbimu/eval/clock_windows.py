@@ -43,9 +43,6 @@ CHI2_1_MEDIAN = 0.4549364
 #: Largest lag-1 correlation of the window residuals credited (f = sqrt(19) = 4.4 at it): beyond it
 #: the series is a random walk and no finite inflation makes a trend test honest.
 PHI_MAX = 0.9
-#: Windows after a step's split left out of the scale and correlation estimates (the filter's
-#: absorption transient).
-TRANSIENT_WINDOWS = 3
 #: Number of windows aimed at (their length adapts to the log, never below MIN_WINDOW_S).
 N_WINDOWS = 40
 #: Shortest window [s]: a window must hold enough ranges for its information increment to be
@@ -252,12 +249,8 @@ def consistency_tests(win: dict[str, np.ndarray], t_ref: float, alpha: float = A
     best = min((fit_step(y, w, k) + (k,) for k in range(2, n - 1)), key=lambda r: r[3])
     m1, m2, st_sd, chi_step, k = best
     better = np.where(np.arange(n) < k, m1, m2) if chi_step < chi_line else a + s * (tm - t_ref)
-    # the filter absorbs a jump over a few windows: that transient is neither scatter nor wander
-    keep = np.ones(n, bool)
-    if chi_step < chi_line:
-        keep[k:k + TRANSIENT_WINDOWS] = False
-    c = dispersion((y - better)[keep], w[keep])
-    phi = lag1_correlation(((y - better) * np.sqrt(w))[keep])
+    c = dispersion(y - better, w)
+    phi = lag1_correlation((y - better) * np.sqrt(w))
     f = float(np.sqrt((1 + phi) / (1 - phi)))
     n_eff = n * (1 - phi) / (1 + phi)
     n_split = n - 3
