@@ -5,10 +5,13 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Optional
 
+import math
+
 import typer
 
-from uwbimu.cli.conventions import FORCE_HELP
+from uwbimu.cli.conventions import FORCE_HELP, measurement_counts, value_sd
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from uwbimu.cli.dataset_options import with_load_options
@@ -40,23 +43,23 @@ def calibration_summary(cal: dict, truth=None) -> Table:
             tv = t_lever[i] if t_lever is not None else None
             label = f"lever arm {c} (cm)" if name is None else f"lever arm {c}, {name} (cm)"
             pname = f"lever_arm_{c}" if k == 0 else f"lever_arm_{name}_{c}"
-            t.add_row(label, f"{100 * blk['lever_arm'][i]:.2f} ± {100 * blk['lever_arm_sd'][i]:.2f}",
+            t.add_row(escape(label), value_sd(blk["lever_arm"][i], blk["lever_arm_sd"][i], 100),
                       "-" if tv is None else f"{100 * tv:.2f}", source(pname),
                       (verdicts.get(c) or {}).get("verdict", "-"))
     td = cal["time_offset"]
     tv = truth.time_offset if truth is not None else None
     if td["held_at_prior"]:
         val = f"{1000 * td['value']:.1f} (held at prior: {td['verdict']})"
-    elif td["sd_curvature"] is not None:
-        val = (f"{1000 * td['value']:.1f} ± {1000 * td['sd']:.1f} marginal, ± {1000 * td['sd_curvature']:.1f} "
+    elif td["sd_curvature"] is not None and math.isfinite(td["sd_curvature"]):
+        val = (f"{value_sd(td['value'], td['sd'], 1000, '.1f')} marginal, ± {1000 * td['sd_curvature']:.1f} "
                f"profile curvature")
     else:
-        val = f"{1000 * td['value']:.1f} ± {1000 * td['sd']:.1f} marginal ({td['verdict']})"
+        val = f"{value_sd(td['value'], td['sd'], 1000, '.1f')} marginal ({td['verdict']})"
     t.add_row("time offset (ms)", val, "-" if tv is None else f"{1000 * tv:.1f}",
               "-" if td["held_at_prior"] else source("time_offset"), td["verdict"])
     bias_v = (cal.get("identifiability") or {}).get("anchor_bias") or {}
     for a, b in cal["anchor_bias"].items():
-        t.add_row(f"range bias {a} (cm)", f"{100 * b:.2f} ± {100 * cal['anchor_bias_sd'][a]:.2f}", "-",
+        t.add_row(escape(f"range bias {a} (cm)"), value_sd(b, cal["anchor_bias_sd"][a], 100), "-",
                   source(f"anchor_bias_{a}"), (bias_v.get(a) or bias_v.get(str(a)) or {}).get("verdict", "-"))
     return t
 
@@ -68,7 +71,7 @@ def anchor_summary(anchors: dict) -> Table:
         t.add_column(c, justify="left" if c == "anchor" else "right")
     for a in anchors["estimated"]:
         e = anchors["positions"][a]
-        t.add_row(a, *[f"{v:.3f} ± {s:.3f}" for v, s in zip(e["position"], e["sd"])],
+        t.add_row(escape(str(a)), *[value_sd(v, s, fmt=".3f") for v, s in zip(e["position"], e["sd"])],
                   "none" if e["prior_sd"] is None else f"{e['prior_sd']:g} m")
     return t
 
@@ -126,33 +129,40 @@ def register(app: typer.Typer) -> None:
             written = write_calibration(res, tmp, plots=plots)
         cal = res.calibration
         console.print(calibration_summary(cal, ds.meta.truth))
-        if cal["time_offset"].get("advice"):
-            console.print(f"[yellow]time offset not identified ({cal['time_offset']['verdict']}):[/] "
-                          f"{cal['time_offset']['advice']}")
-            console.print(f"the other values and sigmas are conditional on t_d = {1000 * cal['time_offset']['value']:.1f} ms "
+        td = cal["time_offset"]
+        if td.get("advice"):
+            console.print(f"[yellow]time offset not identified ({escape(str(td['verdict']))}):[/] "
+                          f"{escape(str(td['advice']))}")
+            console.print(f"the other values and sigmas are conditional on t_d = {1000 * td['value']:.1f} ms "
                           "(held at the prior; its uncertainty is not in them)")
         if "anchors" in cal and cal["anchors"]["estimated"]:
             console.print(anchor_summary(cal["anchors"]))
         for ev in res.events:
             if ev["kind"].startswith("anchor_"):
-                console.print(f"[yellow]{ev['kind']}:[/] {ev['message']}")
+                console.print(f"[yellow]{ev['kind']}:[/] {escape(str(ev['message']))}")
         sc = cal.get("imu_noise", {}).get("scale", {})
         if sc.get("method") == "variance_component":
-            console.print(f"IMU noise model scaled by {sc['scale']:.3g}" + (f" ± {sc['scale_sd']:.2g}" if sc.get("scale_sd")
-                          else "") + " (estimated from the log; imu_noise_scale: fixed to keep the stated one)")
+            sd = sc.get("scale_sd")
+            console.print(f"IMU noise model scaled by {sc['scale']:.3g}"
+                          + (f" ± {sd:.2g}" if sd is not None and math.isfinite(sd) and sd > 0 else "")
+                          + " (estimated from the log; imu_noise_scale: fixed to keep the stated one)")
         for ev in res.events:
             if ev["kind"] == "lever_arm_not_identified":
-                console.print(f"[yellow]{ev['kind']}:[/] {ev['message']}")
+                console.print(f"[yellow]{ev['kind']}:[/] {escape(str(ev['message']))}")
             if ev["kind"] == "range_errors_correlated_over_blocks":
-                console.print(f"[yellow]{ev['kind']}:[/] sigma of {', '.join(ev['parameters'])} widened to the "
-                              f"spread between the {ev['blocks']} parts of the log (the range model misses an error "
-                              f"that follows the motion; see calibration.yaml covariance.block_check); {ev['advice']}")
+                console.print(f"[yellow]{ev['kind']}:[/] " + escape(
+                    f"sigma of {', '.join(ev['parameters'])} widened to the spread between the {ev['blocks']} parts "
+                    f"of the log (the range model misses an error that follows the motion; see calibration.yaml "
+                    f"covariance.block_check); {ev['advice']}"))
         if any(ev["kind"] == "second_start_won" for ev in res.events):
             console.print("note: the solve started from the robust-range ESKF reached a lower cost and was used "
                           "(event second_start_won)")
         r = cal["ranges"]
         hub = cal["range_model"].get("huber", {})
-        console.print(f"{r['used']} ranges ({r['downweighted']} down-weighted by Huber at {r['huber_k']:.2f} sigma"
-                      f"{' (adaptive)' if hub.get('selection') == 'adaptive' else ''}, "
-                      f"{r['expected_downweighted']:.0f} expected from Gaussian noise), {len(written)} files "
-                      f"in {out}, {res.runtime_s:.1f} s")
+        # cal["ranges"] counts every measurement row of the solve (ranges and TDoA)
+        used = "ranges" if getattr(ds, "tdoa", None) is None else "measurements"
+        console.print(escape(
+            f"{measurement_counts(ds)}: {r['used']} {used} in the solve ({r['downweighted']} down-weighted by Huber "
+            f"at {r['huber_k']:.2f} sigma{' (adaptive)' if hub.get('selection') == 'adaptive' else ''}, "
+            f"{r['expected_downweighted']:.0f} expected from Gaussian noise), {len(written)} files in {out}, "
+            f"{res.runtime_s:.1f} s"))

@@ -47,3 +47,25 @@ def fit_table(console, table, fold=()):
         if f:
             c.overflow = "fold"
     return table
+
+
+def value_sd(value, sd, scale: float = 1.0, fmt: str = ".2f", sep: str = " ± ") -> str:
+    """``"value ± sd"`` (both times ``scale``) for the console; never ``± nan``.
+
+    A missing or non-finite ``sd`` (a parameter the estimator holds, or whose
+    uncertainty it could not compute) prints as ``"value (σ not estimated)"``.
+    """
+    import math
+
+    v = format(scale * value, fmt)
+    if sd is None or not math.isfinite(float(sd)):
+        return f"{v} (σ not estimated)"
+    return f"{v}{sep}{format(scale * sd, fmt)}"
+
+
+def measurement_counts(ds) -> str:
+    """``"N IMU samples, M ranges[, K TDoA]"`` of a dataset (TDoA counted when it has ``tdoa``)."""
+    text = f"{len(ds.imu)} IMU samples, {len(ds.uwb)} ranges"
+    if getattr(ds, "tdoa", None) is not None:
+        text += f", {len(ds.tdoa)} TDoA"
+    return text

@@ -6,10 +6,12 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+import pandas as pd
 import typer
 
-from uwbimu.cli.conventions import FORCE_HELP
+from uwbimu.cli.conventions import FORCE_HELP, measurement_counts, value_sd
 from rich.console import Console
+from rich.markup import escape
 
 from uwbimu.cli.dataset_options import with_load_options
 from rich.table import Table
@@ -43,33 +45,69 @@ def calibration_table(result, dataset=None, title: str = "Calibration (value ± 
             v, s = blk["lever_arm"][i], blk["lever_arm_sd"][i]
             tv = t_lever[i] if t_lever is not None else None
             label = f"lever arm {c} (cm)" if name is None else f"lever arm {c}, {name} (cm)"
-            table.add_row(label, f"{100 * v:.2f} ± {100 * s:.2f}", f"{100 * tv:.2f}" if tv is not None else "-",
-                          f"{(v - tv) / s:+.1f}" if tv is not None and s > 0 else "-")
+            table.add_row(label, value_sd(v, s, 100), f"{100 * tv:.2f}" if tv is not None else "-", _z(v, s, tv))
     v, s = cal["time_offset"], cal["time_offset_sd"]
     tv = truth.time_offset if truth is not None else None
-    table.add_row("time offset (ms)", f"{1000 * v:.2f} ± {1000 * s:.2f}", f"{1000 * tv:.2f}" if tv is not None else "-",
-                  f"{(v - tv) / s:+.1f}" if tv is not None and s > 0 else "-")
+    table.add_row("time offset (ms)", value_sd(v, s, 1000), f"{1000 * tv:.2f}" if tv is not None else "-",
+                  _z(v, s, tv))
     if cal.get("time_offset_verdict"):
         table.add_row("time offset verdict", str(cal["time_offset_verdict"]), "-", "-")
     for name, key, scale, unit in (("accel bias", "accel_bias", 1.0, "m/s²"), ("gyro bias", "gyro_bias", 180 / np.pi, "deg/s")):
-        vals = ", ".join(f"{scale * a:.4f}±{scale * b:.4f}" for a, b in zip(cal[key], cal[key + "_sd"]))
+        vals = ", ".join(value_sd(a, b, scale, ".4f", sep="±") for a, b in zip(cal[key], cal[key + "_sd"]))
         table.add_row(f"{name} ({unit})", vals, "-", "-")
     for a, b in (cal.get("anchor_bias") or {}).items():
         s = cal["anchor_bias_sd"][a]
         tv = (truth.anchor_bias or {}).get(a) if truth is not None else None
-        table.add_row(f"range bias {a} (cm)", f"{100 * b:.2f} ± {100 * s:.2f}", f"{100 * tv:.2f}" if tv is not None else "-",
-                      f"{(b - tv) / s:+.1f}" if tv is not None and s > 0 else "-")
+        table.add_row(f"range bias {escape(str(a))} (cm)", value_sd(b, s, 100),
+                      f"{100 * tv:.2f}" if tv is not None else "-", _z(b, s, tv))
     return table
 
 
-def residual_rich_table(table_df) -> Table:
-    t = Table(title="Range residuals per anchor")
-    for c in ("anchor", "ranges", "accepted", "rejected %", "median (cm)", "MAD (cm)"):
-        t.add_column(c, justify="right" if c != "anchor" else "left")
+def _z(v, s, tv) -> str:
+    """Normalised error ``(v - truth) / sd``; "-" without a truth or a finite positive sd."""
+    return f"{(v - tv) / s:+.1f}" if tv is not None and s is not None and np.isfinite(s) and s > 0 else "-"
+
+
+def _cm(x) -> str:
+    return f"{100 * x:.2f}" if np.isfinite(x) else "-"
+
+
+def residual_rich_table(table_df, title: str = "Range residuals per anchor", key: str = "anchor",
+                        count: str = "ranges") -> Table:
+    """Rich table of :func:`uwbimu.estimation.outputs.residual_table` (innovations, cm)."""
+    t = Table(title=title)
+    for c in (key, count, "accepted", "rejected %", "median (cm)", "MAD (cm)"):
+        t.add_column(c, justify="right" if c != key else "left")
     for r in table_df.itertuples(index=False):
-        t.add_row(r.anchor, str(r.ranges), str(r.accepted), f"{r.rejected_pct:.1f}",
-                  f"{100 * r.median:.2f}", f"{100 * r.mad:.2f}")
+        t.add_row(escape(str(r.anchor)), str(r.ranges), str(r.accepted), f"{r.rejected_pct:.1f}", _cm(r.median),
+                  _cm(r.mad))
     return t
+
+
+def print_residual_tables(console: Console, result) -> None:
+    """Innovation tables of a run: per anchor for ranges, per anchor pair for TDoA; none for a kind
+    the run has no rows of (a TDoA-only log prints no range table)."""
+    from types import SimpleNamespace
+
+    from uwbimu.estimation.outputs import residual_table
+    from uwbimu.io.check_tdoa import tdoa_pairs
+
+    r = result.residuals
+    kind = r["kind"].astype(str).to_numpy() if "kind" in r.columns else np.full(len(r), "range")
+    ranges = r[kind == "range"]
+    if len(ranges):
+        console.print(residual_rich_table(residual_table(SimpleNamespace(residuals=ranges))))
+    td = r[kind == "tdoa"]
+    if len(td):
+        # one row per unordered pair: (b, a) rows read as (a, b) with the innovation's sign flipped
+        pairs = td.rename(columns={"anchor": "anchor_a"})
+        first, second, sign = tdoa_pairs(pairs)
+        per_pair = pd.DataFrame({"anchor": [f"{a}-{b}" for a, b in zip(first, second)],
+                                 "innovation": sign * td["innovation"].to_numpy(float),
+                                 "accepted": td["accepted"].to_numpy(bool)})
+        console.print(residual_rich_table(residual_table(SimpleNamespace(residuals=per_pair)),
+                                          title="TDoA residuals per anchor pair (a-b: |p - b| - |p - a|)",
+                                          key="pair", count="TDoA"))
 
 
 def run_with_progress(dataset, options, console: Console):
@@ -135,7 +173,7 @@ def register(app: typer.Typer) -> None:
         with output_folder(out, force, protect=[dataset], names=sorted(OUTPUT_FILES),
                            finite=NAN_DOCUMENTED) as tmp:
             written = write_outputs(res, ds, tmp, plots=plots)
-        console.print(residual_rich_table(written["residual_table"]))
+        print_residual_tables(console, res)
         console.print(calibration_table(res, ds))
         m = written["metrics"]
         if m is not None:
@@ -148,9 +186,9 @@ def register(app: typer.Typer) -> None:
                     f"(dof {m.get('nees_dof')})")
             console.print(f"[bold]vs ground truth:[/] {line}")
         for w in res.warnings:
-            console.print(f"[yellow]warning:[/] {w}")
-        console.print(f"{len(ds.imu)} IMU samples, {len(ds.uwb)} ranges in {res.runtime_s:.1f} s; "
-                      f"wrote {len(written['files'])} files to {out}")
+            console.print(f"[yellow]warning:[/] {escape(w)}")
+        console.print(escape(f"{measurement_counts(ds)} in {res.runtime_s:.1f} s; "
+                             f"wrote {len(written['files'])} files to {out}"))
 
 
 def estimate_and_print(dataset, console: Console, out: Optional[Path] = None, options=None):
@@ -170,5 +208,5 @@ def estimate_and_print(dataset, console: Console, out: Optional[Path] = None, op
         console.print(f"position RMSE after 10 s: {100 * (m['position_rmse_after'] or float('nan')):.1f} cm, "
                       f"orientation RMSE {m['orientation_rmse_deg']:.2f} deg")
     for w in res.warnings:
-        console.print(f"[yellow]warning:[/] {w}")
+        console.print(f"[yellow]warning:[/] {escape(w)}")
     return res
