@@ -65,9 +65,11 @@ def test_excerpt_metadata_license_and_attribution(imported):
     assert meta["tags"] == [{"name": "tag0", "lever_arm": [0.0, 0.0, 0.01]}]
     assert meta["truth"]["lever_arm"] == [0.0, 0.0, 0.01]
     assert "time_offset" not in meta["truth"]
-    assert meta["range_sigma"] == 0.10 and "GPL-3.0" in meta["license"]
-    assert "glitch" in meta["description"] and "one clock" in meta["description"]
-    assert meta["imu_noise"]["gyro_noise_density"] == 3.0e-4
+    # range_sigma, IMU noise and glitches are measured on the sequence read (here the excerpt)
+    sd = meta["extra"]["range_residuals"]["robust_sigma_m"]
+    assert meta["range_sigma"] == pytest.approx(np.ceil(sd * 100) / 100) and "GPL-3.0" in meta["license"]
+    assert meta["extra"]["groundtruth_glitches"]["count"] == 0 and "one clock" in meta["description"]
+    assert meta["imu_noise"]["gyro_noise_density"] == 3.0e-4  # max per-axis sd*sqrt(dt) 2.93e-4 at rest, rounded up
     assert set(meta["extra"]["anchor_orientation_xyzw"]) == {str(i) for i in range(1, 9)}
     assert meta["extra"]["source_sensor_noise_tuning"]["accel"] == 0.10
     assert (imported / "LICENSE").read_bytes() == (EXCERPT / "LICENSE").read_bytes()
@@ -169,6 +171,10 @@ def test_full_sequence_import_and_residuals(tmp_path):
     assert tab["median"].between(-0.07, 0.10).all()
     assert tab["robust_sigma"].between(0.04, 0.17).all()
     assert r.flags == []
+    # The facts of this sequence, measured by the importer (not constants): the mocap glitch near 172.63 s.
+    assert ds.meta.extra["groundtruth_glitches"]["count"] == 2
+    assert ds.meta.extra["groundtruth_glitches"]["t"][0] == pytest.approx(172.63, abs=0.01)
+    assert ds.meta.range_sigma == 0.10 and ds.meta.imu_noise.accel_noise_density == 1.5e-3
 
 
 def test_import_reports_progress_in_order(tmp_path):

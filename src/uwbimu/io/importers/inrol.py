@@ -16,12 +16,19 @@ source file        source columns                              our table
 
 All streams share one clock; the ground truth is the pose of the IMU frame
 (quaternion reordered from x,y,z,w to w,x,y,z; no velocity).  The documented
-IMU->tag lever arm is (0, 0, 0.01) m.  Rows of ``uwb.txt`` that are out of
-time order (one in sequence 1) are sorted, and the change is reported.
+IMU->tag lever arm is (0, 0, 0.01) m (one rig for every sequence).  Rows that
+are out of time order are sorted, and the change is reported.
+
+Everything ``dataset.yaml`` says about the sequence is measured on the
+sequence read, never carried over from another one: the IMU white-noise
+densities (at rest over the first :data:`REST_S` s), the range error against
+ground truth (``range_sigma``: overall robust sd, per-anchor medians and sds in
+``extra.range_residuals``) and motion-capture glitches (``extra.groundtruth_glitches``).
 """
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 from typing import Callable, Optional, Union
@@ -30,9 +37,12 @@ import numpy as np
 import pandas as pd
 import yaml
 
+from uwbimu.io.check import MAD_TO_SIGMA, range_residuals, residual_stats
 from uwbimu.io.dataset import Dataset, DatasetMeta, TagMeta, TruthMeta
-from uwbimu.io.importers import ImportResult, read_text_table, require_files, sort_by_time, write_import
-from uwbimu.models.imu import ImuNoise
+from uwbimu.io.importers import ImportResult, read_text_table, require_files, sort_by_time, source_text, write_import
+from uwbimu.io.importers.imu_noise import imu_noise_at_rest
+from uwbimu.io.loader import DatasetError
+from uwbimu.models.imu import ICM20948
 
 NAME = "inrol"
 SOURCE_FILES = ["imu.txt", "uwb.txt", "anchor.txt", "imu_pose.txt", "LICENSE"]
@@ -42,40 +52,62 @@ PAPER = ('T. Kim, B. Yoon, D. J. Lee, "UWB-Based Localization System Considering
          'and NLOS/Multipath Conditions", IROS 2024')
 
 #: Documented IMU->tag lever arm (source filter: inv(T_cam_imu) inv(T_mocap_cam) T_mocap_tag), m.
+#: One rig for every sequence of the repository.
 LEVER_ARM = [0.0, 0.0, 0.01]
-#: Overall robust range sigma against ground truth (dataset README: ~0.10 m).
-RANGE_SIGMA = 0.10
 
-#: IMU noise.  The source's filter values (accel 0.10, gyro 0.20) are tuning
-#: numbers, not densities.  White-noise densities here come from the first 4 s,
-#: where the rig stands still: per-axis sd 0.0019-0.0029 rad/s and
-#: 0.011-0.014 m/s^2 at 100 Hz, i.e. 1.9-2.9e-4 rad/s/sqrt(Hz) and
-#: 1.1-1.4e-3 m/s^2/sqrt(Hz); rounded up to 3e-4 and 1.5e-3.  Bias random
-#: walks are those of the ICM-20948 class preset (no way to measure them from
-#: 191 s); initial bias sd: gyro 0.005 rad/s, accel 0.1 m/s^2.
-IMU_NOISE = ImuNoise(
-    gyro_noise_density=3.0e-4,
-    accel_noise_density=1.5e-3,
-    gyro_bias_rw=4.0e-5,
-    accel_bias_rw=6.0e-4,
-    gyro_bias_sigma0=0.005,
-    accel_bias_sigma0=0.1,
-)
+#: Seconds at the start over which the IMU white noise is measured (the rig stands still first).
+REST_S = 4.0
+#: Initial bias sd of the rig's IMU (our setting, not a measurement): gyro rad/s, accel m/s^2.
+#: The source's filter values (accel 0.10, gyro 0.20) are tuning numbers, not densities.
+BIAS_SIGMA0 = {"gyro_bias_sigma0": 0.005, "accel_bias_sigma0": 0.1}
+#: A ground-truth sample farther than this [m] from the running median of
+#: GLITCH_WINDOW samples is reported as a motion-capture glitch.
+GLITCH_M = 0.05
+GLITCH_WINDOW = 7
 
 _DESCRIPTION = """\
 INRoL UWB-IMU filtering sequence converted by `uwbimu import inrol`. Real UWB two-way ranging to
-8 fixed anchors (~21 Hz per anchor) and a ~100 Hz IMU, with motion-capture ground truth of the IMU
-frame. Clock: all streams share one clock (the source states no UWB/IMU time offset; a scan of the
-range residuals puts it within about +-0.1 s, flattest near +0.02..+0.06 s), so imu.csv, uwb.csv and
-groundtruth.csv carry the source timestamps unchanged. Lever arm: the source's documented IMU->tag
-lever arm (0, 0, 0.01) m is given both as the nominal tag lever arm and as truth.lever_arm (it is the
-documented value the evaluation compares against, not an independent measurement). Ground truth:
-motion capture; sequence 1 has a mocap glitch (two samples near t = 172.63 s displaced by about
-0.12-0.14 m): interpolate robustly. Ranges: per-anchor median residual -0.05..+0.08 m and sd
-0.08-0.16 m against ground truth; the source models direction-dependent bias and NLOS tails.
-IMU noise: white-noise densities measured at rest in the first 4 s; bias random walks of an
-ICM-20948-class IMU (assumed, not measured). Data license: GPL-3.0 (see LICENSE and ATTRIBUTION.md
-in this folder)."""
+{n_anchors} fixed anchors and a ~{imu_hz:.0f} Hz IMU, with motion-capture ground truth of the IMU frame.
+Clock: the source gives all streams one clock and documents no UWB/IMU time offset, so imu.csv,
+uwb.csv and groundtruth.csv carry the source timestamps unchanged. Lever arm: the source's
+documented IMU->tag lever arm (0, 0, 0.01) m is given both as the nominal tag lever arm and as
+truth.lever_arm (the documented value the evaluation compares against, not an independent
+measurement). Ground truth: {glitch} Ranges (measured by the importer against ground truth with that
+lever arm): {ranges}; the source models direction-dependent bias and NLOS tails.
+IMU noise: {imu_note}. Data license: GPL-3.0 (see LICENSE and ATTRIBUTION.md in this folder)."""
+
+
+def gt_glitches(gt: pd.DataFrame) -> dict:
+    """Ground-truth samples farther than :data:`GLITCH_M` from the running median of their neighbours.
+
+    Returns ``{"threshold_m", "window", "count", "t", "offset_m"}`` (times and
+    offsets of the flagged samples; a motion-capture glitch moves one or two
+    samples by 0.1 m while the running median of 7 follows the motion).
+    """
+    p = gt[["px", "py", "pz"]]
+    med = p.rolling(GLITCH_WINDOW, center=True, min_periods=1).median()
+    d = np.linalg.norm((p - med).to_numpy(float), axis=1)
+    k = np.flatnonzero(d > GLITCH_M)
+    return {"threshold_m": GLITCH_M, "window": GLITCH_WINDOW, "count": int(len(k)),
+            "t": [round(float(x), 6) for x in gt["t"].to_numpy()[k]], "offset_m": [round(float(x), 4) for x in d[k]]}
+
+
+def _range_facts(ds: Dataset) -> tuple[Optional[float], dict, str]:
+    """``(range_sigma, record, sentence)`` from this sequence's range residuals against ground truth."""
+    res = range_residuals(ds, np.asarray(LEVER_ARM))
+    if len(res) < 20:
+        return None, {"n": int(len(res))}, "too few ranges covered by ground truth to measure their error"
+    r = res["residual"].to_numpy(float)
+    sigma = MAD_TO_SIGMA * float(np.median(np.abs(r - np.median(r))))
+    cm = math.ceil(round(sigma * 100.0, 6)) / 100.0
+    st = residual_stats(res)
+    record = {"n": int(len(r)), "robust_sigma_m": round(sigma, 4),
+              "per_anchor_median_m": {a: round(float(v), 4) for a, v in st["median"].items()},
+              "per_anchor_robust_sigma_m": {a: round(float(v), 4) for a, v in st["robust_sigma"].items()}}
+    sentence = (f"per-anchor median residual {st['median'].min():+.2f}..{st['median'].max():+.2f} m, per-anchor "
+                f"robust sd {st['robust_sigma'].min():.2f}-{st['robust_sigma'].max():.2f} m, overall robust sd "
+                f"{sigma:.3f} m over {len(r)} ranges (range_sigma: rounded up to the centimetre, {cm:.2f} m)")
+    return cm, record, sentence
 
 
 def _attribution(src: Path, changes: list[str]) -> str:
@@ -132,11 +164,11 @@ def convert(src: Union[str, os.PathLike], name: str | None = None,
     report("reading uwb.txt", 0.3)
     raw = read_text_table(src / "uwb.txt", ["index", "timestamp", "anchor_id", "r"])
     raw = sort_by_time(raw, "timestamp", "uwb.txt", changes)
-    uwb = pd.DataFrame({"t": raw["timestamp"], "anchor": _ids(raw["anchor_id"]), "range": raw["r"]})
+    uwb = pd.DataFrame({"t": raw["timestamp"], "anchor": _ids(raw["anchor_id"], "uwb.txt"), "range": raw["r"]})
 
     raw = read_text_table(src / "anchor.txt", ["anchor_id", "tx", "ty", "tz", "qx", "qy", "qz", "qw"])
     # the documented antenna orientations (antenna frame -> world) go into anchors.csv's optional qw..qz
-    anchors = pd.DataFrame({"anchor": _ids(raw["anchor_id"]), "x": raw["tx"], "y": raw["ty"], "z": raw["tz"],
+    anchors = pd.DataFrame({"anchor": _ids(raw["anchor_id"], "anchor.txt"), "x": raw["tx"], "y": raw["ty"], "z": raw["tz"],
                             "qw": raw["qw"], "qx": raw["qx"], "qy": raw["qy"], "qz": raw["qz"]})
     orient = {a: [float(v) for v in row] for a, row in
               zip(anchors["anchor"], raw[["qx", "qy", "qz", "qw"]].to_numpy())}
@@ -154,24 +186,32 @@ def convert(src: Union[str, os.PathLike], name: str | None = None,
         "anchor_orientation_xyzw": orient,
         "truth_note": "truth.lever_arm is the source's documented IMU->tag lever arm (0, 0, 0.01) m; "
                       "no documented time offset",
-        "import_changes": list(changes),
     }
     param = src / "parameter.yaml"
     if param.is_file():
         try:
-            pdoc = yaml.safe_load(param.read_text()) or {}
+            pdoc = yaml.safe_load(source_text(param, what="parameter file")) or {}
             if isinstance(pdoc, dict) and isinstance(pdoc.get("sensor_noise"), dict):
                 extra["source_sensor_noise_tuning"] = pdoc["sensor_noise"]
-        except yaml.YAMLError:
-            changes.append("parameter.yaml could not be parsed; its tuning values were not copied")
+        except (yaml.YAMLError, DatasetError) as exc:
+            changes.append(f"parameter.yaml could not be read ({str(exc).splitlines()[0]}); its tuning values "
+                           "were not copied")
 
     dt = float(np.median(np.diff(imu["t"].to_numpy())))
+    imu_noise, imu_note = imu_noise_at_rest(imu, ICM20948, REST_S, method="sd", preset_name="ICM-20948 class",
+                                            **BIAS_SIGMA0)
+    glitches = gt_glitches(gt)
+    if glitches["count"]:
+        ts = glitches["t"]
+        glitch = (f"{glitches['count']} sample(s) lie more than {GLITCH_M * 100:g} cm off the running median of "
+                  f"{GLITCH_WINDOW} (t = {', '.join(f'{x:.2f}' for x in ts[:5])}{' ...' if len(ts) > 5 else ''} s; "
+                  f"up to {max(glitches['offset_m']):.2f} m; a motion-capture glitch): interpolate robustly.")
+    else:
+        glitch = f"no sample lies more than {GLITCH_M * 100:g} cm off the running median of {GLITCH_WINDOW}."
     meta = DatasetMeta(
         name=name or (src.name if src.name.lower().startswith("inrol") else f"inrol_{src.name}"),
-        description=" ".join(_DESCRIPTION.split()),
-        imu_noise=IMU_NOISE,
+        imu_noise=imu_noise,
         imu_rate_hz=round(1.0 / dt, 2),
-        range_sigma=RANGE_SIGMA,
         tags=[TagMeta(name="tag0", lever_arm=list(LEVER_ARM))],
         truth=TruthMeta(lever_arm=list(LEVER_ARM)),
         source=f"{REPOSITORY} (commit {COMMIT}); {PAPER}",
@@ -179,15 +219,26 @@ def convert(src: Union[str, os.PathLike], name: str | None = None,
         extra=extra,
     )
     ds = Dataset(imu=imu, uwb=uwb, anchors=anchors, groundtruth=gt, meta=meta)
+    range_sigma, range_record, range_sentence = _range_facts(ds)
+    extra.update(imu_noise_note=imu_note, groundtruth_glitches=glitches, range_residuals=range_record,
+                 import_changes=list(changes))
+    ds.meta = meta.model_copy(update={
+        "range_sigma": range_sigma,
+        "extra": extra,
+        "description": " ".join(_DESCRIPTION.format(n_anchors=len(anchors), imu_hz=1.0 / dt, glitch=glitch,
+                                                    ranges=range_sentence, imu_note=imu_note).split())})
     return ImportResult(dataset=ds, changes=changes,
                         extra_files={"LICENSE": src / "LICENSE", "ATTRIBUTION.md": _attribution(src, changes)})
 
 
-def _ids(col: pd.Series) -> list[str]:
-    """Integer-valued ids as text ("3", not "3.0")."""
+def _ids(col: pd.Series, fname: str) -> list[str]:
+    """Integer-valued ids as text ("3", not "3.0"); a fractional id is refused (file, line, column)."""
     v = col.to_numpy(float)
-    if not np.all(v == np.round(v)):
-        raise ValueError("anchor ids must be integers in INRoL files")
+    frac = v != np.round(v)
+    if frac.any():
+        i = int(np.argmax(frac))
+        raise DatasetError(f"{fname}, line {i + 2}, column 'anchor_id': anchor id {v[i]!r} is not an integer",
+                           file=fname, row=i + 2, column="anchor_id")
     return [str(int(x)) for x in v]
 
 

@@ -34,20 +34,23 @@ What the conversion does (every choice is recorded in ``dataset.yaml``):
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
-from typing import Union
+from typing import Optional, Union
 
 import numpy as np
 import pandas as pd
 
 from uwbimu.io.dataset import ANCHOR_COLUMNS, GT_COLUMNS, IMU_COLUMNS, Dataset, DatasetMeta, TagMeta, TruthMeta
-from uwbimu.io.importers import ImportResult, require_files, write_import
+from uwbimu.io.importers import ImportResult, read_csv_source, require_files, write_import
+from uwbimu.io.importers.imu_noise import imu_noise_at_rest
 from uwbimu.io.loader import DatasetError
 from uwbimu.models.imu import ICM20948
 
 __all__ = ["convert", "import_dataset", "TOA_OFFSET", "LEVER_ARM", "SOURCE_FILES", "RECOMMENDED_CONFIG"]
 
-#: SFUISE ``toa_offset`` (config_test_isas-walk1.yaml), by anchor id (ascending-id order), m.
+#: SFUISE ``toa_offset`` (config_test_isas-walk1.yaml; the walk2/3 configs hold the same values), by anchor id
+#: (ascending-id order), m.
 TOA_OFFSET = {"7475": -0.0700, "9524": 0.1539, "10548": -0.0751, "15155": 0.1409, "20276": -0.0247}
 #: SFUISE ``offset``: tag position in the IMU/body frame, m (a fixed setting).
 LEVER_ARM = [0.10, -0.025, 0.0]
@@ -65,21 +68,36 @@ _DESCRIPTION = (
     "known_anchor_bias (measured = true + bias). GROUND TRUTH IS THE VIVE TRACKER POSE IN THE VIVE FRAME, "
     "not the IMU pose in the anchors' frame: evaluate with --align se3 (tracker-to-IMU offset undocumented). "
     "Lever arm [0.10, -0.025, 0.0] m is SFUISE's fixed setting, not a measured truth. "
-    "THE ANCHORS' FRAME IS Z-DOWN (at-rest specific force mapped into it is about (0.46, 0.76, -9.94) m/s^2; "
-    "the source documents no transform): estimate with anchor_frame_up: -z, e.g. "
-    "--config examples/estimator_isas.yaml."
+    "THE ANCHORS' FRAME OF THE ISAS RTLS SET-UP IS Z-DOWN (found on ISAS-Walk1, whose at-rest specific force "
+    "mapped into it is about (0.46, 0.76, -9.94) m/s^2; the source documents no transform): estimate with "
+    "anchor_frame_up: -z, e.g. --config examples/estimator_isas.yaml."
 )
 #: Where the estimator preset for this sequence lives (repository-relative).
 RECOMMENDED_CONFIG = "examples/estimator_isas.yaml"
 
 
+def sequence_number(src: Path) -> tuple[Optional[int], str]:
+    """``(N, where)`` of ISAS-Walk N named by the input (None when the input names none).
+
+    Looks at the first line of the folder's ``README.md`` / ``ATTRIBUTION.md``
+    (``# ISAS-Walk2 ...``), then at the folder name (``isas_walk2``, ``ISAS-Walk-2``).
+    """
+    for doc in ("README.md", "ATTRIBUTION.md"):
+        f = src / doc
+        if f.is_file():
+            first = f.read_bytes()[:200].decode("utf-8", errors="replace").split("\n", 1)[0]
+            m = re.search(r"ISAS[-_ ]?Walk[-_ ]?(\d+)", first, re.IGNORECASE)
+            if m:
+                return int(m.group(1)), f"{doc}'s title"
+    m = re.search(r"walk[-_ ]?(\d+)", src.resolve().name, re.IGNORECASE)
+    if m:
+        return int(m.group(1)), "the folder name"
+    return None, "not named by the input (no ISAS-WalkN in README.md / ATTRIBUTION.md or the folder name)"
+
+
 def _read_csv(path: Path, required: list[str]) -> pd.DataFrame:
     """Read one source CSV; errors name the file, line and column."""
-    try:
-        df = pd.read_csv(path, dtype=str)
-    except Exception as exc:  # pandas raises several parser error types
-        raise DatasetError(f"{path.name}: cannot read: {exc}", file=path.name) from None
-    df.columns = [c.strip() for c in df.columns]
+    df = read_csv_source(path)  # UTF-8, every line complete (a cut-short last line is refused)
     missing = [c for c in required if c not in df.columns]
     if missing:
         raise DatasetError(
@@ -112,62 +130,13 @@ def _read_csv(path: Path, required: list[str]) -> pd.DataFrame:
 REST_S = 3.0
 
 
-#: Band [Hz] of the at-rest spectrum used for the white-noise density (below the board's low-pass).
-NOISE_BAND_HZ = (0.5, 5.0)
-
-
-def _density_welch(x: np.ndarray, fs: float) -> float:
-    """Noise density [unit/sqrt(Hz)] from the low-frequency Welch spectrum, mean over axes.
-
-    ``sqrt(mean one-sided PSD over NOISE_BAND_HZ / 2)``: the one-sided PSD of
-    white noise of two-sided density ``q`` is ``2 q^2``.  Unlike ``sd *
-    sqrt(dt)`` this does not assume the noise is white up to Nyquist, which
-    understates the in-band density of a low-pass filtered sensor (~3x here).
-    """
-    from scipy.signal import welch
-
-    nper = int(min(len(x), max(16, round(4.0 * fs))))  # ~4 s segments: 0.25 Hz resolution
-    f, pxx = welch(x - x.mean(axis=0), fs=fs, nperseg=nper, axis=0, detrend="linear")
-    band = (f >= NOISE_BAND_HZ[0]) & (f <= NOISE_BAND_HZ[1])
-    if band.sum() < 2:
-        band = f > 0
-    return float(np.mean(np.sqrt(pxx[band].mean(axis=0) / 2.0)))
-
-
 def _imu_noise_at_rest(imu: pd.DataFrame) -> tuple:
-    """White-noise densities measured over the stationary start; bias terms from the ICM-20948 preset.
+    """White-noise densities measured over the stationary start (Welch, 0.5-5 Hz); bias terms of the ICM-20948.
 
-    The sequence starts with the rig at rest (gyro sd ~0.01 rad/s per sample).
-    The density is taken from the Welch spectrum over 0.5-5 Hz (see
-    :func:`_density_welch`; the board low-pass filters, so ``sd * sqrt(dt)``
-    would understate it ~3x).  The initial accelerometer-bias sd is widened
-    to cover the measured | |a| - g | at rest (the board reads ~9.98 m/s^2).
-    Falls back to the preset when the start is not at rest.
+    The board low-pass filters, so ``sd * sqrt(dt)`` would understate the
+    in-band density ~3x (:func:`uwbimu.io.importers.imu_noise.density_welch`).
     """
-    t = imu["t"].to_numpy(float)
-    m = t <= t[0] + REST_S
-    if m.sum() < 50:
-        return ICM20948, "ICM-20948 preset (too few samples to measure noise at rest)"
-    w = imu.loc[m, ["wx", "wy", "wz"]].to_numpy(float)
-    a = imu.loc[m, ["ax", "ay", "az"]].to_numpy(float)
-    sd_w, sd_a = w.std(axis=0), a.std(axis=0)
-    if sd_w.max() > 0.05 or sd_a.max() > 0.2:
-        return ICM20948, "ICM-20948 preset (the first seconds are not at rest)"
-    dt = float(np.median(np.diff(t[m])))
-    g_err = abs(float(np.linalg.norm(a, axis=1).mean()) - 9.81)
-    fs = 1.0 / dt
-    noise = ICM20948.model_copy(update={
-        "gyro_noise_density": _density_welch(w, fs),
-        "accel_noise_density": _density_welch(a, fs),
-        "accel_bias_sigma0": float(max(ICM20948.accel_bias_sigma0, 1.5 * g_err)),
-    })
-    note = (f"white-noise densities measured at rest over the first {REST_S:g} s from the Welch spectrum over "
-            f"{NOISE_BAND_HZ[0]:g}-{NOISE_BAND_HZ[1]:g} Hz (gyro {noise.gyro_noise_density:.2e} rad/s/sqrt(Hz), accel "
-            f"{noise.accel_noise_density:.2e} m/s^2/sqrt(Hz); sd*sqrt(dt) would give {sd_w.mean() * np.sqrt(dt):.2e} "
-            f"and {sd_a.mean() * np.sqrt(dt):.2e}: the board low-pass filters); "
-            f"bias random walks of the ICM-20948 preset; initial accel-bias sd {noise.accel_bias_sigma0:.2f} m/s^2 "
-            f"covers | |a| - g | = {g_err:.3f} m/s^2 at rest")
-    return noise, note
+    return imu_noise_at_rest(imu, ICM20948, REST_S, method="welch", preset_name="ICM-20948")
 
 
 def convert(src: Union[str, os.PathLike], with_groundtruth: bool = True) -> ImportResult:
@@ -258,6 +227,9 @@ def convert(src: Union[str, os.PathLike], with_groundtruth: bool = True) -> Impo
         changes.append("groundtruth_vive.csv: Vive tracker pose in the Vive frame written as groundtruth.csv "
                        "(not the IMU pose in the anchors' frame; evaluate with --align se3)")
 
+    seq, seq_where = sequence_number(src)
+    label = f"ISAS-Walk{seq}" if seq is not None else "ISAS-Walk (sequence unknown)"
+    changes.append(f"sequence: {label} ({seq_where})")
     dt = np.diff(imu["t"].to_numpy())
     rate = float(1.0 / np.median(dt)) if len(dt) else None
     imu_noise, noise_note = _imu_noise_at_rest(imu)
@@ -273,12 +245,16 @@ def convert(src: Union[str, os.PathLike], with_groundtruth: bool = True) -> Impo
         tags=[TagMeta(name="tag0", lever_arm=list(LEVER_ARM))],
         truth=TruthMeta(lever_arm=list(LEVER_ARM)),
         known_anchor_bias=known_bias,
-        source="https://github.com/KIT-ISAS/SFUISE @ 75bf5a32f1a8e5c3046a5bd1a1ddf659fa996f7d, dataset/ISAS-Walk1.bag "
-        "(CSV conversion); calibration from sfuise/config/config_test_isas-walk1.yaml",
+        source="https://github.com/KIT-ISAS/SFUISE @ 75bf5a32f1a8e5c3046a5bd1a1ddf659fa996f7d, "
+        + (f"dataset/ISAS-Walk{seq}.bag" if seq is not None else "an ISAS-Walk bag (sequence not named by the input)")
+        + " (CSV conversion); calibration from sfuise/config/config_test_isas-walk"
+        + (f"{seq}.yaml" if seq is not None else "N.yaml (identical for walk1-3)"),
         license="GPL-3.0 (see LICENSE next to this file; K. Li, Z. Cao, U. D. Hanebeck, 'Continuous-Time "
         "Ultra-Wideband-Inertial Fusion', IEEE RA-L 8(7), 2023)",
         extra={
             "importer": "uwbimu.io.importers.isas_walk",
+            "sequence": label,
+            "sequence_named_by": seq_where,
             "time_origin_unix_s": t0,
             "time_source": "ROS header stamps (host clock) of every stream, minus time_origin_unix_s",
             "known_anchor_bias_convention": "measured = true + bias; bias = -toa_offset of SFUISE",
@@ -294,9 +270,9 @@ def convert(src: Union[str, os.PathLike], with_groundtruth: bool = True) -> Impo
                                    "note": "inverse variances of SFUISE's spline residuals (not sensor densities)"},
             "ranges_dropped_stale": n_stale,
             "uwb_time_offset_note": "not documented (all stamps from the recording host)",
-            "anchor_frame_note": "the anchors' frame has z pointing down: the at-rest specific force mapped into it "
-            "is about (0.46, 0.76, -9.94) m/s^2; the source documents no transform; the ESKF option "
-            "anchor_frame_up: -z handles it",
+            "anchor_frame_note": "the ISAS RTLS anchors' frame has z pointing down (found on ISAS-Walk1: the "
+            "at-rest specific force mapped into it is about (0.46, 0.76, -9.94) m/s^2); the source documents no "
+            "transform; the ESKF option anchor_frame_up: -z handles it",
             "recommended_config": RECOMMENDED_CONFIG,
         },
         anchor_frame_up="-z",
