@@ -21,6 +21,12 @@ from uwbimu.sim import builtin_scenario, simulate_full
 runner = CliRunner()
 
 
+def _clipped_table_lines(text: str) -> list[str]:
+    from test_cli_conventions import _clipped_table_lines as clipped
+
+    return clipped(text)
+
+
 @pytest.fixture(scope="module")
 def tdoa_ds():
     sc = builtin_scenario("crazyflie-tdoa2").updated(duration=8.0, imu={"rate_hz": 200.0})
@@ -124,6 +130,9 @@ def test_cli_check_prints_tdoa_tables_and_strict_exits_3(tdoa_ds, tdoa_folder, t
     assert res.exit_code == 0, res.output
     assert "TDoA pairs" in res.output and "anchors without any range" not in res.output
     assert "no anchor or TDoA pair flagged" in res.output
+    # the tables fit 80 columns without cutting numbers (the conventions' rule)
+    assert max(len(ln) for ln in res.stdout.splitlines()) <= 80
+    assert not _clipped_table_lines(res.stdout)
     lines = [ln for ln in res.output.splitlines() if ln.strip().strip("│").strip().startswith("tdoa")]
     assert lines and str(len(tdoa_ds.tdoa)) in lines[0]  # the stream row with its row count
     written = (tmp_path / "res_tdoa.csv").read_text().splitlines()
