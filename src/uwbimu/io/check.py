@@ -501,27 +501,30 @@ def check_dataset(ds: Dataset, options: Optional[CheckOptions] = None,
         result.lever_arm, result.lever_arm_source = lever_arm_for(ds.meta, str(tags[0]) if len(tags) else None)
     if len(ds.uwb):
         report("range residuals", 0.2)
-        res = range_residuals(ds, result.lever_arm, options.gt_time_shift, options.gt_max_gap)
-        result.residuals = res
-        result.n_compared = len(res)
-        result.n_outside_truth = int(res.attrs.get("n_outside", 0))
-        if result.n_outside_truth:
-            result.notes.append(f"{result.n_outside_truth} ranges lie outside the ground truth (or in gaps > "
-                                f"{options.gt_max_gap} s) and were not compared")
+        res = _compared(range_residuals(ds, result.lever_arm, options.gt_time_shift, options.gt_max_gap),
+                        "ranges", options, result.notes)
+        result.residuals, result.n_compared, result.n_outside_truth = res, len(res), res.attrs["n_outside"]
         if len(res):
             report("anchor refit and id cross-check", 0.4)
             result.residual_table, result.flags = diagnose_anchors(res, ds, options)
     if has_tdoa:
         report("TDoA residuals", 0.7)
-        tres = tdoa_residuals(ds, result.lever_arm, options.gt_time_shift, options.gt_max_gap)
-        result.tdoa_residuals = tres
-        result.n_tdoa_compared = len(tres)
-        result.n_tdoa_outside_truth = int(tres.attrs.get("n_outside", 0))
-        if result.n_tdoa_outside_truth:
-            result.notes.append(f"{result.n_tdoa_outside_truth} TDoA rows lie outside the ground truth (or in "
-                                f"gaps > {options.gt_max_gap} s) and were not compared")
+        tres = _compared(tdoa_residuals(ds, result.lever_arm, options.gt_time_shift, options.gt_max_gap),
+                         "TDoA rows", options, result.notes)
+        result.tdoa_residuals, result.n_tdoa_compared, result.n_tdoa_outside_truth = (
+            tres, len(tres), tres.attrs["n_outside"])
         if len(tres):
             result.tdoa_table, result.tdoa_offsets, tflags = diagnose_tdoa(tres, ds, options)
             result.flags.extend(tflags)
     report("done", 1.0)
     return result
+
+
+def _compared(res: pd.DataFrame, what: str, options: CheckOptions, notes: list[str]) -> pd.DataFrame:
+    """``res`` (range or TDoA residuals); a note on ``notes`` counts the rows ground truth did not cover."""
+    n = int(res.attrs.get("n_outside", 0))
+    res.attrs["n_outside"] = n
+    if n:
+        notes.append(f"{n} {what} lie outside the ground truth (or in gaps > {options.gt_max_gap} s) and were "
+                     "not compared")
+    return res
