@@ -41,8 +41,9 @@ import numpy as np
 import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field
 
-from uwbimu.io.dataset import ANCHOR_COLUMNS, GT_COLUMNS, IMU_COLUMNS, Dataset, DatasetMeta, TagMeta
-from uwbimu.io.importers import ImportResult, write_import
+from uwbimu.io.dataset import ANCHOR_COLUMNS, ANCHOR_QUAT_COLUMNS, GT_COLUMNS, IMU_COLUMNS, Dataset, DatasetMeta, TagMeta
+from uwbimu.io.importers import ImportResult, source_text, write_import
+from uwbimu.io.importers.anchors import read_anchors_csv
 from uwbimu.io.loader import DatasetError
 
 __all__ = ["RosbagMapping", "RosbagImportError", "load_mapping", "convert", "import_dataset"]
@@ -176,30 +177,17 @@ def _typestore_with(mapping: RosbagMapping):
         p = mapping.resolve(file)
         if not p.is_file():
             raise RosbagImportError(f"msg_definitions: file for {name} not found: {p}", file=str(p), column=name)
-        add.update(get_types_from_msg(p.read_text(), name))
+        add.update(get_types_from_msg(source_text(p, what="message definition"), name))
     if add:
         store.register(add)
     return store
 
 
 def _read_anchors(path: Path) -> pd.DataFrame:
-    if not path.is_file():
-        raise RosbagImportError(f"anchors file not found: {path}", file=str(path))
-    df = pd.read_csv(path, dtype=str)
-    df.columns = [c.strip() for c in df.columns]
-    missing = [c for c in ANCHOR_COLUMNS if c not in df.columns]
-    if missing:
-        raise RosbagImportError(f"{path.name}, line 1: missing column(s) {missing} (need anchor, x, y, z in m); "
-                                f"header has {list(df.columns)}", file=path.name, row=1, column=missing[0])
-    out = pd.DataFrame({"anchor": df["anchor"].str.strip()})
-    for c in ("x", "y", "z"):
-        v = pd.to_numeric(df[c], errors="coerce")
-        if v.isna().any():
-            i = int(np.argmax(v.isna().to_numpy()))
-            raise RosbagImportError(f"{path.name}, line {i + 2}, column '{c}': not a number ({df[c].iloc[i]!r})",
-                                    file=path.name, row=i + 2, column=c)
-        out[c] = v.astype(float)
-    return out[ANCHOR_COLUMNS]
+    """The mapping's anchors file (``anchor, x, y, z`` [+ ``qw, qx, qy, qz``]) through the shared reader."""
+    df = read_anchors_csv(path)
+    quat = [c for c in ANCHOR_QUAT_COLUMNS if c in df.columns]
+    return df[ANCHOR_COLUMNS + (quat if len(quat) == 4 else [])]
 
 
 def convert(bag: Union[str, os.PathLike], mapping: Union[RosbagMapping, str, os.PathLike]) -> ImportResult:
