@@ -145,7 +145,7 @@ def print_check(console, ds, result) -> None:
                   _f(r["rate_hz"], ".1f"), _f(r["median_dt"], ".4f"), _f(r["max_gap"]), str(int(r["n_gaps"])))
     console.print(fit_table(console, t))
 
-    console.print(_anchor_table(ds, result))
+    console.print(fit_table(console, _anchor_table(ds, result)))
 
     if result.residual_table is not None:
         lev = _lever_text(result)
@@ -199,8 +199,9 @@ def _anchor_table(ds, result):
 
     has_ranges = len(ds.uwb) > 0 or ds.tdoa is None
     has_tdoa = ds.tdoa is not None
-    what = " and ".join(x for x in ("ranges" if has_ranges else "", "TDoA rows" if has_tdoa else "") if x)
-    a = Table(title=f"Anchors (world frame, m) and {what}", collapse_padding=True)
+    what = {(True, False): "and ranges", (False, True): "and TDoA rows", (True, True): ", ranges and TDoA rows"}
+    a = Table(title=f"Anchors (world frame, m) {what[has_ranges, has_tdoa]}".replace(") ,", "),"),
+              collapse_padding=True)
     a.add_column("id", justify="right", overflow="fold")
     cols = [("x", 6), ("y", 6), ("z", 6)]
     if has_ranges:
