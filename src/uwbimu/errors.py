@@ -25,6 +25,7 @@ from typing import Optional
 __all__ = [
     "UwbimuError",
     "InputError",
+    "StreamInputError",
     "ConfigError",
     "UsageError",
     "CheckFlagged",
@@ -56,6 +57,17 @@ class InputError(UwbimuError, ValueError):
     """Input refused: a dataset, configuration or file whose content cannot be used (exit 1)."""
 
     exit_code = 1
+
+
+class StreamInputError(InputError):
+    """A push to the streaming filter (:class:`uwbimu.estimation.Eskf`) refused: wrong shape, not numeric,
+    a bad noise sd (exit 1).  ``field`` names the argument, ``reason`` the check that failed."""
+
+    def __init__(self, message: str = "", *args, field: Optional[str] = None, reason: Optional[str] = None,
+                 hint: Optional[str] = None):
+        super().__init__(message, *args, hint=hint)
+        self.field = field
+        self.reason = reason
 
 
 class ConfigError(InputError):

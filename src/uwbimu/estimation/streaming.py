@@ -43,6 +43,11 @@ from uwbimu.estimation.filterpass import (
 from uwbimu.estimation.init import InitialisationError, InitialState, data_needed, hold_time_offset, initialise
 from uwbimu.estimation.options import EskfOptions
 from uwbimu.estimation.problem import NOMINAL_PERIOD_SAMPLES, make_settings, nominal_period, set_imu_timing
+from uwbimu.estimation.stream_guards import (
+    GEOMETRY_SLACK_M, MAX_ACC, MAX_GYRO, NisMonitor, Rejections, as_floats, check_imu_noise, check_options,
+    finite_number, positive, push_sigma, same_length,
+)
+from uwbimu.errors import StreamInputError, UsageError
 from uwbimu.models import state as S
 from uwbimu.models.imu import ImuNoise
 from uwbimu.models.measurements import HeightModel, MeasurementModel, ZeroVelocityModel
@@ -123,6 +128,11 @@ class EskfState:
     tags: dict = None  # several tags: name -> (lever arm (3,), sd (3,)); the first is also lever_arm
     height_bias: Optional[float] = None
     height_bias_sd: Optional[float] = None
+    #: False when the estimate must not be used; ``invalid_reason`` says why (see :class:`Eskf`)
+    valid: bool = True
+    invalid_reason: Optional[str] = None
+    #: added to the pushed IMU stamps since an IMU clock restart (``t_imu`` is on the shifted clock) [s]
+    imu_clock_shift: float = 0.0
 
     def cov(self, a: str, b: Optional[str] = None) -> np.ndarray:
         """Covariance block by name (``"p"``, ``"theta"``, ``"lever"``, ``"t_d"``, ``"anchor_bias"``, ...)."""
@@ -150,6 +160,48 @@ class Eskf:
         outputs on without them.
     tdoa_pairs : anchor-id pairs ``(a, b)`` that get a constant TDoA bias state when
         ``options.tdoa_pair_bias.mode`` is ``"estimate"``.
+    max_gap_s : the longest IMU interval [s] the filter propagates across (longer: re-initialisation),
+        and the longest time without a processed UWB measurement before ``state().valid`` turns False.
+    clock_restart_s : an IMU stamp more than this [s] behind the newest one is an IMU clock restart.
+    max_acc, max_gyro : plausibility bounds of ``|acc|`` [m/s^2] (default 50 g) and ``|gyro|`` [rad/s]
+        (default 35).
+
+    Input guards (``docs/estimator.md``, "Streaming input guards")
+    ----------------------------------------------------------------
+    Raised, :class:`uwbimu.errors.StreamInputError` (an ``InputError``; ``field``, ``reason``): arguments of
+    a push that are not numbers, have the wrong shape (``acc`` not 3 values, ...) or different lengths; a
+    model whose ``z`` has not ``model.dim`` values; a push ``sigma`` that is not finite and > 0.  Nothing of
+    such a push is used.  Bad constructor arguments raise :class:`~uwbimu.errors.UsageError`, bad
+    ``options`` :class:`~uwbimu.errors.ConfigError` (both name the field).
+
+    Skipped, with an event ``{"kind": "input_rejected", "stream", "reason", "count", "t", "t_last"}``
+    (consecutive rejections of one stream and reason are one event) and counted in ``finish``'s
+    ``inputs_not_used``: ``imu_not_finite``; ``imu_implausible`` (beyond ``max_acc`` / ``max_gyro``);
+    ``imu_not_increasing`` (a stamp equal to the newest one, or behind it by at most
+    ``clock_restart_s``); ``not_finite`` (a measurement's stamp or value); ``unknown_anchor``;
+    ``same_anchor`` (a TDoA between one anchor); ``other_tag``; ``range_not_positive``;
+    ``range_too_long`` (longer than the diagonal of the supervisor's box, the anchors' bounding box
+    grown by ``supervisor.hull_margin``, plus 1 m); ``tdoa_too_large`` (``|tdoa|`` beyond the anchors'
+    distance plus 1 m and 5 sd); ``before_imu_discontinuity`` (a measurement whose IMU time lies before
+    the end of an IMU gap, when re-initialising after it).  :meth:`feed` (arrays of a validated
+    :class:`Problem`) applies the IMU checks and the finite / anchor checks only.
+
+    Recovered, with an event ``{"kind": "imu_discontinuity", "t_imu", "jump_s", "action"}``: an IMU
+    interval longer than ``max_gap_s`` (a data gap or a forward clock jump) ends the filter pass
+    (``action: "reinitialise"``): the filter re-initialises from the measurements after it, and until
+    then :meth:`state` returns the last estimate with ``valid=False``; an IMU stamp more than
+    ``clock_restart_s`` behind the newest one (a clock restart) shifts that and every later IMU stamp so
+    that the stream continues one nominal period after the newest sample (``action: "rebase"``,
+    ``shift_s``; :attr:`EskfState.imu_clock_shift`).  Measurements are never re-stamped: a UWB clock that
+    jumps leaves its measurements unused (stale, or waiting for the IMU) and the state flagged below.
+
+    Validity (:attr:`EskfState.valid`, :attr:`EskfState.invalid_reason`): ``"not_finite"``;
+    ``"divergence"`` (the supervisor's verdict, event ``divergence``; the last estimate until the
+    re-initialisation); ``"imu_gap"`` (re-initialising after an IMU discontinuity); ``"stopped"`` (the
+    initialiser failed); ``"inconsistent"`` (more than half of the last 50 processed UWB measurements
+    have a NIS above 9, events ``inconsistent`` / ``consistent_again``: :class:`NisMonitor`);
+    ``"position_sd"`` (above ``supervisor.max_position_sd``); ``"no_measurements"`` (no UWB measurement
+    processed for more than ``max_gap_s`` of IMU time).
     """
 
     def __init__(
@@ -166,16 +218,37 @@ class Eskf:
         record: bool = False,
         max_latency_s: float = 0.2,
         tdoa_pairs: Optional[Sequence[tuple[str, str]]] = None,
+        max_gap_s: float = 2.0,
+        clock_restart_s: float = 0.1,
+        max_acc: float = MAX_ACC,
+        max_gyro: float = MAX_GYRO,
     ):
-        self.options = opts = options or EskfOptions()
+        self.options = opts = check_options(options if options is not None else EskfOptions())
         if not anchors:
-            raise ValueError("Eskf: anchors must map at least one anchor id to its position [x, y, z]")
+            raise UsageError("Eskf: anchors must map at least one anchor id to its position [x, y, z]")
         self.anchor_ids = [str(a) for a in anchors]
-        pos = np.array([np.asarray(anchors[a], dtype=float).reshape(3) for a in anchors])
+        try:
+            pos = np.array([np.asarray(anchors[a], dtype=float).reshape(3) for a in anchors])
+        except (TypeError, ValueError):
+            raise UsageError("Eskf: anchors must map each anchor id to three numbers [x, y, z]") from None
         if not np.all(np.isfinite(pos)):
-            raise ValueError("Eskf: anchor positions must be finite")
+            raise UsageError("Eskf: anchor positions must be finite")
         if anchor_frame_up not in ("+z", "-z"):
-            raise ValueError(f"Eskf: anchor_frame_up must be '+z' or '-z', got {anchor_frame_up!r}")
+            raise UsageError(f"Eskf: anchor_frame_up must be '+z' or '-z', got {anchor_frame_up!r}")
+        range_sigma = positive("range_sigma", range_sigma)
+        tdoa_sigma = positive("tdoa_sigma", tdoa_sigma)
+        self.max_gap_s = positive("max_gap_s", max_gap_s, allow_none=False)
+        self.clock_restart_s = positive("clock_restart_s", clock_restart_s, allow_none=False)
+        self._acc2 = positive("max_acc", max_acc, allow_none=False) ** 2
+        self._gyro2 = positive("max_gyro", max_gyro, allow_none=False) ** 2
+        positive("max_latency_s", max_latency_s, allow_none=False, zero=True)
+        if imu_noise is not None:
+            check_imu_noise(imu_noise)
+        for k_, v_ in (known_anchor_bias or {}).items():
+            finite_number(f"known_anchor_bias[{k_!r}]", v_)
+        unknown = [x for pr in (tdoa_pairs or []) for x in pr if str(x) not in self.anchor_ids]
+        if unknown:
+            raise UsageError(f"Eskf: tdoa_pairs name anchors that are not in anchors: {sorted(set(map(str, unknown)))}")
         self.anchor_frame_up = anchor_frame_up
         self._flip = anchor_frame_up == "-z"
         if self._flip:
@@ -200,7 +273,7 @@ class Eskf:
         noise = imu_noise if imu_noise is not None else opts.resolve_imu_noise(None)
         rsig = range_sigma or opts.range_sigma or 0.1
         tsig = tdoa_sigma or opts.tdoa_sigma
-        pairs = [(self._index[a_], self._index[b_]) for a_, b_ in (tdoa_pairs or [])]
+        pairs = [(self._index[str(a_)], self._index[str(b_)]) for a_, b_ in (tdoa_pairs or [])]
         self._prob, self.priors = make_settings(opts, self.anchor_ids, pos, noise, rsig, tsig, lever,
                                                 self.tag_names or None, pairs)
         self._n_models = 0
@@ -242,6 +315,19 @@ class Eskf:
         self._warnings: list[str] = []
         self._dropped = {"imu_not_increasing": 0, "imu_not_finite": 0, "unknown_anchor": 0,
                          "other_tag": 0, "not_finite": 0}
+        self._rej = Rejections(self._events, self._dropped)
+        # geometric bounds of a measurement: the supervisor's box (the anchors' bounding box grown by its
+        # margin) holds every position it accepts, so no range is longer than its diagonal
+        p_ = self._prob
+        self._r_max = float(np.linalg.norm(p_.hull_hi - p_.hull_lo)) + GEOMETRY_SLACK_M
+        tsd = math.sqrt(p_.tdoa_var) if np.isfinite(p_.tdoa_var) else 0.0
+        self._pair_dist = np.linalg.norm(pos[:, None, :] - pos[None, :, :], axis=2) + GEOMETRY_SLACK_M + 5.0 * tsd
+        self._imu_shift = 0.0  # added to IMU stamps since an IMU clock restart
+        self._imu_floor = -np.inf  # IMU time of the end of the last IMU gap (re-initialise after it)
+        self._last: Optional[tuple[np.ndarray, np.ndarray, float]] = None  # (x, P, t_imu) of the last pass
+        self._invalid: Optional[str] = None  # why the estimate is not valid (a pass ended, not restarted)
+        self._nis = NisMonitor()
+        self._t_last_meas = -np.inf  # UWB stamp of the newest processed measurement
         self.initial: Optional[InitialState] = None
         self._initial_given: Optional[InitialState] = None
         self.td_held = False
@@ -301,96 +387,216 @@ class Eskf:
     # ------------------------------------------------------------------ input
     def push_imu(self, t: float, acc: Sequence[float], gyro: Sequence[float]) -> None:
         """One IMU sample: stamp ``t`` [s, IMU clock], specific force ``acc`` [m/s^2] and body rate
-        ``gyro`` [rad/s], both in the IMU frame."""
+        ``gyro`` [rad/s], both in the IMU frame.  Checked as the class docstring says (plain float
+        comparisons: this runs at the IMU rate)."""
+        try:
+            t = float(t) + self._imu_shift
+            ax, ay, az = acc
+            wx, wy, wz = gyro
+            ax, ay, az, wx, wy, wz = float(ax), float(ay), float(az), float(wx), float(wy), float(wz)
+        except (TypeError, ValueError):
+            raise StreamInputError("Eskf.push_imu: t must be a number, acc and gyro three numbers each",
+                                   field="acc, gyro", reason="bad_shape") from None
+        isf = math.isfinite
+        if not (isf(t) and isf(ax) and isf(ay) and isf(az) and isf(wx) and isf(wy) and isf(wz)):
+            self._rej.add("imu", "imu_not_finite", t)
+            return
+        if ax * ax + ay * ay + az * az > self._acc2 or wx * wx + wy * wy + wz * wz > self._gyro2:
+            self._rej.add("imu", "imu_implausible", t)
+            return
+        n = self._t.n
+        if n:
+            last = float(self._t.a[n - 1])
+            if t <= last:
+                if t >= last - self.clock_restart_s:
+                    self._rej.add("imu", "imu_not_increasing", t)
+                    return
+                t = self._imu_clock_restart(t, last)
+            elif t - last > self.max_gap_s:
+                self._imu_gap(last, t)
         u = np.empty((1, 6))
-        u[0, :3] = acc
-        u[0, 3:] = gyro
-        self.push_imu_chunk(np.array([float(t)]), u[:, :3], u[:, 3:])
+        u[0] = (ax, ay, az, wx, wy, wz)
+        self._append_imu(np.array([t]), u)
 
     def push_imu_chunk(self, t: np.ndarray, acc: np.ndarray, gyro: np.ndarray) -> None:
-        """Several IMU samples at once (arrays ``(n,)``, ``(n, 3)``, ``(n, 3)``); faster than a loop."""
-        t = np.asarray(t, dtype=float).reshape(-1)
-        u = np.hstack([np.asarray(acc, dtype=float).reshape(-1, 3), np.asarray(gyro, dtype=float).reshape(-1, 3)])
-        if len(t) != len(u):
-            raise ValueError(f"push_imu_chunk: {len(t)} stamps but {len(u)} samples")
+        """Several IMU samples at once (arrays ``(n,)``, ``(n, 3)``, ``(n, 3)``); faster than a loop.
+        The samples are checked as :meth:`push_imu` checks one."""
+        t = as_floats("t", t)
+        acc, gyro = as_floats("acc", acc, 3), as_floats("gyro", gyro, 3)
+        same_length("push_imu_chunk", t=t, acc=acc, gyro=gyro)
+        t = t + self._imu_shift
+        u = np.hstack([acc, gyro])
         finite = np.isfinite(t) & np.all(np.isfinite(u), axis=1)
         if not finite.all():
-            self._dropped["imu_not_finite"] += int((~finite).sum())
+            self._rej.add("imu", "imu_not_finite", t[~finite][0], n=int((~finite).sum()))
             t, u = t[finite], u[finite]
-        last = self._t.a[self._t.n - 1] if self._t.n else -np.inf
-        # strictly increasing stamps (repeated stamps of the batch loader are dropped the same way): a
-        # sample is kept when it is later than every stamp before it (the last kept one is their maximum)
-        if len(t) == 1:
-            keep = np.array([t[0] > last])
-        else:
-            keep = t > np.maximum.accumulate(np.concatenate(([last], t[:-1])))
-        if not keep.all():
-            self._dropped["imu_not_increasing"] += int((~keep).sum())
-            t, u = t[keep], u[keep]
-        if len(t) == 0:
-            return
+        plausible = (np.einsum("ij,ij->i", u[:, :3], u[:, :3]) <= self._acc2) & \
+            (np.einsum("ij,ij->i", u[:, 3:], u[:, 3:]) <= self._gyro2)
+        if not plausible.all():
+            self._rej.add("imu", "imu_implausible", t[~plausible][0], n=int((~plausible).sum()))
+            t, u = t[plausible], u[plausible]
+        while len(t):
+            last = float(self._t.a[self._t.n - 1]) if self._t.n else -np.inf
+            # strictly increasing stamps (repeated stamps of the batch loader are dropped the same way): a
+            # sample is kept when it is later than every stamp before it (the last kept one is their maximum)
+            prev = np.maximum.accumulate(np.concatenate(([last], t[:-1]))) if len(t) > 1 else np.array([last])
+            jump = ((t < prev - self.clock_restart_s) | (t - prev > self.max_gap_s)) & np.isfinite(prev)
+            i = int(np.argmax(jump)) if jump.any() else len(t)
+            keep = t[:i] > prev[:i]
+            if not keep.all():
+                self._rej.add("imu", "imu_not_increasing", t[:i][~keep][0], n=int((~keep).sum()))
+            if keep.any():
+                self._append_imu(t[:i][keep], u[:i][keep])
+            if i == len(t):
+                return
+            last = float(self._t.a[self._t.n - 1])
+            if t[i] < last:
+                t = t.copy()
+                t[i:] += self._imu_clock_restart(float(t[i]), last) - t[i]
+            else:
+                self._imu_gap(last, float(t[i]))
+            self._append_imu(t[i:i + 1], u[i:i + 1])
+            t, u = t[i + 1:], u[i + 1:]
+
+    def _append_imu(self, t: np.ndarray, u: np.ndarray) -> None:
         self._t.extend(t)
         self._u.extend(u)
         self._imu_appended()
         self._step()
 
+    def _td_hat(self) -> float:
+        """The current time-offset estimate (the prior before the first initialisation)."""
+        x = self._st.x if self._st is not None else (self._last[0] if self._last is not None else None)
+        td = float(x[S.TD]) if x is not None else float(self.priors.get("td", 0.0) or 0.0)
+        return td if math.isfinite(td) else 0.0
+
+    def _imu_clock_restart(self, t: float, last: float) -> float:
+        """An IMU stamp ``t`` far behind the newest ``last``: shift the clock so that the sample follows
+        ``last`` after one nominal period; the shifted stamp."""
+        dt = self._prob.dt_nom
+        if not (math.isfinite(dt) and dt > 0):
+            n = self._t.n
+            dt = float(self._t.a[n - 1] - self._t.a[n - 2]) if n >= 2 else 0.005
+        shift = last + dt - t
+        self._imu_shift += shift
+        self._event({"t": last - self._td_hat(), "kind": "imu_discontinuity", "t_imu": last, "jump_s": t - last,
+                     "action": "rebase", "shift_s": self._imu_shift})
+        return t + shift
+
+    def _imu_gap(self, last: float, t: float) -> None:
+        """An IMU interval ``[last, t]`` longer than ``max_gap_s``: end the pass, re-initialise after it."""
+        if self._mode == "run" and self._st is not None and not self._final:
+            self._j_init = max(self._j_init, self._st.j)
+            self._close_pass()
+            self._st = None
+            self._mode = "init"
+            self._need = None
+        if self.initial is not None:
+            self._invalid = "imu_gap"
+        self._imu_floor = t
+        self._event({"t": last - self._td_hat(), "kind": "imu_discontinuity", "t_imu": last, "jump_s": t - last,
+                     "action": "reinitialise"})
+
+    def _event(self, ev: dict[str, Any]) -> None:
+        self._events.append(ev)
+
     def push_range(self, t: float, anchor: str, range: float, tag: Optional[str] = None) -> None:
         """One two-way range [m] to ``anchor``, stamped ``t`` [s, UWB clock]."""
-        self.push_ranges(np.array([float(t)]), [anchor], np.array([float(range)]),
-                         None if tag is None else [tag])
+        self.push_ranges((t,), (anchor,), (range,), None if tag is None else (tag,))
 
     def push_ranges(self, t: np.ndarray, anchors: Sequence[str], ranges: np.ndarray,
                     tags: Optional[Sequence[Optional[str]]] = None) -> None:
         """Several ranges at once, in time order."""
-        t = np.asarray(t, dtype=float).reshape(-1)
-        z = np.asarray(ranges, dtype=float).reshape(-1)
-        ids = [str(a) for a in anchors]
+        t = as_floats("t", t)
+        z = as_floats("ranges", ranges)
+        ids = self._ids("anchors", anchors)
+        same_length("push_ranges", t=t, anchors=ids, ranges=z, **({} if tags is None else {"tags": tags}))
         a = np.array([self._index.get(x, -1) for x in ids], dtype=np.int64)
+        with np.errstate(invalid="ignore"):
+            short = (a >= 0) & (z <= 0)
+            long = (a >= 0) & (z > self._r_max)
+        if short.any() or long.any():
+            self._rej.add("range", "range_not_positive", t[short][0] if short.any() else np.nan, n=int(short.sum()))
+            self._rej.add("range", "range_too_long", t[long][0] if long.any() else np.nan, n=int(long.sum()))
+            keep = ~(short | long)
+            t, z, a = t[keep], z[keep], a[keep]
+            ids = [x for x, k in zip(ids, keep) if k]
+            tags = None if tags is None else [x for x, k in zip(tags, keep) if k]
         z = z - np.array([self._known_bias.get(x, 0.0) for x in ids])
-        self._add(t, a, np.full(len(t), -1, dtype=np.int64), z, tags)
+        self._add(t, a, np.full(len(t), -1, dtype=np.int64), z, tags, stream="range")
 
     def push_tdoa(self, t: float, anchor_a: str, anchor_b: str, tdoa: float, tag: Optional[str] = None) -> None:
         """One TDoA ``|p_U - p_b| - |p_U - p_a|`` [m] stamped ``t`` [s, UWB clock]."""
-        self.push_tdoas(np.array([float(t)]), [anchor_a], [anchor_b], np.array([float(tdoa)]),
-                        None if tag is None else [tag])
+        self.push_tdoas((t,), (anchor_a,), (anchor_b,), (tdoa,), None if tag is None else (tag,))
 
     def push_tdoas(self, t: np.ndarray, anchors_a: Sequence[str], anchors_b: Sequence[str], tdoa: np.ndarray,
                    tags: Optional[Sequence[Optional[str]]] = None) -> None:
         """Several TDoA measurements at once, in time order."""
-        t = np.asarray(t, dtype=float).reshape(-1)
-        ia = [str(x) for x in anchors_a]
-        ib = [str(x) for x in anchors_b]
+        t = as_floats("t", t)
+        z = as_floats("tdoa", tdoa)
+        ia, ib = self._ids("anchors_a", anchors_a), self._ids("anchors_b", anchors_b)
+        same_length("push_tdoas", t=t, anchors_a=ia, anchors_b=ib, tdoa=z,
+                    **({} if tags is None else {"tags": tags}))
         a = np.array([self._index.get(x, -1) for x in ia], dtype=np.int64)
         b = np.array([self._index.get(x, -1) for x in ib], dtype=np.int64)
-        bad = (b < 0) | (a == b)
-        a[bad] = -1
-        z = np.asarray(tdoa, dtype=float).reshape(-1) - np.array(
-            [self._known_bias.get(y, 0.0) - self._known_bias.get(x, 0.0) for x, y in zip(ia, ib)])
-        self._add(t, a, np.maximum(b, 0), z, tags)
+        same = (a >= 0) & (a == b)
+        known = (a >= 0) & (b >= 0) & ~same
+        with np.errstate(invalid="ignore"):
+            large = known & (np.abs(z) > self._pair_dist[np.maximum(a, 0), np.maximum(b, 0)])
+        if same.any() or large.any():
+            self._rej.add("tdoa", "same_anchor", t[same][0] if same.any() else np.nan, n=int(same.sum()))
+            self._rej.add("tdoa", "tdoa_too_large", t[large][0] if large.any() else np.nan, n=int(large.sum()))
+            keep = ~(same | large)
+            t, z, a, b = t[keep], z[keep], a[keep], b[keep]
+            ia = [x for x, k in zip(ia, keep) if k]
+            ib = [x for x, k in zip(ib, keep) if k]
+            tags = None if tags is None else [x for x, k in zip(tags, keep) if k]
+        a[b < 0] = -1
+        z = z - np.array([self._known_bias.get(y, 0.0) - self._known_bias.get(x, 0.0) for x, y in zip(ia, ib)])
+        self._add(t, a, np.maximum(b, 0), z, tags, stream="tdoa")
+
+    @staticmethod
+    def _ids(name: str, ids: Any) -> list[str]:
+        if isinstance(ids, (str, bytes)) or not hasattr(ids, "__len__"):
+            raise StreamInputError(f"Eskf: {name} must be a sequence of anchor ids, got {type(ids).__name__}",
+                                   field=name, reason="bad_shape")
+        return [str(x) for x in ids]
 
     def push_height(self, t: float, height: float, sigma: Optional[float] = None) -> None:
         """One altimeter reading: the IMU origin's z coordinate [m] in the anchors' frame, stamped ``t``
         [s, IMU clock]; ``sigma`` [m] defaults to ``options.height.sigma``.  With
         ``options.height.bias = "estimate"`` an altimeter bias is estimated along."""
-        sig = self.options.height.sigma if sigma is None else float(sigma)
-        z = float(height) * (-1.0 if self._flip else 1.0)
-        self.push(t, HeightModel(sig, self._prob.state_layout()), np.array([z]))
+        sig = self.options.height.sigma if sigma is None else push_sigma("sigma", sigma)
+        z = as_floats("height", (height,)) * (-1.0 if self._flip else 1.0)
+        self.push(t, HeightModel(sig, self._prob.state_layout()), z)
 
     def push_zero_velocity(self, t: float, sigma: float = 0.01) -> None:
         """The platform stands still at ``t`` [s, IMU clock] (e.g. a detected stance phase or a landed
         drone): a zero-velocity pseudo-measurement with sd ``sigma`` [m/s] per axis."""
-        self.push(t, ZeroVelocityModel(sigma), np.zeros(3))
+        self.push(t, ZeroVelocityModel(push_sigma("sigma", sigma)), np.zeros(3))
 
     def push(self, t: float, model: MeasurementModel, z: Sequence[float]) -> None:
         """Any measurement through the model protocol (:mod:`uwbimu.models.measurements`): ``model``
         predicts ``z`` from the state at ``t`` (its own clock, ``model.clock``); processed in order
         with the ranges, with the same gate (chi-square at the options' probability) and robust loss.
-        The model works in the filter's world frame (z up; ``anchor_frame_up: -z`` turns y and z)."""
-        z = np.atleast_1d(np.asarray(z, dtype=float))
-        if len(z) != model.dim:
-            raise ValueError(f"push: {model.name} has dim {model.dim}, got {len(z)} values")
-        if not (np.isfinite(t) and np.all(np.isfinite(z))):
-            self._dropped["not_finite"] += 1
+        The model works in the filter's world frame (z up; ``anchor_frame_up: -z`` turns y and z).
+        A stamp on the IMU clock gets the clock shift of an IMU clock restart."""
+        z = as_floats("z", z)
+        dim = getattr(model, "dim", None)
+        if not isinstance(dim, (int, np.integer)) or getattr(model, "clock", None) not in ("imu", "uwb"):
+            raise StreamInputError(f"Eskf.push: {type(model).__name__} is not a measurement model (dim, clock)",
+                                   field="model", reason="not_a_model")
+        if len(z) != dim:
+            raise StreamInputError(f"Eskf.push: {model.name} has dim {dim}, got {len(z)} values", field="z",
+                                   reason="bad_shape")
+        try:
+            t = float(t)
+        except (TypeError, ValueError):
+            raise StreamInputError("Eskf.push: t must be a number", field="t", reason="not_numeric") from None
+        if model.clock == "imu":
+            t += self._imu_shift
+        if not (math.isfinite(t) and np.all(np.isfinite(z))):
+            self._rej.add("model", "not_finite", t)
             return
         i = self._n_models
         self._n_models += 1
@@ -436,13 +642,37 @@ class Eskf:
     def initialised(self) -> bool:
         return self._st is not None
 
-    def state(self) -> Optional[EskfState]:
-        """The current estimate (``None`` before initialisation)."""
+    def _t_imu(self, k: int) -> float:
+        return float(self._prob.imu_t[k]) if k < len(self._prob.imu_t) else float("nan")
+
+    def _invalid_reason(self, x: np.ndarray, P: np.ndarray, sd: np.ndarray, t_imu: float) -> Optional[str]:
+        """Why the estimate must not be used (None: valid); the cases are listed in the class docstring."""
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
+            return "not_finite"
+        if self._invalid is not None:
+            return self._invalid
         if self._st is None:
+            return "reinitialising"
+        if self._nis.inconsistent:
+            return "inconsistent"
+        if float(np.linalg.norm(sd[S.EP])) > self.options.supervisor.max_position_sd:
+            return "position_sd"
+        if t_imu - (self._t_last_meas + float(x[S.TD])) > self.max_gap_s:
+            return "no_measurements"
+        return None
+
+    def state(self) -> Optional[EskfState]:
+        """The current estimate (``None`` before the first initialisation).  Between a divergence or an
+        IMU gap and the re-initialisation it is the last estimate, with ``valid=False``."""
+        if self._st is not None:
+            x, P = self._st.x, self._st.P
+            t_imu = self._t_imu(self._st.k)
+        elif self._last is not None:
+            x, P, t_imu = self._last
+        else:
             return None
-        x, P = self._st.x, self._st.P
-        t_imu = float(self._prob.imu_t[self._st.k]) if self._st.k < len(self._prob.imu_t) else float("nan")
         sd = np.sqrt(np.clip(np.diag(P), 0.0, None))
+        reason = self._invalid_reason(x, P, sd, t_imu)
         p, v, q = x[S.P].copy(), x[S.V].copy(), x[S.Q].copy()
         Pc = P.copy()
         if self._flip:
@@ -464,6 +694,7 @@ class Eskf:
             tags={n: (x[L.lever_nom(i)].copy(), sd[L.lever_err(i)].copy()) for i, n in enumerate(self.tag_names)},
             height_bias=float(x[L.nom("height_bias")][0]) if L.n_height_bias else None,
             height_bias_sd=float(sd[L.err("height_bias")][0]) if L.n_height_bias else None,
+            valid=reason is None, invalid_reason=reason, imu_clock_shift=self._imu_shift,
         )
 
     def events(self) -> list[dict[str, Any]]:
@@ -499,22 +730,28 @@ class Eskf:
         t = float(self._mt.a[self._mt.n - 1]) if self._mt.n else 0.0
         self._events.append({"t": t, "kind": kind, **fields})
 
-    def _add(self, t, a, b, z, tags, tag_idx=None) -> None:
+    def _add(self, t, a, b, z, tags, tag_idx=None, stream: str = "uwb") -> None:
         ok = a >= 0
-        self._dropped["unknown_anchor"] += int((~ok).sum())
+        rej = self._rej
+
+        def drop(reason, bad):
+            if bad.any():
+                rej.add(stream, reason, t[bad][0], n=int(bad.sum()))
+
+        drop("unknown_anchor", ~ok)
         fin = np.isfinite(t) & np.isfinite(z)
-        self._dropped["not_finite"] += int((ok & ~fin).sum())
+        drop("not_finite", ok & ~fin)
         ok &= fin
         if tag_idx is None:
             tag_idx = np.zeros(len(t), dtype=np.int64)
             if tags is not None and self.tag_names:
                 tag_idx = np.array([self._tag_index.get(str(tg), -1) if tg is not None else 0 for tg in tags],
                                    dtype=np.int64)
-                self._dropped["other_tag"] += int((ok & (tag_idx < 0)).sum())
+                drop("other_tag", ok & (tag_idx < 0))
                 ok &= tag_idx >= 0
             elif tags is not None and self.tag is not None:
                 mine = np.array([tg is None or str(tg) == str(self.tag) for tg in tags], dtype=bool)
-                self._dropped["other_tag"] += int((ok & ~mine).sum())
+                drop("other_tag", ok & ~mine)
                 ok &= mine
         if not ok.any():
             return
@@ -639,6 +876,8 @@ class Eskf:
                 return False
             self._set_timing()
             self._sync()
+        if self._imu_floor > -np.inf:
+            self._skip_before_floor()
         if self._j_init >= m or self._t.n < 10:
             return False
         if not self._final:
@@ -667,9 +906,24 @@ class Eskf:
             if self.initial is not None:
                 self._warnings.append(f"re-initialisation failed: {exc}")
             self._mode = "stopped"
+            if self.initial is not None:
+                self._invalid = "stopped"
             return False
         self._start(st)
         return True
+
+    def _skip_before_floor(self) -> None:
+        """After an IMU gap: measurements whose IMU time is before its end (plus the initialiser's reach
+        back in time offset) cannot start the new pass; they are skipped, counted."""
+        lim = self._imu_floor + max(self.options.init.td_max_abs_s, 1.0) - self._td_hat()
+        ts, j0, m = self._mt.a, self._j_init, self._mt.n
+        j = j0
+        while j < m and not ts[j] >= lim:
+            j += 1
+        if j > j0:
+            self._rej.add("uwb", "before_imu_discontinuity", float(ts[j0]), n=j - j0)
+            self._j_init = j
+            self._need = None
 
     def _start(self, st: InitialState) -> None:
         first = self.initial is None
@@ -693,6 +947,9 @@ class Eskf:
                                  "prior_sd": float(pr["td_sd"])})
         self._st = PassState.start(self._prob, st.x, st.P, st.k, st.j)
         self._mode = "run"
+        self._invalid = None
+        self._nis.reset(st.j)
+        self._t_last_meas = float(self._prob.uwb_t[st.j])
 
     def _advance(self) -> None:
         p = self._prob
@@ -703,10 +960,15 @@ class Eskf:
             t_safe = max(t_safe, float(p.imu_t[-1]) - self.max_latency_s)
         advance(p, st, self._rec.view(), final=self._final, record=self.record, t_safe=t_safe,
                 progress=self._progress)
+        if st.j > self._nis.j:
+            self._events += self._nis.update(self._rec.a, self._mb.a, self._mt.a, st.j)
+            self._t_last_meas = float(self._mt.a[st.j - 1])
         if not self.record and not self._final:
             self._trim()
 
     def _close_pass(self) -> None:
+        st = self._st
+        self._last = (st.x.copy(), st.P.copy(), self._t_imu(st.k))
         res = self._st.result(self._rec.view(), self._st.P.shape[0], copy=False)  # the pass is over
         if not self._prob.store_cov:
             res.covs = None
@@ -722,6 +984,7 @@ class Eskf:
         t_div = float(p.imu_t[st.k] - x[S.TD]) if np.isfinite(x[S.TD]) else float(p.imu_t[st.k])
         self._close_pass()
         self._events.append({"t": t_div, "kind": "divergence", "reason": st.diverged})
+        self._invalid = "divergence"
         j = st.j
         if self._final and j >= len(p.uwb_t) - 8:
             self._warnings.append(f"divergence at t={t_div:.2f} s ({st.diverged}) near the end of the log; stopped there")
@@ -737,6 +1000,7 @@ class Eskf:
                                   f"({opts.supervisor.max_reinit}) reached, continuing without supervisor")
             p.supervise = False
             self._st = PassState.start(p, x.copy(), st.P.copy(), st.k, j)
+            self._nis.reset(j)
             return
         self._n_reinit += 1
         self._warnings.append(f"divergence at t={t_div:.2f} s ({st.diverged}); re-initialised from the ranges "
@@ -777,6 +1041,7 @@ class Eskf:
             for b in (self._mt, self._ma, self._mb, self._mr, self._mtag, self._rec):
                 b.drop_front(jd)
             self._m_off += jd
+            self._nis.shift(jd)
             st.j -= jd
             st.j0 = max(st.j0 - jd, 0)
         self._sync()
