@@ -12,13 +12,7 @@ from uwbimu.io.importers import cf_usdlog as imp
 from uwbimu.io.loader import DatasetError, load_dataset
 from uwbimu.sim import builtin_scenario, simulate
 
-EVENTS = [
-    ("estTDOA", [("idA", "B"), ("idB", "B"), ("distanceDiff", "f")]),
-    ("estAcceleration", [("acc.x", "f"), ("acc.y", "f"), ("acc.z", "f")]),
-    ("estGyroscope", [("gyro.x", "f"), ("gyro.y", "f"), ("gyro.z", "f")]),
-    ("estPose", [("locSrv.x", "f"), ("locSrv.y", "f"), ("locSrv.z", "f"), ("locSrv.qx", "f"), ("locSrv.qy", "f"),
-                 ("locSrv.qz", "f"), ("locSrv.qw", "f")]),
-]
+EVENTS = imp.EVENT_TYPES
 
 
 @pytest.fixture(scope="module")

@@ -33,13 +33,8 @@ needs_util = pytest.mark.skipif(not (UTIL_0425 / "raw").is_dir(),
                                 reason=f"UTIL 2021 logs not present at {UTIL_0425} (shared data, not in the repo)")
 ENV = {"COLUMNS": "200"}
 
-EVENTS = [
-    ("estTDOA", [("idA", "B"), ("idB", "B"), ("distanceDiff", "f")]),
-    ("estAcceleration", [("acc.x", "f"), ("acc.y", "f"), ("acc.z", "f")]),
-    ("estGyroscope", [("gyro.x", "f"), ("gyro.y", "f"), ("gyro.z", "f")]),
-    ("estPose", [("locSrv.x", "f"), ("locSrv.y", "f"), ("locSrv.z", "f"), ("locSrv.qx", "f"), ("locSrv.qy", "f"),
-                 ("locSrv.qz", "f"), ("locSrv.qw", "f")]),
-]
+EVENTS = cf_usdlog.EVENT_TYPES
+
 #: A unit quaternion [qw, qx, qy, qz] that is not symmetric under the wxyz <-> xyzw mix-up.
 Q_WXYZ = np.array([0.8, 0.2, -0.4, 0.4]) / np.linalg.norm([0.8, 0.2, -0.4, 0.4])
 

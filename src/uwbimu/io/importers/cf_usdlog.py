@@ -70,7 +70,17 @@ from uwbimu.io.loader import DatasetError
 from uwbimu.models.imu import imu_preset
 
 __all__ = ["decode", "convert", "import_dataset", "combine_imu", "read_anchors_csv", "tdoa_table", "G_CRAZYFLIE",
-           "encode"]
+           "encode", "EVENT_TYPES"]
+
+#: The events and variables this importer reads, with the struct type codes the firmware logs them
+#: with (``encode(EVENT_TYPES, ...)`` builds a log like the UTIL set-up's for tests and fixtures).
+EVENT_TYPES = [
+    ("estTDOA", [("idA", "B"), ("idB", "B"), ("distanceDiff", "f")]),
+    ("estAcceleration", [("acc.x", "f"), ("acc.y", "f"), ("acc.z", "f")]),
+    ("estGyroscope", [("gyro.x", "f"), ("gyro.y", "f"), ("gyro.z", "f")]),
+    ("estPose", [("locSrv.x", "f"), ("locSrv.y", "f"), ("locSrv.z", "f"), ("locSrv.qx", "f"), ("locSrv.qy", "f"),
+                 ("locSrv.qz", "f"), ("locSrv.qw", "f")]),
+]
 
 #: Standard gravity used by the Crazyflie firmware to convert g to m/s^2.
 G_CRAZYFLIE = 9.81
