@@ -56,18 +56,24 @@ class FlightSegment:
                 "rest_s": self.rest_s, "climb_speed": self.climb_speed, "airborne_height": self.airborne_height}
 
 
-def _quiet_prefix(t: np.ndarray, u: np.ndarray, gyro_thr: float, block_s: float = 0.05) -> int:
+def _quiet_prefix(t: np.ndarray, u: np.ndarray, gyro_thr: float, block_s: float = 0.05,
+                  acc_thr: float = 0.5) -> int:
     """Number of samples of the initial rest: blocks of ``block_s`` seconds whose mean body rate stays
     below ``gyro_thr`` [rad/s] on every axis and whose sd stays below twice that (idling motors shake a
-    vehicle that does not move), from the first sample on."""
+    vehicle that does not move), and whose mean specific force stays within ``acc_thr`` [m/s^2] of the
+    first block's (a vehicle that accelerates is not at rest), from the first sample on."""
     n = 0
     k = 0
+    f_ref = None
     while k < len(t):
         k1 = int(np.searchsorted(t, t[k] + block_s))
         if k1 <= k + 1:
             break
         w = u[k:k1, 3:6]
-        if np.any(np.abs(w.mean(axis=0)) >= gyro_thr) or np.any(w.std(axis=0) >= 2 * gyro_thr):
+        f = u[k:k1, :3].mean(axis=0)
+        f_ref = f if f_ref is None else f_ref
+        if np.any(np.abs(w.mean(axis=0)) >= gyro_thr) or np.any(w.std(axis=0) >= 2 * gyro_thr) or \
+                np.linalg.norm(f - f_ref) > acc_thr:
             break
         n = k = k1
     return n
@@ -100,6 +106,8 @@ def _first_climb(t: np.ndarray, a_up: np.ndarray, k_from: int, climb_speed: floa
     """First (take-off index, airborne index) after ``k_from``: the vertical velocity, integrated from
     ``k_from`` with the static-phase bias removed, passes ``climb_speed`` and the height reaches
     ``airborne_height`` within ``window_s``."""
+    if k_from >= len(t) - 2:
+        return None
     dt = np.diff(t, prepend=t[k_from])
     v = np.cumsum(a_up[k_from:] * dt[k_from:])
     idx = np.flatnonzero(v > climb_speed)
@@ -151,7 +159,7 @@ def detect_flight(imu_t: np.ndarray, imu_u: np.ndarray, *, min_rest_s: float = 0
     if len(t) < 50:
         return None
     n_rest = _quiet_prefix(t, u, gyro_thr)
-    if n_rest < 20 or t[n_rest - 1] - t[0] < min_rest_s:
+    if n_rest < 20 or n_rest > len(t) - 20 or t[n_rest - 1] - t[0] < min_rest_s:
         return None
     k_max = int(np.searchsorted(t, t[0] + max_ground_s))
     a_up = _vertical_acceleration(t[:k_max], u[:k_max], n_rest)
@@ -165,7 +173,7 @@ def detect_flight(imu_t: np.ndarray, imu_u: np.ndarray, *, min_rest_s: float = 0
     t_rev = -t[::-1]
     u_rev = u[::-1] * np.array([1.0, 1.0, 1.0, -1.0, -1.0, -1.0])
     n_end = _quiet_prefix(t_rev, u_rev, gyro_thr)
-    if n_end >= 20 and t_rev[n_end - 1] - t_rev[0] >= min_rest_s:
+    if 20 <= n_end < len(t) - 20 and t_rev[n_end - 1] - t_rev[0] >= min_rest_s:
         k_min = max(k_start, int(np.searchsorted(t, t[-1] - max_ground_s)))
         # time reversed: stamps negated, body rates negated (the attitude runs backwards)
         m = len(t) - k_min
@@ -236,22 +244,24 @@ def ground_ranges_shadowed(ds, seg: FlightSegment, t_d: float = 0.0) -> dict:
     """Whether the ranges on the floor contradict the airborne ones (the radio is shadowed there).
 
     The fix from the last second on the floor before take-off (and the first second after landing) is
-    compared with the fix from the first second airborne (the last before landing): the vehicle climbed
-    ``airborne_height`` in between, so the two agree within that height plus three combined fix sds
-    (at least 0.5 m) unless the floor ranges are wrong.  Returns ``{"before": bool|None, "after":
+    compared with the fix from the first half second airborne (the last before landing).  Between the
+    two the vehicle climbed about ``airborne_height`` (the IMU's estimate, which may be off by as much
+    again) and moved during the airborne window, so they agree within ``2 airborne_height + 0.5 m``
+    plus three combined fix sds unless the floor ranges are wrong; the shadowed floor of the Crazyflie
+    logs is 5-7 m off.  Returns ``{"before": bool|None, "after":
     bool|None, "offset_before": m, "offset_after": m}`` (None: not enough data to tell).
     """
     out: dict = {"before": None, "after": None, "offset_before": None, "offset_after": None}
-    sides = [("before", (seg.takeoff - 1.2, seg.takeoff - 0.2), (seg.start, seg.start + 1.0))]
+    sides = [("before", (seg.takeoff - 1.2, seg.takeoff - 0.2), (seg.start, seg.start + 0.5))]
     if seg.landing is not None:
-        sides.append(("after", (seg.landing + 0.2, seg.landing + 1.2), (seg.end - 1.0, seg.end)))
+        sides.append(("after", (seg.landing + 0.2, seg.landing + 1.2), (seg.end - 0.5, seg.end)))
     for name, (g0, g1), (a0, a1) in sides:
         fg = _fix(ds, g0 - t_d, g1 - t_d)
         fa = _fix(ds, a0 - t_d, a1 - t_d)
         if fg is None or fa is None:
             continue
         off = float(np.linalg.norm(fg[0] - fa[0]))
-        tol = seg.airborne_height + max(0.5, 3.0 * math.hypot(fg[1], fa[1]))
+        tol = 2.0 * seg.airborne_height + 0.5 + 3.0 * math.hypot(fg[1], fa[1])
         out[name] = bool(off > tol)
         out["offset_" + name] = off
     return out
