@@ -80,7 +80,7 @@ def register(app: typer.Typer) -> None:
     @app.command("calibrate")
     @with_load_options
     def calibrate_cmd(
-        dataset: Path = typer.Argument(..., help="Dataset folder (imu.csv, uwb.csv, anchors.csv)"),
+        dataset: Path = typer.Argument(..., help="Dataset folder (imu.csv, uwb.csv and/or tdoa.csv, anchors.csv)"),
         out: Path = typer.Option(..., "--out", "-o", help="Output folder"),
         config: Optional[Path] = typer.Option(None, "--config", "-c", help="Calibration options YAML (see docs/calibrate.md)."),
         eskf_config: Optional[Path] = typer.Option(None, "--eskf-config", help="Options of the initialising ESKF"),

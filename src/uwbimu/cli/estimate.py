@@ -127,7 +127,8 @@ def register(app: typer.Typer) -> None:
     @app.command("estimate")
     @with_load_options
     def estimate_cmd(
-        dataset: Path = typer.Argument(..., help="Dataset folder (imu.csv, uwb.csv, anchors.csv [, groundtruth.csv])"),
+        dataset: Path = typer.Argument(..., help="Dataset folder (imu.csv, uwb.csv and/or tdoa.csv, anchors.csv "
+                                       "[, groundtruth.csv])"),
         out: Path = typer.Option(..., "--out", "-o", help="Output folder"),
         config: Optional[Path] = typer.Option(None, "--config", "-c", help="Estimator options YAML (see examples/estimator.yaml)"),
         preset: Optional[str] = typer.Option(None, "--preset", help="Shipped estimator options: default, real, isas-walk"),

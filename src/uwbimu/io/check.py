@@ -323,9 +323,13 @@ def residual_stats(res: pd.DataFrame) -> pd.DataFrame:
     return df.set_index("anchor").sort_index(key=_natural_key)
 
 
+def _id_key(s) -> tuple:
+    """Sort key of one anchor id: "2" before "10", text ids after the numbers."""
+    return (0, int(s), "") if str(s).isdigit() else (1, 0, str(s))
+
+
 def _natural_key(index: pd.Index) -> pd.Index:
-    # Sort "2" before "10" but keep text ids working.
-    return pd.Index([(0, int(s), "") if str(s).isdigit() else (1, 0, str(s)) for s in index])
+    return pd.Index([_id_key(s) for s in index])
 
 
 # ---------------------------------------------------------------------------

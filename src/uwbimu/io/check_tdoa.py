@@ -28,16 +28,12 @@ from typing import Optional
 import numpy as np
 import pandas as pd
 
-from uwbimu.io.check import (AnchorFlag, CheckOptions, _natural_key, _time_stats,
+from uwbimu.io.check import (AnchorFlag, CheckOptions, _id_key, _time_stats,
                              antenna_track, residual_stats)
 from uwbimu.io.dataset import Dataset
 
 __all__ = ["tdoa_pairs", "tdoa_participation", "tdoa_pair_summary", "tdoa_residuals",
            "tdoa_pair_stats", "tdoa_anchor_offsets", "diagnose_tdoa"]
-
-
-def _order_key(a: str) -> tuple:
-    return (0, int(a), "") if str(a).isdigit() else (1, 0, str(a))
 
 
 def tdoa_pairs(tdoa: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -49,7 +45,7 @@ def tdoa_pairs(tdoa: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """
     a = tdoa["anchor_a"].astype(str).to_numpy()
     b = tdoa["anchor_b"].astype(str).to_numpy()
-    ids = sorted(set(a) | set(b), key=_order_key)
+    ids = sorted(set(a) | set(b), key=_id_key)
     rank = {x: i for i, x in enumerate(ids)}
     ra = np.array([rank[x] for x in a], int)
     rb = np.array([rank[x] for x in b], int)
@@ -98,8 +94,8 @@ def tdoa_pair_summary(ds: Dataset, gap_factor: float = 5.0) -> pd.DataFrame:
 
 
 def _sorted(df: pd.DataFrame) -> pd.DataFrame:
-    order = sorted(range(len(df)), key=lambda i: (_order_key(df["anchor_a"].iloc[i]),
-                                                  _order_key(df["anchor_b"].iloc[i])))
+    order = sorted(range(len(df)), key=lambda i: (_id_key(df["anchor_a"].iloc[i]),
+                                                  _id_key(df["anchor_b"].iloc[i])))
     return df.iloc[order].set_index("pair")
 
 
@@ -162,7 +158,7 @@ def tdoa_anchor_offsets(table: pd.DataFrame, anchors: list[str]) -> pd.Series:
     ``median(a-b) ~ beta_b - beta_a``; anchors in no pair get NaN.  A common offset of all
     anchors cancels in every TDoA and is fixed by the zero-mean gauge.
     """
-    used = sorted(set(table["anchor_a"]) | set(table["anchor_b"]), key=_order_key)
+    used = sorted(set(table["anchor_a"]) | set(table["anchor_b"]), key=_id_key)
     out = pd.Series(np.nan, index=[str(a) for a in anchors], dtype=float)
     if len(table) == 0:
         return out
