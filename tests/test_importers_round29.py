@@ -190,7 +190,9 @@ def test_cf_usdlog_anchors_from_npz_survey_and_refusals(tmp_path, sim):
     bad.write_bytes(b"anchor,x,y,z\n0,1,2,3\n\xff1,1,2,3\n")
     odd = tmp_path / "anchors.json"
     odd.write_text("{}\n")
-    for path, row in ((raw, None), (bad, 3), (odd, None)):
+    cut = tmp_path / "anchor_0426.npz"
+    cut.write_bytes(npz.read_bytes()[:200])
+    for path, row in ((raw, None), (bad, 3), (odd, None), (cut, None)):
         with pytest.raises(DatasetError) as e:
             cf_usdlog.convert(log, path)
         assert e.value.file == path.name and e.value.row == row

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import os
 import re
+import zipfile
 from pathlib import Path
 from typing import Literal, Optional, Union
 
@@ -86,7 +87,7 @@ def _read_npz(path: Path) -> tuple[np.ndarray, Optional[np.ndarray]]:
                                    column="an_pos")
             pos = np.asarray(z["an_pos"], float)
             quat = np.asarray(z["an_quat"], float) if "an_quat" in z.files else None
-    except (OSError, ValueError, EOFError) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # a cut or foreign file
         raise DatasetError(f"{path.name}: not a readable .npz survey ({exc})", file=path.name) from None
     return pos, quat
 
