@@ -28,7 +28,6 @@ from typing import Any, Optional
 
 import numpy as np
 from scipy.stats import norm
-from scipy.stats import t as student_t
 
 from uwbimu.models.state import BA, BG, EBA, EBG, EPIU, ETD, PIU, TD
 
@@ -172,18 +171,23 @@ def fit_step(y, w, k: int) -> tuple[float, float, float, float]:
 
 
 def dispersion(r: np.ndarray, w: np.ndarray) -> float:
-    """Scale ``c >= 1`` of normalised residuals ``r sqrt(w)``, robust (median).
+    """Scale ``c >= 1`` of normalised residuals ``r sqrt(w)``: robust and across time scales.
 
-    ``c^2`` is the larger of 1 and the median of the squared normalised residuals over the
-    chi-square(1) median (0.455).  The median keeps a few transient windows after a jump (the
-    filter absorbing it) from hiding the jump itself; the floor keeps the filter's own sds as a
-    lower bound (never shrunk).  Slow wander is not this scale's business: :func:`lag1_correlation`
-    accounts for it.
+    ``c^2`` is the largest of 1 and the median of the squared normalised residuals over the
+    chi-square(1) median (0.455), for the windows and for pairs of adjacent windows merged (slow
+    wander that single windows hide).  The median keeps a few transient windows after a
+    jump (the filter absorbing it) from hiding the jump itself; the floor keeps the filter's own
+    sds as a lower bound (never shrunk).
     """
-    e2 = r ** 2 * w
-    if len(e2) < 6:
-        return 1.0
-    return float(np.sqrt(max(1.0, float(np.median(e2)) / CHI2_1_MEDIAN)))
+    c2 = [1.0]
+    for m in (1, 2):
+        nn = len(r) // m
+        if nn < 6:
+            break
+        ww = w[:nn * m].reshape(nn, m).sum(1)
+        rm = (r[:nn * m] * w[:nn * m]).reshape(nn, m).sum(1) / ww
+        c2.append(float(np.median(rm ** 2 * ww)) / CHI2_1_MEDIAN)
+    return float(np.sqrt(max(c2)))
 
 
 def _mad(x: np.ndarray) -> float:
@@ -206,38 +210,26 @@ def lag1_correlation(e: np.ndarray) -> float:
     return float(np.clip(phi + (1.0 + 3.0 * phi) / n, 0.0, PHI_MAX))
 
 
-def critical_value(p: float, scale: float, n_eff: float, n_params: int = 2) -> float:
-    """Two-sided critical value at tail probability ``p`` (each side ``p/2``).
-
-    Normal when the filter's sds stood (``scale == 1``: nothing estimated), else Student t with
-    ``n_eff - n_params`` degrees of freedom (at least 1): the scale was estimated from ``n_eff``
-    effectively independent windows, and at ``p = 1e-4`` the normal quantile of an estimated
-    scale is far too small (for 16 degrees of freedom the t quantile is 1.5 times it).
-    """
-    if scale <= 1.0:
-        return float(norm.isf(p / 2))
-    return float(student_t.isf(p / 2, max(1.0, n_eff - n_params)))
-
-
 def consistency_tests(win: dict[str, np.ndarray], t_ref: float, alpha: float = ALPHA) -> dict[str, Any]:
     """Step and trend tests on windowed offsets at false-alarm probability ``alpha`` each.
 
-    * trend: ``z = |s| / (c f sd_s)`` against :func:`critical_value` at ``alpha``;
-    * step: the best split's ``z = |m2 - m1| / (c f sd)`` against it at ``alpha / n`` (Bonferroni
-      over the ``n`` candidate splits);
+    * trend: ``z = |s| / (c sd_s)`` against ``Phi^-1(1 - alpha/2)``;
+    * step: the best split's ``z = |m2 - m1| / (c sd)`` against ``Phi^-1(1 - alpha / (2 n))``
+      (Bonferroni over the ``n`` candidate splits);
 
-    ``c`` (:func:`dispersion`) is the robust scatter of the residuals about the better of the two
-    models (the window sds scaled by it, never shrunk), ``f = sqrt((1 + phi) / (1 - phi))`` the
-    variance inflation of a mean or slope of an AR(1) series with the residuals' robust lag-1
-    correlation ``phi`` (:func:`lag1_correlation`; real logs wander: vibration, NLOS, multipath),
-    and the critical value is Student t with the effective number of windows
-    ``n_eff = n (1 - phi) / (1 + phi)`` when ``c`` was estimated.  When both pass, the model with
-    the lower chi2 (the step paying ``2 ln n`` for its searched location) is the verdict.
+    ``c`` (:func:`dispersion`) is measured on the residuals about the better of the two models:
+    the window sds are scaled by the measured scatter, never shrunk.  The residuals' lag-1
+    correlation ``phi`` (:func:`lag1_correlation`) is reported but not used: inflating the sds by
+    the AR(1) factor ``sqrt((1 + phi) / (1 - phi))`` with Student-t critical values (tried) cost the
+    detection of 0.3 s jumps and 300 ppm drift on the simulated flights, so on coloured range noise
+    the stated ``alpha`` is not held (benchmarks/check_clock_false_alarms.py measures it).  When both
+    pass, the model with the lower chi2 (the step paying ``2 ln n`` for its searched location) is
+    the verdict.
 
     Returns a dict: ``verdict`` (``None``, ``"jump"`` or ``"drift"``), ``n`` windows, ``scale`` c,
-    ``phi``, ``inflation`` f, ``n_eff``, ``slope``, ``slope_sd``, ``z_drift``, ``crit_drift``,
-    ``k`` (first window after the step), ``m1``, ``m2``, ``step_sd``, ``z_jump``, ``crit_jump``
-    (every sd finite and positive; fewer than 6 windows or non-finite inputs: no test, no ``scale``).
+    ``phi``, ``slope``, ``slope_sd``, ``z_drift``, ``crit_drift``, ``k`` (first window after the
+    step), ``m1``, ``m2``, ``step_sd``, ``z_jump``, ``crit_jump`` (every sd finite and positive;
+    fewer than 6 windows or non-finite inputs: no test, no ``scale``).
     """
     y, sd, tm = win["tau"], win["sd"], win["t"]
     n = len(y)
@@ -251,15 +243,12 @@ def consistency_tests(win: dict[str, np.ndarray], t_ref: float, alpha: float = A
     better = np.where(np.arange(n) < k, m1, m2) if chi_step < chi_line else a + s * (tm - t_ref)
     c = dispersion(y - better, w)
     phi = lag1_correlation((y - better) * np.sqrt(w))
-    f = float(np.sqrt((1 + phi) / (1 - phi)))
-    n_eff = n * (1 - phi) / (1 + phi)
     n_split = n - 3
-    out.update({"scale": c, "phi": phi, "inflation": f, "n_eff": n_eff, "offset_at_ref": a, "slope": s,
-                "slope_sd": c * f * s_sd, "chi2_line": chi_line,
-                "z_drift": abs(s) / (c * f * s_sd), "crit_drift": critical_value(alpha, c, n_eff),
-                "k": int(k), "t_split": float(win["t0"][k]), "m1": m1, "m2": m2, "step_sd": c * f * st_sd,
-                "chi2_step": chi_step, "z_jump": abs(m2 - m1) / (c * f * st_sd),
-                "crit_jump": critical_value(alpha / n_split, c, n_eff)})
+    out.update({"scale": c, "phi": phi, "offset_at_ref": a, "slope": s, "slope_sd": c * s_sd,
+                "chi2_line": chi_line, "z_drift": abs(s) / (c * s_sd), "crit_drift": float(norm.isf(alpha / 2)),
+                "k": int(k), "t_split": float(win["t0"][k]), "m1": m1, "m2": m2, "step_sd": c * st_sd,
+                "chi2_step": chi_step, "z_jump": abs(m2 - m1) / (c * st_sd),
+                "crit_jump": float(norm.isf(alpha / (2 * n_split)))})
     if not (np.isfinite(out["z_drift"]) and np.isfinite(out["z_jump"]) and out["slope_sd"] > 0 and out["step_sd"] > 0):
         return {"verdict": None, "n": n, "alpha": alpha}
     jump = out["z_jump"] > out["crit_jump"]
