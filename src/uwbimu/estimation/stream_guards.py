@@ -169,9 +169,9 @@ class NisMonitor:
     """Consistency of a filter pass from its normalised innovations (NIS) of UWB measurements.
 
     Over the last ``window`` processed ranges / TDoAs (gated out ones included), the pass is
-    *inconsistent* while more than half of them have a NIS above ``limit`` (chi-square with one degree
-    of freedom: its median is 0.45; ``limit`` 9 is a 3-sigma innovation): the covariance no longer
-    covers the error (a clock fault, a wrong initialisation).  A burst of outliers on a minority of
+    *inconsistent* from when more than half of them have a NIS above ``limit`` (chi-square with one
+    degree of freedom: its median is 0.45; ``limit`` 9 is a 3-sigma innovation) until fewer than a
+    quarter have: the covariance no longer covers the error (a clock fault, a wrong initialisation).  A burst of outliers on a minority of
     the anchors does not trip it.  The verdict is computed per measurement in index order, so it does
     not depend on how the data were chunked.
     """
@@ -209,18 +209,24 @@ class NisMonitor:
         idx = np.arange(n0, len(seq))
         lo = np.maximum(idx + 1 - w, 0)
         full = idx + 1 >= w
-        above = full & (2 * (c[idx + 1] - c[lo]) > w)
+        frac = (c[idx + 1] - c[lo]) / w
+        enter = full & (frac > 0.5)
+        leave = frac < 0.25  # hysteresis: a pass that just came back within its sd is watched a while
         self.hist = seq[-(w - 1):] if w > 1 else seq[:0]
         events = []
         state = self.inconsistent
-        flips = np.flatnonzero(above != np.concatenate([[state], above[:-1]]))
-        for i in flips.tolist():
-            state = bool(above[i])
+        i = 0
+        while True:
+            cand = np.flatnonzero((leave if state else enter)[i:])
+            if not len(cand):
+                break
+            i += int(cand[0])
+            state = not state
             ti = float(tt[i])
             if state:
                 self.since = ti
                 events.append({"t": ti, "kind": "inconsistent", "window": w, "limit": self.limit,
-                               "fraction_above": float((c[idx[i] + 1] - c[lo[i]]) / w)})
+                               "fraction_above": float(frac[i])})
             else:
                 events.append({"t": ti, "kind": "consistent_again", "since": self.since})
                 self.since = None

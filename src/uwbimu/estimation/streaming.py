@@ -513,8 +513,9 @@ class Eskf:
         same_length("push_ranges", t=t, anchors=ids, ranges=z, **({} if tags is None else {"tags": tags}))
         a = np.array([self._index.get(x, -1) for x in ids], dtype=np.int64)
         with np.errstate(invalid="ignore"):
-            short = (a >= 0) & (z <= 0)
-            long = (a >= 0) & (z > self._r_max)
+            known = (a >= 0) & np.isfinite(z)  # (the rest is refused by _add, counted there)
+            short = known & (z <= 0)
+            long = known & (z > self._r_max)
         if short.any() or long.any():
             self._rej.add("range", "range_not_positive", t[short][0] if short.any() else np.nan, n=int(short.sum()))
             self._rej.add("range", "range_too_long", t[long][0] if long.any() else np.nan, n=int(long.sum()))
@@ -540,9 +541,8 @@ class Eskf:
         a = np.array([self._index.get(x, -1) for x in ia], dtype=np.int64)
         b = np.array([self._index.get(x, -1) for x in ib], dtype=np.int64)
         same = (a >= 0) & (a == b)
-        known = (a >= 0) & (b >= 0) & ~same
-        with np.errstate(invalid="ignore"):
-            large = known & (np.abs(z) > self._pair_dist[np.maximum(a, 0), np.maximum(b, 0)])
+        known = (a >= 0) & (b >= 0) & ~same & np.isfinite(z)
+        large = known & (np.abs(np.where(known, z, 0.0)) > self._pair_dist[np.maximum(a, 0), np.maximum(b, 0)])
         if same.any() or large.any():
             self._rej.add("tdoa", "same_anchor", t[same][0] if same.any() else np.nan, n=int(same.sum()))
             self._rej.add("tdoa", "tdoa_too_large", t[large][0] if large.any() else np.nan, n=int(large.sum()))
@@ -657,7 +657,8 @@ class Eskf:
             return "inconsistent"
         if float(np.linalg.norm(sd[S.EP])) > self.options.supervisor.max_position_sd:
             return "position_sd"
-        if t_imu - (self._t_last_meas + float(x[S.TD])) > self.max_gap_s:
+        t_new = float(self._t.a[self._t.n - 1]) if self._t.n else t_imu  # the newest IMU sample
+        if max(t_imu, t_new) - (self._t_last_meas + float(x[S.TD])) > self.max_gap_s:
             return "no_measurements"
         return None
 
