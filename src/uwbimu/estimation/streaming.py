@@ -501,8 +501,20 @@ class Eskf:
         self._events.append(ev)
 
     def push_range(self, t: float, anchor: str, range: float, tag: Optional[str] = None) -> None:
-        """One two-way range [m] to ``anchor``, stamped ``t`` [s, UWB clock]."""
-        self.push_ranges((t,), (anchor,), (range,), None if tag is None else (tag,))
+        """One two-way range [m] to ``anchor``, stamped ``t`` [s, UWB clock]; checked as
+        :meth:`push_ranges` checks (plain float comparisons)."""
+        try:
+            t, z = float(t), float(range)
+        except (TypeError, ValueError):
+            raise StreamInputError("Eskf.push_range: t and range must be numbers", field="t, range",
+                                   reason="not_numeric") from None
+        a = self._index.get(str(anchor), -1)
+        if a >= 0 and math.isfinite(z) and not 0.0 < z <= self._r_max:
+            self._rej.add("range", "range_not_positive" if z <= 0 else "range_too_long", t)
+            return
+        z -= self._known_bias.get(str(anchor), 0.0)
+        self._add(np.array([t]), np.array([a], dtype=np.int64), np.full(1, -1, dtype=np.int64), np.array([z]),
+                  None if tag is None else (tag,), stream="range")
 
     def push_ranges(self, t: np.ndarray, anchors: Sequence[str], ranges: np.ndarray,
                     tags: Optional[Sequence[Optional[str]]] = None) -> None:
