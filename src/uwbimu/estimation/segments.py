@@ -246,24 +246,31 @@ def ground_ranges_shadowed(ds, seg: FlightSegment, t_d: float = 0.0) -> dict:
     The fix from the last second on the floor before take-off (and the first second after landing) is
     compared with the fix from the first half second airborne (the last before landing).  Between the
     two the vehicle climbed about ``airborne_height`` (the IMU's estimate, which may be off by as much
-    again) and moved during the airborne window, so they agree within ``2 airborne_height + 0.5 m``
-    plus three combined fix sds unless the floor ranges are wrong; the shadowed floor of the Crazyflie
-    logs is 5-7 m off.  Returns ``{"before": bool|None, "after":
+    again) and moved at the airborne speed (from the next half second's fix) for the time between the
+    windows, so they agree within ``2 airborne_height + 0.5 m + speed x gap`` plus three combined fix sds
+    unless the floor ranges are wrong (or the vehicle was not on the floor); the shadowed floor of the
+    Crazyflie logs is 5-7 m off.  Returns ``{"before": bool|None, "after":
     bool|None, "offset_before": m, "offset_after": m}`` (None: not enough data to tell).
     """
-    out: dict = {"before": None, "after": None, "offset_before": None, "offset_after": None}
-    sides = [("before", (seg.takeoff - 1.2, seg.takeoff - 0.2), (seg.start, seg.start + 0.5))]
+    out: dict = {"before": None, "after": None, "offset_before": None, "offset_after": None,
+                 "tolerance_before": None, "tolerance_after": None}
+    sides = [("before", (seg.takeoff - 1.2, seg.takeoff - 0.2), (seg.start, seg.start + 0.5), +1.0)]
     if seg.landing is not None:
-        sides.append(("after", (seg.landing + 0.2, seg.landing + 1.2), (seg.end - 0.5, seg.end)))
-    for name, (g0, g1), (a0, a1) in sides:
+        sides.append(("after", (seg.landing + 0.2, seg.landing + 1.2), (seg.end - 0.5, seg.end), -1.0))
+    for name, (g0, g1), (a0, a1), way in sides:
         fg = _fix(ds, g0 - t_d, g1 - t_d)
         fa = _fix(ds, a0 - t_d, a1 - t_d)
+        fa2 = _fix(ds, a0 + way * 0.5 - t_d, a1 + way * 0.5 - t_d)  # the next half second in the air
         if fg is None or fa is None:
             continue
         off = float(np.linalg.norm(fg[0] - fa[0]))
-        tol = 2.0 * seg.airborne_height + 0.5 + 3.0 * math.hypot(fg[1], fa[1])
+        # how far the vehicle may have moved between the two windows' centres at the airborne speed
+        speed = float(np.linalg.norm(fa2[0] - fa[0])) / 0.5 if fa2 is not None else 0.0
+        gap = abs(0.5 * (a0 + a1) - 0.5 * (g0 + g1))
+        tol = 2.0 * seg.airborne_height + 0.5 + speed * gap + 3.0 * math.hypot(fg[1], fa[1])
         out[name] = bool(off > tol)
         out["offset_" + name] = off
+        out["tolerance_" + name] = tol
     return out
 
 
