@@ -75,16 +75,20 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
         the fast path is measured against (``benchmarks/bench_calibrate.py``, ``tests/test_calibrate_speed.py``).
     """
     from uwbimu.estimation import EskfOptions, run_eskf
+    from uwbimu.estimation.segments import select_segment
 
     from uwbimu.calibration.frames import from_graph_frame, to_graph_frame
 
     t_start = time.perf_counter()
     o = options or CalibrationOptions()
-    o.check_log(dataset)  # work bounds that depend on the log (drift knots), before any solve
     given_eskf = eskf is not None
-    dataset, eskf_options, eskf, frame = to_graph_frame(dataset, eskf_options or o.init_eskf or EskfOptions(), eskf)
+    eo0 = eskf_options or o.init_eskf or EskfOptions()
+    # the same part of the log as the ESKF (the flight, where the floor's ranges are shadowed): one answer
+    dataset, ev_segment = select_segment(dataset, eo0.segment, eo0.start, eo0.end)
+    o.check_log(dataset)  # work bounds that depend on the log (drift knots), before any solve
+    dataset, eskf_options, eskf, frame = to_graph_frame(dataset, eo0, eskf)
     setup = AN.plan_anchors(dataset, o)
-    events = list(setup.events)
+    events = [ev_segment] + list(setup.events)
     eo = eskf_options
     if not setup.any_estimated:
         eskf = eskf if eskf is not None else run_eskf(dataset, eo)
