@@ -125,3 +125,25 @@ def test_crazyflie_log_starts_in_the_air(tmp_path):
     # the floor is at 0.03 m in the Vicon frame; the used span starts and ends in the air
     assert 0.15 < z(ev["used"][0]) < 0.6 and 0.15 < z(ev["used"][1]) < 0.6
     assert z(ev["takeoff"]) < 0.2 and ev["landing"] is not None and z(ev["landing"]) < 0.2
+
+
+def test_loader_start_end_cut_every_stream_but_the_ground_truth(tmp_path):
+    from uwbimu.io.dataset import write_dataset
+    from uwbimu.io.loader import DatasetError, load_dataset
+
+    t, imu, z = _flight()
+    ds = _dataset(t, imu, z, np.zeros(3))
+    ds.groundtruth = pd.DataFrame({"t": t[::10], "px": 0.0, "py": 0.0, "pz": z[::10], "qw": 1.0, "qx": 0.0,
+                                   "qy": 0.0, "qz": 0.0})
+    path = write_dataset(ds, tmp_path / "ds")
+    cut = load_dataset(path, start=3.0, end=8.0)
+    for name in ("imu", "tdoa"):
+        tt = getattr(cut, name)["t"]
+        assert tt.min() >= 3.0 and tt.max() <= 8.0
+        assert len(tt) < len(getattr(ds, name))
+    assert len(cut.groundtruth) == len(ds.groundtruth)
+    assert any("--start/--end" in a for a in cut.report.actions)
+    with pytest.raises(DatasetError):
+        load_dataset(path, start=8.0, end=3.0)
+    with pytest.raises(DatasetError):
+        load_dataset(path, start=1e6)

@@ -1,8 +1,8 @@
 """The loader options every verb that reads a dataset offers (one definition, many verbs).
 
 ``@with_load_options`` adds ``--sort``, ``--drop-duplicates``, ``--gyro-units``,
-``--accel-units``, ``--no-unit-check``, ``--lenient``, ``--split-clock-jumps`` and
-``--tdoa-margin`` to a typer command and passes the verb one
+``--accel-units``, ``--no-unit-check``, ``--lenient``, ``--split-clock-jumps``,
+``--tdoa-margin``, ``--start`` and ``--end`` to a typer command and passes the verb one
 :class:`uwbimu.io.loader.LoadOptions` as the keyword argument ``load_options``.
 So a refusal's hint (``--sort`` ...) always names an option the verb has.
 """
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import functools
 import inspect
-from typing import Any
+from typing import Any, Optional
 
 import typer
 
@@ -33,6 +33,10 @@ _PARAMS = [
                                                   "(reported) instead of refusing.")),
     ("tdoa_margin", float, typer.Option(1.0, "--tdoa-margin",
                                         help="How far |tdoa| may exceed the anchors' separation [m].")),
+    ("start", Optional[float], typer.Option(None, "--start",
+                                            help="Use the log from this stamp [s] (IMU, UWB, TDoA; ground truth "
+                                                 "kept whole); default: the estimators' flight detection.")),
+    ("end", Optional[float], typer.Option(None, "--end", help="Use the log up to this stamp [s].")),
 ]
 NAMES = [p[0] for p in _PARAMS]
 
@@ -53,7 +57,7 @@ def build_load_options(values: dict[str, Any]):
                        gyro_units=GYRO_UNITS[gyro], accel_units=ACCEL_UNITS[accel],
                        check_units=not values["no_unit_check"], lenient=values["lenient"],
                        clock_jumps="split" if values["split_clock_jumps"] else "refuse",
-                       tdoa_margin=float(values["tdoa_margin"]))
+                       tdoa_margin=float(values["tdoa_margin"]), start=values["start"], end=values["end"])
 
 
 def with_load_options(func):

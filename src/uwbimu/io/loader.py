@@ -158,6 +158,12 @@ class LoadOptions(BaseModel):
     tdoa_margin: float = Field(
         default=TDOA_MARGIN_M, ge=0,
         description="|tdoa| may exceed the two anchors' separation by this much (m) before it is refused")
+    start: Optional[float] = Field(
+        default=None, allow_inf_nan=False,
+        description="use the IMU, UWB and TDoA rows stamped at or after this time [s] (ground truth kept whole)")
+    end: Optional[float] = Field(
+        default=None, allow_inf_nan=False,
+        description="use the IMU, UWB and TDoA rows stamped at or before this time [s] (ground truth kept whole)")
 
 
 @dataclass
@@ -866,6 +872,29 @@ def _check_meta_ids(meta: DatasetMeta, meta_name: str, text: Optional[str], anch
 # ---------------------------------------------------------------------------
 # The loader
 # ---------------------------------------------------------------------------
+def _time_span(opts: LoadOptions, report: "LoadReport", **tables):
+    """The tables cut to ``[opts.start, opts.end]`` (counted in the report); a span that leaves no IMU or
+    no UWB/TDoA row is a :class:`DatasetError`."""
+    lo = -np.inf if opts.start is None else float(opts.start)
+    hi = np.inf if opts.end is None else float(opts.end)
+    if not lo < hi:
+        raise DatasetError(f"--start {opts.start} s is not before --end {opts.end} s")
+    out = []
+    for name, df in tables.items():
+        if df is not None:
+            keep = (df["t"] >= lo) & (df["t"] <= hi)
+            if (~keep).any():
+                report.actions.append(f"{name}: {int((~keep).sum())} row(s) outside --start/--end "
+                                      f"[{opts.start}, {opts.end}] s left out")
+            df = df[keep]
+        out.append(df)
+    imu, uwb, tdoa = out
+    if len(imu) < 10 or (len(uwb) == 0 and (tdoa is None or len(tdoa) == 0)):
+        raise DatasetError(f"--start/--end [{opts.start}, {opts.end}] s leaves {len(imu)} IMU rows and no "
+                           f"usable measurement span", hint="choose a span inside the log (uwbimu check shows it)")
+    return imu, uwb, tdoa
+
+
 def load_dataset(path: str | Path, options: Optional[LoadOptions] = None, **kwargs: Any) -> Dataset:
     """Read and validate a dataset folder.
 
@@ -959,6 +988,8 @@ def load_dataset(path: str | Path, options: Optional[LoadOptions] = None, **kwar
     if gt is not None and options.check_units and options.gyro_units == "rad/s":
         _check_gyro_against_truth(srcs["imu"], imu, gt)
 
+    if options.start is not None or options.end is not None:
+        imu, uwb, tdoa = _time_span(options, report, imu=imu, uwb=uwb, tdoa=tdoa)
     for name, df in (("imu", imu), ("uwb", uwb), ("tdoa", tdoa), ("anchors", anchors),
                      ("anchor_ranges", anchor_ranges), ("groundtruth", gt)):
         if df is not None:
