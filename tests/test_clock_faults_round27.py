@@ -8,6 +8,8 @@ no event carries a NaN sigma.  Assertions on structured events.
 from __future__ import annotations
 
 import copy
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,29 +19,12 @@ from uwbimu.eval.clock_faults import handle_clock_faults, likelihood_gain
 from uwbimu.eval.clock_windows import ALPHA, consistency_tests, windowed_time_offsets
 from uwbimu.sim import builtin_scenario, simulate
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from check_clock_false_alarms import ar1_ranges  # noqa: E402  (the benchmark's coloured-noise model, one copy)
+
 
 def _flight(seed: int):
     return simulate(builtin_scenario("calibration-flight").updated(duration=60.0, seeds={"noise": seed}))
-
-
-def ar1_ranges(ds, sigma: float, tau: float, seed: int):
-    """``ds`` with per-anchor AR(1) range errors (sd ``sigma`` [m], correlation time ``tau`` [s])
-    added: multipath / vibration errors that the filter's white range model does not know."""
-    rng = np.random.default_rng(seed)
-    u = ds.uwb.copy()
-    r, t, a = u["range"].to_numpy().copy(), u["t"].to_numpy(), u["anchor"].to_numpy()
-    for name in np.unique(a):
-        idx = np.flatnonzero(a == name)
-        rho = np.exp(-np.diff(t[idx], prepend=t[idx[0]]) / tau)
-        rho[0] = 0.0
-        e = 0.0
-        for i, p, wn in zip(idx, rho, rng.standard_normal(len(idx))):
-            e = p * e + np.sqrt(1 - p * p) * sigma * wn
-            r[i] += e
-    u["range"] = r
-    out = copy.copy(ds)
-    out.uwb = u
-    return out
 
 
 def _rerun(d):
