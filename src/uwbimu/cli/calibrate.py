@@ -138,6 +138,8 @@ def register(app: typer.Typer) -> None:
         if "anchors" in cal and cal["anchors"]["estimated"]:
             console.print(anchor_summary(cal["anchors"]))
         for ev in res.events:
+            if ev["kind"] == "flight_segment" and ev.get("message"):
+                console.print(f"[yellow]warning:[/] {escape(ev['message'])}")
             if ev["kind"].startswith("anchor_"):
                 console.print(f"[yellow]{ev['kind']}:[/] {escape(str(ev['message']))}")
         sc = cal.get("imu_noise", {}).get("scale", {})

@@ -30,7 +30,7 @@ from uwbimu.estimation.options import EskfOptions
 from uwbimu.estimation.problem import make_settings, nominal_period, set_imu_timing
 from uwbimu.estimation.streaming import Eskf
 from uwbimu.estimation.result import EstimationResult
-from uwbimu.estimation.segments import segment_warning, select_segment
+from uwbimu.estimation.segments import select_segment
 from uwbimu.io.dataset import Dataset
 from uwbimu.models.quaternion import quat_multiply
 from uwbimu.models.reference import midpoint_inputs
@@ -267,9 +267,8 @@ def run_eskf(
     prob, info = build_problem(dataset, opts)
     warnings: list[str] = list(info["warnings"])
     events: list[dict[str, Any]] = [ev_segment] + list(info["events"])
-    if ev_segment["used"] != [float(dataset.imu["t"].iloc[0]), float(dataset.imu["t"].iloc[-1])] or \
-            ev_segment.get("shadowed_before") or ev_segment.get("shadowed_after"):
-        warnings.append(segment_warning(ev_segment))
+    if ev_segment["cropped"]:
+        warnings.append(ev_segment["message"])
     priors = info["priors"]
     n_imu = len(prob.imu_t)
     t_imu0, t_imu1 = prob.imu_t[0], prob.imu_t[-1]

@@ -15,7 +15,9 @@ vertically, and a take-off is a sustained climb.
   the attitude; over the few seconds of a take-off its drift is negligible);
 * take-off: the first time the vertical velocity exceeds ``climb_speed`` [m/s] *and* the climb
   reaches ``airborne_height`` [m] within ``climb_window_s``; the vertical bias of a vibrating IMU on the
-  floor is removed first (the vehicle is static there, so its mean vertical acceleration is zero);
+  floor is removed first (the vehicle is static there, so its mean vertical acceleration is zero; the
+  last floor second's bias and the crossing are found together by a fixed-point iteration, see
+  ``_first_climb``);
 * landing: the same test run backwards in time from a final rest.
 
 A log that does not start at rest, or in which no climb is found, gives ``None`` (the whole log is
@@ -102,30 +104,40 @@ def _vertical_acceleration(t: np.ndarray, u: np.ndarray, n_rest: int) -> np.ndar
 
 
 def _first_climb(t: np.ndarray, a_up: np.ndarray, k_from: int, climb_speed: float, airborne_height: float,
-                 window_s: float, refine: bool = True) -> Optional[tuple[int, int]]:
-    """First (take-off index, airborne index) after ``k_from``: the vertical velocity, integrated from
-    ``k_from`` with the static-phase bias removed, passes ``climb_speed`` and the height reaches
-    ``airborne_height`` within ``window_s``."""
+                 window_s: float) -> Optional[tuple[int, int]]:
+    """First (take-off index, airborne index) after ``k_from``: the vertical velocity rises by
+    ``climb_speed`` above its lowest value so far and the height then reaches ``airborne_height``
+    within ``window_s``.
+
+    The vehicle is static on the floor until it lifts off, so the mean vertical acceleration there is
+    the bias of the vibrating IMU; while the motors spin up that bias moves by tenths of m/s^2, so it is
+    taken from the last floor second only, ``[crossing - 1.5 s, crossing - 0.5 s]`` (the half second
+    before the crossing may hold the lift-off), removed, the velocity integrated again from that window
+    and the crossing found again, until it stays put."""
     if k_from >= len(t) - 2:
         return None
-    dt = np.diff(t, prepend=t[k_from])
-    v = np.cumsum(a_up[k_from:] * dt[k_from:])
-    idx = np.flatnonzero(v > climb_speed)
-    if not len(idx):
-        return None
-    k_up = k_from + int(idx[0])
-    if refine:
-        # the vehicle was static on the floor until then: its mean vertical acceleration over the last
-        # second before is the bias of the vibrating IMU; remove it and look again
-        k_static = max(k_from + 1, int(np.searchsorted(t, t[k_up] - 1.0)))
-        if k_static - k_from > 10:
-            return _first_climb(t, a_up - float(a_up[k_from:k_static].mean()), k_from, climb_speed,
-                                airborne_height, window_s, refine=False)
-    # integrate the height from the last moment the vehicle was not yet climbing
-    k0 = k_from + int(np.flatnonzero(v[: k_up - k_from + 1] <= 0.0)[-1]) if (v[: k_up - k_from + 1] <= 0).any() else k_from
+    dt = np.diff(t, prepend=t[0])
+    k_w, bias, k_up = k_from, 0.0, None
+    for _ in range(8):
+        v = np.cumsum((a_up[k_w:] - bias) * dt[k_w:])
+        rise = v - np.minimum.accumulate(np.minimum(v, 0.0))
+        idx = np.flatnonzero(rise > climb_speed)
+        if not len(idx):
+            return None
+        if k_up is not None and k_w + int(idx[0]) == k_up:
+            break
+        k_up = k_w + int(idx[0])
+        k_w = max(k_from, int(np.searchsorted(t, t[k_up] - 1.5)))
+        k_s = int(np.searchsorted(t, t[k_up] - 0.5))
+        if k_s - k_w <= 10:
+            k_w = k_from
+            break
+        bias = float(a_up[k_w:k_s].mean())
+    v = np.cumsum((a_up[k_w:] - bias) * dt[k_w:])
+    # integrate the height from the lowest velocity before the crossing (the last moment not climbing)
+    k0 = k_w + int(np.argmin(v[: k_up - k_w + 1]))
     k_end = int(np.searchsorted(t, t[k0] + window_s))
-    vv = v[k0 - k_from:k_end - k_from] - v[k0 - k_from]
-    h = np.cumsum(vv * dt[k0:k_end])
+    h = np.cumsum((v[k0 - k_w:k_end - k_w] - v[k0 - k_w]) * dt[k0:k_end])
     air = np.flatnonzero(h > airborne_height)
     if not len(air):
         return None
@@ -163,8 +175,7 @@ def detect_flight(imu_t: np.ndarray, imu_u: np.ndarray, *, min_rest_s: float = 0
         return None
     k_max = int(np.searchsorted(t, t[0] + max_ground_s))
     a_up = _vertical_acceleration(t[:k_max], u[:k_max], n_rest)
-    found = (_first_climb(t[:k_max], a_up, n_rest, climb_speed, airborne_height, climb_window_s)
-             or _first_climb(t[:k_max], a_up, n_rest, climb_speed, airborne_height, climb_window_s, refine=False))
+    found = _first_climb(t[:k_max], a_up, n_rest, climb_speed, airborne_height, climb_window_s)
     if found is None:
         return None
     k_takeoff, k_start = found
@@ -178,8 +189,7 @@ def detect_flight(imu_t: np.ndarray, imu_u: np.ndarray, *, min_rest_s: float = 0
         # time reversed: stamps negated, body rates negated (the attitude runs backwards)
         m = len(t) - k_min
         tr, a_rev = t_rev[:m], _vertical_acceleration(t_rev[:m], u_rev[:m], n_end)
-        back = (_first_climb(tr, a_rev, n_end, climb_speed, airborne_height, climb_window_s)
-                or _first_climb(tr, a_rev, n_end, climb_speed, airborne_height, climb_window_s, refine=False))
+        back = _first_climb(tr, a_rev, n_end, climb_speed, airborne_height, climb_window_s)
         if back is not None:
             k_land_r, k_end_r = back
             landing = float(-tr[k_land_r])
@@ -295,7 +305,10 @@ def select_segment(ds, mode: str = "auto", start: Optional[float] = None, end: O
     ranges contradicting the airborne ones (elsewhere the time on the floor is kept: its ranges are
     good and its rest helps the start); ``"whole"``: the whole log.
 
-    Returns ``(dataset, event)`` with ``event = {"kind": "flight_segment", "t", "used": [t0, t1], ...}``.
+    Returns ``(dataset, event)`` with ``event = {"kind": "flight_segment", "t", "used": [t0, t1], "cropped",
+    ...}`` (``message``: the warning line, when cropped).  The IMU and UWB stamps are compared as if on one
+    clock: an unknown time offset shifts the floor and air windows by as much (fractions of a second against
+    windows of 0.5-1 s).
     """
     t_first, t_last = float(ds.imu["t"].iloc[0]), float(ds.imu["t"].iloc[-1])
     ev: dict = {"kind": "flight_segment", "t": t_first, "mode": mode}
@@ -322,8 +335,10 @@ def select_segment(ds, mode: str = "auto", start: Optional[float] = None, end: O
         from uwbimu.errors import UsageError
 
         raise UsageError(f"segment: start {t0:g} s is not before end {t1:g} s (log {t_first:g}-{t_last:g} s)")
-    if (t0, t1) != (t_first, t_last):
+    ev["cropped"] = (t0, t1) != (t_first, t_last)
+    if ev["cropped"]:
         ds = crop_streams(ds, t0, t1)
+        ev["message"] = segment_warning(ev)
     return ds, ev
 
 
