@@ -20,6 +20,7 @@ import typer
 
 from uwbimu.cli.conventions import FORCE_HELP
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 #: A file the demo leaves in its output folder so that a rerun may replace the
@@ -28,16 +29,11 @@ DEMO_MARKER = ".uwbimu-demo"
 
 
 def _check_out(out: Path, force: bool) -> None:
-    """Refuse a non-empty --out that the demo did not write (unless --force), before any work."""
-    from uwbimu.errors import OutputError
+    """Refuse, before any work, an --out holding files uwbimu did not write or that changed since (unless
+    --force): the output rule of every verb (a previous demo's folder is replaced)."""
     from uwbimu.io.atomic import check_output_target
 
-    if out.exists() and not out.is_dir():
-        raise OutputError(f"{out} is a file, not a folder", hint="choose another --out")
-    if out.is_dir() and any(out.iterdir()) and not (out / DEMO_MARKER).exists() and not force:
-        raise OutputError(f"{out} exists, is not empty and was not written by `uwbimu demo`",
-                          hint="choose another --out or pass --force")
-    check_output_target(out, force=True, replace=True)
+    check_output_target(out, force=force, replace=True)
 
 
 def _summary_table(ds, seconds: float) -> Table:
@@ -79,7 +75,7 @@ def _structural_table(verdict: dict, delay: dict) -> Table:
     )
     names = [d["name"] for d in verdict.get("unobservable_directions", [])]
     if names:
-        t.add_row("unobservable directions", "; ".join(names))
+        t.add_row("unobservable directions", escape("; ".join(names)))
     return t
 
 
@@ -118,13 +114,14 @@ def run_demo(out: Path, console: Console, force: bool = False, duration: float |
         (work / DEMO_MARKER).write_text("written by uwbimu demo; the folder is replaced on the next run\n")
         figures = _run_demo_into(work, console, duration)
     figures["report"] = str(out / Path(figures["report"]).relative_to(work))
-    console.print(f"[bold green]report:[/bold green] {figures['report']}")
+    console.print(f"[bold green]report:[/bold green] {escape(figures['report'])}")
     return figures
 
 
 def _run_demo_into(out: Path, console: Console, duration: float | None) -> dict:
     from uwbimu.cli.check import print_check
-    from uwbimu.cli.estimate import run_with_progress
+    from uwbimu.cli.compile_notice import ensure_compiled
+    from uwbimu.cli.estimate import print_truth_comparison, run_with_progress, truth_comparison
     from uwbimu.estimation import EskfOptions, compute_metrics, write_outputs
     from uwbimu.estimation import run_eskf
     from uwbimu.eval.repeatability import repeatability
@@ -163,23 +160,23 @@ def _run_demo_into(out: Path, console: Console, duration: float | None) -> dict:
         verdict = structural_verdict(config)
         delay = delay_verdict(config)
     console.print(_structural_table(verdict, delay))
-    console.print(format_verdict(verdict))
+    console.print(escape(format_verdict(verdict)))
     figures["observable"] = bool(verdict["observable"])
     figures["td_identifiable"] = bool(delay["identifiable"])
 
     # 4. estimate: ESKF with online lever arm and time offset (no ground truth used)
     est_dir = out / "estimate"
+    compiled = ensure_compiled(console)
+    figures["compile_s"] = compiled.seconds
     result = run_with_progress(ds, EskfOptions(), console)
     write_outputs(result, ds, est_dir)
     metrics = compute_metrics(result, ds)
     console.print(_truth_comparison(result, ds))
-    console.print(
-        f"position RMSE {100 * metrics['position_rmse']:.1f} cm, orientation RMSE "
-        f"{metrics['orientation_rmse_deg']:.2f} deg, mean NEES {metrics['nees_mean']:.1f} (dof {metrics['nees_dof']}), "
-        f"ESKF run time {result.runtime_s:.2f} s"
-    )
+    print_truth_comparison(console, truth_comparison(result, ds, metrics))
+    console.print(f"ESKF filter pass {result.runtime_s:.2f} s"
+                  + (f" (the kernels were compiled once before it, {compiled.seconds:.0f} s)" if compiled.cold else ""))
     for w in result.warnings:
-        console.print(f"[yellow]warning:[/yellow] {w}")
+        console.print(f"[yellow]warning:[/yellow] {escape(w)}")
     figures.update(metrics)
     figures["calibration"] = result.calibration
 
@@ -218,7 +215,10 @@ def register(app: typer.Typer) -> None:
             import tempfile
 
             out = Path(tempfile.mkdtemp(prefix="uwbimu-demo-"))
-            console.print(f"writing the demo into {out}/ (choose another folder with --out)")
+            console.print(escape(f"writing the demo into {out}/ (choose another folder with --out)"))
         t0 = time.perf_counter()
-        run_demo(out, console, force=force, duration=duration)
-        console.print(f"demo finished in {time.perf_counter() - t0:.1f} s; everything is in {out}/")
+        figures = run_demo(out, console, force=force, duration=duration)
+        compile_s = figures.get("compile_s") or 0.0
+        console.print(escape(f"demo finished in {time.perf_counter() - t0:.1f} s"
+                             + (f" ({compile_s:.0f} s of it the one-time kernel compilation)" if compile_s else "")
+                             + f"; everything is in {out}/"))

@@ -110,6 +110,12 @@ def register(app: typer.Typer) -> None:
         else:
             cfg = load_config(config)
         n_runs = runs if runs is not None else cfg.runs
+        if n_runs < 1:
+            raise UsageError(f"--runs must be at least 1, got {n_runs}")
+        if any(e.kind == "eskf" for e in cfg.estimators):
+            from uwbimu.cli.compile_notice import ensure_compiled
+
+            ensure_compiled(console)  # once here, before the workers load the compiled kernels from the cache
         with Progress(TextColumn("[bold]runs"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                       console=console, transient=False) as bar:
             task = bar.add_task("runs", total=n_runs * len(cfg.scenarios))

@@ -197,8 +197,6 @@ def log(
     if not 0 < excited_ratio < 1:
         _fail(f"--excited-sd-ratio must be in (0, 1), got {excited_ratio}")
     csv_path, png_path = out / "observability.csv", out / "observability.png"
-    if not force and (csv_path.exists() or png_path.exists()):
-        _fail(f"{out} already holds observability outputs; pass --force to replace them")
     from uwbimu.errors import InputError
     from uwbimu.io.loader import load_dataset
 

@@ -72,14 +72,15 @@ def register(app: typer.Typer) -> None:
             raise errors.UsageError("give either CONFIG.yaml or --example room|crane|bridge (exactly one)")
         names = ("placement.json", "anchors.csv", "anchors_scenario.yaml", "anchors_3d.png", "coverage_map.png",
                  "pdop_slices.png", "marginal_value.png", "seed_layout.png")
-        existing = [n for n in names if (out / n).exists()]
-        if existing and not force:  # e.g. --out pointing at a dataset folder with its own anchors.csv
-            raise errors.OutputError(f"{out} already holds {', '.join(existing)}",
-                                     hint="use --force to overwrite or pick another --out")
+        from uwbimu.io.atomic import check_output_target, record_outputs
+
+        # the output rule: our own unchanged earlier outputs are replaced, anything else needs --force
+        # (e.g. --out pointing at a dataset folder with its own anchors.csv)
+        check_output_target(out, names, force)
         try:
             if example is not None:
                 if example not in EXAMPLES:
-                    raise errors.UsageError(f"unknown example {example!r}; choose one of {', '.join(sorted(EXAMPLES))}")
+                    raise errors.UsageError(f"unknown example '{example}'; choose one of {', '.join(sorted(EXAMPLES))}")
                 cfg = builtin_example(example)
             else:
                 cfg = load_config(config)
@@ -91,7 +92,7 @@ def register(app: typer.Typer) -> None:
             if workers is not None:
                 cfg.optimizer.workers = workers
             res = run_placement(cfg, progress=True)
-            write_outputs(res, out, plots=not no_plots)
+            record_outputs(out, write_outputs(res, out, plots=not no_plots))
         except errors.UwbimuError:
             raise
         except ValueError as exc:

@@ -7,6 +7,7 @@ from typing import Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from uwbimu.cli.conventions import FORCE_HELP
@@ -33,16 +34,18 @@ CALIBRATION_FILES = {
 
 
 def _check_out(out: Path, ours: set, force: bool) -> None:
-    """Refuse an output path that is a file, or a folder holding files this command does not write."""
-    from uwbimu.errors import OutputError
+    """The output rule before any work: refuse a file as ``out``, a dataset folder, or a file of ours in it
+    that uwbimu did not write (or that changed since) unless ``force``; other files are left alone."""
+    from uwbimu.io.atomic import check_output_target, existing_files
 
-    if out.exists() and not out.is_dir():
-        raise OutputError(f"{out} is a file, not a folder", hint="give a folder for the outputs")
-    if out.is_dir() and not force:
-        other = sorted(p.name for p in out.iterdir() if p.name not in ours and not p.name.startswith("."))
-        if other:
-            raise OutputError(f"refusing to write into {out}: it holds other files ({', '.join(other[:5])})",
-                              hint="use --force or another output folder")
+    check_output_target(out, existing_files(out, sorted(ours)) if out.is_dir() else sorted(ours), force)
+
+
+def _record(out: Path, ours: set) -> None:
+    """Record the outputs written (so a rerun may replace them while unchanged)."""
+    from uwbimu.io.atomic import record_outputs
+
+    record_outputs(out, [out / n for n in sorted(ours)])
 
 
 @plan_app.command("seed-ocp")
@@ -100,7 +103,8 @@ def seed_ocp(
             "continuous-costate (RK4) indirect vs direct grid optimum: max|du| = "
             f"{summary['u_max_abs_diff_continuous_vs_direct']:.2e} m/s^2 (O(h^2) discretisation difference)"
         )
-    console.print(f"wrote {out / 'plan.json'}, {out / 'trajectories.csv'} and {len(figs)} figures")
+    _record(out, SEED_FILES)
+    console.print(escape(f"wrote {out / 'plan.json'}, {out / 'trajectories.csv'} and {len(figs)} figures"))
     if not (res.indirect.converged and res.direct.converged):
         from uwbimu.errors import EstimationError
 
@@ -160,7 +164,9 @@ def point_mass(
     summary["config"] = cfg.model_dump(mode="json")
     write_json(out / "plan.json", summary)
     save_pointmass_figure(base, res, cfg, out / "pointmass.png")
-    console.print(f"wrote {out / 'plan.json'}, {out / 'trajectory.csv'}, {out / 'flight_trajectory.csv'}, {out / 'pointmass.png'}")
+    _record(out, POINTMASS_FILES)
+    console.print(escape(f"wrote {out / 'plan.json'}, {out / 'trajectory.csv'}, {out / 'flight_trajectory.csv'}, "
+                         f"{out / 'pointmass.png'}"))
     if cfg.platform == "multirotor":
         console.print("platform multirotor: fly flight_trajectory.csv with `trajectory: {type: file, path: ..., attitude: flat}`")
     if not res.success:
@@ -174,7 +180,7 @@ def _report_violations(console: Console, violations: list) -> None:
     """Name every multirotor limit the flown trajectory exceeds; exit 3 (check flagged) if any."""
     if violations:
         for v in violations:
-            console.print(f"[red]limit exceeded[/red] (multirotor, flown trajectory): {v}")
+            console.print(f"[red]limit exceeded[/red] (multirotor, flown trajectory): {escape(v)}")
         raise typer.Exit(code=3)
 
 
@@ -204,6 +210,7 @@ def calibration(
             from uwbimu.errors import InputError
 
             raise InputError(f"{config}: {exc}") from None
+    _record(out, CALIBRATION_FILES)
     tab = Table(title=f"Calibration manoeuvre ({cfg.platform}): predicted 1-sigma (linearised ESKF covariance)")
     tab.add_column("trajectory")
     for col in ("lever x [mm]", "lever y [mm]", "lever z [mm]", "t_d [ms]", "lambda_min (scaled info)"):
@@ -220,7 +227,8 @@ def calibration(
             f"time offset {r['time_offset_sigma']:.2f}x"
         )
     console.print(f"optimised in {report['design_time_s']:.1f} s ({report['n_evals']} evaluations)")
-    console.print(f"wrote {len(report['files'])} files into {out}; fly with: uwbimu simulate {out / 'designed_scenario.yaml'}")
+    console.print(escape(f"wrote {len(report['files'])} files into {out}; fly with: uwbimu simulate "
+                         f"{out / 'designed_scenario.yaml'}"))
     _report_violations(console, [f"{name}: {v}" for name in ("designed", "figure8", "figure8_excited") for v in report[f"{name}_flown"].get("limit_violations", [])])
 
 

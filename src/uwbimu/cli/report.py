@@ -10,6 +10,9 @@ import typer
 from uwbimu.cli.conventions import FORCE_HELP
 from uwbimu.cli.dataset_options import with_load_options
 
+#: Files of an estimator output folder the report reads; a folder with none of them is refused.
+REPORT_INPUTS = ("calibration.yaml", "trajectory.csv", "residuals.csv")
+
 
 def register(app: typer.Typer) -> None:
     @app.command("report")
@@ -27,13 +30,22 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Write one self-contained HTML calibration report (plots embedded, opens offline)."""
         from rich.console import Console
+        from rich.markup import escape
 
         from uwbimu.cli.dataset_options import load, print_load_warnings
         from uwbimu.eval.report import write_report
         from uwbimu.errors import UsageError
-        from uwbimu.io.atomic import check_output_target, output_folder
+        from uwbimu.io.atomic import check_output_target, is_dataset_folder, output_folder
 
         console = Console()
+        if not out.is_dir():
+            raise UsageError(f"{out}: estimator output folder not found",
+                             hint="give the folder `uwbimu estimate` or `uwbimu calibrate` wrote (-o)")
+        if not any((out / n).is_file() for n in REPORT_INPUTS):
+            # e.g. a dataset folder: --force would not help (there is nothing to report on)
+            raise UsageError(f"{out} holds no estimator output ({', '.join(REPORT_INPUTS)})",
+                             hint=(f"run `uwbimu estimate {out} -o OUT` first, then `uwbimu report OUT --dataset {out}`"
+                                   if is_dataset_folder(out) else "give the folder `uwbimu estimate` wrote (-o)"))
         if html is not None and output is not None:
             raise UsageError("give --html FILE once (--output is its old name)")
         html = html if html is not None else output
@@ -50,7 +62,7 @@ def register(app: typer.Typer) -> None:
             print_load_warnings(console, ds)
         with output_folder(folder, force, protect, names=[target.name], finite=False) as tmp:
             write_report(out, dataset=ds, path=tmp / target.name)  # EvalInputError: an InputError (exit 1)
-        console.print(f"wrote {target}")
+        console.print(escape(f"wrote {target}"))
 
     @app.command("repeatability")
     @with_load_options
@@ -84,7 +96,7 @@ def register(app: typer.Typer) -> None:
         if method not in ("eskf", "batch"):
             from uwbimu.errors import UsageError
 
-            raise UsageError(f"--method {method!r}: expected eskf or batch")
+            raise UsageError(f"--method {method}: expected eskf or batch")
         if method == "batch":
             from uwbimu.calibration import CalibrationOptions
             from uwbimu.errors import UsageError
@@ -103,6 +115,10 @@ def register(app: typer.Typer) -> None:
             opts = apply_dataset_properties(opts, ds, console)
         elif opts.init_eskf is not None:
             opts = opts.model_copy(update={"init_eskf": apply_dataset_properties(opts.init_eskf, ds, console)})
+        if method == "eskf":
+            from uwbimu.cli.compile_notice import ensure_compiled
+
+            ensure_compiled(console)  # before the workers: they load the compiled kernels from the cache
         with Progress(console=console) as prog:
             task = prog.add_task("calibrating windows", total=windows)
             rep = repeatability(ds, windows, method, options=opts, level=level, workers=workers,
@@ -121,11 +137,11 @@ def register(app: typer.Typer) -> None:
         console.print(fit_table(console, t))
         for w in rep["windows"]:
             if "error" in w:
-                console.print(f"[yellow]window {w['i'] + 1} failed:[/yellow] {w['error']}")
+                console.print(f"[yellow]window {w['i'] + 1} failed:[/yellow] {escape(str(w['error']))}")
         pname = {"lx": "lever_arm_x", "ly": "lever_arm_y", "lz": "lever_arm_z", "td": "time_offset"}
         wid = {k: sum(pname[k] in (w.get("sigma_widened_by_blocks") or []) for w in rep["windows"])
                for k in rep["parameters"] if k in pname}
         if any("sigma_widened_by_blocks" in w for w in rep["windows"]):  # batch: each window's block check
             console.print("sigma set by the block check (windows of " + str(len(rep["windows"])) + "): "
                           + ", ".join(f"{k} {n}" for k, n in wid.items()))
-        console.print(f"wrote {out / 'repeatability.json'}")
+        console.print(escape(f"wrote {out / 'repeatability.json'}"))

@@ -186,10 +186,10 @@ def check_output_target(out: Path, names=(), force: bool = False, protect=(), re
             raise _output_error(f"{out} holds a dataset (imu.csv, uwb.csv, ...); outputs are not written into a "
                                 f"dataset folder", hint="choose another output folder (or --force)")
         if replace:
-            others = [q.name for q in out.iterdir() if not q.name.startswith(".")]
+            others = foreign_files(out)
             if others and not force:
-                raise _output_error(f"refusing to replace {out}: it exists and is not empty "
-                                    f"({', '.join(sorted(others)[:5])})", hint="use --force or another folder")
+                raise _output_error(f"refusing to replace {out}: it holds files uwbimu did not write or that "
+                                    f"changed since ({', '.join(others[:5])})", hint="use --force or another folder")
         else:
             _refuse_foreign(out, names, force)
         if not os.access(out, os.W_OK | os.X_OK):
@@ -199,6 +199,24 @@ def check_output_target(out: Path, names=(), force: bool = False, protect=(), re
         if parent is None or not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
             raise _output_error(f"cannot create {out}: {parent} is not a writable folder",
                                 hint="choose a writable output folder")
+
+
+def foreign_files(out: Path) -> list[str]:
+    """Files below ``out`` (sorted, relative) that its manifest does not list with their current content.
+
+    Empty when the folder holds only outputs uwbimu wrote there, unchanged: such a folder may be
+    replaced whole without ``force`` (the rule of :func:`output_folder`).
+    """
+    out = Path(out)
+    manifest = read_manifest(out)
+    bad = []
+    for q in sorted(out.rglob("*")):
+        if not q.is_file() or q.name == MANIFEST or q.name.startswith(".uwbimu-tmp") or ".uwbimu-tmp-" in str(q):
+            continue
+        rel = str(q.relative_to(out))
+        if manifest.get(rel) != _sha256(q):
+            bad.append(rel)
+    return bad
 
 
 def _refuse_foreign(out: Path, names, force: bool) -> None:
@@ -218,6 +236,45 @@ def _refuse_foreign(out: Path, names, force: bool) -> None:
             why = "was changed since uwbimu wrote it" if name in manifest else "was not written by uwbimu"
             raise _output_error(f"{target} exists and {why}; refusing to overwrite it",
                                 hint="use --force to replace it, or another output folder")
+
+
+def record_outputs(out: str | os.PathLike, paths) -> None:
+    """Record files a verb wrote straight into ``out`` (not through :func:`output_folder`) in its manifest.
+
+    For verbs whose writers take a folder (``plan``, ``place``): they call
+    :func:`check_output_target` first and this after writing, so a rerun may replace its own
+    unchanged outputs and nothing else without ``force`` -- the rule of :func:`output_folder`.
+
+    Parameters
+    ----------
+    out : the output folder.
+    paths : the files written (absolute, or relative to ``out``); folders are walked.
+    """
+    out = Path(out)
+    manifest = read_manifest(out)
+    for p in paths:
+        p = Path(p) if Path(p).is_absolute() else out / p
+        files = [q for q in p.rglob("*") if q.is_file()] if p.is_dir() else [p] if p.is_file() else []
+        for q in files:
+            try:
+                rel = q.resolve().relative_to(out.resolve())
+            except ValueError:
+                continue  # not inside out
+            manifest[str(rel)] = _sha256(q)
+    write_json(out / MANIFEST, {"files": manifest})
+
+
+def existing_files(out: str | os.PathLike, names) -> list[str]:
+    """``names`` relative to ``out``, with every file below a named folder that exists (for the checks)."""
+    out = Path(out)
+    found = []
+    for n in names:
+        p = out / n
+        if p.is_dir():
+            found += [str(q.relative_to(out)) for q in p.rglob("*") if q.is_file()]
+        else:
+            found.append(str(n))
+    return found
 
 
 def nonfinite_values(path: Path) -> str | None:

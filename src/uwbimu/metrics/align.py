@@ -31,6 +31,50 @@ AlignMode = Literal["none", "position", "se3"]
 ALIGN_MODES = ("none", "position", "se3")
 
 
+@dataclass(frozen=True)
+class GroundTruthFrame:
+    """How a dataset's ground truth relates to the estimate's (anchors') frame.
+
+    Read from ``dataset.yaml`` ``extra`` by :func:`groundtruth_frame`: the one rule for every
+    place that compares an estimate with the ground truth (console, metrics, report).
+
+    Attributes
+    ----------
+    align : str
+        Alignment mode the comparison needs (``extra.groundtruth_align``, default ``"none"``).
+    attitude_comparable : bool
+        The ground truth's body frame is the IMU frame (``extra.groundtruth_attitude_comparable``,
+        default True); False: attitudes are not compared.
+    """
+
+    align: str = "none"
+    attitude_comparable: bool = True
+
+    @property
+    def frames_agree(self) -> bool:
+        """True when raw (unaligned) comparisons with the ground truth are meaningful."""
+        return self.align == "none"
+
+
+def groundtruth_frame(meta_extra: Optional[dict]) -> GroundTruthFrame:
+    """The ground-truth frame rule of a dataset from its ``meta.extra`` mapping (None: same frame).
+
+    Raises
+    ------
+    uwbimu.errors.InputError
+        ``groundtruth_align`` is not one of :data:`ALIGN_MODES`.
+    """
+    from uwbimu.errors import InputError
+
+    extra = meta_extra or {}
+    align = str(extra.get("groundtruth_align", "none"))
+    if align not in ALIGN_MODES:
+        raise InputError(f"dataset.yaml extra.groundtruth_align must be one of {', '.join(ALIGN_MODES)}, "
+                         f"got '{align}'")
+    return GroundTruthFrame(align=align,
+                            attitude_comparable=bool(extra.get("groundtruth_attitude_comparable", True)))
+
+
 @dataclass
 class Alignment:
     """Transform taking estimate-frame coordinates into the ground-truth frame.

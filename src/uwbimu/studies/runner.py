@@ -67,7 +67,9 @@ def run_study(
     out = Path(out)
     runs = int(runs if runs is not None else cfg.runs)
     if runs < 1:
-        raise MonteCarloError("--runs must be at least 1")
+        from uwbimu.errors import UsageError
+
+        raise UsageError(f"runs must be at least 1, got {runs}")
     if not workers and client is not None:
         workers = len(client.scheduler_info()["workers"])  # the cluster's workers
     workers = int(workers or os.cpu_count() or 1)

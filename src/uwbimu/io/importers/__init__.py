@@ -198,7 +198,12 @@ def write_import(result: ImportResult, dst: Union[str, os.PathLike], force: bool
     if dst.exists() and not dst.is_dir():
         raise FileExistsError(f"{dst} exists and is not a folder")
     if dst.exists() and any(dst.iterdir()) and not force:
-        raise FileExistsError(f"{dst} exists and is not empty; refusing to overwrite (use --force)")
+        from uwbimu.io.atomic import foreign_files
+
+        foreign = foreign_files(dst)  # the output rule: a folder of our own unchanged outputs may be replaced
+        if foreign:
+            raise FileExistsError(f"{dst} exists and is not empty: it holds files uwbimu did not write or that changed "
+                                  f"since ({', '.join(foreign[:5])}); refusing to overwrite (use --force)")
     dst.parent.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f".{dst.name}.import.", dir=dst.parent))
     try:
@@ -212,6 +217,9 @@ def write_import(result: ImportResult, dst: Union[str, os.PathLike], force: bool
             else:
                 target.write_text(content)
         load_dataset(staged, load_options)  # validate what we wrote
+        from uwbimu.io.atomic import record_outputs
+
+        record_outputs(staged, [staged])  # a rerun may replace this folder while it is unchanged
         if dst.exists():
             old = work / "old"
             dst.rename(old)
