@@ -20,10 +20,12 @@ import pandas as pd
 from uwbimu.estimation import kernels as K
 from uwbimu.estimation.diagnostics import excitation_warnings, imu_gap_events, outage_warnings
 from uwbimu.estimation.filterpass import (
-    REC_ACC, REC_INNOV, REC_NIS, REC_PRED, REC_STATUS, STATUS_IN_GAP, STATUS_NOT_PROCESSED, PassResult, Problem, gap_inputs,
+    REC_ACC, REC_INNOV, REC_NIS, REC_PRED, REC_S, REC_STATUS, STATUS_IN_GAP, STATUS_NOT_PROCESSED, PassResult, Problem, gap_inputs,
     rotation_window_stats,
 )
 from uwbimu.estimation.init import InitialisationError, InitialState
+from uwbimu.estimation.noise_from_data import (
+    imu_noise_from_log, measurement_noise_from_innovations, residual_variance_factor)
 from uwbimu.estimation.timeoffset import time_offset_verdict
 from uwbimu.models import state as S
 from uwbimu.estimation.options import EskfOptions
@@ -179,7 +181,8 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
         prob.uwb_b = np.ascontiguousarray(uwb_b)
     if prob.lever_min_rate > 0:
         prob.rot_mean, prob.rot_ms = rotation_window_stats(imu_u, prob.lever_win)
-    info = {"warnings": warnings, "events": events, "imu_noise": noise, "range_sigma": rsig, "tag": tag,
+    info = {"warnings": warnings, "events": events, "imu_noise": noise, "range_sigma": rsig, "tdoa_sigma": tsig,
+            "tag": tag,
             "tags": tag_names or [tag],
             "anchor_frame_up": frame_up,
             "priors": priors, "uwb_anchor_ids": uwb_anchor_ids}
@@ -281,26 +284,46 @@ def run_eskf(
     events += ev_gap
     warnings += warn_gap
 
-    # the batch run is the streaming filter fed with the whole log
-    f = Eskf.from_problem(prob, priors, opts, record=True, initial=initial)
-    # the first numba call of a process starts numba's runtime (about 0.1 s of CPU): process start-up, not
-    # filter work (it stays in total_cpu_seconds)
-    K.robust_weight(0.0, K.ROBUST_NONE, 1.0)
-    c0 = time.process_time()
-    f.feed(prob.imu_t, prob.imu_u, prob.uwb_t, prob.uwb_a,
-           prob.uwb_b if prob.uwb_b is not None else np.full(len(prob.uwb_t), -1, dtype=np.int64), prob.uwb_r,
-           prob.uwb_tag)
-    f.finish(progress=cb)
-    # the filter passes only: the initialiser's hypothesis bank runs inside feed/finish too
-    cpu_filter = time.process_time() - c0 - f.init_cpu_seconds
+    # noise from the data (rule 1): the IMU densities from the log's spectrum
+    noise_report: dict[str, Any] = {"mode": opts.noise}
+    if opts.noise == "data" and opts.imu_noise is None and opts.imu_noise_scale == 1.0:
+        imu_noise, noise_report["imu"] = imu_noise_from_log(prob.imu_t, prob.imu_u, info["imu_noise"])
+        if imu_noise is not info["imu_noise"]:
+            opts_run = opts.model_copy(update={"imu_noise": imu_noise})
+            prob, info = build_problem(dataset, opts_run)
+    else:
+        noise_report["imu"] = {"status": "given"}
+
+    f, cpu_filter = _filter_pass(prob, priors, opts, initial, cb)
     if f.initial is None:
         raise InitialisationError(f._init_failure or "not enough data to initialise")
+    # rule 2: the range / TDoA noise by covariance matching of the first pass's innovations; one more pass
+    # (from the same start) when a level is outside its sampling band
+    if opts.noise == "data":
+        match = _match_measurement_noise(f.problem(), f.passes(), info, opts)
+        noise_report["measurements"] = match
+        update = {k: v["sigma_new"] for k, v in match.items() if v.get("changed")}
+        if update:
+            opts_m = opts.model_copy(update={"imu_noise": info["imu_noise"],
+                                             **{f"{k}_sigma": v for k, v in update.items()}})
+            if "range" not in update:
+                opts_m = opts_m.model_copy(update={"range_sigma": info["range_sigma"]})
+            prob, info = build_problem(dataset, opts_m)
+            f, cpu2 = _filter_pass(prob, priors, opts, f.initial, cb)
+            cpu_filter += cpu2
+            if f.initial is None:
+                raise InitialisationError(f._init_failure or "not enough data to initialise")
     initial = f.initial
     passes = f.passes()
     events += f.events()
     warnings += f.warnings()
     prob = f.problem()
+    w_noise, e_noise = _noise_events(noise_report, float(prob.uwb_t[0]))
+    warnings += w_noise
+    events += e_noise
     result = _assemble(dataset, prob, info, passes, opts)
+    result.extra["noise"] = noise_report
+    _apply_variance_factor(result, prob, opts)
     _add_time_offset_verdict(result, prob, priors, opts, initial)
     result.warnings = warnings + result.warnings
     result.events = events + result.events
@@ -311,6 +334,108 @@ def run_eskf(
     # The library stays silent: warnings travel in result.warnings / result.events and the
     # caller (the CLI, a study) decides what to show.
     return result
+
+
+#: a noise level this many times the preset's (or below its inverse) is reported as a warning
+FAR_FROM_PRESET = 3.0
+
+
+def _filter_pass(prob: Problem, priors: dict[str, Any], opts: EskfOptions, initial: Optional[InitialState],
+                 cb) -> tuple[Eskf, float]:
+    """One run of the streaming filter over the whole log; returns it and its filter CPU seconds."""
+    f = Eskf.from_problem(prob, priors, opts, record=True, initial=initial)
+    # the first numba call of a process starts numba's runtime (about 0.1 s of CPU): process start-up, not
+    # filter work (it stays in total_cpu_seconds)
+    K.robust_weight(0.0, K.ROBUST_NONE, 1.0)
+    c0 = time.process_time()
+    f.feed(prob.imu_t, prob.imu_u, prob.uwb_t, prob.uwb_a,
+           prob.uwb_b if prob.uwb_b is not None else np.full(len(prob.uwb_t), -1, dtype=np.int64), prob.uwb_r,
+           prob.uwb_tag)
+    f.finish(progress=cb)
+    # the filter passes only: the initialiser's hypothesis bank runs inside feed/finish too
+    return f, time.process_time() - c0 - f.init_cpu_seconds
+
+
+def _accepted_records(prob: Problem, passes: list[PassResult]) -> tuple[np.ndarray, np.ndarray]:
+    """Per-measurement records of all passes (NaN rows where not processed) and the accepted mask."""
+    rec = np.full((len(prob.uwb_t), 7), np.nan)
+    for p in passes:
+        rec[p.j0:p.j_end] = p.rec
+    acc = (rec[:, REC_ACC] > 0) & (rec[:, REC_STATUS] == K.UPD_OK)
+    return rec, acc
+
+
+def _match_measurement_noise(prob: Problem, passes: list[PassResult], info: dict[str, Any],
+                             opts: EskfOptions) -> dict[str, Any]:
+    """Rule 2 of :mod:`.noise_from_data` per measurement kind (a kind whose sd the options give is kept)."""
+    rec, acc = _accepted_records(prob, passes)
+    is_td = (prob.uwb_b >= 0) if prob.uwb_b is not None else np.zeros(len(prob.uwb_t), bool)
+    rsig = float(info["range_sigma"])
+    tsig = float(info.get("tdoa_sigma") or math.sqrt(2.0) * rsig)
+    out: dict[str, Any] = {}
+    for kind, mask, sig, given in (("range", ~is_td, rsig, opts.range_sigma is not None),
+                                   ("tdoa", is_td, tsig, opts.tdoa_sigma is not None)):
+        sel = mask & acc
+        if not mask.any():
+            continue
+        if given:
+            out[kind] = {"n": int(sel.sum()), "sigma": sig, "sigma_new": sig, "changed": False, "given": True}
+            continue
+        r = measurement_noise_from_innovations(rec[sel, REC_INNOV], rec[sel, REC_S], sig)
+        r["rejected_fraction"] = float(1.0 - sel.sum() / max(int((mask & np.isfinite(rec[:, REC_INNOV])).sum()), 1))
+        out[kind] = r
+    return out
+
+
+def _noise_events(report: dict[str, Any], t0: float) -> tuple[list[str], list[dict[str, Any]]]:
+    """One ``noise_from_data`` event with what was used, and a warning when the log is far from the preset."""
+    warnings: list[str] = []
+    if report.get("mode") != "data":
+        return warnings, []
+    imu = report.get("imu", {})
+    for sensor, unit in (("accel", "m/s^2/sqrt(Hz)"), ("gyro", "rad/s/sqrt(Hz)")):
+        e = imu.get(sensor)
+        if e and e["ratio"] > FAR_FROM_PRESET:
+            warnings.append(f"IMU: the log's {sensor} noise density {e['log']:.3g} {unit} (5-25 Hz spectrum) is "
+                            f"{e['ratio']:.0f} x the preset's {e['preset']:.3g}: vibration; the filter uses the log's")
+    for kind, e in (report.get("measurements") or {}).items():
+        if e.get("changed") and not (1.0 / FAR_FROM_PRESET <= e["sigma_new"] / e["sigma"] <= FAR_FROM_PRESET):
+            warnings.append(f"UWB: the {kind} innovations ask for sd {e['sigma_new']:.3g} m against the "
+                            f"{e['sigma']:.3g} m configured; the filter was rerun with it")
+    return warnings, [{"t": t0, "kind": "noise_from_data", **report}]
+
+
+def _apply_variance_factor(result: EstimationResult, prob: Problem, opts: EskfOptions) -> None:
+    """Rule 3 of :mod:`.noise_from_data`: the calibration sds grow with the residuals' long-run variance."""
+    res = result.residuals
+    acc = res["accepted"].to_numpy(bool)
+    innov = res["innovation"].to_numpy(float)
+    rec_s = result.extra.pop("_innovation_var", None)
+    if rec_s is None:
+        return
+    a = prob.uwb_a
+    b = prob.uwb_b if prob.uwb_b is not None else np.full(len(a), -1)
+    channel = a * 1000 + (b + 1)
+    vf = residual_variance_factor(innov[acc], rec_s[acc], channel[acc])
+    vf["enabled"] = bool(opts.sigma_from_residuals)
+    cal = result.calibration
+    cal["sigma_scale"] = float(vf["factor"]) if opts.sigma_from_residuals else 1.0
+    result.extra["residual_variance_factor"] = vf
+    fac = cal["sigma_scale"]
+    if fac != 1.0:
+        cal["lever_arm_sd_filter"] = list(cal["lever_arm_sd"])
+        cal["time_offset_sd_filter"] = cal["time_offset_sd"]
+        cal["lever_arm_sd"] = [v * fac for v in cal["lever_arm_sd"]]
+        cal["time_offset_sd"] = cal["time_offset_sd"] * fac
+        for tb in cal.get("tags", {}).values():
+            tb["lever_arm_sd"] = [v * fac for v in tb["lever_arm_sd"]]
+        for key in ("anchor_bias_sd", "tdoa_pair_bias_sd"):
+            if key in cal:
+                cal[key] = {k: v * fac for k, v in cal[key].items()}
+        result.warnings.append(
+            f"the residuals' long-run variance is {vf['long_run_variance']:.3g} (1 when they agree with the "
+            f"noise model; 99 % bound {vf['threshold']:.3g}): calibration sds multiplied by {fac:.3g}")
+    result.events.append({"t": float(prob.uwb_t[0]), "kind": "sigma_from_residuals", **vf})
 
 
 def _add_time_offset_verdict(result: EstimationResult, prob: Problem, priors: dict[str, Any],
@@ -462,6 +587,8 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
         covariances=covs[:, :S.ERROR_DIM, :S.ERROR_DIM].copy() if covs is not None else None, warnings=warnings, events=events,
         estimator="eskf", config=cfg, t_imu=t_imu,
     )
+    # predicted innovation variances of the records (the residual variance factor needs them; popped there)
+    res.extra["_innovation_var"] = rec[:, REC_S].copy()
     if nb:
         res.extra["anchor_bias_states"] = X[:, L.nom("anchor_bias")].copy()
         res.extra["anchor_ids"] = list(prob.anchor_ids)

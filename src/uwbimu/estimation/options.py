@@ -150,6 +150,16 @@ class EskfOptions(_Strict):
         default=None, description="preset name or densities; None: the dataset's imu_noise, else 'bmi088'"
     )
     imu_noise_scale: float = Field(default=1.0, gt=0, description="multiplies every IMU density (tuning)")
+    noise: Literal["data", "preset"] = Field(
+        default="data",
+        description="'data': the IMU densities from the log's spectrum (never below the preset) and the "
+        "range/TDoA sd by covariance matching of a first pass's innovations (uwbimu.estimation.noise_from_data); "
+        "a noise option given explicitly (imu_noise, imu_noise_scale, range_sigma, tdoa_sigma) is used as given. "
+        "'preset': the preset/dataset values only")
+    sigma_from_residuals: bool = Field(
+        default=True,
+        description="multiply the calibration sds by the square root of the residuals' long-run variance "
+        "factor when it is significantly above 1 (the model is refuted by its own innovations)")
     range_sigma: Optional[float] = Field(default=None, gt=0, description="[m]; None: the dataset's, else 0.1")
     tdoa_sigma: Optional[float] = Field(
         default=None, gt=0, description="TDoA noise sd [m]; None: the dataset's extra.tdoa_sigma, else sqrt(2) range_sigma")
