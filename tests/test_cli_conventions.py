@@ -62,7 +62,7 @@ def test_errors_go_to_stderr_as_one_line_plus_hint(tmp_path):
     # an output refusal: exit 4 with a hint naming --force
     out = tmp_path / "out"
     out.mkdir()
-    (out / "notes.txt").write_text("mine")
+    (out / "plan.json").write_text("mine")  # a file of the verb's name that uwbimu did not write
     r = runner.invoke(app, ["plan", "seed-ocp", "--out", str(out)])
     assert r.exit_code == 4 and r.stdout == ""
     lines = r.stderr.strip().splitlines()

@@ -46,7 +46,7 @@ def test_demo_reruns_into_its_own_folder(demo_run, tmp_path):
     user = tmp_path / "mine"
     user.mkdir()
     (user / "precious.txt").write_text("keep me")
-    with pytest.raises(OutputError, match="not written by `uwbimu demo`"):
+    with pytest.raises(OutputError, match="precious.txt"):  # the output rule: a file uwbimu did not write
         run_demo(user, Console(file=io.StringIO()), duration=5.0)
     assert (user / "precious.txt").read_text() == "keep me"
 

@@ -93,8 +93,12 @@ def test_cli_isas_walk(tmp_path):
     assert r.exit_code == 0, r.output
     assert "estimator_isas.yaml" in r.output and "z-down" in r.output
     assert not (tmp_path / "ds" / "groundtruth.csv").exists()
+    # the output rule: its own unchanged import is replaced; an edited one needs --force
     r = CliRunner().invoke(app, ["import", "isas-walk", str(EXCERPT), str(tmp_path / "ds")])
-    assert r.exit_code == 4 and "not empty" in r.output
+    assert r.exit_code == 0, r.output
+    (tmp_path / "ds" / "notes.txt").write_text("mine")
+    r = CliRunner().invoke(app, ["import", "isas-walk", str(EXCERPT), str(tmp_path / "ds")])
+    assert r.exit_code == 4 and "notes.txt" in r.output
 
 
 def test_noise_density_from_low_frequency_spectrum():

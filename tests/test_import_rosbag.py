@@ -157,6 +157,9 @@ def test_cli_rosbag_refuses_overwrite(tmp_path):
     r = CliRunner().invoke(app, ["import", "rosbag", str(bag), str(dst), "--topics", str(mp)])
     assert r.exit_code == 0, r.output
     r = CliRunner().invoke(app, ["import", "rosbag", str(bag), str(dst), "--topics", str(mp)])
-    assert r.exit_code == 4 and "not empty" in r.output
+    assert r.exit_code == 0, r.output  # the output rule: its own unchanged import is replaced
+    (dst / "imu.csv").write_text((dst / "imu.csv").read_text() + "\n")  # edited since: refused
+    r = CliRunner().invoke(app, ["import", "rosbag", str(bag), str(dst), "--topics", str(mp)])
+    assert r.exit_code == 4 and "imu.csv" in r.output
     r = CliRunner().invoke(app, ["import", "rosbag", str(bag), str(dst), "--topics", str(mp), "--force"])
     assert r.exit_code == 0, r.output

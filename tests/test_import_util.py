@@ -138,4 +138,7 @@ def test_cli(tmp_path, sim):
     assert r.exit_code == 0, r.output
     assert (tmp_path / "o" / "tdoa.csv").is_file()
     r = CliRunner().invoke(app, ["import", "util", str(path), str(tmp_path / "o")])
-    assert r.exit_code == 4  # non-empty destination refused (OutputError)
+    assert r.exit_code == 0, r.output  # the output rule: its own unchanged import is replaced
+    (tmp_path / "o" / "notes.txt").write_text("mine")
+    r = CliRunner().invoke(app, ["import", "util", str(path), str(tmp_path / "o")])
+    assert r.exit_code == 4  # a folder holding a file uwbimu did not write is refused (OutputError)

@@ -121,9 +121,12 @@ def test_log_command_writes_csv_and_png(tmp_path):
     assert {"lever_arm_excited", "time_offset_excited"} <= set(table.columns)
     assert len(table) == 3
     assert (out / "observability.png").stat().st_size > 1000
-    # refuses to overwrite its outputs without --force
+    # the output rule: a rerun replaces its own unchanged outputs; an edited one needs --force (exit 4)
     res = runner.invoke(app, ["observability", "log", str(folder), "--window", "10", "--out", str(out)])
-    assert res.exit_code == 2 and "--force" in res.output
+    assert res.exit_code == 0, res.output
+    (out / "observability.csv").write_text((out / "observability.csv").read_text() + "\n")
+    res = runner.invoke(app, ["observability", "log", str(folder), "--window", "10", "--out", str(out)])
+    assert res.exit_code == 4 and "--force" in res.output
     # --trajectory: an estimator's states.csv (here the truth in that format)
     import numpy as np
 

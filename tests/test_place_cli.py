@@ -76,7 +76,10 @@ def test_place_room_writes_outputs(tmp_path):
     assert ds.anchors["anchor"].tolist() == df["anchor"].tolist()
     assert np.allclose(ds.anchors[["x", "y", "z"]].to_numpy(), np.array(js["anchors"]))
     assert set(ds.uwb["anchor"]) <= set(df["anchor"])
-    # same seed -> same layout (reproducible); existing output is not overwritten without --force
+    # the output rule: a rerun replaces its own unchanged outputs; an edited one needs --force
+    r2 = runner.invoke(app, ["place", str(cfg), "--out", str(out), "--no-plots"])
+    assert r2.exit_code == 0, r2.output
+    (out / "anchors.csv").write_text((out / "anchors.csv").read_text() + "\n")
     r2 = runner.invoke(app, ["place", str(cfg), "--out", str(out), "--no-plots"])
     assert r2.exit_code == 4 and "--force" in r2.output  # OutputError
     r3 = runner.invoke(app, ["place", str(cfg), "--out", str(out), "--no-plots", "--force"])

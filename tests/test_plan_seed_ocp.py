@@ -187,17 +187,20 @@ def test_continuous_costate_method_matches_direct_to_discretisation_order():
 
 
 def test_cli_refuses_a_folder_with_other_files(tmp_path):
+    """The output rule: a file of the verb's name that uwbimu did not write is refused (exit 4, nothing written)."""
     from typer.testing import CliRunner
 
     from uwbimu.cli.main import app
 
     out = tmp_path / "o"
     out.mkdir()
-    (out / "notes.txt").write_text("mine")
-    for args in (["plan", "seed-ocp", "--out", str(out)], ["plan", "calibration", "--out", str(out), str(tmp_path / "c.yaml")]):
-        # an output refusal: exit code 4 (uwbimu.errors.OutputError), nothing written
+    (out / "plan.json").write_text("mine")
+    (out / "design.json").write_text("mine too")
+    for args, name in ((["plan", "seed-ocp", "--out", str(out)], "plan.json"),
+                       (["plan", "calibration", "--out", str(out), str(tmp_path / "c.yaml")], "design.json")):
         if args[1] == "calibration":
             (tmp_path / "c.yaml").write_text("duration: 12.0\nramp: 1.5\n")
         res = CliRunner().invoke(app, args)
-        assert res.exit_code == 4 and "notes.txt" in res.output, res.output
-    assert (out / "notes.txt").read_text() == "mine" and sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+        assert res.exit_code == 4 and name in res.output, res.output
+    assert sorted(p.name for p in out.iterdir()) == ["design.json", "plan.json"]
+    assert (out / "plan.json").read_text() == "mine"

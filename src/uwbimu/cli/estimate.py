@@ -226,15 +226,15 @@ def register(app: typer.Typer) -> None:
         """Estimate trajectory, lever arm and time offset with the UWB-IMU error-state EKF."""
         from uwbimu.cli.compile_notice import CompileNotice, ensure_compiled
         from uwbimu.cli.dataset_options import apply_dataset_properties, estimator_options, load, print_load_warnings
-        from uwbimu.estimation import InitialisationError, write_outputs
-        from uwbimu.errors import EstimationError, UsageError
+        from uwbimu.estimation import write_outputs
+        from uwbimu.errors import UsageError
         from uwbimu.io.atomic import check_output_target, output_folder
 
         console = Console()
         from uwbimu.eval.estimators import get_estimator
 
         if estimator not in ("eskf", "pointmass"):  # batch has its own verb (uwbimu calibrate)
-            raise UsageError(f"--estimator must be 'eskf' or 'pointmass', got {estimator!r}")
+            raise UsageError(f"--estimator must be eskf or pointmass, got '{estimator}'")
         entry = get_estimator(estimator)
         opts = estimator_options(estimator, config, preset)
         check_output_target(out, sorted(OUTPUT_FILES), force, protect=[dataset])
@@ -242,19 +242,18 @@ def register(app: typer.Typer) -> None:
         print_load_warnings(console, ds)
         opts = apply_dataset_properties(opts, ds, console)
         compiled = CompileNotice(cold=False)
-        try:
-            if estimator == "pointmass":
-                with console.status(entry.description):
-                    res = entry.run(ds, opts, None)
-            else:
-                compiled = ensure_compiled(console)
-                res = run_with_progress(ds, opts, console)
-                if clock_faults:
-                    from uwbimu.eval.clock_faults import handle_clock_faults
+        # input problems raise InputError (exit 1), estimation failures EstimationError (exit 5):
+        # nothing is relabelled here
+        if estimator == "pointmass":
+            with console.status(entry.description):
+                res = entry.run(ds, opts, None)
+        else:
+            compiled = ensure_compiled(console)
+            res = run_with_progress(ds, opts, console)
+            if clock_faults:
+                from uwbimu.eval.clock_faults import handle_clock_faults
 
-                    res, ds = handle_clock_faults(res, ds, lambda d: run_with_progress(d, opts, console), console)
-        except (InitialisationError, ValueError) as exc:
-            raise EstimationError(str(exc)) from None
+                res, ds = handle_clock_faults(res, ds, lambda d: run_with_progress(d, opts, console), console)
         with output_folder(out, force, protect=[dataset], names=sorted(OUTPUT_FILES),
                            finite=NAN_DOCUMENTED) as tmp:
             written = write_outputs(res, ds, tmp, plots=plots)

@@ -47,9 +47,8 @@ def register(app: typer.Typer) -> None:
 
         from uwbimu.metrics.align import ALIGN_MODES
         from uwbimu.eval.evaluate import evaluate_output
-        from uwbimu.eval.files import EvalInputError
 
-        from uwbimu.errors import InputError, UsageError
+        from uwbimu.errors import UsageError
         from uwbimu.io.atomic import check_output_target, output_folder
 
         console = Console()
@@ -60,16 +59,11 @@ def register(app: typer.Typer) -> None:
         gt_folder = groundtruth  # a file is protected itself, a dataset folder as a whole
         target = folder if folder is not None else out
         check_output_target(target, names, force, protect=[gt_folder])
-        try:
-            # Scores of empty sets are NaN by design (n/a); the finiteness rule guards estimates.
-            with output_folder(target, force, protect=[gt_folder], names=names, finite=False) as tmp:
-                s = evaluate_output(tmp, groundtruth, align=align, distances=dist, max_gap=max_gap,
-                                    skip_initial=skip_initial, plots=not no_plots, compare_attitude=attitude,
-                                    trajectory=out / "trajectory.csv")
-        except (EvalInputError, ValueError) as exc:
-            if isinstance(exc, (InputError, UsageError)):
-                raise
-            raise InputError(str(exc)) from None
+        # Scores of empty sets are NaN by design (n/a); the finiteness rule guards estimates.
+        with output_folder(target, force, protect=[gt_folder], names=names, finite=False) as tmp:
+            s = evaluate_output(tmp, groundtruth, align=align, distances=dist, max_gap=max_gap,
+                                skip_initial=skip_initial, plots=not no_plots, compare_attitude=attitude,
+                                trajectory=out / "trajectory.csv")
         print_summary(console, s)
         console.print(f"wrote {target / 'evaluation.json'}")
 

@@ -205,7 +205,7 @@ def log(
     if trajectory is not None:
         try:
             traj = trajectory_from_states_csv(trajectory)
-        except ValueError as e:
+        except InputError as e:
             raise InputError(str(e), hint="pass the states.csv of `uwbimu estimate` (or its output folder)") from None
     elif ds.groundtruth is None:
         raise InputError(

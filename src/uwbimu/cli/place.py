@@ -65,6 +65,8 @@ def register(app: typer.Typer) -> None:
         """Design UWB anchor positions (room or structure) for coverage, PDOP and N-1 robustness."""
         from uwbimu.design.config import load_config
         from uwbimu.design.run import EXAMPLES, builtin_example, run_placement, write_outputs
+        from pydantic import ValidationError
+
         from uwbimu import errors
 
         console = Console()
@@ -95,9 +97,9 @@ def register(app: typer.Typer) -> None:
             record_outputs(out, write_outputs(res, out, plots=not no_plots))
         except errors.UwbimuError:
             raise
-        except ValueError as exc:
-            # config and pattern errors are UwbimuErrors naming their file; name the config for the others
+        except ValidationError as exc:
+            # a value set on the loaded configuration (--seed, --workers) that it refuses
             where = "" if config is None else f"{config}: "
-            raise errors.ConfigError(where + str(exc)) from None
+            raise errors.ConfigError(where + " ".join(str(exc).split())) from None
         _print_result(console, res)
         console.print(f"wrote {out / 'placement.json'}, {out / 'anchors.csv'}" + ("" if no_plots else " and plots"))

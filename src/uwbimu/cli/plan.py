@@ -192,6 +192,7 @@ def calibration(
 ) -> None:
     """Design a calibration manoeuvre (lever arm + time offset, E-optimal) for the 19-state model."""
     from uwbimu.design.trajectory.calibration import CalibrationDesignConfig, design_and_write
+    from uwbimu.errors import ConfigError, InputError, UsageError
 
     console = Console()
     cfg = _load(config, CalibrationDesignConfig, "calibration design config")
@@ -206,10 +207,8 @@ def calibration(
 
         try:
             report = design_and_write(cfg, out, progress=cb, config_path=config)
-        except ValueError as exc:
-            from uwbimu.errors import InputError
-
-            raise InputError(f"{config}: {exc}") from None
+        except (ConfigError, InputError, UsageError) as exc:  # typed by the library; name the file
+            raise type(exc)(f"{config}: {exc}", hint=exc.hint) from None
     _record(out, CALIBRATION_FILES)
     tab = Table(title=f"Calibration manoeuvre ({cfg.platform}): predicted 1-sigma (linearised ESKF covariance)")
     tab.add_column("trajectory")

@@ -20,6 +20,7 @@ docs/placement.md.
 
 from __future__ import annotations
 
+from uwbimu.errors import ConfigError
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
@@ -85,7 +86,7 @@ def fit_seed_range(reading: str = "diagonal", target: float = SEED_COVERAGE, lo:
 
     c_lo, c_hi = run(lo), run(hi)
     if not (c_lo <= target <= c_hi):
-        raise ValueError(f"R0 in [{lo}, {hi}] m gives coverage {c_lo:.4f}..{c_hi:.4f}, not bracketing {target}")
+        raise ConfigError(f"R0 in [{lo}, {hi}] m gives coverage {c_lo:.4f}..{c_hi:.4f}, not bracketing {target}")
     while hi - lo > resolution:
         mid = round(0.5 * (lo + hi), 6)
         if run(mid) < target:

@@ -73,6 +73,7 @@ with ``D = diag(r_1..r_N)`` and ``U = H``.  Its measure is ``det(O^T O)``.
 
 from __future__ import annotations
 
+from uwbimu.errors import UsageError
 import numpy as np
 
 __all__ = [
@@ -102,14 +103,14 @@ def _as_points(points) -> np.ndarray:
     if p.ndim == 1:
         p = p[None, :]
     if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"points must have shape (P, 3), got {p.shape}")
+        raise UsageError(f"points must have shape (P, 3), got {p.shape}")
     return p
 
 
 def _as_anchors(anchors) -> np.ndarray:
     a = np.asarray(anchors, dtype=float)
     if a.ndim != 2 or a.shape[1] != 3:
-        raise ValueError(f"anchors must have shape (N, 3), got {a.shape}")
+        raise UsageError(f"anchors must have shape (N, 3), got {a.shape}")
     return a
 
 
@@ -149,7 +150,7 @@ def information_matrix(points, anchors, sigma: float = 1.0, links=None, clock: b
         u = np.concatenate([u, np.ones(u.shape[:2] + (1,))], axis=2)
     w = np.ones(u.shape[:2]) if links is None else np.asarray(links, dtype=float)
     if w.shape != u.shape[:2]:
-        raise ValueError(f"links must have shape {u.shape[:2]}, got {w.shape}")
+        raise UsageError(f"links must have shape {u.shape[:2]}, got {w.shape}")
     return np.einsum("pn,pni,pnj->pij", w, u, u) / float(sigma) ** 2
 
 
@@ -196,7 +197,7 @@ def tdoa_gram(points, anchors, links=None) -> np.ndarray:
     u, _ = unit_los(points, anchors)
     w = np.ones(u.shape[:2]) if links is None else np.asarray(links, dtype=float)
     if w.shape != u.shape[:2]:
-        raise ValueError(f"links must have shape {u.shape[:2]}, got {w.shape}")
+        raise UsageError(f"links must have shape {u.shape[:2]}, got {w.shape}")
     g = np.einsum("pn,pni,pnj->pij", w, u, u)
     s = np.einsum("pn,pni->pi", w, u)
     n = w.sum(axis=1)
@@ -231,7 +232,7 @@ def tdoa_information_explicit(point, anchors, sigma: float = 1.0, ref: int = 0) 
     u = u[0]
     n = len(u)
     if not 0 <= ref < n:
-        raise ValueError(f"ref must index one of the {n} anchors, got {ref}")
+        raise UsageError(f"ref must index one of the {n} anchors, got {ref}")
     others = [i for i in range(n) if i != ref]
     H = u[others] - u[ref][None, :]
     R = 0.5 * float(sigma) ** 2 * (np.eye(n - 1) + np.ones((n - 1, n - 1)))
@@ -259,7 +260,7 @@ def measurement_information(points, anchors, measurement: str = "twr", sigma: fl
         return information_matrix(points, anchors, sigma, links)
     if measurement == "tdoa":
         return tdoa_information_matrix(points, anchors, sigma, links)
-    raise ValueError(f"measurement must be 'twr' or 'tdoa', got {measurement!r}")
+    raise UsageError(f"measurement must be 'twr' or 'tdoa', got {measurement!r}")
 
 
 def logdet_information(points, anchors, sigma: float = 1.0, links=None, floor: float = 1e-12,
@@ -296,9 +297,9 @@ def seed_observability_matrix(point, anchors, velocity=None, order: int = 0) -> 
     if order == 0:
         return A
     if order != 1:
-        raise ValueError("order must be 0 or 1")
+        raise UsageError("order must be 0 or 1")
     if velocity is None:
-        raise ValueError("order=1 needs the velocity")
+        raise UsageError("order=1 needs the velocity")
     v = np.asarray(velocity, dtype=float).reshape(3)
     top = np.hstack([A, np.zeros_like(A)])
     bottom = np.hstack([np.tile(v, (len(a), 1)), A])

@@ -40,6 +40,7 @@ complement of the clock entry ``n``).
 
 from __future__ import annotations
 
+from uwbimu.errors import ConfigError, UsageError
 import heapq
 from dataclasses import dataclass, field
 
@@ -127,7 +128,7 @@ class Room:
         p = np.asarray(self.polygon, dtype=float)
         area2 = np.sum(p[:, 0] * np.roll(p[:, 1], -1) - np.roll(p[:, 0], -1) * p[:, 1])
         if abs(area2) < 1e-9:
-            raise ValueError("room polygon has zero area")
+            raise ConfigError("room polygon has zero area")
         self.polygon = p if area2 > 0 else p[::-1].copy()  # make it counter-clockwise
 
     @classmethod
@@ -283,7 +284,7 @@ class LayoutEvaluator:
 
     def __post_init__(self):
         if self.measurement not in ("twr", "tdoa"):
-            raise ValueError(f"measurement must be 'twr' or 'tdoa', got {self.measurement!r}")
+            raise UsageError(f"measurement must be 'twr' or 'tdoa', got {self.measurement!r}")
 
     @property
     def min_links(self) -> int:
@@ -361,7 +362,7 @@ class LayoutEvaluator:
         j -= w.get("info", 0.0) * comp["logdet_low"]
         if w.get("hull", 0.0):
             if "hull_outside" not in comp:
-                raise ValueError("the 'hull' weight needs the anchor positions (components(..., anchors=...))")
+                raise UsageError("the 'hull' weight needs the anchor positions (components(..., anchors=...))")
             j += w["hull"] * 100.0 * comp["hull_outside"]
         if "n1_pdop_q" in comp:
             j += w.get("n1_pdop", 0.0) * comp["n1_pdop_q"] + w.get("n1_coverage", 0.0) * 100.0 * (1.0 - comp["n1_coverage"])

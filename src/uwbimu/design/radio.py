@@ -48,7 +48,7 @@ from typing import Sequence
 import numpy as np
 from numba import njit
 
-from uwbimu.errors import InputError
+from uwbimu.errors import ConfigError, InputError, UsageError
 
 __all__ = [
     "SPEED_OF_LIGHT",
@@ -377,7 +377,7 @@ class LinkModel:
     @classmethod
     def from_preset(cls, preset: str, **kw) -> "LinkModel":
         if preset not in RANGE_PRESETS:
-            raise ValueError(f"unknown radio preset {preset!r}; choose one of {sorted(RANGE_PRESETS)}")
+            raise ConfigError(f"unknown radio preset {preset!r}; choose one of {sorted(RANGE_PRESETS)}")
         return cls(max_range=RANGE_PRESETS[preset], **kw)
 
     @property
@@ -418,7 +418,7 @@ class LinkModel:
         (LOS).  Used by the fast kernel.
         """
         if not getattr(self.anchor_pattern, "axisymmetric", False):
-            raise ValueError("the fast coverage kernel needs an axisymmetric pattern (Omni or CosN)")
+            raise UsageError("the fast coverage kernel needs an axisymmetric pattern (Omni or CosN)")
         c = np.linspace(-1.0, 1.0, size)
         g = self.anchor_pattern.gain_cos(c) + self.tag_gain_dbi
         return (self.max_range**2 * 10.0 ** (g / 10.0)).astype(np.float32)
@@ -558,7 +558,7 @@ def _grid_inputs(axes, boresights, lut, sphere, check_uniform):
         ax = np.asarray(ax, dtype=float)
         h = float(ax[1] - ax[0]) if len(ax) > 1 else 1.0
         if check_uniform and len(ax) > 2 and not np.allclose(np.diff(ax), h, rtol=1e-6, atol=1e-9):
-            raise ValueError("count_links_grid needs uniformly spaced axes")
+            raise UsageError("count_links_grid needs uniformly spaced axes")
         xyz.append(np.ascontiguousarray(ax, dtype=np.float32))
         hs.append(h)
     b = np.asarray(boresights, dtype=np.float64)

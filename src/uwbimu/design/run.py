@@ -7,6 +7,7 @@ Built-in examples: :func:`builtin_example` (``room``, ``crane``, ``bridge``).
 
 from __future__ import annotations
 
+from uwbimu.errors import ConfigError, UsageError
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -84,7 +85,7 @@ EXAMPLES: dict[str, dict] = {
 
 def builtin_example(name: str) -> PlacementConfig:
     if name not in EXAMPLES:
-        raise ValueError(f"unknown example {name!r}; choose one of {sorted(EXAMPLES)}")
+        raise UsageError(f"unknown example {name!r}; choose one of {sorted(EXAMPLES)}")
     return PlacementConfig.model_validate(EXAMPLES[name])
 
 
@@ -183,7 +184,7 @@ def room_setup(cfg: PlacementConfig) -> tuple[Room, np.ndarray, LinkModel, list]
     fv = rc.flight_volume
     points = room.flight_points(fv.lo if fv else None, fv.hi if fv else None, rc.grid_step)
     if len(points) < 4:
-        raise ValueError(f"flight volume holds only {len(points)} tag samples; enlarge it or lower room.grid_step")
+        raise ConfigError(f"flight volume holds only {len(points)} tag samples; enlarge it or lower room.grid_step")
     return room, points, link, obstacles
 
 
@@ -197,7 +198,7 @@ def _run_room(cfg: PlacementConfig, progress: bool) -> dict:
         pos = np.asarray(rc.candidates, float)
         bad = np.flatnonzero(~room.contains(pos))
         if len(bad):
-            raise ValueError(f"room.candidates[{bad[0]}] = {pos[bad[0]].tolist()} lies outside the room "
+            raise ConfigError(f"room.candidates[{bad[0]}] = {pos[bad[0]].tolist()} lies outside the room "
                              f"({len(bad)} candidate(s) outside)")
         bor = _toward(points, pos)
         sid = np.full(len(pos), -1)
@@ -206,7 +207,7 @@ def _run_room(cfg: PlacementConfig, progress: bool) -> dict:
         m = rc.mount
         pos, bor, sid, par, surfs, dropped = room.candidates(m.surfaces, m.standoff, m.spacing, m.z_min, m.z_max)
     if len(pos) < cfg.n_anchors:
-        raise ValueError(f"only {len(pos)} candidate positions for {cfg.n_anchors} anchors; lower mount.spacing")
+        raise ConfigError(f"only {len(pos)} candidate positions for {cfg.n_anchors} anchors; lower mount.spacing")
     t0 = time.perf_counter()
     cs = CandidateSet(ev, pos, bor)
     oc_ = cfg.optimizer
@@ -320,7 +321,7 @@ def _run_structure(cfg: PlacementConfig, progress: bool) -> dict:
     spr = sc.stations_per_rail or st.stations_per_rail
     per_station = len(st.rails[0].offsets)
     if sum(spr) * per_station != cfg.n_anchors:
-        raise ValueError(f"n_anchors = {cfg.n_anchors} but stations_per_rail {spr} x {per_station} anchors "
+        raise ConfigError(f"n_anchors = {cfg.n_anchors} but stations_per_rail {spr} x {per_station} anchors "
                          f"per station = {sum(spr) * per_station}")
     timings, table = {}, []
     if sc.name == "jib-crane":

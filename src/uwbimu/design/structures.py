@@ -29,6 +29,7 @@ boresights along the bar (see :class:`StructureProblem`).
 
 from __future__ import annotations
 
+from uwbimu.errors import ConfigError
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -107,7 +108,7 @@ def _square_station(half: float, reading: str = "diagonal") -> tuple[np.ndarray,
     if reading == "axis-aligned":
         d = np.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0]])
         return d * half, d.copy()
-    raise ValueError(f"reading must be one of {READINGS}, got {reading!r}")
+    raise ConfigError(f"reading must be one of {READINGS}, got {reading!r}")
 
 
 @dataclass
@@ -210,15 +211,15 @@ class StructureProblem:
     def __init__(self, structure: Structure, stations_per_rail=None, freedom: str = "seed", step=None,
                  objective: str = "coverage", pdop_max: float = 5.0, station_rotation: float = 0.0):
         if freedom not in ("seed", "rotate", "rotate-tilt"):
-            raise ValueError(f"freedom must be seed|rotate|rotate-tilt, got {freedom!r}")
+            raise ConfigError(f"freedom must be seed|rotate|rotate-tilt, got {freedom!r}")
         if objective not in ("coverage", "geometric"):
-            raise ValueError(f"objective must be coverage|geometric, got {objective!r}")
+            raise ConfigError(f"objective must be coverage|geometric, got {objective!r}")
         self.objective = objective
         self.pdop_max = float(pdop_max)
         self.structure = structure
         self.spr = list(stations_per_rail or structure.stations_per_rail)
         if len(self.spr) != len(structure.rails):
-            raise ValueError("stations_per_rail needs one count per rail")
+            raise ConfigError("stations_per_rail needs one count per rail")
         self.freedom = freedom
         self.station_rotation = float(station_rotation)
         self.axes = structure.axes(step)

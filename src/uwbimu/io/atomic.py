@@ -150,6 +150,22 @@ def is_dataset_folder(folder: Path) -> bool:
     return folder.is_dir() and any((folder / n).exists() for n in DATASET_FILES)
 
 
+def _input_files(folder: Path) -> set[str]:
+    """Dataset input files in ``folder`` (imu.csv, anchors.csv, ...) that are not uwbimu outputs written there
+    and unchanged since (``place`` writes an anchors.csv of its own)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return set()
+    present = [n for n in DATASET_FILES if (folder / n).is_file()]
+    if not present:
+        return set()
+    manifest = read_manifest(folder)
+    foreign = {n for n in present if manifest.get(n) != _sha256(folder / n)}
+    # a dataset has a stream or a dataset.yaml; a lone anchors.csv (e.g. place's, edited) is an ordinary file
+    core = {n for n in foreign if n.split(".")[0] in ("imu", "uwb", "tdoa", "dataset")}
+    return foreign if core else set()
+
+
 def _inside(a: Path, b: Path) -> bool:
     """``a`` is ``b`` or lies below it (both resolved)."""
     return a == b or b in a.parents
@@ -182,8 +198,9 @@ def check_output_target(out: Path, names=(), force: bool = False, protect=(), re
         if replace and _inside(pr_dir, res):
             raise _output_error(f"replacing {out} would delete the input {p}", hint="choose another output folder")
     if out.is_dir():
-        if is_dataset_folder(out) and not force and not replace:
-            raise _output_error(f"{out} holds a dataset (imu.csv, uwb.csv, ...); outputs are not written into a "
+        inputs = _input_files(out)
+        if inputs and not force and not replace:
+            raise _output_error(f"{out} holds a dataset ({', '.join(sorted(inputs))}); outputs are not written into a "
                                 f"dataset folder", hint="choose another output folder (or --force)")
         if replace:
             others = foreign_files(out)
@@ -222,14 +239,14 @@ def foreign_files(out: Path) -> list[str]:
 def _refuse_foreign(out: Path, names, force: bool) -> None:
     """Refuse to replace files in ``out`` that uwbimu did not write (or that changed since)."""
     manifest = read_manifest(out)
-    is_dataset = is_dataset_folder(out)
+    inputs = _input_files(out)
     for name in names:
         target = out / name
         if not target.exists():
             continue
         if target.is_dir():
             raise _output_error(f"{target} is a folder; an output file of that name cannot be written")
-        if is_dataset and name in DATASET_FILES:
+        if name in inputs:
             raise _output_error(f"{target} is an input file of a dataset; it is never overwritten",
                                 hint="choose another output folder")
         if not force and manifest.get(name) != _sha256(target):

@@ -29,6 +29,7 @@ with ``sigma_r = 1.4826 MAD``: a robust RMS that counts bias and spread.
 
 from __future__ import annotations
 
+from uwbimu.errors import InputError
 from dataclasses import dataclass, field
 from typing import Callable, Optional
 
@@ -251,7 +252,7 @@ def antenna_track(ds: Dataset, table: pd.DataFrame, lever_arm: Optional[np.ndarr
     antenna positions ``p(t) + R(q(t)) p_IU`` there.
     """
     if ds.groundtruth is None:
-        raise ValueError("residuals against ground truth need ground truth (groundtruth.csv)")
+        raise InputError("residuals against ground truth need ground truth (groundtruth.csv)")
     t = table["t"].to_numpy(float)
     p, q, valid = interpolate_pose(ds.groundtruth, t + gt_time_shift, max_gap)
     if lever_arm is not None:

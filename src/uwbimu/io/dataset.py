@@ -22,6 +22,7 @@ that already holds a dataset unless asked to.
 
 from __future__ import annotations
 
+from uwbimu.errors import UsageError
 import os
 import shutil
 import tempfile
@@ -207,7 +208,7 @@ def write_dataset(ds: Dataset, folder: str | os.PathLike, overwrite: bool = Fals
     """
     folder = Path(folder)
     if fmt not in ("csv", "parquet"):
-        raise ValueError(f"fmt must be 'csv' or 'parquet', got {fmt!r}")
+        raise UsageError(f"fmt must be 'csv' or 'parquet', got {fmt!r}")
     if folder.exists() and any(folder.iterdir()):
         if not overwrite:
             raise FileExistsError(

@@ -19,6 +19,7 @@ Modes
 
 from __future__ import annotations
 
+from uwbimu.errors import InputError, UsageError
 from dataclasses import dataclass, field
 from typing import Literal, Optional
 
@@ -139,14 +140,14 @@ def align_trajectories(
         so degenerate (all on one line) that the rotation is undetermined.
     """
     if mode not in ALIGN_MODES:
-        raise ValueError(f"align mode must be one of {ALIGN_MODES}, got {mode!r}")
+        raise UsageError(f"align mode must be one of {ALIGN_MODES}, got {mode!r}")
     a = np.asarray(p_est, float)
     b = np.asarray(p_gt, float)
     if a.shape != b.shape or a.ndim != 2 or a.shape[1] != 3:
-        raise ValueError(f"need two (N, 3) arrays of equal shape, got {a.shape} and {b.shape}")
+        raise InputError(f"need two (N, 3) arrays of equal shape, got {a.shape} and {b.shape}")
     n = a.shape[0]
     if n == 0:
-        raise ValueError("no matched points to align")
+        raise InputError("no matched points to align")
     w = np.ones(n) if weights is None else np.asarray(weights, float)
     w = w / w.sum()
     R = np.eye(3)
@@ -156,7 +157,7 @@ def align_trajectories(
         t = w @ (b - a)
     else:
         if n < 3:
-            raise ValueError(f"se3 alignment needs at least 3 points, got {n}")
+            raise InputError(f"se3 alignment needs at least 3 points, got {n}")
         ca = w @ a
         cb = w @ b
         A = a - ca
@@ -164,7 +165,7 @@ def align_trajectories(
         # A line (rank < 2) leaves the rotation about it undetermined.
         sv = np.linalg.svd(A, compute_uv=False)
         if sv[1] < 1e-6 * max(sv[0], 1e-12) or sv[0] < 1e-9:
-            raise ValueError("se3 alignment is undetermined: the trajectory is (nearly) a straight line or a point")
+            raise InputError("se3 alignment is undetermined: the trajectory is (nearly) a straight line or a point")
         rot, _ = Rotation.align_vectors(B, A, weights=w)
         R = rot.as_matrix()
         t = cb - R @ ca

@@ -12,6 +12,7 @@ is the per-run row (RMSE, NEES, calibration errors, coverage) of a Monte Carlo s
 
 from __future__ import annotations
 
+from uwbimu.errors import InputError
 from typing import Any, Optional
 
 import numpy as np
@@ -35,7 +36,7 @@ def truth_at(dataset: Dataset, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, O
     """
     gt = dataset.groundtruth
     if gt is None or len(gt) == 0:
-        raise ValueError("the dataset has no ground truth")
+        raise InputError("the dataset has no ground truth")
     gt = gt.sort_values("t")
     tg = gt["t"].to_numpy(float)
     t = np.asarray(t, dtype=float)
@@ -111,7 +112,7 @@ def compute_metrics(result, dataset: Dataset, skip_s: float = 10.0) -> dict[str,
     has_vel = estimated(ST.EV) and v is not None
     ok = valid & np.all(np.isfinite(X[:, ST.P]), axis=1)
     if not ok.any():
-        raise ValueError("no estimate overlaps the ground truth")
+        raise InputError("no estimate overlaps the ground truth")
     ep = X[:, ST.P] - p
     eth = attitude_error(X[:, ST.Q], q) if has_att else None
     t0 = tt[ok][0]

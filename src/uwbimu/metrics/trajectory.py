@@ -22,6 +22,7 @@ Conventions: positions in m, angles reported in degrees, quaternions
 
 from __future__ import annotations
 
+from uwbimu.errors import InputError
 from dataclasses import dataclass, field
 from typing import Optional, Sequence
 
@@ -121,7 +122,7 @@ def detect_glitches(
     """
     p = np.asarray(p, float)
     if len(np.asarray(t)) != len(p):
-        raise ValueError("t and p must have the same length")
+        raise InputError("t and p must have the same length")
     bad = ~np.isfinite(p).all(axis=1)
     return _iterate_mask(bad, lambda keep: _local_residuals(p[keep], None, half_window)[0], k, floor, half_window, max_iter)
 
@@ -422,7 +423,7 @@ def evaluate_trajectory(
     use = asc.valid & finite & ~early
     n_use = int(use.sum())
     if n_use < 3:
-        raise ValueError(
+        raise InputError(
             f"only {n_use} estimate samples overlap the ground truth "
             f"(estimate {t_est.min() if len(t_est) else float('nan'):.3f}..{t_est.max() if len(t_est) else float('nan'):.3f} s, "
             f"ground truth {gt['t'].min():.3f}..{gt['t'].max():.3f} s): are both on the same clock?"

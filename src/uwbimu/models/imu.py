@@ -18,6 +18,7 @@ Sampled at period ``dt`` the white noise has per-sample standard deviation
 
 from __future__ import annotations
 
+from uwbimu.errors import UsageError
 import math
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -38,7 +39,7 @@ class ImuNoise(BaseModel):
     def discrete_sigmas(self, dt: float) -> dict[str, float]:
         """Per-sample white-noise sd and per-step bias increment sd for period ``dt``."""
         if dt <= 0:
-            raise ValueError(f"dt must be positive, got {dt}")
+            raise UsageError(f"dt must be positive, got {dt}")
         return {
             "gyro": self.gyro_noise_density / math.sqrt(dt),
             "accel": self.accel_noise_density / math.sqrt(dt),

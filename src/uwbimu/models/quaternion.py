@@ -17,6 +17,7 @@ engine live in :mod:`uwbimu.models.reference` and are pinned to these by tests.
 
 from __future__ import annotations
 
+from uwbimu.errors import InputError
 import numpy as np
 
 __all__ = [
@@ -62,7 +63,7 @@ def quat_normalize(q: np.ndarray) -> np.ndarray:
     q = np.asarray(q, dtype=float)
     n = np.linalg.norm(q, axis=-1, keepdims=True)
     if np.any(n == 0):
-        raise ValueError("cannot normalise a zero quaternion")
+        raise InputError("cannot normalise a zero quaternion")
     q = q / n
     sign = np.where(q[..., :1] < 0, -1.0, 1.0)
     return q * sign

@@ -28,6 +28,7 @@ Manifold states (the unit quaternion) are handled by a tangent basis
 
 from __future__ import annotations
 
+from uwbimu.errors import UsageError
 from dataclasses import dataclass, field
 from typing import Callable, Optional, Sequence
 
@@ -229,7 +230,7 @@ class LieObservability:
         import casadi as ca
 
         if order < 0:
-            raise ValueError(f"Lie order must be >= 0, got {order}")
+            raise UsageError(f"Lie order must be >= 0, got {order}")
         self.model = model
         self.order = int(order)
         self._ca = ca

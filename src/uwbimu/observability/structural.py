@@ -8,6 +8,7 @@ directions and which of the seeds' sufficient conditions hold.
 
 from __future__ import annotations
 
+from uwbimu.errors import UsageError
 import itertools
 import time
 from typing import Any, Union
@@ -192,7 +193,7 @@ TIME_SCALE = 1.0
 def compiled_for(cfg: ObservabilityConfig, order: int | None = None):
     """The cached compiled engine for the configuration's model structure."""
     if order is None and cfg.lie_order == "auto":
-        raise ValueError("compiled_for: lie_order is 'auto'; pass the order (e.g. structural_verdict(...)['lie_order'])")
+        raise UsageError("compiled_for: lie_order is 'auto'; pass the order (e.g. structural_verdict(...)['lie_order'])")
     k = int(cfg.lie_order if order is None else order)
     if cfg.model == "uwb_imu":
         spec = UwbImuSpec(len(cfg.anchors), cfg.accel_axes(), cfg.gyro_axes(), cfg.measurement)

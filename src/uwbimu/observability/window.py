@@ -34,6 +34,7 @@ numba kernel built on the estimator's error-state transition
 
 from __future__ import annotations
 
+from uwbimu.errors import InputError, UsageError
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -134,7 +135,7 @@ def trajectory_from_groundtruth(ds, lever_arm=None, t_d: Optional[float] = None)
     """Ground-truth trajectory of a dataset (biases zero, calibration from meta)."""
     gt = ds.groundtruth
     if gt is None or len(gt) < 2:
-        raise ValueError("the dataset has no ground truth; pass an estimator trajectory")
+        raise InputError("the dataset has no ground truth; pass an estimator trajectory")
     t = gt["t"].to_numpy(float)
     p = gt[["px", "py", "pz"]].to_numpy(float)
     q = quat_normalize(gt[["qw", "qx", "qy", "qz"]].to_numpy(float))
@@ -177,20 +178,20 @@ def trajectory_from_states_csv(path) -> Trajectory:
     if path.is_dir():
         path = path / "states.csv"
     if not path.is_file():
-        raise ValueError(f"{path}: no such estimator states file")
+        raise InputError(f"{path}: no such estimator states file")
     df = pd.read_csv(path)
     missing = [c for c in ("t", *NOMINAL_STATE_NAMES) if c not in df.columns]
     if missing:
-        raise ValueError(f"{path}: missing column(s) {', '.join(missing)}")
+        raise InputError(f"{path}: missing column(s) {', '.join(missing)}")
     X = df[list(NOMINAL_STATE_NAMES)].apply(pd.to_numeric, errors="coerce").to_numpy(float)
     t = pd.to_numeric(df["t"], errors="coerce").to_numpy(float)
     bad = ~np.isfinite(t) | ~np.isfinite(X[:, :16]).all(axis=1)
     if bad.any():
         row = int(np.flatnonzero(bad)[0])
-        raise ValueError(f"{path}: row {row + 2} (line in file): non-numeric or missing state value")
+        raise InputError(f"{path}: row {row + 2} (line in file): non-numeric or missing state value")
     if np.any(np.diff(t) <= 0):
         row = int(np.flatnonzero(np.diff(t) <= 0)[0]) + 1
-        raise ValueError(f"{path}: row {row + 2} (line in file), column 't': time not increasing")
+        raise InputError(f"{path}: row {row + 2} (line in file), column 't': time not increasing")
     return Trajectory(
         t, X[:, NP_], X[:, NV_], quat_normalize(X[:, Q]), X[:, BA], X[:, BG],
         np.nanmedian(X[:, PIU], axis=0), float(np.nanmedian(X[:, TD])),
@@ -552,7 +553,7 @@ def window_observability(ds, trajectory: Optional[Trajectory] = None, options: O
     """
     opts = options or WindowOptions()
     if opts.window <= 0:
-        raise ValueError(f"window must be positive, got {opts.window}")
+        raise UsageError(f"window must be positive, got {opts.window}")
     tr = trajectory if trajectory is not None else trajectory_from_groundtruth(ds)
     sigma, noise, qd_used = _noise_model(ds, opts)
     qd = _noise_model(ds, WindowOptions(range_sigma=sigma, imu_noise=noise))[2]

@@ -23,6 +23,7 @@ flatness map of the position spline's acceleration and jerk.  Scenario YAML:
 
 from __future__ import annotations
 
+from uwbimu.errors import InputError
 import numpy as np
 
 from uwbimu.models.reference import GRAVITY
@@ -54,7 +55,7 @@ def flat_attitude(a: np.ndarray, jerk: np.ndarray, yaw: np.ndarray, yaw_rate: np
     T = a + np.array([0.0, 0.0, GRAVITY])
     if np.any(T[:, 2] <= 0):
         k = int(np.flatnonzero(T[:, 2] <= 0)[0])
-        raise ValueError(f"thrust a + g e_z = {T[k].round(3).tolist()} m/s^2 at sample {k} is not upward: no multirotor attitude")
+        raise InputError(f"thrust a + g e_z = {T[k].round(3).tolist()} m/s^2 at sample {k} is not upward: no multirotor attitude")
     n = np.linalg.norm(T, axis=1)
     z = T / n[:, None]
     zd = (j - np.sum(z * j, axis=1)[:, None] * z) / n[:, None]

@@ -26,6 +26,7 @@ Two families are implemented:
 
 from __future__ import annotations
 
+from uwbimu.errors import ConfigError, UsageError
 from dataclasses import dataclass
 
 import numpy as np
@@ -139,7 +140,7 @@ class SinusoidChannel:
 
     def __post_init__(self):
         if not (len(self.amp) == len(self.freq) == len(self.phase)):
-            raise ValueError("amp, freq and phase must have the same length")
+            raise ConfigError("amp, freq and phase must have the same length")
 
     def eval(self, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Value and first two derivatives with respect to ``tau``."""
@@ -210,7 +211,7 @@ class SinusoidTrajectory(Trajectory):
 
     def __init__(self, pos, att, ramp: float = 2.0):
         if len(pos) != 3 or len(att) != 3:
-            raise ValueError("need three position and three attitude channels")
+            raise UsageError("need three position and three attitude channels")
         self.pos = tuple(pos)
         self.att = tuple(att)
         self.ramp = float(ramp)

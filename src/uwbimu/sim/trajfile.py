@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from uwbimu.errors import InputError
+from uwbimu.errors import InputError, UsageError
 from uwbimu.sim.trajectory import SplineTrajectory, quat_to_euler_zyx
 
 POSITION_COLUMNS = ["t", "px", "py", "pz"]
@@ -133,7 +133,7 @@ def write_trajectory_file(path: str | os.PathLike, t, p, q=None, yaw=None) -> Pa
     from uwbimu.io.atomic import write_csv
 
     if q is not None and yaw is not None:
-        raise ValueError("give q or yaw, not both")
+        raise UsageError("give q or yaw, not both")
     data = {"t": np.asarray(t, float)}
     p = np.asarray(p, float)
     data.update(px=p[:, 0], py=p[:, 1], pz=p[:, 2])

@@ -18,7 +18,7 @@ from uwbimu.studies.config import (  # noqa: F401
     CHUNK_DIR, CONFIG_FILE, ROW_COLUMNS, TIMING_COLUMNS, EstimatorEntry, MonteCarloConfig, MonteCarloError, StudyConfigError,
     ScenarioEntry, config_from_dict, load_config, resolve_scenario, resolved_study, run_seeds,
 )
-from uwbimu.studies.executors import execute  # noqa: F401
+from uwbimu.parallel import execute  # noqa: F401
 from uwbimu.studies.runner import iter_rows_equal_ignoring_timing, run_study  # noqa: F401
 from uwbimu.studies.store import chunk_files, read_done  # noqa: F401
 from uwbimu.studies.worker import run_chunk, run_metrics  # noqa: F401

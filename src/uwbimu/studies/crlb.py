@@ -45,6 +45,7 @@ mapped from its own instant to that one.
 
 from __future__ import annotations
 
+from uwbimu.errors import UsageError
 import math
 from typing import Any
 
@@ -146,7 +147,7 @@ def posterior_bound(sim_result, scenario, anchor_bias_sd: float | None = None) -
                   noise.gyro_bias_rw**2, 0.0, 0.0])
     tdoa_mode = u.mode != "twr"
     if tdoa_mode and anchor_bias_sd is not None:
-        raise ValueError("posterior_bound: anchor_bias_sd is for TWR scenarios (TDoA has its packet states there)")
+        raise UsageError("posterior_bound: anchor_bias_sd is for TWR scenarios (TDoA has its packet states there)")
     with_bias = anchor_bias_sd is not None
     M = len(ids) if (tdoa_mode or with_bias) else 0
     D = 19 + M

@@ -23,6 +23,7 @@ with a clear message instead of silently doing something else.
 
 from __future__ import annotations
 
+from uwbimu.errors import ConfigError
 import math
 
 import numpy as np
@@ -36,7 +37,7 @@ def run_eskf_from_fix(ds, options: dict, p0: np.ndarray, position_sd: float):
 
     opts = EskfOptions.model_validate(options)
     if opts.init.yaw is None:
-        raise ValueError("starting the ESKF from a surveyed point needs the take-off heading: set init.yaw")
+        raise ConfigError("starting the ESKF from a surveyed point needs the take-off heading: set init.yaw")
     prob, info = build_problem(ds, opts)
     pf = info["priors"]
     t0 = float(prob.uwb_t[0])

@@ -19,7 +19,7 @@ import pandas as pd
 
 from uwbimu.optional import require
 from uwbimu.studies.config import ROW_COLUMNS, TIMING_COLUMNS, MonteCarloConfig, MonteCarloError, resolved_study
-from uwbimu.studies.executors import execute
+from uwbimu.parallel import execute
 from uwbimu.studies.store import auto_chunk_size, plan_tasks, prepare_out, read_done, write_chunk
 from uwbimu.studies.worker import run_chunk
 

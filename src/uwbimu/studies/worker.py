@@ -37,7 +37,7 @@ def _estimate(entry: dict, ds, seed_init: int):
         from uwbimu.studies.eskf_fix import run_eskf_from_fix
 
         return run_eskf_from_fix(ds, opts, p0, sd)
-    from uwbimu.eval.estimators import get_estimator
+    from uwbimu.estimators import get_estimator
 
     est = get_estimator(entry["kind"])
     return est.run(ds, est.options(opts), None)

@@ -30,6 +30,7 @@ the naive figure-8 baseline, scenario YAMLs that ``uwbimu simulate`` flies,
 
 from __future__ import annotations
 
+from uwbimu.errors import ConfigError
 import time
 from pathlib import Path
 from typing import Any, Callable, Literal, Optional, Union
@@ -201,7 +202,7 @@ class CalibrationDesignConfig(_Strict):
 
         if isinstance(self.anchors, str):
             if self.anchors not in ANCHOR_PRESETS:
-                raise ValueError(f"unknown anchor preset {self.anchors!r}; choose one of {sorted(ANCHOR_PRESETS)}")
+                raise ConfigError(f"unknown anchor preset {self.anchors!r}; choose one of {sorted(ANCHOR_PRESETS)}")
             return list(ANCHOR_PRESETS[self.anchors])
         return [a.id for a in self.anchors]
 
@@ -210,7 +211,7 @@ class CalibrationDesignConfig(_Strict):
 
         if isinstance(self.anchors, str):
             if self.anchors not in ANCHOR_PRESETS:
-                raise ValueError(f"unknown anchor preset {self.anchors!r}; choose one of {sorted(ANCHOR_PRESETS)}")
+                raise ConfigError(f"unknown anchor preset {self.anchors!r}; choose one of {sorted(ANCHOR_PRESETS)}")
             return np.array(list(ANCHOR_PRESETS[self.anchors].values()), dtype=float)
         return np.array([a.position for a in self.anchors], dtype=float)
 

@@ -25,6 +25,7 @@ rate bounds hold on a fine time grid.
 
 from __future__ import annotations
 
+from uwbimu.errors import ConfigError, UsageError
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -71,7 +72,7 @@ def warped_clock(t: np.ndarray, T: float, ramp: float) -> tuple[np.ndarray, np.n
     if ramp <= 0:
         return t.copy(), w, w1
     if T < 2 * ramp:
-        raise ValueError(f"time warp needs duration >= 2 * ramp ({T} < {2 * ramp})")
+        raise ConfigError(f"time warp needs duration >= 2 * ramp ({T} < {2 * ramp})")
 
     def integral(u):  # int_0^u S, S the septic smoothstep
         u = np.clip(u, 0.0, 1.0)
@@ -324,7 +325,7 @@ def fit_flat_to_bounds(m: Maneuver, b: MotionBounds, lim, dt: float = 0.02, marg
     from uwbimu.design.trajectory.platform import platform_usage
 
     if not m.flat:
-        raise ValueError("fit_flat_to_bounds needs a flat (multirotor) manoeuvre")
+        raise UsageError("fit_flat_to_bounds needs a flat (multirotor) manoeuvre")
     t = np.arange(0.0, m.duration + 0.5 * dt, dt)
     _, f1, f2 = m.channels(t)  # the raw candidate may have no attitude (thrust down): channels only
     sp = min(

@@ -123,7 +123,7 @@ def run_proof(design_dir: str | Path, n_seeds: int = 50, workers: int = 1, out: 
     names = [n for n in TRAJS if files[n].is_file()]
     jobs = [(i, str(files[n]), s) for i, (s, n) in enumerate((s, n) for s in range(n_seeds) for n in names)]
     t0 = time.perf_counter()
-    from uwbimu.studies.executors import execute
+    from uwbimu.parallel import execute
 
     done: dict[int, dict[str, Any]] = {}
 

@@ -22,6 +22,7 @@ is refused with a pointer to the files that hold the anchor poses.
 
 from __future__ import annotations
 
+from uwbimu.errors import UsageError
 import os
 import re
 import zipfile
@@ -47,7 +48,7 @@ _RAW_SURVEY = re.compile(r"(anchorAnt\d+|anchor\d+_\d+|uwbDatasetFrame\d+|landma
 def survey_quat_order(path: Path, quat_order: QuatOrder = "auto") -> tuple[str, str]:
     """``("wxyz" | "xyzw", why)``: the ``an_quat`` order of a UTIL survey file."""
     if quat_order not in QUAT_ORDERS:
-        raise ValueError(f"quat_order must be one of {QUAT_ORDERS}, got {quat_order!r}")
+        raise UsageError(f"quat_order must be one of {QUAT_ORDERS}, got {quat_order!r}")
     if quat_order != "auto":
         return quat_order, "given (--survey-quat-order)"
     if _DATED.match(path.name):

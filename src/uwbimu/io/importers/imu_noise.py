@@ -9,6 +9,7 @@ measured from a few minutes and always come from the preset.
 
 from __future__ import annotations
 
+from uwbimu.errors import UsageError
 import math
 from typing import Literal
 
@@ -96,7 +97,7 @@ def imu_noise_at_rest(imu: pd.DataFrame, preset: ImuNoise, rest_s: float, method
         how = (f"as the largest per-axis sd*sqrt(dt) ({raw_w:.2e}, {raw_a:.2e}) rounded up to a half step of the "
                "leading digit")
     else:
-        raise ValueError(f"method must be 'welch' or 'sd', got {method!r}")
+        raise UsageError(f"method must be 'welch' or 'sd', got {method!r}")
     noise = base.model_copy(update={
         "gyro_noise_density": q_w,
         "accel_noise_density": q_a,

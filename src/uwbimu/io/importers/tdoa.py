@@ -14,6 +14,7 @@ the values are not outliers (wrong unit, wrong anchors file): that is refused.
 
 from __future__ import annotations
 
+from uwbimu.errors import UsageError
 from typing import Optional
 
 import numpy as np
@@ -76,7 +77,7 @@ def drop_tdoa_outliers(tdoa: pd.DataFrame, anchors: pd.DataFrame, margin: float,
         the bound (a unit or anchors-file problem, not outliers).
     """
     if not margin >= 0:
-        raise ValueError(f"margin must be >= 0 m, got {margin!r}")
+        raise UsageError(f"margin must be >= 0 m, got {margin!r}")
     if margin > TDOA_MARGIN_M:
         changes.append(f"{source}: TDoA rows kept up to the anchors' separation + {margin:g} m (wider than the "
                        f"loader's default {TDOA_MARGIN_M:g} m): read this dataset with --tdoa-margin {margin:g}")
