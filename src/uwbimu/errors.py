@@ -32,6 +32,7 @@ __all__ = [
     "OutputError",
     "EstimationError",
     "EXIT_CODES",
+    "column_list",
 ]
 
 
@@ -103,6 +104,13 @@ class EstimationError(UwbimuError, RuntimeError):
     """The estimator failed, or its result holds NaN or infinite values (exit 5)."""
 
     exit_code = 5
+
+
+def column_list(names) -> str:
+    """Names for a message, without Python list syntax: ``"column innovation"`` or
+    ``"columns qw, qx"`` (no brackets or quotes, whatever the container)."""
+    names = [str(n) for n in names]
+    return ("column " if len(names) == 1 else "columns ") + ", ".join(names)
 
 
 #: Exit code -> meaning, for documentation and ``--help`` texts.

@@ -211,8 +211,10 @@ def _anchor_table(ds, result):
         cols += [("TDoA rows", 5)]
     for c, w in cols:
         a.add_column(escape(c), justify="right", min_width=w)
-    for aid, r in result.anchors.iterrows():
-        row = [str(aid), _f(r["x"]), _f(r["y"]), _f(r["z"])]
+    from uwbimu.cli.conventions import natural_key
+
+    for aid, r in sorted(result.anchors.iterrows(), key=lambda ar: natural_key(ar[0])):
+        row = [escape(str(aid)), _f(r["x"]), _f(r["y"]), _f(r["z"])]
         if has_ranges:
             row += [str(int(r["ranges"])), _f(r["rate_hz"], ".1f"), _f(r["range_min"]), _f(r["range_median"]),
                     _f(r["range_max"]), _f(r["max_gap"])]

@@ -49,6 +49,13 @@ def fit_table(console, table, fold=()):
     return table
 
 
+def natural_key(name) -> tuple:
+    """Sort key in natural order: anchor ``"2"`` before ``"10"``, ``"A2"`` before ``"A10"`` (numbers by value)."""
+    import re
+
+    return tuple((0, int(p), "") if p.isdigit() else (1, 0, p) for p in re.split(r"(\d+)", str(name)) if p != "")
+
+
 def value_sd(value, sd, scale: float = 1.0, fmt: str = ".2f", sep: str = " ± ") -> str:
     """``"value ± sd"`` (both times ``scale``) for the console; never ``± nan``.
 

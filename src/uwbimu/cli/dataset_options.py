@@ -81,10 +81,13 @@ def print_load_warnings(console, ds) -> None:
     rep = getattr(ds, "report", None)
     if rep is None:
         return
+    from rich.markup import escape  # messages carry units in brackets ("[s]", "[m]") that rich reads as markup
+
     for a in rep.actions:
-        console.print(f"[yellow]repair:[/yellow] {a}", soft_wrap=True)
+        console.print(f"[yellow]repair:[/yellow] {escape(str(a))}", soft_wrap=True)
     for w in rep.warnings:
-        console.print(f"[yellow]warning ({w['code']}):[/yellow] {w['file']}: {w['message']}", soft_wrap=True)
+        console.print(f"[yellow]warning ({escape(str(w['code']))}):[/yellow] {escape(str(w['file']))}: "
+                      f"{escape(str(w['message']))}", soft_wrap=True)
 
 
 def load(path, load_options):
@@ -124,7 +127,7 @@ def estimator_options(estimator: str, config, preset):
             try:
                 return load_preset(preset)
             except (KeyError, ValueError, FileNotFoundError) as exc:
-                raise UsageError(f"--preset {preset!r}: {exc}") from None
+                raise UsageError(f"--preset {preset}: {' '.join(str(exc).split())}") from None
         return EskfOptions.from_yaml(config) if config is not None else EskfOptions()
     except UwbimuError:
         raise  # ConfigError (exit 2) names the file, line and field

@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import typer
 
-from uwbimu.cli.conventions import FORCE_HELP, measurement_counts, value_sd
+from uwbimu.cli.conventions import FORCE_HELP, measurement_counts, natural_key, value_sd
 from rich.console import Console
 from rich.markup import escape
 
@@ -55,7 +55,7 @@ def calibration_table(result, dataset=None, title: str = "Calibration (value ± 
     for name, key, scale, unit in (("accel bias", "accel_bias", 1.0, "m/s²"), ("gyro bias", "gyro_bias", 180 / np.pi, "deg/s")):
         vals = ", ".join(value_sd(a, b, scale, ".4f", sep="±") for a, b in zip(cal[key], cal[key + "_sd"]))
         table.add_row(f"{name} ({unit})", vals, "-", "-")
-    for a, b in (cal.get("anchor_bias") or {}).items():
+    for a, b in sorted((cal.get("anchor_bias") or {}).items(), key=lambda kv: natural_key(kv[0])):
         s = cal["anchor_bias_sd"][a]
         tv = (truth.anchor_bias or {}).get(a) if truth is not None else None
         table.add_row(f"range bias {escape(str(a))} (cm)", value_sd(b, s, 100),
@@ -78,7 +78,7 @@ def residual_rich_table(table_df, title: str = "Range residuals per anchor", key
     t = Table(title=title)
     for c in (key, count, "accepted", "rejected %", "median (cm)", "MAD (cm)"):
         t.add_column(c, justify="right" if c != key else "left")
-    for r in table_df.itertuples(index=False):
+    for r in sorted(table_df.itertuples(index=False), key=lambda r: natural_key(r.anchor)):
         t.add_row(escape(str(r.anchor)), str(r.ranges), str(r.accepted), f"{r.rejected_pct:.1f}", _cm(r.median),
                   _cm(r.mad))
     return t

@@ -69,14 +69,15 @@ def register(app: typer.Typer) -> None:
 
 
 def print_summary(console, s: dict) -> None:
-    """Rich tables of an evaluation summary."""
+    """Rich tables of an evaluation summary (units in brackets escaped: rich would read them as markup)."""
+    from rich.markup import escape
     from rich.table import Table
 
     a = s["association"]
     al = s["align"]
     console.print(
         f"alignment [bold]{al['mode']}[/bold]: rotation {al['rotation_deg']:.2f} deg, "
-        f"translation {[round(x, 3) for x in al['translation']]} m; scored {a['n_scored']}/{a['n_estimate']} samples; "
+        f"translation ({', '.join(f'{x:.3f}' for x in al['translation'])}) m; scored {a['n_scored']}/{a['n_estimate']} samples; "
         f"ground-truth glitches excluded: {a['n_groundtruth_glitches_excluded']} position, "
         f"{a['n_groundtruth_attitude_glitches_excluded']} attitude; "
         f"outside span {a['n_estimate_outside_groundtruth_span']}, in gaps {a['n_estimate_in_groundtruth_gaps']}"
@@ -85,16 +86,16 @@ def print_summary(console, s: dict) -> None:
     for c in ("metric", "RMSE", "mean", "median", "max", "n"):
         t.add_column(c, justify="right")
     ap = s["ate_position"]
-    t.add_row("position [m]", *(f"{ap[k]:.3f}" for k in ("rmse", "mean", "median", "max")), str(ap["n"]))
+    t.add_row(escape("position [m]"), *(f"{ap[k]:.3f}" for k in ("rmse", "mean", "median", "max")), str(ap["n"]))
     if "ate_rotation" in s:
-        t.add_row("attitude [deg]", s["ate_rotation"], "", "", "", "")
+        t.add_row(escape("attitude [deg]"), escape(str(s["ate_rotation"])), "", "", "", "")
     elif "ate_rotation_deg" in s:
         ar = s["ate_rotation_deg"]
-        t.add_row("attitude [deg]", *(f"{ar[k]:.2f}" for k in ("rmse", "mean", "median", "max")), str(ar["n"]))
+        t.add_row(escape("attitude [deg]"), *(f"{ar[k]:.2f}" for k in ("rmse", "mean", "median", "max")), str(ar["n"]))
     console.print(t)
     r = Table(title="Relative pose error over travelled distance")
     for c in ("distance [m]", "pairs", "trans RMSE [m]", "trans median [m]", "drift [%]", "rot RMSE [deg]"):
-        r.add_column(c, justify="right")
+        r.add_column(escape(c), justify="right")
     for d, v in s["rpe"].items():
         if v["n_pairs"] == 0:
             r.add_row(d, "0", "-", "-", "-", "-")
@@ -103,3 +104,6 @@ def print_summary(console, s: dict) -> None:
         r.add_row(d, str(v["n_pairs"]), f"{v['translation']['rmse']:.3f}", f"{v['translation']['median']:.3f}",
                   f"{v['translation_percent']:.1f}", "-" if not rot == rot else f"{rot:.2f}")
     console.print(r)
+    for w in s.get("warnings") or []:
+        console.print(f"[yellow]warning ({escape(w['code'])}):[/yellow] {escape(w['file'])}: {escape(w['message'])}",
+                      soft_wrap=True)

@@ -23,6 +23,29 @@ from uwbimu.metrics.trajectory import Evaluation, evaluate_trajectory
 from uwbimu.io.atomic import save_figure, write_csv, write_json
 
 
+#: Attitude columns of a ground truth (Hamilton quaternion, body -> world).
+GT_ATTITUDE_COLUMNS = ("qw", "qx", "qy", "qz")
+
+
+def groundtruth_attitude_warnings(gt: pd.DataFrame, path) -> list[dict]:
+    """Structured warning when a ground truth has no (or an incomplete) attitude: the attitude is not scored.
+
+    Returns
+    -------
+    list of dict
+        Empty when ``qw, qx, qy, qz`` are all present; else one ``{"code":
+        "groundtruth_without_attitude", "file", "missing_columns", "message"}``.
+    """
+    from uwbimu.errors import column_list
+
+    missing = [c for c in GT_ATTITUDE_COLUMNS if c not in gt.columns]
+    if not missing:
+        return []
+    return [{"code": "groundtruth_without_attitude", "file": str(path), "missing_columns": missing,
+             "message": f"the ground truth lacks {column_list(missing)}: attitude errors are not computed "
+                        f"(position ATE and RPE only)"}]
+
+
 def evaluation_table(ev: Evaluation) -> pd.DataFrame:
     """Per-sample errors as a DataFrame (ground-truth frame, after alignment)."""
     df = pd.DataFrame(
@@ -108,9 +131,11 @@ def evaluate_output(
     gt = load_groundtruth(groundtruth)
     if compare_attitude is None:
         compare_attitude = groundtruth_attitude_comparable(groundtruth)
+    warnings = groundtruth_attitude_warnings(gt, groundtruth) if compare_attitude else []
     ev = evaluate_trajectory(traj, gt, align=align, distances=distances, max_gap=max_gap, skip_initial=skip_initial,
                              compare_attitude=compare_attitude)
     summary = dict(ev.summary)
+    summary["warnings"] = warnings
     summary["groundtruth_file"] = str(Path(groundtruth))
     summary["trajectory_file"] = str(Path(trajectory) if trajectory is not None else out / "trajectory.csv")
     write_csv(out / "evaluation_errors.csv", evaluation_table(ev), float_format="%.6f")

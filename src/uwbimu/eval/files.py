@@ -20,7 +20,7 @@ from typing import Optional, Sequence
 import numpy as np
 import pandas as pd
 
-from uwbimu.errors import InputError
+from uwbimu.errors import InputError, column_list
 
 
 class EvalInputError(InputError):
@@ -51,7 +51,7 @@ def read_table(path: str | os.PathLike, required: Sequence[str], what: str) -> p
     df.columns = [str(c).strip() for c in df.columns]
     missing = [c for c in required if c not in df.columns]
     if missing:
-        raise EvalInputError(f"{what}: {path} lacks column(s) {missing}; it has {list(df.columns)}")
+        raise EvalInputError(f"{what}: {path} lacks {column_list(missing)}; it has {column_list(df.columns)}")
     for c in required:
         if c == "anchor":
             continue
@@ -60,7 +60,7 @@ def read_table(path: str | os.PathLike, required: Sequence[str], what: str) -> p
         if bad.any():
             row = int(np.flatnonzero(bad.to_numpy())[0])
             raise EvalInputError(
-                f"{what}: {path} row {row + 2} (line in file), column '{c}': not a number: {df[c].iloc[row]!r}"
+                f"{what}: {path} row {row + 2} (line in file), column '{c}': not a number: '{df[c].iloc[row]}'"
             )
         df[c] = col
     if "t" in required:
