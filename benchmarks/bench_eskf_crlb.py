@@ -7,7 +7,7 @@ Jacobians at the true trajectory.  Prints, per lever-arm axis and for t_d:
 RMS error, sqrt(mean CRLB), their ratio (target <= 1.15) and RMS(error / sd)
 (target 0.8..1.2).  Usage::
 
-    PYTHONPATH=src python benchmarks/bench_eskf_crlb.py --seeds 40 [--data-start]
+    PYTHONPATH=src python benchmarks/bench_eskf_crlb.py --seeds 40 [--data-start] [--noise data|preset]
 """
 
 from __future__ import annotations
@@ -97,11 +97,13 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=40)
     ap.add_argument("--duration", type=float, default=90.0)
     ap.add_argument("--data-start", action="store_true", help="data-driven initialiser instead of a truth-draw start")
+    ap.add_argument("--noise", choices=["data", "preset"], default="data",
+                    help="the ESKF's noise mode (default: 'data', the noise from the log, as uwbimu estimate)")
     a = ap.parse_args()
     t0 = time.process_time()
-    out = table(list(range(a.seeds)), a.duration, EskfOptions(store_covariance=False), a.data_start)
+    out = table(list(range(a.seeds)), a.duration, EskfOptions(store_covariance=False, noise=a.noise), a.data_start)
     start = "data-driven start" if a.data_start else "start: truth + prior draw"
-    print(f"{a.seeds} seeds x {a.duration:g} s excited flight, {start} ({time.process_time() - t0:.0f} CPU s)")
+    print(f"{a.seeds} seeds x {a.duration:g} s excited flight, {start}, noise: {a.noise} ({time.process_time() - t0:.0f} CPU s)")
     print(f"{'state':8s} {'RMS err':>10s} {'CRLB':>10s} {'ratio':>6s} {'RMS(e/sd)':>9s} {'mean sd':>10s}")
     for i, n in enumerate(NAMES):
         u, f = ("ms", 1e3) if n == "t_d" else ("mm", 1e3)

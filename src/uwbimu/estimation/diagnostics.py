@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from uwbimu.estimation.timeoffset import time_offset_prior_sd
 from uwbimu.estimation.filterpass import REC_ACC, Problem
 from uwbimu.models.quaternion import quat_to_rotmat
 from uwbimu.models.reference import G_WORLD
@@ -112,7 +113,7 @@ def excitation_warnings(prob: Problem, t_imu_out, X, sd, priors, opts) -> tuple[
                 f"vs prior {np.round(100 * prior, 1).tolist()} cm; excite rotations about all axes"
             )
     if opts.time_offset.mode == "estimate" and priors["td_sd"] > 0:
-        td_prior = max(priors["td_sd"], opts.init.td_sd_after_grid if priors["search_td"] else 0.0)
+        td_prior = time_offset_prior_sd(priors, opts)
         if sd_end[S.ETD] > ex.sd_ratio_warn * td_prior:
             warnings.append(
                 f"time offset not well determined: final sd {1000 * sd_end[S.ETD]:.1f} ms vs prior "

@@ -26,7 +26,7 @@ from uwbimu.estimation.filterpass import (
 from uwbimu.estimation.init import InitialisationError, InitialState
 from uwbimu.estimation.noise_from_data import (
     imu_noise_from_log, measurement_noise_from_innovations, residual_variance_factor)
-from uwbimu.estimation.timeoffset import time_offset_verdict
+from uwbimu.estimation.timeoffset import information_verdict, time_offset_prior_sd, time_offset_verdict
 from uwbimu.models import state as S
 from uwbimu.estimation.options import EskfOptions
 from uwbimu.estimation.problem import make_settings, nominal_period, set_imu_timing
@@ -440,21 +440,47 @@ def _apply_variance_factor(result: EstimationResult, prob: Problem, opts: EskfOp
 
 def _add_time_offset_verdict(result: EstimationResult, prob: Problem, priors: dict[str, Any],
                              opts: EskfOptions, initial: InitialState) -> None:
-    """``time_offset_verdict`` (+ reason) in the calibration and as an event (see :mod:`.timeoffset`)."""
+    """Verdicts on the calibration: ``time_offset_verdict`` (+ reason) and ``lever_arm_verdict`` per axis.
+
+    One rule for both estimators (:func:`.timeoffset.information_verdict`: the information gain of the
+    data over the prior, with the reported sigma, i.e. after the residual variance factor), plus one
+    check of the time offset against the log itself: when the filter's final t_d and the initial grid
+    search's (the likelihood profile over the first seconds of motion) differ by more than 3 combined
+    sigma, the log does not agree on t_d and the verdict is "not identified".
+    """
     cal = result.calibration
-    sd_prior = priors["td_sd"]
-    if priors["search_td"] and len(opts.init.td_grid) > 1:
-        g = np.asarray(opts.init.td_grid, dtype=float)
-        sd_prior = max(sd_prior, float(g.max() - g.min()) / math.sqrt(12.0))  # uniform over the searched grid
+    sd_prior = time_offset_prior_sd(priors, opts)
     init_status = (initial.info.get("td_init") or {}).get("status")
     verdict, reason = time_offset_verdict(cal["time_offset_sd"], sd_prior, fixed=opts.time_offset.mode == "fixed",
                                           init_status=init_status)
+    grid = initial.info.get("td_grid") or {}
+    z_grid = None
+    if verdict in ("identified", "weakly identified") and grid.get("status") == "found":
+        sd_c = math.hypot(cal["time_offset_sd"], float(grid["td_sd"]))
+        z_grid = abs(cal["time_offset"] - float(grid["td"])) / sd_c if sd_c > 0 else float("inf")
+        if z_grid > 3.0:
+            verdict = "not identified"
+            reason = (f"the filter's t_d {cal['time_offset'] * 1e3:.0f} ms contradicts the initial search's "
+                      f"{float(grid['td']) * 1e3:.0f} ± {float(grid['td_sd']) * 1e3:.0f} ms ({z_grid:.1f} combined sd): "
+                      f"the log does not agree on it")
     cal["time_offset_verdict"] = verdict
     cal["time_offset_verdict_reason"] = reason
+    cal["time_offset_prior_sd"] = sd_prior
     result.events.append({"t": float(prob.uwb_t[0]), "kind": "time_offset_verdict", "verdict": verdict,
-                          "reason": reason, "initial_search": init_status})
+                          "reason": reason, "initial_search": init_status, "prior_sd": sd_prior,
+                          "z_initial_search": z_grid})
     if verdict == "not identified":
         result.warnings.append(f"time offset not identified: {reason}")
+    # lever arm, per axis, by the same information rule
+    if opts.lever_arm.mode == "estimate":
+        prior = np.asarray(priors["sd_lever"], dtype=float).reshape(-1)
+        lv = {}
+        for i, c in enumerate("xyz"):
+            v, gain = information_verdict(float(cal["lever_arm_sd"][i]), float(prior[i % prior.size]))
+            lv[c] = {"verdict": v, "information_gain": gain, "sd": float(cal["lever_arm_sd"][i]),
+                     "prior_sd": float(prior[i % prior.size])}
+        cal["lever_arm_verdict"] = {c: e["verdict"] for c, e in lv.items()}
+        result.events.append({"t": float(prob.uwb_t[0]), "kind": "lever_arm_verdict", "axes": lv})
 
 
 def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[PassResult],
