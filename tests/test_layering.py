@@ -1,7 +1,7 @@
-"""Imports go down the architecture picture in CONTRIBUTING.md, never up.
+"""Imports go down the architecture picture in CONTRIBUTING.md, never up, and not sideways.
 
 Every ``import uwbimu.X`` / ``from uwbimu.X import`` in ``src/uwbimu`` (module level or
-inside functions) is checked against the layer of the importing package.
+inside functions) is checked against the layer of the importing package or top-level module.
 """
 
 from __future__ import annotations
@@ -11,14 +11,23 @@ from pathlib import Path
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "uwbimu"
 
-# lower number = lower layer; a package may import its own layer or lower ones
+# lower number = lower layer; a package may import its own layer's modules or lower ones
 LAYER = {
-    "errors": 0, "optional": 0, "typed": 0, "models": 0, "_worker_env": 0,
+    # generic, no physics: errors, typed results, optional dependencies, the executor (process pool, Dask)
+    "errors": 0, "optional": 0, "typed": 0, "formatting": 0, "parallel": 0, "_worker_env": 0,
+    "models": 0,
     "io": 1,
     "sim": 2, "estimation": 2, "observability": 2, "metrics": 2,
-    "calibration": 3, "design": 3, "eval": 3, "studies": 3,
-    "cli": 4,
+    "calibration": 3, "design": 3,
+    # the estimator registry with every estimator (estimation's filters and the batch calibrator)
+    "estimators": 4,
+    "eval": 5, "studies": 5,
+    "cli": 6,
 }
+
+#: Imports between two different packages of one layer (sideways) that are allowed: (importer, imported).
+#: Every other sideways import fails like an upward one (``studies`` <-> ``eval`` was one; issue 31 item 4).
+SIDEWAYS_OK = {("estimation", "metrics")}
 
 
 def _package(path: Path) -> str:
@@ -35,29 +44,58 @@ def _imported(tree: ast.AST):
                 yield a.name, node.lineno
 
 
+def _bad_imports(pkg: str, tree: ast.AST) -> list[tuple[int, str, str]]:
+    """(line, module, "up" or "sideways") of every import of ``tree`` (in package ``pkg``) that breaks the table."""
+    out = []
+    for mod, line in _imported(tree):
+        parts = mod.split(".")
+        if parts[0] != "uwbimu" or len(parts) < 2:
+            continue
+        target = parts[1]
+        if target not in LAYER:
+            out.append((line, mod, "unlisted"))
+        elif LAYER[target] > LAYER[pkg]:
+            out.append((line, mod, "up"))
+        elif LAYER[target] == LAYER[pkg] and target != pkg and LAYER[pkg] > 0 and (pkg, target) not in SIDEWAYS_OK:
+            out.append((line, mod, "sideways"))
+    return out
+
+
 def test_imports_only_go_down():
     bad = []
     for path in SRC.rglob("*.py"):
         pkg = _package(path)
         if pkg not in LAYER:
             continue
-        for mod, line in _imported(ast.parse(path.read_text())):
-            parts = mod.split(".")
-            if parts[0] != "uwbimu" or len(parts) < 2 or parts[1] not in LAYER:
-                continue
-            if LAYER[parts[1]] > LAYER[pkg]:
-                bad.append(f"{path.relative_to(SRC)}:{line} imports {mod}")
-    assert not bad, "upward imports:\n" + "\n".join(bad)
+        for line, mod, what in _bad_imports(pkg, ast.parse(path.read_text())):
+            bad.append(f"{path.relative_to(SRC)}:{line} imports {mod} ({what})")
+    assert not bad, "imports against the layer table:\n" + "\n".join(bad)
 
 
-def test_every_package_has_a_layer():
-    pkgs = {p.name for p in SRC.iterdir() if p.is_dir() and (p / "__init__.py").exists()}
-    assert pkgs - {"data"} <= set(LAYER), pkgs - set(LAYER)
+def test_the_checker_finds_upward_and_sideways_imports():
+    code = ("from uwbimu.studies import run_study\nimport uwbimu.cli.main\nfrom uwbimu.estimation import run_eskf\n"
+            "from uwbimu.estimators import get_estimator\nfrom uwbimu.design import placement\n")
+    found = {(mod, what) for _, mod, what in _bad_imports("calibration", ast.parse(code))}
+    assert found == {("uwbimu.studies", "up"), ("uwbimu.cli.main", "up"), ("uwbimu.estimators", "up"),
+                     ("uwbimu.design", "sideways")}
+    # the two arrows of issue 31 item 4, as they were
+    assert _bad_imports("studies", ast.parse("from uwbimu.eval.estimators import get_estimator")) == \
+        [(1, "uwbimu.eval.estimators", "sideways")]
+    assert _bad_imports("design", ast.parse("from uwbimu.studies.executors import execute")) == \
+        [(1, "uwbimu.studies.executors", "up")]
+    assert _bad_imports("studies", ast.parse("from uwbimu.estimators import get_estimator")) == []
+    assert _bad_imports("calibration", ast.parse("from uwbimu.parallel import execute")) == []
+
+
+def test_every_top_level_module_has_a_layer():
+    mods = {p.name.removesuffix(".py") for p in SRC.iterdir()
+            if (p.is_dir() and (p / "__init__.py").exists()) or (p.suffix == ".py" and p.name != "__init__.py")}
+    assert mods - {"data"} <= set(LAYER), mods - set(LAYER)
 
 
 # --- no side effects in the library (issue 15 item 6) ------------------------------------------
 #: (file, function) pairs that change the environment on purpose, and run in worker processes only
-WORKER_ONLY = {("_worker_env.py", "<module>"), ("studies/executors.py", "_one_blas_thread")}
+WORKER_ONLY = {("_worker_env.py", "<module>"), ("parallel.py", "_one_blas_thread")}
 
 
 def _is_environ(node) -> bool:

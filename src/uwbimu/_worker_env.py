@@ -1,6 +1,6 @@
 """Imported by the Monte Carlo forkserver only, never by the caller: one BLAS thread per worker.
 
-:func:`uwbimu.studies.executors.execute` names this module first in the forkserver's preload
+:func:`uwbimu.parallel.execute` names this module first in the forkserver's preload
 list, so the variables are set in the server before it imports NumPy and every worker it
 forks inherits them; the caller's ``os.environ`` is never touched (issue 15: no environment
 changes in the library).  Workers then compute with one BLAS thread each, as Dask workers do:

@@ -3,15 +3,15 @@
 The CLI (``uwbimu estimate --estimator NAME``), the Monte Carlo studies (``kind: NAME``) and
 the repeatability test all look estimators up here, so a new estimator is added once::
 
-    from uwbimu.estimation.registry import get_estimator
+    from uwbimu.estimators import get_estimator  # every estimator, the batch calibrator included
 
     entry = get_estimator("pointmass")
     res = entry.run(dataset, entry.options({"attitude": "gyro"}), progress=None)
 
 ``eskf`` and ``pointmass`` live in this layer.  ``batch`` (the GTSAM calibrator of
-:mod:`uwbimu.calibration`) sits one layer up, so it is registered by
-:mod:`uwbimu.eval.estimators` (imports only go down); it returns a
-:class:`uwbimu.calibration.CalibrationResult`, not an :class:`EstimationResult`
+:mod:`uwbimu.calibration`) sits one layer up, so it is registered by :mod:`uwbimu.estimators`,
+a module above both (imports only go down): import the whole registry from there.  ``batch``
+returns a :class:`uwbimu.calibration.CalibrationResult`, not an :class:`EstimationResult`
 (``entry.returns`` says which).
 """
 
@@ -44,12 +44,21 @@ class EstimatorEntry:
     returns: str = "EstimationResult"
 
     def options(self, value: Any = None):
-        """Validate ``value`` (None, dict or an instance) into the options model."""
+        """Validate ``value`` (None, dict or an instance) into the options model.
+
+        Raises
+        ------
+        uwbimu.errors.ConfigError
+            ``value`` does not validate (names the field; exit code 2 on the command line).
+        """
         if value is None:
             return self.options_model()
         if isinstance(value, self.options_model):
             return value
-        return self.options_model.model_validate(value)
+        from uwbimu.io.yamlconfig import validate_model
+
+        return validate_model(value, self.options_model, source=f"{self.name} options",
+                              what=f"{self.name} estimator options")
 
 
 _REGISTRY: dict[str, EstimatorEntry] = {}
