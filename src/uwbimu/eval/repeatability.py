@@ -164,7 +164,7 @@ def _run_window(i: int, w: Dataset, estimator: Callable[[Dataset], Any]) -> dict
 
 def _window_task(task) -> dict:
     """One window on an executor's worker: ``(i, window, registry name, options)`` -> record."""
-    from uwbimu.eval.estimators import get_estimator
+    from uwbimu.estimators import get_estimator
 
     i, w, name, opts = task
     entry = get_estimator(name)
@@ -187,13 +187,13 @@ def repeatability(
     ----------
     ds : the log.
     k : number of windows.
-    estimator : a name of the estimator registry (:mod:`uwbimu.eval.estimators`: ``eskf``,
+    estimator : a name of the estimator registry (:mod:`uwbimu.estimators`: ``eskf``,
         ``pointmass``, ``batch``), run with ``options``; or any callable
         ``Dataset -> EstimationResult`` (or calibration dict).
     level : significance level of the consistency test.
     progress : optional callback ``(done, total)``.
     workers : windows calibrated in parallel on the Monte Carlo executors
-        (:func:`uwbimu.studies.executors.execute`, a process pool); 1 (default) runs them here, in
+        (:func:`uwbimu.parallel.execute`, a process pool); 1 (default) runs them here, in
         order.  Only for a registry name (a callable may not be picklable).
 
     Returns
@@ -205,7 +205,7 @@ def repeatability(
     """
     name = estimator if isinstance(estimator, str) else None
     if name is not None:
-        from uwbimu.eval.estimators import get_estimator
+        from uwbimu.estimators import get_estimator
 
         entry = get_estimator(name)
         opts = entry.options(options)
@@ -216,7 +216,7 @@ def repeatability(
         raise ValueError("workers > 1 needs an estimator name of the registry (a callable may not be picklable)")
     wins = split_windows(ds, k, t_range=t_range)
     if workers != 1:
-        from uwbimu.studies.executors import execute
+        from uwbimu.parallel import execute
 
         got: dict[int, dict] = {}
 
@@ -227,7 +227,7 @@ def repeatability(
 
         failed = execute(_window_task, [(i, w, name, opts) for i, w in enumerate(wins)], keep, workers=workers,
                          describe=lambda t: f"window {t[0]}",
-                         preload=("uwbimu.sim", "uwbimu.estimation", "uwbimu.eval.estimators"))
+                         preload=("uwbimu.sim", "uwbimu.estimation", "uwbimu.estimators"))
         for line in failed:  # a worker that died: the window is reported as failed, not lost
             i = int(line.split(":")[0].split()[-1])
             got[i] = {**_window_frame(i, wins[i]), "error": line}
