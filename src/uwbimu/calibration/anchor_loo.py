@@ -29,7 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from uwbimu.calibration import graph as G
+from uwbimu.calibration import keys
+from uwbimu.calibration.graph import _group_chunks
 from uwbimu.calibration.covariance import _SymmetricFactor, linear_system
 from uwbimu.calibration.range_factor import RangeGroup
 
@@ -55,22 +56,21 @@ def lines_of_sight(pb, assoc, values, td: float, rows: np.ndarray) -> np.ndarray
     """(n, 3) unit vectors from the anchor to the tag antenna [world] of the used range rows ``rows`` (indices into
     ``assoc.used``), at the solution ``values`` and time offset ``td`` (the range factors' own kinematics, in the
     graph's blocks of keyframes)."""
-    X, V, B, L, T, A = G._keys()
     K = len(pb.key_idx)
-    poses = [values.atPose3(X(k)) for k in range(K)]
+    poses = [values.atPose3(keys.pose(k)) for k in range(K)]
     R_k = np.array([q.rotation().matrix() for q in poses])
     p_k = np.array([q.translation() for q in poses])
-    v_k = np.array([values.atVector(V(k)) for k in range(K)])
+    v_k = np.array([values.atVector(keys.velocity(k)) for k in range(K)])
     rows = np.asarray(rows, np.int64)
     pos = np.full(len(assoc.used), -1, np.int64)
     pos[rows] = np.arange(len(rows))
     out = np.zeros((len(rows), 3))
-    for chunk in G._group_chunks(pb, assoc, rows):
+    for chunk in _group_chunks(pb, assoc, rows):
         used = assoc.used[chunk]
         kfs, kf = np.unique(np.asarray(assoc.key)[chunk], return_inverse=True)
         grp = RangeGroup([assoc.deltas[r] for r in chunk], pb.anchor_pos[pb.anchor_j[used]], pb.rho[used],
                          np.zeros(len(chunk), np.int64), assoc.td0, kf=kf)
-        u = grp._geometry(R_k[kfs], p_k[kfs], v_k[kfs], values.atVector(G.lever_key(pb.tag_of(int(used[0])))), td)["u"]
+        u = grp._geometry(R_k[kfs], p_k[kfs], v_k[kfs], values.atVector(keys.lever_arm(pb.tag_of(int(used[0])))), td)["u"]
         out[pos[chunk]] = u / np.linalg.norm(u, axis=1)[:, None]
     return out
 
@@ -85,7 +85,6 @@ def surveyed_anchor_displacements(pb, graph, values, assoc, td: float) -> tuple[
     not define its position (a singular ``S``), is skipped; returns the displacements and ``{anchor: reason}`` of
     the surveyed anchors skipped.
     """
-    X, V, B, L, T, A = G._keys()
     J, b, row0, cols = linear_system(graph, values)
     slots = np.asarray(assoc.slots, np.int64)
     row_index = row0[slots[:, 0]] + slots[:, 1]
@@ -109,7 +108,7 @@ def surveyed_anchor_displacements(pb, graph, values, assoc, td: float) -> tuple[
         if lu is None:
             lu = _SymmetricFactor((J.T @ J).tocsc())
             hb = lu.solve(np.asarray(J.T @ b).ravel())
-        s = np.asarray(Jc[row_index[m]][:, cols[int(A(j))]].todense()).ravel()
+        s = np.asarray(Jc[row_index[m]][:, cols[int(keys.anchor_bias(j))]].todense()).ravel()
         if not np.any(s):  # no bias column to read the rows' weights from: nothing to free
             skipped[str(aid)] = "its range rows carry no weight"
             continue

@@ -1,4 +1,5 @@
-"""``calibrate(dataset)``: ESKF initialisation, IMU noise scale, t_d profile, final MAP solve, marginals
+"""``calibrate(dataset)``: the batch calibrator as stages (:mod:`uwbimu.calibration.stages`): ESKF seed, factor
+graph, free solve (second start, adaptive Huber, IMU noise scale), t_d profile and final solve, marginals and report
 (the solves and the profile walk: :mod:`uwbimu.calibration.profile_walk`)."""
 
 from __future__ import annotations
@@ -12,18 +13,15 @@ from math import erfc
 import numpy as np
 import pandas as pd
 
-from uwbimu.calibration import anchor_loo as AL
-from uwbimu.calibration import anchors as AN
-from uwbimu.calibration import graph as G
-from uwbimu.calibration import noise_scale as NS
-from uwbimu.calibration import robust_loss as RL
+from uwbimu.calibration import anchor_loo, anchors, graph, keys, noise_scale, robust_loss
 from uwbimu.calibration.identifiability import identifiability
 from uwbimu.calibration.uncertainty import (SparseMarginals, _block_event, _calibration_covariance,  # noqa: F401
                                            _marginals, _profile_chi2_scale)
 from uwbimu.calibration.options import CalibrationOptions
 from uwbimu.calibration.profile import TdProfile, confidence_interval, motion_advice
+from uwbimu.calibration.stages import STAGES, Built, Profiled, Solved, StageProgress, Start
 # the solves and the profile walk (re-exported: tests and benchmarks address them here)
-from uwbimu.calibration.profile_walk import PROFILE_CHI2_TOL, _solve, profile_rows, run_profile  # noqa: F401
+from uwbimu.calibration.profile_walk import PROFILE_CHI2_TOL, _solve, profile_rows, run_profile, solve  # noqa: F401
 
 
 @dataclass
@@ -53,7 +51,8 @@ class CalibrationResult:
 
 def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, eskf_options=None,
               progress: Optional[Callable[[float], None]] = None, workers: int = 1,
-              executor: Optional[dict] = None, reference_solver: bool = False) -> CalibrationResult:
+              executor: Optional[dict] = None, reference_solver: bool = False,
+              on_stage: Optional[Callable[[StageProgress], None]] = None) -> CalibrationResult:
     """Full-batch MAP calibration of lever arm, t_d and per-anchor range bias (see docs/calibrate.md).
 
     Parameters
@@ -66,84 +65,56 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
     eskf : an ESKF result (anchors' frame) to initialise from; ``run_eskf(dataset, eskf_options)`` when None.
     eskf_options : options of that ESKF; ``options.init_eskf`` when None, else the ESKF defaults.
     progress : called with a fraction in [0, 1].
-    workers : processes for the t_d profile's walks (:func:`run_profile`, Monte Carlo executors); 1 (default)
-        solves them here, in order, without pickling.  The result does not depend on it.
-    executor : further keyword arguments of :func:`uwbimu.studies.executors.execute` for the profile
+    workers : processes for the t_d profile's walks (:func:`run_profile`, :func:`uwbimu.parallel.execute`); 1
+        (default) solves them here, in order, without pickling.  The result does not depend on it.
+    executor : further keyword arguments of :func:`uwbimu.parallel.execute` for the profile
         (``client``, ``scheduler`` or ``dask_local``: run it on Dask); None: a local process pool.
     reference_solver : every solve with GTSAM's own ``LevenbergMarquardtOptimizer`` and the profile points
         solved to its convergence rule (``mode="reference"`` of :func:`run_profile`): the slower reference
         the fast path is measured against (``benchmarks/bench_calibrate.py``, ``tests/test_calibrate_speed.py``).
+    on_stage : called with a :class:`uwbimu.calibration.stages.StageProgress` when each stage of
+        :data:`uwbimu.calibration.stages.STAGES` starts, ends or is skipped, and after each t_d profile point
+        (``uwbimu calibrate`` draws its progress bars from these).  The library prints nothing.
     """
-    from uwbimu.estimation import EskfOptions, run_eskf
-    from uwbimu.estimation.segments import select_segment
-
-    from uwbimu.calibration.frames import from_graph_frame, to_graph_frame
-
     t_start = time.perf_counter()
     o = options or CalibrationOptions()
-    given_eskf = eskf is not None
-    eo0 = eskf_options or o.init_eskf or EskfOptions()
-    # the same part of the log as the ESKF (the flight, where the floor's ranges are shadowed): one answer
-    dataset, ev_segment = select_segment(dataset, eo0.segment, eo0.start, eo0.end)
-    o.check_log(dataset)  # work bounds that depend on the log (drift knots), before any solve
-    dataset, eskf_options, eskf, frame = to_graph_frame(dataset, eo0, eskf)
-    setup = AN.plan_anchors(dataset, o)
-    events = [ev_segment] + list(setup.events)
-    eo = eskf_options
-    if not setup.any_estimated:
-        eskf = eskf if eskf is not None else run_eskf(dataset, eo)
-    else:
-        eskf = _bootstrap(dataset, o, setup, eo, eskf, events)
-    if progress is not None:
-        progress(0.1)
-    pb = G.build_problem(dataset, eskf, o, setup)
-    imf = G._imu_factors(pb)
-    X, V, B, L, T, A = G._keys()
+    report = _StageReporter(progress, on_stage)
     engine = "gtsam" if reference_solver else "python"
-    graph, values, assoc, iters = _solve(pb, imf, G.initial_values(pb), pb.td0, None, engine=engine)
-    if o.second_start and not given_eskf and not setup.any_estimated:
-        pb, imf, eskf, graph, values, assoc, iters = _second_start(dataset, o, setup, eo, pb, imf, eskf, graph,
-                                                                   values, assoc, iters, engine, events)
-    huber = {"selection": "fixed", "k": float(pb.options.huber_k)}
+    events: list[dict] = []
+    report.started("initialising ESKF", 0.0)
+    start = _start(dataset, o, eskf, eskf_options, events)
+    report.done("initialising ESKF", 0.1)
+    report.started("factor graph")
+    built = _build(start, o)
+    report.done("factor graph")
+    report.started("free solve")
+    solved = _free_solve(built, engine)
+    report.done("free solve")
+    if o.second_start and not start.given_eskf and not start.setup.any_estimated:
+        report.started("second start")
+        start, built, solved = _second_start(start, o, built, solved, engine, events)
+        report.done("second start")
+    else:
+        report.skipped("second start")
+    huber = {"selection": "fixed", "k": float(built.problem.options.huber_k)}
     if o.huber_k == "adaptive":
-        pb, graph, values, assoc, iters, huber = RL.adapt_huber(
-            pb, imf, graph, values, assoc, iters,
-            solve=lambda p, f, v, td, a: _solve(p, f, v, td, None, assoc=a, engine=engine))
+        report.started("adaptive Huber")
+        built, solved, huber = robust_loss.adapt_huber(built, solved, solve=_warm_solver(engine))
+        report.done("adaptive Huber")
+    else:
+        report.skipped("adaptive Huber")
     imu_scale = None
     if o.imu_noise_scale == "estimate":
-        pb, imf, graph, values, assoc, iters, imu_scale = NS.estimate_imu_noise_scale(
-            pb, imf, graph, values, assoc, iters, build_imu=G._imu_factors,
-            solve=lambda p, f, v, td, a: _solve(p, f, v, td, None, assoc=a, engine=engine))
-        ev = NS.scale_event(imu_scale)
-        if ev is not None:
-            events.append(ev)
-    free_td = float(values.atVector(T(0))[0])
-    prof = None
-    td_free = True
-    chi2_scale = 1.0
-    if o.td_profile.enabled:
-        # honesty correction of the white-noise profile: model / sandwich variance of t_d at the free solve
-        chi2_scale = _profile_chi2_scale(pb, graph, values, assoc)
-        prof = run_profile(pb, imf, values, free_td, progress, workers=workers, executor=executor,
-                           mode="reference" if reference_solver else "fast", chi2_scale=chi2_scale)
-        if prof.identified:
-            graph, values, assoc, iters = _solve(pb, imf, G.with_td(values, prof.vertex), prof.vertex, None,
-                                                 engine=engine)
-            lo, hi = confidence_interval(prof.grid, prof.chi2, prof.confidence_chi2, chi2_scale=chi2_scale)
-            td_ref = float(values.atVector(T(0))[0])
-            if not lo <= td_ref <= hi:
-                # The free optimum contradicts its own profile: report nothing as found.
-                prof.verdict = "refinement_left_confidence_set"
-        if not prof.identified:
-            td_free = False
-            events.append({"kind": "time_offset_not_identified", "verdict": prof.verdict,
-                           "advice": motion_advice(eskf, prof.verdict, prof.grid)})
-            graph, values, assoc, iters = _solve(pb, imf, G.without_td(values), o.time_offset_prior,
-                                                 o.time_offset_prior, engine=engine)
-    if progress is not None:
-        progress(0.9)
-    cal, traj, res, anchors = _report(pb, graph, values, assoc, td_free, prof, iters, dataset, chi2_scale=chi2_scale)
-    cal["imu_noise"] = _imu_noise_report(pb, imu_scale)
+        report.started("IMU noise scale")
+        built, solved, imu_scale = _imu_noise_scale(built, solved, engine, events)
+        report.done("IMU noise scale")
+    else:
+        report.skipped("IMU noise scale")
+    profiled = _profile_and_final_solve(start, o, built, solved, engine, workers, executor, reference_solver,
+                                        events, report)
+    report.started("marginals and report", 0.9)
+    cal, traj, res, anchor_table = _report(built.problem, profiled, start.dataset)
+    cal["imu_noise"] = _imu_noise_report(built.problem, imu_scale)
     cal["range_model"]["huber"] = huber
     ev = _block_event(cal["covariance"].get("block_check"), drift_on=o.range_bias_drift is not None)
     if ev is not None:
@@ -154,13 +125,144 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
         if ev["kind"] == "time_offset_not_identified":
             cal["time_offset"]["advice"] = ev["advice"]
     cal["events"] = [{k: v for k, v in ev.items()} for ev in events]
-    if progress is not None:
-        progress(1.0)
-    out = CalibrationResult(calibration=cal, trajectory=traj, residuals=res, profile=prof, eskf=eskf,
-                            events=events, anchors=anchors)
-    from_graph_frame(out, frame)
+    out = CalibrationResult(calibration=cal, trajectory=traj, residuals=res, profile=profiled.profile,
+                            eskf=start.eskf, events=events, anchors=anchor_table)
+    from uwbimu.calibration.frames import from_graph_frame
+
+    from_graph_frame(out, start.frame)
+    report.done("marginals and report", 1.0)
     out.runtime_s = time.perf_counter() - t_start
     return out
+
+
+class _StageReporter:
+    """Turns the stages' start / end / skip and the profile's points into the ``progress`` (fraction) and
+    ``on_stage`` (:class:`StageProgress`) callbacks; silent when both are None."""
+
+    def __init__(self, progress: Optional[Callable[[float], None]],
+                 on_stage: Optional[Callable[[StageProgress], None]]):
+        self.progress, self.on_stage = progress, on_stage
+        self.fraction = 0.0
+
+    def _emit(self, stage: str, status: str, fraction: Optional[float], done=None, total=None) -> None:
+        if fraction is not None:
+            self.fraction = fraction
+            if self.progress is not None:
+                self.progress(fraction)
+        if self.on_stage is not None:
+            self.on_stage(StageProgress(stage=stage, index=STAGES.index(stage), status=status,
+                                        fraction=self.fraction, done=done, total_points=total))
+
+    def started(self, stage: str, fraction: Optional[float] = None) -> None:
+        self._emit(stage, "started", fraction)
+
+    def done(self, stage: str, fraction: Optional[float] = None) -> None:
+        self._emit(stage, "done", fraction)
+
+    def skipped(self, stage: str) -> None:
+        self._emit(stage, "skipped", None)
+
+    def profile_fraction(self, fraction: float) -> None:
+        """The profile's own ``progress`` (0.2 .. 0.8 of the whole)."""
+        self.fraction = fraction
+        if self.progress is not None:
+            self.progress(fraction)
+
+    def point(self, done: int, total: int) -> None:
+        if self.on_stage is not None:
+            self.on_stage(StageProgress(stage="t_d profile", index=STAGES.index("t_d profile"), status="point",
+                                        fraction=self.fraction, done=done, total_points=total))
+
+
+def _warm_solver(engine: str) -> Callable:
+    """``solve(pb, imf, values, td0, assoc) -> Solved``, warm-started, t_d free (the re-solves of a stage)."""
+    return lambda pb, imf, values, td0, assoc: solve(pb, imf, values, td0, None, assoc=assoc, engine=engine)
+
+
+def _start(dataset, o: CalibrationOptions, eskf, eskf_options, events: list) -> Start:
+    """Stage 1: the part of the log the ESKF uses, in the graph frame, the anchor plan and the seeding ESKF.
+
+    Appends the flight-segment event and the anchor plan's / bootstrap's events to ``events``.
+    """
+    from uwbimu.estimation import EskfOptions, run_eskf
+    from uwbimu.estimation.segments import select_segment
+
+    from uwbimu.calibration.frames import to_graph_frame
+
+    given_eskf = eskf is not None
+    eo0 = eskf_options or o.init_eskf or EskfOptions()
+    # the same part of the log as the ESKF (the flight, where the floor's ranges are shadowed): one answer
+    dataset, ev_segment = select_segment(dataset, eo0.segment, eo0.start, eo0.end)
+    o.check_log(dataset)  # work bounds that depend on the log (drift knots), before any solve
+    dataset, eskf_options, eskf, frame = to_graph_frame(dataset, eo0, eskf)
+    setup = anchors.plan_anchors(dataset, o)
+    events += [ev_segment] + list(setup.events)
+    if not setup.any_estimated:
+        eskf = eskf if eskf is not None else run_eskf(dataset, eskf_options)
+    else:
+        eskf = _bootstrap(dataset, o, setup, eskf_options, eskf, events)
+    return Start(dataset=dataset, eskf=eskf, eskf_options=eskf_options, setup=setup, frame=frame,
+                 given_eskf=given_eskf)
+
+
+def _build(start: Start, o: CalibrationOptions) -> Built:
+    """Stage 2: the problem and its IMU factors from the seeding ESKF."""
+    pb = graph.build_problem(start.dataset, start.eskf, o, start.setup)
+    return Built(problem=pb, imu_factors=graph._imu_factors(pb))
+
+
+def _free_solve(built: Built, engine: str) -> Solved:
+    """Stage 3: the first solve, t_d free, from the ESKF's states."""
+    pb = built.problem
+    return solve(pb, built.imu_factors, graph.initial_values(pb), pb.td0, None, engine=engine)
+
+
+def _imu_noise_scale(built: Built, solved: Solved, engine: str, events: list) -> tuple[Built, Solved, dict]:
+    """Stage: the IMU noise scale (:mod:`uwbimu.calibration.noise_scale`) and the solve under it."""
+    warm = _warm_solver(engine)
+    pb, imf, fg, values, assoc, iters, scale = noise_scale.estimate_imu_noise_scale(
+        built.problem, built.imu_factors, *solved.astuple(), build_imu=graph._imu_factors,
+        solve=lambda p, f, v, td, a: warm(p, f, v, td, a).astuple())
+    ev = noise_scale.scale_event(scale)
+    if ev is not None:
+        events.append(ev)
+    return Built(problem=pb, imu_factors=imf), Solved(graph=fg, values=values, assoc=assoc, iterations=iters), scale
+
+
+def _profile_and_final_solve(start: Start, o: CalibrationOptions, built: Built, solved: Solved, engine: str,
+                             workers: int, executor: Optional[dict], reference_solver: bool, events: list,
+                             report: _StageReporter) -> Profiled:
+    """Stages ``t_d profile`` and ``final solve``: the profile about the free solution, then the solve its
+    verdict asks for (refined at the vertex, or t_d held at its prior); the free solve itself when disabled."""
+    pb, imf = built.problem, built.imu_factors
+    free_td = solved.time_offset()
+    if not o.td_profile.enabled:
+        report.skipped("t_d profile")
+        report.skipped("final solve")
+        return Profiled(solved=solved, profile=None, td_free=True, chi2_scale=1.0)
+    report.started("t_d profile")
+    # honesty correction of the white-noise profile: model / sandwich variance of t_d at the free solve
+    chi2_scale = _profile_chi2_scale(pb, solved.graph, solved.values, solved.assoc)
+    prof = run_profile(pb, imf, solved.values, free_td, report.profile_fraction, workers=workers, executor=executor,
+                       mode="reference" if reference_solver else "fast", chi2_scale=chi2_scale,
+                       on_point=report.point)
+    report.done("t_d profile")
+    report.started("final solve")
+    td_free = True
+    if prof.identified:
+        solved = solve(pb, imf, graph.with_td(solved.values, prof.vertex), prof.vertex, None, engine=engine)
+        lo, hi = confidence_interval(prof.grid, prof.chi2, prof.confidence_chi2, chi2_scale=chi2_scale)
+        if not lo <= solved.time_offset() <= hi:
+            # The free optimum contradicts its own profile: report nothing as found.
+            prof.verdict = "refinement_left_confidence_set"
+    if not prof.identified:
+        td_free = False
+        events.append({"kind": "time_offset_not_identified", "verdict": prof.verdict,
+                       "advice": motion_advice(start.eskf, prof.verdict, prof.grid)})
+        solved = solve(pb, imf, graph.without_td(solved.values), o.time_offset_prior, o.time_offset_prior,
+                       engine=engine)
+    report.done("final solve")
+    return Profiled(solved=solved, profile=prof, td_free=td_free, chi2_scale=chi2_scale)
 
 
 #: What the second start changes in the initialising ESKF's options: the robust range model of the shipped
@@ -168,7 +270,8 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
 _ROBUST_ESKF = "real"
 
 
-def _second_start(dataset, o, setup, eo, pb, imf, eskf, graph, values, assoc, iters, engine: str, events: list):
+def _second_start(start: Start, o: CalibrationOptions, built: Built, solved: Solved, engine: str,
+                  events: list) -> tuple[Start, Built, Solved]:
     """The first free solve again from an ESKF with the robust range model of the real-data preset; the lower
     cost wins.
 
@@ -179,28 +282,31 @@ def _second_start(dataset, o, setup, eo, pb, imf, eskf, graph, values, assoc, it
     options otherwise (tags, frames, IMU noise); skipped when they already match it.  Event
     ``second_start_won`` when its start gives the lower cost (costs compared as the graphs'; the range
     factors linearise the IMU deltas about each filter's bias, so near-equal costs may pick either).
+
+    Returns the stages of the winner: ``(start, built, solved)`` as given, or those of the robust start.
     """
+    import dataclasses
+
     from uwbimu.estimation import run_eskf
     from uwbimu.estimation.presets import load_preset
 
+    eo = start.eskf_options
     robust = load_preset(_ROBUST_ESKF)
     upd = {"range_sigma": robust.range_sigma, "anchor_bias": robust.anchor_bias}
     if all(getattr(eo, k) == v for k, v in upd.items()):
-        return pb, imf, eskf, graph, values, assoc, iters
-    eskf2 = run_eskf(dataset, eo.model_copy(update=upd))
-    pb2 = G.build_problem(dataset, eskf2, o, setup)
-    imf2 = G._imu_factors(pb2)
-    g2, v2, a2, it2 = _solve(pb2, imf2, G.initial_values(pb2), pb2.td0, None, engine=engine)
-    cost1, cost2 = float(graph.error(values)), float(g2.error(v2))
+        return start, built, solved
+    start2 = dataclasses.replace(start, eskf=run_eskf(start.dataset, eo.model_copy(update=upd)))
+    built2 = _build(start2, o)
+    solved2 = _free_solve(built2, engine)
+    cost1, cost2 = solved.cost(), solved2.cost()
     if not cost2 < cost1:
-        return pb, imf, eskf, graph, values, assoc, iters
-    X, V, B, L, T, A = G._keys()
+        return start, built, solved
     events.append({"kind": "second_start_won", "severity": "info", "chi2_gain": 2.0 * (cost1 - cost2),
-                   "first_lever_arm": [float(x) for x in values.atVector(L(0))],
-                   "lever_arm": [float(x) for x in v2.atVector(L(0))],
+                   "first_lever_arm": [float(x) for x in solved.values.atVector(keys.lever_arm(0))],
+                   "lever_arm": [float(x) for x in solved2.values.atVector(keys.lever_arm(0))],
                    "message": "the solve started from an ESKF with the robust real-data range model reached a lower "
                               "cost than the one started from the configured ESKF: its solution is used"})
-    return pb2, imf2, eskf2, g2, v2, a2, it2
+    return start2, built2, solved2
 
 
 def _imu_noise_report(pb, scale_info: Optional[dict]) -> dict:
@@ -237,7 +343,7 @@ def _bootstrap(dataset, o: CalibrationOptions, setup, eo, eskf, events: list):
             events.append({"kind": "anchor_bootstrap_from_guesses", "range_sigma": sigma,
                            "message": f"fewer than 4 surveyed anchors: the initialising ESKF used the anchors.csv "
                                       f"guesses of the unsurveyed anchors with a range sd of {sigma:g} m"})
-        eskf = run_eskf(AN.eskf_dataset(dataset, setup, with_unsurveyed=guesses), eo)
+        eskf = run_eskf(anchors.eskf_dataset(dataset, setup, with_unsurveyed=guesses), eo)
     events += _initial_anchors(dataset, eskf, o, setup)
     return eskf
 
@@ -257,13 +363,13 @@ def _initial_anchors(dataset, eskf, o: CalibrationOptions, setup) -> list[dict]:
     sigma = float(o.range_sigma or dataset.meta.range_sigma or 0.1)
     bias_sd = o.anchor_bias_prior_sd if o.anchor_bias_estimated(True) else None
     uwb = dataset.uwb
-    names, tag_column = G.tag_names(dataset, eskf)
+    names, tag_column = graph.tag_names(dataset, eskf)
     levers = None  # one tag: the ESKF's lever arm
     if tag_column and "tag" in uwb.columns:
         uwb = uwb[uwb["tag"].astype(str).isin(names).to_numpy()]
         if len(names) > 1:
             ti = uwb["tag"].astype(str).map({n: i for i, n in enumerate(names)}).to_numpy(np.int64)
-            levers = AN.tag_lever_arms(eskf, names, ti)
+            levers = anchors.tag_lever_arms(eskf, names, ti)
     aid = uwb["anchor"].astype(str).to_numpy()
     events = []
     for j in np.flatnonzero(setup.estimated):
@@ -276,20 +382,20 @@ def _initial_anchors(dataset, eskf, o: CalibrationOptions, setup) -> list[dict]:
                              "(from different places) are needed to locate it without a prior")
         if not sel.any():
             continue  # a prior and no ranges: the prior alone places it (its sd says so)
-        P, P_sd = AN.antenna_positions(eskf, uwb["t"].to_numpy(float)[sel], with_sd=True,
+        P, P_sd = anchors.antenna_positions(eskf, uwb["t"].to_numpy(float)[sel], with_sd=True,
                                        lever_arm=None if levers is None else levers[sel])
         if has_prior:
             a0 = setup.pos[j]
         else:
-            a0, _rms = AN.multilaterate(P, rho)
+            a0, _rms = anchors.multilaterate(P, rho)
             setup.pos[j] = a0
-        found = AN.geometry_checks(a_id, a0, P, rho, sigma, bias_sd, P_sd)
+        found = anchors.geometry_checks(a_id, a0, P, rho, sigma, bias_sd, P_sd)
         for ev in found:
             ev["severity"] = "warning" if has_prior or o.degenerate_anchors == "warn" else "refused"
             ev["has_prior"] = has_prior
         if bias_sd is not None:
             # bias and distance confounded (narrow cone of lines of sight): solvable, but say so (never refused)
-            conf = AN.bias_confounding(a_id, a0, P)["event"]
+            conf = anchors.bias_confounding(a_id, a0, P)["event"]
             if conf is not None:
                 found.append(conf | {"severity": "warning", "has_prior": has_prior})
         refused = [ev for ev in found if ev["severity"] == "refused"]
@@ -301,33 +407,36 @@ def _initial_anchors(dataset, eskf, o: CalibrationOptions, setup) -> list[dict]:
     return events
 
 
-def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset, chi2_scale: float = 1.0):
-    X, V, B, L, T, A = G._keys()
-    P = G._P()
-    marg = _marginals(pb, graph, values)
+def _report(pb, profiled: Profiled, dataset):
+    """calibration.yaml's dict, the trajectory, the residuals and the anchor table of the final solve."""
+    solved, td_free, prof, chi2_scale = profiled.solved, profiled.td_free, profiled.profile, profiled.chi2_scale
+    values, assoc = solved.values, solved.assoc
+    marg = _marginals(pb, solved.graph, values)
     est = [j for j in range(len(pb.anchor_ids)) if pb.estimated(j)]
-    keys = [L(0)] + ([T(0)] if td_free else []) + [A(j) for j in range(len(pb.anchor_ids))] + [P(j) for j in est]
+    param_keys = [keys.lever_arm(0)] + ([keys.time_offset()] if td_free else []) + \
+        [keys.anchor_bias(j) for j in range(len(pb.anchor_ids))] + [keys.anchor_position(j) for j in est]
     names = ["lever_arm_x", "lever_arm_y", "lever_arm_z"] + (["time_offset"] if td_free else []) + \
         [f"anchor_bias_{a}" for a in pb.anchor_ids] + \
         [f"anchor_{c}_{pb.anchor_ids[j]}" for j in est for c in "xyz"]
     dmod = pb.options.range_model.direction
-    n_dir = G.n_dir_vectors(pb)
+    n_dir = graph.n_dir_vectors(pb)
     off_dir = len(names)
     if n_dir:  # after the others, so the offsets below stay valid
-        keys += [G.dir_key(i) for i in range(n_dir)]
+        param_keys += [keys.direction_bias(i) for i in range(n_dir)]
         names += [f"direction_{_dir_label(pb, i, '_')}{c}" for i in range(n_dir) for c in dmod.names()]
     amod = pb.options.range_model.anchor_direction
     off_adir = len(names)
-    adir = G.adir_anchors(pb)
-    keys += [G.adir_key(j) for j in adir]
+    adir = graph.adir_anchors(pb)
+    param_keys += [keys.anchor_direction_bias(j) for j in adir]
     names += [f"anchor_direction_{pb.anchor_ids[j]}_{c}" for j in adir for c in (amod.names() if amod else [])]
     off_tags = len(names)
     for i, tag in enumerate(pb.tag_names[1:], start=1):  # several tags: the first one's lever arm is lever_arm_*
-        keys.append(G.lever_key(i))
+        param_keys.append(keys.lever_arm(i))
         names += [f"lever_arm_{tag}_{c}" for c in "xyz"]
-    lever = values.atVector(L(0))
-    td = float(values.atVector(T(0))[0]) if td_free else pb.options.time_offset_prior
-    cov, cov_model, cov_sec = _calibration_covariance(pb, graph, values, assoc, keys, td, td_free, marg=marg)
+    lever = values.atVector(keys.lever_arm(0))
+    td = float(values.atVector(keys.time_offset())[0]) if td_free else pb.options.time_offset_prior
+    cov, cov_model, cov_sec = _calibration_covariance(pb, solved.graph, values, assoc, param_keys, td, td_free,
+                                                      marg=marg)
     if "block_check" in cov_sec:  # per parameter, by name
         bc = cov_sec["block_check"]
         per = {f: bc.pop(f) for f in ("variance_ratio", "dof", "p_value", "significant", "widened")}
@@ -336,26 +445,26 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset, chi2_
     systematic = None
     if est:
         # the self-survey's systematic error, measured on the surveyed anchors (anchor_loo.py)
-        disp, skipped = AL.surveyed_anchor_displacements(pb, graph, values, assoc, td)
-        s2, raw = AL.systematic_variance(disp)
+        disp, skipped = anchor_loo.surveyed_anchor_displacements(pb, solved.graph, values, assoc, td)
+        s2, raw = anchor_loo.systematic_variance(disp)
         applied = pb.options.anchor_systematic == "surveyed" and s2 is not None
         if applied:
             ia = [names.index(f"anchor_{c}_{pb.anchor_ids[j]}") for j in est for c in "xyz"]
             cov = cov.copy()
             cov[ia, ia] += s2
-        systematic = AL.report(disp, s2, raw, applied, skipped)
+        systematic = anchor_loo.report(disp, s2, raw, applied, skipped)
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     sd_model = np.sqrt(np.diag(cov_model))
     corr = cov / np.outer(sd, sd)
     # Residuals of the final graph's range factors, in the order of assoc.used.
-    e = G.range_residuals(graph, assoc, values, td)
+    e = graph.range_residuals(solved.graph, assoc, values, td)
     used = assoc.used
     res = pd.DataFrame({"t": pb.t_range[used], "anchor": np.array(pb.anchor_ids, dtype=object)[pb.anchor_j[used]],
                         "range": pb.rho[used], "predicted": pb.rho[used] + e, "residual": e})
     if pb.tag_column:  # the log names its tags: so does residuals.csv
         ti = pb.tag_i[used] if pb.tag_i is not None else np.zeros(len(used), np.int64)
         res.insert(2, "tag", np.array(pb.tag_names, dtype=object)[ti])
-    sig = RL.row_sigma(pb, assoc)
+    sig = robust_loss.row_sigma(pb, assoc)
     if pb.anchor_b is not None:
         # TDoA rows: "anchor" is anchor_a, "range" the measured TDoA [m]
         b = pb.anchor_b[assoc.used]
@@ -363,18 +472,18 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset, chi2_
         res["anchor_b"] = np.where(b >= 0, np.array(pb.anchor_ids, dtype=object)[np.maximum(b, 0)], "")
     if pb.drift_knot is not None:
         # the slowly varying bias of each row (already inside "predicted" and "residual")
-        res["bias_drift"] = [float(values.atVector(G.drift_key(j, n))[0])
+        res["bias_drift"] = [float(values.atVector(keys.bias_drift(j, n))[0])
                              for j, n in zip(pb.anchor_j[used], pb.drift_knot[used])]
     if n_dir:
         # the direction-dependent bias of each row (already inside "predicted" and "residual")
-        res["bias_direction"] = G.direction_terms(graph, assoc, values, td)
+        res["bias_direction"] = graph.direction_terms(solved.graph, assoc, values, td)
     if amod is not None:
         # the anchor-side direction-dependent bias of each row (already inside "predicted" and "residual")
-        res["bias_anchor_direction"] = G.anchor_direction_terms(graph, assoc, values, td)
+        res["bias_anchor_direction"] = graph.anchor_direction_terms(solved.graph, assoc, values, td)
     res["z"] = res["residual"] / sig
     res["outlier"] = np.abs(res["z"]) > pb.options.huber_k
     offs = 3 + (1 if td_free else 0)
-    bias = {a: float(values.atVector(A(j))[0]) for j, a in enumerate(pb.anchor_ids)}
+    bias = {a: float(values.atVector(keys.anchor_bias(j))[0]) for j, a in enumerate(pb.anchor_ids)}
     cal = {
         "method": "batch-map-gtsam",
         "lever_arm": [float(x) for x in lever],
@@ -409,8 +518,8 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset, chi2_
                         "drift": (pb.options.range_bias_drift.model_dump() | {"knots_per_anchor": pb.n_knots}
                                   if pb.options.range_bias_drift is not None else None),
                         "direction": _direction_report(pb, values, sd, off_dir)},
-        "solver": {"keyframes": int(len(pb.key_idx)), "iterations": int(iters),
-                   "final_cost": float(graph.error(values))},
+        "solver": {"keyframes": int(len(pb.key_idx)), "iterations": int(solved.iterations),
+                   "final_cost": solved.cost()},
     }
     if amod is not None:  # only with the option: the layout without it is unchanged
         cal["range_model"]["anchor_direction"] = _anchor_direction_report(pb, values, sd, off_adir)
@@ -422,11 +531,11 @@ def _report(pb, graph, values, assoc, td_free: bool, prof, iters, dataset, chi2_
     cal["conditional_on_time_offset"] = (None if td_free else td)
     off_p = offs + len(pb.anchor_ids)
     sd_p = {j: sd[off_p + 3 * i: off_p + 3 * i + 3] for i, j in enumerate(est)}
-    cal["anchors"], anchors = _anchor_report(pb, values, sd_p, dataset)
+    cal["anchors"], anchor_table = _anchor_report(pb, values, sd_p, dataset)
     if systematic is not None:
         cal["anchors"]["systematic"] = systematic
     traj = _trajectory(pb, values, marg, td)
-    return cal, traj, res, anchors
+    return cal, traj, res, anchor_table
 
 
 def _with_tags(cal: dict, pb, values, sd, off: int, assoc) -> dict:
@@ -436,7 +545,7 @@ def _with_tags(cal: dict, pb, values, sd, off: int, assoc) -> dict:
     n_rows = np.bincount(pb.tag_i[assoc.used], minlength=pb.n_tags)
     for i, tag in enumerate(pb.tag_names):
         s = sd[:3] if i == 0 else sd[off + 3 * (i - 1): off + 3 * i]
-        tags[tag] = {"lever_arm": [float(x) for x in values.atVector(G.lever_key(i))],
+        tags[tag] = {"lever_arm": [float(x) for x in values.atVector(keys.lever_arm(i))],
                      "lever_arm_sd": [float(x) for x in s],
                      "lever_arm_prior": [float(x) for x in pb.lever_prior[i]],
                      "ranges": int(n_rows[i])}
@@ -452,7 +561,7 @@ def _dir_label(pb, i: int, sep: str = "/") -> str:
     """Label of direction coefficient vector ``i``: ``[TAG sep][ANCHOR]`` (with ``sep`` appended, ``_`` names) or
     ``all`` (shared, one tag; "" in names)."""
     d = pb.options.range_model.direction
-    per = G.n_dir_per_tag(pb)
+    per = graph.n_dir_per_tag(pb)
     t, a = divmod(i, per)
     parts = ([pb.tag_names[t]] if pb.n_tags > 1 else []) + ([pb.anchor_ids[a]] if d.per_anchor else [])
     if sep == "_":
@@ -471,12 +580,12 @@ def _direction_report(pb, values, sd, off: int):
         return None
     out = d.model_dump() | {"frame": "tag body (IMU) frame, line of sight tag antenna -> anchor",
                             "coefficient_names": d.names(), "coefficients": {}}
-    for i in range(G.n_dir_vectors(pb)):
-        c = values.atVector(G.dir_key(i))
+    for i in range(graph.n_dir_vectors(pb)):
+        c = values.atVector(keys.direction_bias(i))
         s = sd[off + i * d.n_coef: off + (i + 1) * d.n_coef]
         blk = {n: {"value": float(v), "sd": float(e)} for n, v, e in zip(d.names(), c, s)}
         if pb.n_tags > 1:
-            out["coefficients"].setdefault(pb.tag_names[i // G.n_dir_per_tag(pb)], {})[_dir_label(pb, i)] = blk
+            out["coefficients"].setdefault(pb.tag_names[i // graph.n_dir_per_tag(pb)], {})[_dir_label(pb, i)] = blk
         else:
             out["coefficients"][_dir_label(pb, i)] = blk
     return out
@@ -490,8 +599,8 @@ def _anchor_direction_report(pb, values, sd, off: int):
         return None
     out = d.model_dump() | {"frame": "anchor antenna frame (anchors.csv qw..qz), line of sight anchor -> tag antenna",
                             "coefficient_names": d.names(), "coefficients": {}}
-    for i, j in enumerate(G.adir_anchors(pb)):
-        c = values.atVector(G.adir_key(j))
+    for i, j in enumerate(graph.adir_anchors(pb)):
+        c = values.atVector(keys.anchor_direction_bias(j))
         s = sd[off + i * d.n_coef: off + (i + 1) * d.n_coef]
         out["coefficients"][pb.anchor_ids[j]] = {n: {"value": float(v), "sd": float(e)}
                                                  for n, v, e in zip(d.names(), c, s)}
@@ -499,8 +608,7 @@ def _anchor_direction_report(pb, values, sd, off: int):
 
 
 def _anchor_positions(pb, values) -> np.ndarray:
-    P = G._P()
-    return np.array([values.atPoint3(P(j)) if pb.estimated(j) else pb.anchor_pos[j]
+    return np.array([values.atPoint3(keys.anchor_position(j)) if pb.estimated(j) else pb.anchor_pos[j]
                      for j in range(len(pb.anchor_ids))]).reshape(-1, 3)
 
 
@@ -554,16 +662,15 @@ def _anchor_report(pb, values, sd_p: dict, dataset):
 
 
 def _trajectory(pb, values, marg, td: float) -> pd.DataFrame:
-    X, V, B, *_ = G._keys()
     rows = []
     for k, t in enumerate(pb.t_key):
-        pose = values.atPose3(X(k))
+        pose = values.atPose3(keys.pose(k))
         q = pose.rotation().toQuaternion()
-        v = values.atVector(V(k))
-        cov = marg.marginalCovariance(X(k))  # tangent [theta, p] in the body frame
+        v = values.atVector(keys.velocity(k))
+        cov = marg.marginalCovariance(keys.pose(k))  # tangent [theta, p] in the body frame
         R = pose.rotation().matrix()
         sp = np.concatenate([np.sqrt(np.diag(cov[:3, :3])), np.sqrt(np.diag(R @ cov[3:, 3:] @ R.T))])
-        sv = np.sqrt(np.diag(marg.marginalCovariance(V(k))))
+        sv = np.sqrt(np.diag(marg.marginalCovariance(keys.velocity(k))))
         rows.append([t - td, t, *pose.translation(), q.w(), q.x(), q.y(), q.z(), *v, *sp[3:], *sp[:3], *sv])
     cols = ["t", "t_imu", "px", "py", "pz", "qw", "qx", "qy", "qz", "vx", "vy", "vz",
             "sd_px", "sd_py", "sd_pz", "sd_rx", "sd_ry", "sd_rz", "sd_vx", "sd_vy", "sd_vz"]

@@ -23,6 +23,7 @@ from typing import Optional
 
 import numpy as np
 
+from uwbimu.calibration import keys
 from uwbimu.calibration.anchors import GAUGE_SIGMA, AnchorSetup
 from uwbimu.calibration.options import HUBER_START, CalibrationOptions
 from uwbimu.calibration.range_factor import (RangeGroup, direction_features, imu_cumulative, imu_deltas,
@@ -37,16 +38,16 @@ DEFAULT_IMU_NOISE = {"accel_noise_density": 2e-3, "gyro_noise_density": 2e-4,
 
 
 def _keys():
-    from gtsam.symbol_shorthand import A, B, L, T, V, X
+    """Deprecated: the six key functions ``(X, V, B, L, T, A)``; name variables with :mod:`uwbimu.calibration.keys`."""
+    return keys.pose, keys.velocity, keys.imu_bias, keys.lever_arm, lambda i=0: keys.symbol(keys.TIME_OFFSET, i), \
+        keys.anchor_bias
 
-    return X, V, B, L, T, A
 
-
-def drift_key(j: int, n: int) -> int:
-    """Key of knot ``n`` of anchor ``j``'s slowly varying bias (``d``, 1-vector, m)."""
-    import gtsam
-
-    return gtsam.symbol("d", int(j) * 1_000_000 + int(n))
+#: Aliases of :mod:`uwbimu.calibration.keys` (the scheme lives there).
+drift_key = keys.bias_drift
+dir_key = keys.direction_bias
+adir_key = keys.anchor_direction_bias
+lever_key = keys.lever_arm
 
 
 def drift_factors(pb) -> list:
@@ -61,26 +62,18 @@ def drift_factors(pb) -> list:
     zero = gtsam.Values()
     for j in range(len(pb.anchor_ids)):
         for n in range(pb.n_knots):
-            zero.insert(drift_key(j, n), np.zeros(1))
+            zero.insert(keys.bias_drift(j, n), np.zeros(1))
     out = []
     one = np.ones((1, 1))
     for j in range(len(pb.anchor_ids)):
-        jf = gtsam.JacobianFactor(drift_key(j, 0), one, np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, dr.sd))
+        jf = gtsam.JacobianFactor(keys.bias_drift(j, 0), one, np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, dr.sd))
         out.append(gtsam.LinearContainerFactor(jf, zero))
         for n in range(pb.n_knots - 1):
-            jf = gtsam.JacobianFactor(drift_key(j, n), -phi * one, drift_key(j, n + 1), one, np.zeros(1),
+            jf = gtsam.JacobianFactor(keys.bias_drift(j, n), -phi * one, keys.bias_drift(j, n + 1), one, np.zeros(1),
                                       gtsam.noiseModel.Isotropic.Sigma(1, q))
             out.append(gtsam.LinearContainerFactor(jf, zero))
     pb._drift_factors = out
     return out
-
-
-def dir_key(i: int) -> int:
-    """Key of direction-bias coefficient vector ``i`` (``h``): ``i = tag * n + a``, ``a`` the anchor index
-    (``per_anchor``, ``n`` anchors) or 0 (shared, ``n = 1``); one tag: ``i`` = anchor index or 0."""
-    import gtsam
-
-    return gtsam.symbol("h", int(i))
 
 
 def n_dir_per_tag(pb) -> int:
@@ -96,25 +89,9 @@ def n_dir_vectors(pb) -> int:
     return n_dir_per_tag(pb) * pb.n_tags
 
 
-def adir_key(j: int) -> int:
-    """Key of anchor ``j``'s anchor-side direction-bias coefficients (``g``, ``range_model.anchor_direction``)."""
-    import gtsam
-
-    return gtsam.symbol("g", int(j))
-
-
-def lever_key(i: int) -> int:
-    """Key of tag ``i``'s lever arm (``L(i)``; ``L(0)`` with one tag)."""
-    from gtsam.symbol_shorthand import L
-
-    return L(int(i))
-
-
 def _P():
-    """Key of an estimated anchor position (``P(j)``, ``Point3``, world frame)."""
-    from gtsam.symbol_shorthand import P
-
-    return P
+    """Deprecated: the key function of an estimated anchor position; use :func:`uwbimu.calibration.keys.anchor_position`."""
+    return keys.anchor_position
 
 
 @dataclass
@@ -371,7 +348,6 @@ def _imu_factors(pb: Problem):
     times ``imu_noise_inflation``."""
     import gtsam
 
-    X, V, B, *_ = _keys()
     n = pb.imu_noise
     infl = pb.options.imu_noise_inflation
     rate = (len(pb.t_imu) - 1) / (pb.t_imu[-1] - pb.t_imu[0])
@@ -399,7 +375,7 @@ def _imu_factors(pb: Problem):
             # trajectory lags half an IMU period against the ranges: t_d biased by about -T/2).
             acc = so3_exp(0.5 * h * (mid[3:] - b[3:])) @ (mid[:3] - b[:3]) + b[:3]
             pim.integrateMeasurement(acc, mid[3:], h)
-        factors.append(gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1), pim))
+        factors.append(gtsam.CombinedImuFactor(keys.pose(k), keys.velocity(k), keys.pose(k + 1), keys.velocity(k + 1), keys.imu_bias(k), keys.imu_bias(k + 1), pim))
     return factors
 
 
@@ -446,27 +422,26 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
     """The nonlinear factor graph; ``td_fixed`` removes ``T(0)`` (profile points)."""
     import gtsam
 
-    X, V, B, L, T, A = _keys()
     o = pb.options
     g = gtsam.NonlinearFactorGraph()
     for f in imu_factors if imu_factors is not None else _imu_factors(pb):
         g.add(f)
     s = pb.init_states[0]
-    g.add(gtsam.PriorFactorPose3(X(0), _pose(s), gtsam.noiseModel.Diagonal.Sigmas(
+    g.add(gtsam.PriorFactorPose3(keys.pose(0), _pose(s), gtsam.noiseModel.Diagonal.Sigmas(
         np.array([0.3, 0.3, 0.3, 1.0, 1.0, 1.0]))))
-    g.add(gtsam.PriorFactorVector(V(0), s[3:6], gtsam.noiseModel.Isotropic.Sigma(3, 1.0)))
-    g.add(gtsam.PriorFactorConstantBias(B(0), gtsam.imuBias.ConstantBias(np.zeros(3), np.zeros(3)),
+    g.add(gtsam.PriorFactorVector(keys.velocity(0), s[3:6], gtsam.noiseModel.Isotropic.Sigma(3, 1.0)))
+    g.add(gtsam.PriorFactorConstantBias(keys.imu_bias(0), gtsam.imuBias.ConstantBias(np.zeros(3), np.zeros(3)),
                                         gtsam.noiseModel.Diagonal.Sigmas(np.array([0.2] * 3 + [0.05] * 3))))
     for i in range(pb.n_tags):
         prior = pb.lever_prior[i] if pb.lever_prior is not None else np.asarray(o.lever_arm_prior, float)
-        g.add(gtsam.PriorFactorVector(L(i), np.asarray(prior, float),
+        g.add(gtsam.PriorFactorVector(keys.lever_arm(i), np.asarray(prior, float),
                                       gtsam.noiseModel.Isotropic.Sigma(3, o.lever_arm_prior_sd)))
     if td_fixed is None:
-        g.add(gtsam.PriorFactorVector(T(0), np.array([o.time_offset_prior]),
+        g.add(gtsam.PriorFactorVector(keys.time_offset(), np.array([o.time_offset_prior]),
                                       gtsam.noiseModel.Isotropic.Sigma(1, o.time_offset_prior_sd)))
     for j in range(len(pb.anchor_ids)):
         bias_sd = o.anchor_bias_prior_sd if o.anchor_bias_estimated(pb.estimated(j)) else 1e-6
-        g.add(gtsam.PriorFactorVector(A(j), np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, bias_sd)))
+        g.add(gtsam.PriorFactorVector(keys.anchor_bias(j), np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, bias_sd)))
     if pb.anchors is not None:
         for f in anchor_factors(pb):
             g.add(f)
@@ -475,15 +450,14 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
             g.add(f)
     dmod = o.range_model.direction
     for i in range(n_dir_vectors(pb)):
-        g.add(gtsam.PriorFactorVector(dir_key(i), np.zeros(dmod.n_coef),
+        g.add(gtsam.PriorFactorVector(keys.direction_bias(i), np.zeros(dmod.n_coef),
                                       gtsam.noiseModel.Isotropic.Sigma(dmod.n_coef, dmod.prior_sd)))
     amod = o.range_model.anchor_direction
     for j in adir_anchors(pb):
-        g.add(gtsam.PriorFactorVector(adir_key(j), np.zeros(amod.n_coef),
+        g.add(gtsam.PriorFactorVector(keys.anchor_direction_bias(j), np.zeros(amod.n_coef),
                                       gtsam.noiseModel.Isotropic.Sigma(amod.n_coef, amod.prior_sd)))
     noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(o.huber_k),
                                            gtsam.noiseModel.Isotropic.Sigma(1, pb.range_sigma))
-    P = _P()
     tnoise = None
     if pb.anchor_b is not None:
         tnoise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(o.huber_k),
@@ -502,10 +476,10 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
                 tag = pb.tag_of(int(ms[0]))
                 js = pb.anchor_j[ms].astype(np.int64)
                 ujs, col = np.unique(js, return_inverse=True)
-                bkeys = [A(int(j)) for j in ujs]
+                bkeys = [keys.anchor_bias(int(j)) for j in ujs]
                 bmat = None
                 if pb.drift_knot is not None:
-                    dk = np.array([drift_key(j, n) for j, n in zip(js, pb.drift_knot[ms])], dtype=np.uint64)
+                    dk = np.array([keys.bias_drift(j, n) for j, n in zip(js, pb.drift_knot[ms])], dtype=np.uint64)
                     udk, dcol = np.unique(dk, return_inverse=True)
                     bmat = np.zeros((len(ms), len(ujs) + len(udk)))
                     bmat[np.arange(len(ms)), col] = 1.0
@@ -517,16 +491,16 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
                     udj, dcol = np.unique(dj, return_inverse=True)
                     orders = tuple(range(dmod.lowest_order, dmod.harmonics + 1))
                     dkw = {"direction": (orders, dmod.elevation), "dir_col": dcol}
-                    bkeys += [dir_key(int(x)) for x in udj]
+                    bkeys += [keys.direction_bias(int(x)) for x in udj]
                 if amod is not None:
                     dkw |= {"anchor_direction": (amod.orders, amod.powers), "anchor_rot": pb.anchor_rot[js],
                             "adir_col": col}
-                    bkeys += [adir_key(int(j)) for j in ujs]
+                    bkeys += [keys.anchor_direction_bias(int(j)) for j in ujs]
                 uest = np.array([pb.estimated(int(j)) for j in ujs], bool)
                 if uest.any():  # self-survey: the estimated anchors' positions are variables of the group
                     avar = np.where(uest, np.cumsum(uest) - 1, -1)[col]
                     dkw["anchor_var"] = avar
-                    bkeys += [P(int(j)) for j in ujs[uest]]
+                    bkeys += [keys.anchor_position(int(j)) for j in ujs[uest]]
                 grp = RangeGroup([assoc.deltas[i] for i in chunk], pb.anchor_pos[js], pb.rho[ms], col, assoc.td0,
                                  bias_matrix=bmat, kf=kf, **dkw)
                 _add_group(g, assoc, slots, chunk, grp, kfs, tag, bkeys, pb.range_sigma, o.huber_k, td_fixed)
@@ -539,14 +513,14 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
         j = int(pb.anchor_j[m])
         if pb.is_tdoa(m):
             jb = int(pb.anchor_b[m])
-            keys = [X(k), V(k), L(pb.tag_of(m))] + ([T(0)] if td_fixed is None else []) + [A(j), A(jb)]
-            g.add(make_gtsam_tdoa_factor(keys, pb.anchor_pos[j], pb.anchor_pos[jb], pb.rho[m], d, assoc.td0, tnoise,
+            factor_keys = [keys.pose(k), keys.velocity(k), keys.lever_arm(pb.tag_of(m))] + ([keys.time_offset()] if td_fixed is None else []) + [keys.anchor_bias(j), keys.anchor_bias(jb)]
+            g.add(make_gtsam_tdoa_factor(factor_keys, pb.anchor_pos[j], pb.anchor_pos[jb], pb.rho[m], d, assoc.td0, tnoise,
                                          td_fixed=td_fixed))
             continue
         est = pb.estimated(j)
-        keys = [X(k), V(k), L(pb.tag_of(m))] + ([T(0)] if td_fixed is None else []) + [A(j)] + \
-            ([P(j)] if est else [])
-        g.add(make_gtsam_factor(keys, pb.anchor_pos[j], pb.rho[m], d, assoc.td0, noise, td_fixed=td_fixed,
+        factor_keys = [keys.pose(k), keys.velocity(k), keys.lever_arm(pb.tag_of(m))] + ([keys.time_offset()] if td_fixed is None else []) + [keys.anchor_bias(j)] + \
+            ([keys.anchor_position(j)] if est else [])
+        g.add(make_gtsam_factor(factor_keys, pb.anchor_pos[j], pb.rho[m], d, assoc.td0, noise, td_fixed=td_fixed,
                                 anchor_variable=est))
     assoc.slots = slots
     return g
@@ -559,7 +533,6 @@ def _group_tdoa(pb: Problem, assoc: Association, g, slots: np.ndarray, grouped: 
     callbacks).  Fills ``slots`` and ``grouped`` for them; the others keep one factor per row."""
     if pb.anchor_b is None or pb.drift_knot is not None:
         return
-    X, V, B, L, T, A = _keys()
     o = pb.options
     used = assoc.used
     ok = np.array([pb.is_tdoa(m) and not pb.estimated(int(pb.anchor_j[m])) and not pb.estimated(int(pb.anchor_b[m]))
@@ -577,7 +550,7 @@ def _group_tdoa(pb: Problem, assoc: Association, g, slots: np.ndarray, grouped: 
         bmat[np.arange(len(ms)), inv[:len(ms)]] -= 1.0
         grp = TdoaGroup([assoc.deltas[i] for i in chunk], pb.anchor_pos[ja], pb.anchor_pos[jb], pb.rho[ms], bmat,
                         assoc.td0, kf=kf)
-        _add_group(g, assoc, slots, chunk, grp, kfs, pb.tag_of(int(ms[0])), [A(int(j)) for j in uj], pb.tdoa_sigma,
+        _add_group(g, assoc, slots, chunk, grp, kfs, pb.tag_of(int(ms[0])), [keys.anchor_bias(int(j)) for j in uj], pb.tdoa_sigma,
                    o.huber_k, td_fixed)
         grouped[chunk] = True
 
@@ -600,11 +573,10 @@ def _add_group(g, assoc: Association, slots: np.ndarray, chunk: np.ndarray, grp,
                sigma: float, huber_k: float, td_fixed) -> None:
     """Add one grouped factor (keys: its keyframes' pose and velocity, the tag's lever arm, t_d when free, then
     ``extra_keys``) and record where its rows' residuals live (``assoc.groups``, ``slots``)."""
-    X, V, B, L, T, A = _keys()
-    keys = [key for k in kfs for key in (X(int(k)), V(int(k)))] + [L(tag)] + \
-        ([T(0)] if td_fixed is None else []) + list(extra_keys)
+    factor_keys = [key for k in kfs for key in (keys.pose(int(k)), keys.velocity(int(k)))] + [keys.lever_arm(tag)] + \
+        ([keys.time_offset()] if td_fixed is None else []) + list(extra_keys)
     fi = g.size()
-    g.add(make_gtsam_group_factor(keys, grp, sigma, huber_k, td_fixed=td_fixed))
+    g.add(make_gtsam_group_factor(factor_keys, grp, sigma, huber_k, td_fixed=td_fixed))
     assoc.groups[fi] = grp
     slots[chunk, 0] = fi
     slots[chunk, 1] = np.arange(len(chunk))
@@ -723,7 +695,7 @@ def _pair_factor(key_a, key_b, fixed_a, fixed_b, r: float, sd: float):
     """CustomFactor of one anchor_ranges.csv row; a ``None`` key means that anchor is fixed."""
     import gtsam
 
-    keys = [k for k in (key_a, key_b) if k is not None]
+    factor_keys = [k for k in (key_a, key_b) if k is not None]
 
     def error(this, values, H):
         pa = values.atPoint3(key_a) if key_a is not None else fixed_a
@@ -738,18 +710,18 @@ def _pair_factor(key_a, key_b, fixed_a, fixed_b, r: float, sd: float):
                 H[i] = Jb.reshape(1, 3)
         return np.array([e])
 
-    return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, sd), gtsam.KeyVector(keys), error)
+    return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, sd), gtsam.KeyVector(factor_keys), error)
 
 
 def anchor_factors(pb: Problem) -> list:
     """Priors of the estimated anchors, the gauge constraint and the inter-anchor range factors."""
     import gtsam
 
-    s, P = pb.anchors, _P()
+    s = pb.anchors
     out = []
     for j in np.flatnonzero(s.estimated):
         if np.isfinite(s.prior_sd[j]):
-            out.append(gtsam.PriorFactorPoint3(P(int(j)), s.pos[j].copy(),
+            out.append(gtsam.PriorFactorPoint3(keys.anchor_position(int(j)), s.pos[j].copy(),
                                                gtsam.noiseModel.Isotropic.Sigma(3, float(s.prior_sd[j]))))
     if s.yaw_fix is not None:
         j, y = s.yaw_fix
@@ -760,13 +732,13 @@ def anchor_factors(pb: Problem) -> list:
             return np.array([values.atPoint3(this.keys()[0])[1] - y])
 
         out.append(gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(1, GAUGE_SIGMA),
-                                      gtsam.KeyVector([P(int(j))]), gauge))
+                                      gtsam.KeyVector([keys.anchor_position(int(j))]), gauge))
     if s.pairs is not None:
         for a, b, r, sd in s.pairs[["a", "b", "range", "sd"]].itertuples(index=False):
             a, b = int(a), int(b)
             if not (s.estimated[a] or s.estimated[b]):
                 continue  # both fixed: a check only (reported), no variable to constrain
-            out.append(_pair_factor(P(a) if s.estimated[a] else None, P(b) if s.estimated[b] else None,
+            out.append(_pair_factor(keys.anchor_position(a) if s.estimated[a] else None, keys.anchor_position(b) if s.estimated[b] else None,
                                     s.pos[a], s.pos[b], float(r), float(sd)))
     return out
 
@@ -774,27 +746,26 @@ def anchor_factors(pb: Problem) -> list:
 def initial_values(pb: Problem, with_td: bool = True):
     import gtsam
 
-    X, V, B, L, T, A = _keys()
     vals = gtsam.Values()
     for k, s in enumerate(pb.init_states):
-        vals.insert(X(k), _pose(s))
-        vals.insert(V(k), s[3:6].copy())
-        vals.insert(B(k), gtsam.imuBias.ConstantBias(s[10:13].copy(), s[13:16].copy()))
+        vals.insert(keys.pose(k), _pose(s))
+        vals.insert(keys.velocity(k), s[3:6].copy())
+        vals.insert(keys.imu_bias(k), gtsam.imuBias.ConstantBias(s[10:13].copy(), s[13:16].copy()))
     levers = pb.levers0 if pb.levers0 is not None else pb.lever0[None]
     for i in range(pb.n_tags):
-        vals.insert(L(i), np.asarray(levers[i], float).copy())
+        vals.insert(keys.lever_arm(i), np.asarray(levers[i], float).copy())
     if with_td:
-        vals.insert(T(0), np.array([pb.td0]))
+        vals.insert(keys.time_offset(), np.array([pb.td0]))
     for i in range(n_dir_vectors(pb)):
-        vals.insert(dir_key(i), np.zeros(pb.options.range_model.direction.n_coef))
+        vals.insert(keys.direction_bias(i), np.zeros(pb.options.range_model.direction.n_coef))
     for j in adir_anchors(pb):
-        vals.insert(adir_key(j), np.zeros(pb.options.range_model.anchor_direction.n_coef))
+        vals.insert(keys.anchor_direction_bias(j), np.zeros(pb.options.range_model.anchor_direction.n_coef))
     for j in range(len(pb.anchor_ids)):
-        vals.insert(A(j), np.zeros(1))
+        vals.insert(keys.anchor_bias(j), np.zeros(1))
         for n in range(pb.n_knots if pb.drift_knot is not None else 0):
-            vals.insert(drift_key(j, n), np.zeros(1))
+            vals.insert(keys.bias_drift(j, n), np.zeros(1))
         if pb.estimated(j):
-            vals.insert(_P()(j), np.asarray(pb.anchor_pos[j], float).copy())
+            vals.insert(keys.anchor_position(j), np.asarray(pb.anchor_pos[j], float).copy())
     return vals
 
 
@@ -919,20 +890,18 @@ def with_td(values, td: float):
     """Copy of ``values`` with ``T(0) = td`` inserted or replaced."""
     import gtsam
 
-    *_, T, _A = _keys()
     out = gtsam.Values(values)
-    if out.exists(T(0)):
-        out.update(T(0), np.array([td]))
+    if out.exists(keys.time_offset()):
+        out.update(keys.time_offset(), np.array([td]))
     else:
-        out.insert(T(0), np.array([td]))
+        out.insert(keys.time_offset(), np.array([td]))
     return out
 
 
 def without_td(values):
     import gtsam
 
-    *_, T, _A = _keys()
     out = gtsam.Values(values)
-    if out.exists(T(0)):
-        out.erase(T(0))
+    if out.exists(keys.time_offset()):
+        out.erase(keys.time_offset())
     return out

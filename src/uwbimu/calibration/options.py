@@ -13,6 +13,8 @@ from typing import Literal, Optional, Union
 
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, field_validator, model_validator
 
+# Validators raise ConfigError (a ValueError, so pydantic wraps it in its ValidationError); load_yaml_model and
+# validate_model turn that into one ConfigError naming the file, line and field (exit code 2).
 from uwbimu.errors import ConfigError
 from uwbimu.estimation.options import EskfOptions
 
@@ -51,7 +53,7 @@ class TdProfileOptions(BaseModel):
     def _coarse_work(cls, v, info):
         hw = info.data.get("half_width")
         if v is not None and hw is not None and int(2 * hw / v) + 1 > MAX_PROFILE_POINTS // 2:
-            raise ValueError(f"the coarse grid would have {int(2 * hw / v) + 1} points (one solve each), more than "
+            raise ConfigError(f"the coarse grid would have {int(2 * hw / v) + 1} points (one solve each), more than "
                              f"{MAX_PROFILE_POINTS // 2}; make coarse_step coarser (or half_width smaller)")
         return v
 
@@ -62,7 +64,7 @@ class TdProfileOptions(BaseModel):
         if hw is not None and "coarse_step" in info.data:
             n = _grid_points(hw, info.data["coarse_step"], v)
             if n > MAX_PROFILE_POINTS:
-                raise ValueError(f"the grid would have {n} points (one solve each), more than {MAX_PROFILE_POINTS}; "
+                raise ConfigError(f"the grid would have {n} points (one solve each), more than {MAX_PROFILE_POINTS}; "
                                  f"make step coarser (or half_width smaller)")
         return v
 
@@ -88,7 +90,7 @@ class BlockCheckOptions(BaseModel):
     @model_validator(mode="after")
     def _at_least_two(self):
         if self.blocks == 1:
-            raise ValueError("block_check.blocks: 0 (off) or at least 2")
+            raise ConfigError("block_check.blocks: 0 (off) or at least 2")
         return self
 
 
@@ -141,7 +143,7 @@ class DirectionBias(BaseModel):
     @model_validator(mode="after")
     def _orders(self) -> "DirectionBias":
         if self.lowest_order > self.harmonics:
-            raise ValueError(f"lowest_order ({self.lowest_order}) must not exceed harmonics ({self.harmonics})")
+            raise ConfigError(f"lowest_order ({self.lowest_order}) must not exceed harmonics ({self.harmonics})")
         return self
 
     @property
@@ -184,12 +186,12 @@ class AnchorDirectionBias(BaseModel):
     @model_validator(mode="after")
     def _orders(self) -> "AnchorDirectionBias":
         if self.harmonics and self.lowest_order > self.harmonics:
-            raise ValueError(f"lowest_order ({self.lowest_order}) must not exceed harmonics ({self.harmonics})")
+            raise ConfigError(f"lowest_order ({self.lowest_order}) must not exceed harmonics ({self.harmonics})")
         if self.elevation_order and self.elevation_lowest_order > self.elevation_order:
-            raise ValueError(f"elevation_lowest_order ({self.elevation_lowest_order}) must not exceed elevation_order "
+            raise ConfigError(f"elevation_lowest_order ({self.elevation_lowest_order}) must not exceed elevation_order "
                              f"({self.elevation_order})")
         if self.n_coef == 0:
-            raise ValueError("harmonics: 0 and elevation_order: 0 leave no term")
+            raise ConfigError("harmonics: 0 and elevation_order: 0 leave no term")
         return self
 
     @property

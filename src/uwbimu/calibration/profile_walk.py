@@ -7,38 +7,56 @@ arithmetic are in :mod:`uwbimu.calibration.profile`.
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
-from uwbimu.calibration import graph as G
+from uwbimu.calibration import keys
+from uwbimu.calibration.graph import _imu_factors, associate, build_graph, optimize, without_td
 from uwbimu.calibration.profile import TdProfile, profile_verdict
+from uwbimu.calibration.stages import Solved
 
 
-def _solve(pb, imf, values, td0: float, td_fixed: Optional[float], assoc=None, predicted_tol: Optional[float] = None,
-           engine: str = "python", rows=None):
+def solve(pb, imf, values, td0: float, td_fixed: Optional[float], assoc=None, predicted_tol: Optional[float] = None,
+          engine: str = "python", rows=None) -> Solved:
     """Solve with ranges attached about ``td0``; re-attach while free t_d moves > half a keyframe step.
 
     ``assoc``: an association to reuse for the first solve (within half a keyframe step of its ``td0``
     the factor's second-order extrapolation in ``t_d - td0`` covers the motion).
     ``predicted_tol``, ``engine``: see :func:`uwbimu.calibration.graph.optimize`; ``rows``: the ranges
     to use (:func:`uwbimu.calibration.graph.associate`).
+
+    Parameters
+    ----------
+    pb, imf : the problem and its IMU factors (:class:`uwbimu.calibration.stages.Built`).
+    values : the start (``gtsam.Values``; without ``t(0)`` when ``td_fixed`` is given).
+    td0 : t_d [s] the ranges are first attached about.
+    td_fixed : t_d [s] held fixed (profile points, t_d held at its prior), or None (t_d estimated).
+
+    Returns
+    -------
+    :class:`uwbimu.calibration.stages.Solved`.
     """
-    X, V, B, L, T, A = G._keys()
     half = 0.5 / pb.options.keyframe_hz
     for _ in range(pb.options.reassociate_max + 1):
         if assoc is None or abs(assoc.td0 - td0) > half:
-            assoc = G.associate(pb, td0, rows=rows)
-        graph = G.build_graph(pb, assoc, td_fixed=td_fixed, imu_factors=imf)
-        values, iters = G.optimize(graph, values, pb.options.max_iterations, predicted_tol=predicted_tol,
-                                   engine=engine)
+            assoc = associate(pb, td0, rows=rows)
+        graph = build_graph(pb, assoc, td_fixed=td_fixed, imu_factors=imf)
+        values, iters = optimize(graph, values, pb.options.max_iterations, predicted_tol=predicted_tol,
+                                 engine=engine)
         if td_fixed is not None:
             break
-        td = float(values.atVector(T(0))[0])
+        td = float(values.atVector(keys.time_offset())[0])
         if abs(td - assoc.td0) <= half:
             break
         td0 = td
-    return graph, values, assoc, iters
+    return Solved(graph=graph, values=values, assoc=assoc, iterations=int(iters))
+
+
+def _solve(pb, imf, values, td0: float, td_fixed: Optional[float], assoc=None, predicted_tol: Optional[float] = None,
+           engine: str = "python", rows=None) -> tuple:
+    """:func:`solve` as the tuple ``(graph, values, assoc, iterations)`` (tests and benchmarks address it)."""
+    return solve(pb, imf, values, td0, td_fixed, assoc, predicted_tol, engine, rows).astuple()
 
 
 def _profile_grid_points(mu: float, half: float, step: float) -> np.ndarray:
@@ -146,7 +164,7 @@ def _walk_task(task):
     token, pb, points, start, prev, mode, rows = task
     if _WORKER_PROBLEM.get("token") != token:
         _WORKER_PROBLEM.clear()
-        _WORKER_PROBLEM.update(token=token, pb=pb, imf=G._imu_factors(pb))
+        _WORKER_PROBLEM.update(token=token, pb=pb, imf=_imu_factors(pb))
     pb, imf = _WORKER_PROBLEM["pb"], _WORKER_PROBLEM["imf"]
     return _keep_best(_walk(pb, imf, points, start, prev, mode, rows=rows))
 
@@ -161,7 +179,7 @@ def _keep_best(points: list) -> list:
 
 def _run_walks(pb, imf, walks: list, mode: str, workers: int, executor: Optional[dict], on_point, rows) -> list:
     """Run independent walks ``(points, start, prev)``: here in order (``workers == 1``, no pickling) or on the
-    Monte Carlo executors (:func:`uwbimu.studies.executors.execute`), one task per walk.  Same points, same
+    Monte Carlo executors (:func:`uwbimu.parallel.execute`), one task per walk.  Same points, same
     warm starts either way, so the same values.  Returns the concatenated points."""
     walks = [w for w in walks if len(w[0])]
     if workers == 1 and not executor:
@@ -172,7 +190,7 @@ def _run_walks(pb, imf, walks: list, mode: str, workers: int, executor: Optional
     import uuid
 
     from uwbimu.errors import EstimationError
-    from uwbimu.studies.executors import execute
+    from uwbimu.parallel import execute
 
     token = uuid.uuid4().hex
     light = _light_problem(pb)
@@ -199,7 +217,8 @@ def _indexed_walk_task(task):
 
 
 def run_profile(pb, imf, free_values, centre: float, progress=None, workers: int = 1,
-                executor: Optional[dict] = None, mode: str = "fast", chi2_scale: float = 1.0) -> TdProfile:
+                executor: Optional[dict] = None, mode: str = "fast", chi2_scale: float = 1.0,
+                on_point: Optional[Callable[[int, int], None]] = None) -> TdProfile:
     """Profile of t_d on the grid ``prior +/- half_width``, warm-started outward from ``centre``.
 
     With ``td_profile.coarse_step`` larger than ``step``: first the whole range at ``coarse_step``,
@@ -216,24 +235,29 @@ def run_profile(pb, imf, free_values, centre: float, progress=None, workers: int
     Each pass is two walks, upward and downward from its start (the free solution at ``centre``, then
     the coarse minimum), each point warm-started from its predecessor (:func:`_walk`, ``mode``).  The
     walks are independent: ``workers > 1`` (or ``executor``: keyword arguments of
-    :func:`uwbimu.studies.executors.execute`, e.g. ``{"dask_local": True}``) runs them as tasks on the
+    :func:`uwbimu.parallel.execute`, e.g. ``{"dask_local": True}``) runs them as tasks on the
     Monte Carlo executors, ``workers == 1`` here; the points and values are the same either way (at
     most two walks run at once, so more than 2 workers gain nothing here).
 
     ``chi2_scale``: the honesty correction of the white-noise profile (:func:`_profile_chi2_scale`); the zoom
     decision and the verdict both read the scaled profile (:func:`profile_verdict`).
+
+    ``progress``: called with the overall fraction of :func:`uwbimu.calibration.calibrate` (0.2 to 0.8 here);
+    ``on_point``: called ``(points solved, points planned)`` after each point (the zoom adds planned points).
     """
     po = pb.options.td_profile
     o = pb.options
     mu = o.time_offset_prior
-    base = G.without_td(free_values)
+    base = without_td(free_values)
     found: dict = {}  # grid point -> (chi2, iterations, values or None)
     total = [1]
 
-    def on_point():
+    def point_done():
+        total[0] += 1
         if progress is not None:
-            total[0] += 1
             progress(0.2 + 0.6 * min(1.0, total[0] / n_total))
+        if on_point is not None:
+            on_point(total[0] - 1, n_total)
 
     def walks_from(points, start_t, start_vals):
         points = np.asarray(points, float)
@@ -251,17 +275,17 @@ def run_profile(pb, imf, free_values, centre: float, progress=None, workers: int
         coarse = _profile_grid_points(mu, po.half_width, po.coarse_step)
         m = int(round(po.coarse_step / po.step))
         n_total = len(coarse) + 2 * m
-        record(_run_walks(pb, imf, walks_from(coarse, centre, base), mode, workers, executor, on_point, rows))
+        record(_run_walks(pb, imf, walks_from(coarse, centre, base), mode, workers, executor, point_done, rows))
         best = min(found, key=lambda g: found[g][0])
         fine = np.round(best + po.step * np.arange(-m, m + 1), 12)
         fine = fine[(fine >= coarse[0]) & (fine <= coarse[-1]) & ~np.isin(fine, list(found))]
         start = (best, found[best][2])
         fw = [(fine[fine > best], start, None), (fine[fine < best][::-1], start, None)]
-        record(_run_walks(pb, imf, fw, mode, workers, executor, on_point, rows))
+        record(_run_walks(pb, imf, fw, mode, workers, executor, point_done, rows))
     else:
         grid = _profile_grid_points(mu, po.half_width, po.step)
         n_total = len(grid)
-        record(_run_walks(pb, imf, walks_from(grid, centre, base), mode, workers, executor, on_point, rows))
+        record(_run_walks(pb, imf, walks_from(grid, centre, base), mode, workers, executor, point_done, rows))
     step = po.step
     for _level in range(PROFILE_ZOOM_LEVELS):
         grid = np.array(sorted(found))
@@ -280,7 +304,7 @@ def run_profile(pb, imf, free_values, centre: float, progress=None, workers: int
         n_total += len(zoom)
         start = (best, found[best][2])
         zw = [(np.sort(zoom[zoom > best]), start, None), (np.sort(zoom[zoom < best])[::-1], start, None)]
-        record(_run_walks(pb, imf, zw, mode, workers, executor, on_point, rows))
+        record(_run_walks(pb, imf, zw, mode, workers, executor, point_done, rows))
     grid = np.array(sorted(found))
     chi2 = np.array([found[g][0] for g in grid])
     iters = np.array([found[g][1] for g in grid], int)

@@ -322,7 +322,7 @@ class RangeGroup:
         if self.anchor_var is None:
             return self.anchor
         if anchor_pos is None:
-            raise ValueError("RangeGroup: this group has estimated anchors; pass anchor_pos")
+            raise TypeError("RangeGroup: this group has estimated anchors; pass anchor_pos")  # a caller's bug
         ap = np.asarray(anchor_pos, float).reshape(self.n_apos, 3)
         est = self.anchor_var >= 0
         return np.where(est[:, None], ap[np.maximum(self.anchor_var, 0)], self.anchor)

@@ -26,7 +26,8 @@ from typing import Callable
 
 import numpy as np
 
-from uwbimu.calibration import graph as G
+from uwbimu.calibration import keys
+from uwbimu.calibration.graph import range_residuals
 from uwbimu.calibration.options import HUBER_START  # noqa: F401  (the first solve's threshold; re-exported)
 
 #: candidate thresholds in units of the residuals' robust scale (1.4826 MAD), 5 % apart: from half of it to
@@ -47,10 +48,9 @@ def row_sigma(pb, assoc) -> np.ndarray:
 def whitened_residuals(pb, graph, assoc, values, td: float | None = None) -> np.ndarray:
     """``z = residual / sigma`` of the range and TDoA rows of ``graph`` at ``values`` (assoc.used order);
     ``td`` [s] the time offset when ``values`` has none (a t_d-fixed graph), else read from ``values``."""
-    _X, _V, _B, _L, T, _A = G._keys()
     if td is None:
-        td = float(values.atVector(T(0))[0])
-    return G.range_residuals(graph, assoc, values, td) / row_sigma(pb, assoc)
+        td = float(values.atVector(keys.time_offset())[0])
+    return range_residuals(graph, assoc, values, td) / row_sigma(pb, assoc)
 
 
 def variance_factor(z: np.ndarray, k: float) -> float:
@@ -89,7 +89,9 @@ def select_huber_k(z: np.ndarray) -> dict:
     z = np.asarray(z, float)
     z = z[np.isfinite(z)]
     if len(z) == 0:
-        raise ValueError("select_huber_k: no finite residual")
+        from uwbimu.errors import EstimationError
+
+        raise EstimationError("adaptive Huber threshold: the solve left no finite range residual")
     s = 1.4826 * float(np.median(np.abs(z)))
     if not s > 0.0:  # more than half the rows fitted exactly: scale from the mean square instead
         s = float(np.sqrt(np.mean(z**2))) or 1.0
@@ -106,23 +108,23 @@ def select_huber_k(z: np.ndarray) -> dict:
             "variance_vs_least_squares": float(v[i] / v_ls) if v_ls > 0 else 1.0}
 
 
-def adapt_huber(pb, imf, graph, values, assoc, iters: int, solve: Callable):
-    """Choose ``huber_k`` on the residuals of the solution ``values`` and re-solve with it.
+def adapt_huber(built, solved, solve: Callable):
+    """Choose ``huber_k`` on the residuals of a solution and re-solve with it (stage ``adaptive Huber``).
 
     Parameters
     ----------
-    pb, imf, graph, values, assoc, iters : the problem (its ``options.huber_k`` a number, the first solve's)
-        and that solve's output.
-    solve : ``solve(pb, imf, values, td0, assoc) -> (graph, values, assoc, iterations)``, warm-started.
+    built : :class:`uwbimu.calibration.stages.Built`, its problem's ``options.huber_k`` a number (the first
+        solve's).
+    solved : :class:`uwbimu.calibration.stages.Solved`, that solve (t_d free).
+    solve : ``solve(pb, imf, values, td0, assoc) -> Solved``, warm-started.
 
     Returns
     -------
-    (pb, graph, values, assoc, iterations, info): the problem with the chosen threshold in its options, the
-    solution under it, and :func:`select_huber_k`'s dict (calibration.yaml ``range_model.huber``) with
-    ``selection: adaptive``.
+    (built, solved, info): the problem with the chosen threshold in its options, the solution under it, and
+    :func:`select_huber_k`'s dict (calibration.yaml ``range_model.huber``) with ``selection: adaptive``.
     """
-    _X, _V, _B, _L, T, _A = G._keys()
-    info = select_huber_k(whitened_residuals(pb, graph, assoc, values)) | {"selection": "adaptive"}
+    pb = built.problem
+    info = select_huber_k(whitened_residuals(pb, solved.graph, solved.assoc, solved.values)) | {"selection": "adaptive"}
     pb = dataclasses.replace(pb, options=pb.options.model_copy(update={"huber_k": info["k"]}))
-    graph, values, assoc, iters = solve(pb, imf, values, float(values.atVector(T(0))[0]), assoc)
-    return pb, graph, values, assoc, iters, info
+    built = dataclasses.replace(built, problem=pb)
+    return built, solve(pb, built.imu_factors, solved.values, solved.time_offset(), solved.assoc), info

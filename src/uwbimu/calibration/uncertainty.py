@@ -12,12 +12,12 @@ from typing import Optional
 
 import numpy as np
 
-from uwbimu.calibration import graph as G
+from uwbimu.calibration import keys
 from uwbimu.calibration.robust_loss import whitened_residuals
 
 
-def _calibration_covariance(pb, graph, values, assoc, keys, td: float, td_free: bool, marg=None):
-    """Covariance of ``keys`` by ``options.covariance``: (cov, cov_model, yaml section).
+def _calibration_covariance(pb, graph, values, assoc, param_keys, td: float, td_free: bool, marg=None):
+    """Covariance of the variables ``param_keys`` by ``options.covariance``: (cov, cov_model, yaml section).
 
     ``sandwich``: :func:`uwbimu.calibration.covariance.sandwich_covariance` over the range/TDoA rows
     (Huber inliers ``|z| <= huber_k`` in the bread; bandwidth from the lever arm's and t_d's score series).
@@ -25,18 +25,18 @@ def _calibration_covariance(pb, graph, values, assoc, keys, td: float, td_free: 
     """
     import gtsam
 
-    from uwbimu.calibration import covariance as CV
+    from uwbimu.calibration.covariance import sandwich_covariance
 
     marg = marg if marg is not None else _marginals(pb, graph, values)
-    cov_model = marg.jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
+    cov_model = marg.jointMarginalCovariance(gtsam.KeyVector(param_keys)).fullMatrix()
     if pb.options.covariance == "model":
         return cov_model, cov_model, {"method": "model", "description": "GTSAM marginals of the white range-noise model"}
     inlier = np.abs(whitened_residuals(pb, graph, assoc, values, td)) <= pb.options.huber_k
-    cov, cov_model, info = CV.sandwich_covariance(graph, values, keys, assoc.slots, pb.t_range[assoc.used],
-                                                  1.0 / pb.options.keyframe_hz, inlier=inlier,
-                                                  interest=np.arange(4 if td_free else 3), cov_model=cov_model,
-                                                  blocks=pb.options.block_check.blocks,
-                                                  block_level=pb.options.block_check.level)
+    cov, cov_model, info = sandwich_covariance(graph, values, param_keys, assoc.slots, pb.t_range[assoc.used],
+                                               1.0 / pb.options.keyframe_hz, inlier=inlier,
+                                               interest=np.arange(4 if td_free else 3), cov_model=cov_model,
+                                               blocks=pb.options.block_check.blocks,
+                                               block_level=pb.options.block_check.level)
     if info.block is not None:
         # where the blocks' variance is the larger, that parameter's sigma is the blocks' (the HAC's correlations kept)
         w = info.block.widened
@@ -98,9 +98,8 @@ def _profile_chi2_scale(pb, graph, values, assoc) -> float:
     """Model / sandwich variance of t_d at a free solve (1 with ``covariance: model``)."""
     if pb.options.covariance == "model":
         return 1.0
-    X, V, B, L, T, A = G._keys()
-    td = float(values.atVector(T(0))[0])
-    cov, cov_model, _ = _calibration_covariance(pb, graph, values, assoc, [L(0), T(0)], td, True)
+    td = float(values.atVector(keys.time_offset())[0])
+    cov, cov_model, _ = _calibration_covariance(pb, graph, values, assoc, [keys.lever_arm(0), keys.time_offset()], td, True)
     return float(min(1.0, cov_model[3, 3] / cov[3, 3])) if cov[3, 3] > 0 else 1.0
 
 
