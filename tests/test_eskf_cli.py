@@ -54,11 +54,15 @@ def test_cli_estimate_writes_every_output(tmp_path, short_ds):
     assert list(res.columns) == ["t", "anchor", "range", "predicted", "innovation", "nis", "accepted"]
     assert len(res) == len(short_ds.uwb)
     cal = yaml.safe_load((out / "calibration.yaml").read_text())
-    for k in ("lever_arm", "lever_arm_sd", "time_offset", "time_offset_sd", "accel_bias", "accel_bias_sd",
+    for k in ("schema_version", "lever_arm", "lever_arm_sd", "time_offset", "accel_bias", "accel_bias_sd",
               "gyro_bias", "gyro_bias_sd", "uwbimu_version", "config"):
         assert k in cal
     assert cal["tags"][next(iter(cal["tags"]))]["lever_arm"] == cal["lever_arm"]
-    assert cal["time_offset_verdict"] in ("identified", "weakly identified", "not identified")
+    # the one schema (uwbimu.io.calibration_file): the time offset is a mapping, as `uwbimu calibrate` writes it
+    td = cal["time_offset"]
+    assert cal["schema_version"] == 2 and "time_offset_sd" not in cal
+    assert td["unit"] == "s" and td["mode"] in ("estimate", "consider") and td["sd"] > 0
+    assert td["verdict"] in ("identified", "weakly identified", "not identified")
     assert cal["config"]["output_rate_hz"] == 10 and cal["config"]["init"]["bank_window_s"] == 6
     met = yaml.safe_load((out / "metrics.yaml").read_text())
     for k in ("position_rmse", "orientation_rmse_deg", "nees_mean", "lever_arm_error", "time_offset_error"):

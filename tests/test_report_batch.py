@@ -168,7 +168,7 @@ def test_sigma_part_without_a_block_check(batch_out, tmp_path):
 
 
 def test_before_after_table_uses_the_written_columns(batch_out):
-    """"with" = residual as written (bias inside); "without" = residual - anchor_bias, per anchor."""
+    """"with" = measured − predicted as written (bias inside); "without" = that + anchor_bias, per anchor."""
     out, _ds = batch_out
     doc = _parse(render_report(out))
     tab = _table(doc, "before-after").set_index("anchor")
@@ -176,8 +176,9 @@ def test_before_after_table_uses_the_written_columns(batch_out):
     cal = yaml.safe_load((out / "calibration.yaml").read_text())
     assert set(tab.index) == set(res["anchor"].astype(str)) | {"all"}
     for a, g in res.groupby(res["anchor"].astype(str)):
-        with_ = 100 * g["residual"].median()
-        without = 100 * (g["residual"] - cal["anchor_bias"][a]).median()
+        mmp = g["range"] - g["predicted"]  # measured − predicted, the ESKF's sign (issue 30)
+        with_ = 100 * mmp.median()
+        without = 100 * (mmp + cal["anchor_bias"][a]).median()
         assert float(tab.loc[a, "median with [cm]"]) == pytest.approx(with_, abs=0.006)
         assert float(tab.loc[a, "median without [cm]"]) == pytest.approx(without, abs=0.006)
         assert int(tab.loc[a, "ranges"]) == len(g)
@@ -316,14 +317,17 @@ def test_a_malformed_input_fails_its_part_only(batch_out, tmp_path):
 
 
 def test_residual_without_removes_the_named_model_terms():
-    """calibration.outputs.residual_without: residual - anchor bias - each present model column; an anchor without
-    a bias and a non-numeric cell give NaN (never silently 0)."""
+    """calibration.outputs.residual_without: measured − predicted (here: −residual, no range/predicted columns) +
+    anchor bias + each present model column; an anchor without a bias and a non-numeric cell give NaN."""
     from uwbimu.calibration.outputs import residual_without
 
     res = pd.DataFrame({"anchor": ["A", "B", "C", "A"], "residual": [0.10, -0.20, 0.05, "x"],
                         "bias_drift": [0.01, 0.02, 0.0, 0.0], "bias_direction": [0.03, 0.0, 0.0, 0.0]})
     out = residual_without(res, {"A": 0.05, "B": -0.1})
-    np.testing.assert_allclose(out[:2], [0.10 - 0.05 - 0.01 - 0.03, -0.20 + 0.1 - 0.02])
+    np.testing.assert_allclose(out[:2], [-(0.10 - 0.05 - 0.01 - 0.03), -(-0.20 + 0.1 - 0.02)])
     assert np.isnan(out[2]) and np.isnan(out[3])
     only_drift = residual_without(res, {"A": 0.05, "B": -0.1}, columns=("bias_drift",))
-    assert only_drift[0] == pytest.approx(0.10 - 0.05 - 0.01)
+    assert only_drift[0] == pytest.approx(-(0.10 - 0.05 - 0.01))
+    # with range and predicted columns, the residual column's sign does not matter
+    both = pd.DataFrame({"anchor": ["A"], "range": [5.0], "predicted": [5.2], "residual": [99.0]})
+    assert residual_without(both, {"A": 0.05}, columns=())[0] == pytest.approx(5.0 - 5.2 + 0.05)

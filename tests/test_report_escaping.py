@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 from pathlib import Path
 
 import pandas as pd
@@ -24,7 +26,8 @@ def test_text_from_the_output_folder_is_escaped(tmp_path):
     html = render_report(out, title=EVIL)
     assert "<script>" not in html
     assert html.count("&lt;script&gt;") >= 4  # title (twice), mode, warning, anchor name
-    assert '<section id="warnings"><h2>Warnings</h2><div class="warn">&lt;script&gt;' in html
+    assert re.search(r'<div class="warn" data-warning-kind="estimator_warning"[^>]*><code>estimator_warning</code> '
+                     r'\(calibration.yaml\): &lt;script&gt;', html)
 
 
 def test_templates_ship_with_the_package():

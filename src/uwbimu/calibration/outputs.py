@@ -17,26 +17,54 @@ OUTPUT_FILES = ("calibration.yaml", "trajectory.csv", "residuals.csv", "anchors_
 RANGE_MODEL_COLUMNS = ("bias_drift", "bias_direction", "bias_anchor_direction")
 
 
-def residual_without(res, anchor_bias: dict, columns=RANGE_MODEL_COLUMNS) -> np.ndarray:
-    """Residual [m] of each row of a batch ``residuals.csv`` without the estimated range model: ``residual`` minus
-    the anchor's constant bias (``anchor_bias``: calibration.yaml's, by anchor id; NaN for an anchor not in it)
-    minus the per-row terms of ``columns`` that the table has (non-numeric cells become NaN)."""
+def measured_minus_predicted(res) -> np.ndarray:
+    """Residual [m] of each row of a batch ``residuals.csv`` as measured − predicted (the ESKF's innovation sign).
+
+    From the ``range`` and ``predicted`` columns when the table has both (whatever the sign of its ``residual``
+    column); else minus ``residual`` (the batch writes ``residual = predicted − measured``). Non-numeric cells
+    become NaN.
+    """
     import pandas as pd
 
-    e = pd.to_numeric(res["residual"], errors="coerce").to_numpy(float)
+    if "range" in res.columns and "predicted" in res.columns:
+        return (pd.to_numeric(res["range"], errors="coerce").to_numpy(float)
+                - pd.to_numeric(res["predicted"], errors="coerce").to_numpy(float))
+    return -pd.to_numeric(res["residual"], errors="coerce").to_numpy(float)
+
+
+def residual_without(res, anchor_bias: dict, columns=RANGE_MODEL_COLUMNS) -> np.ndarray:
+    """Residual [m], measured − predicted, of each row of a batch ``residuals.csv`` without the estimated range
+    model: :func:`measured_minus_predicted` plus the anchor's constant bias (``anchor_bias``: calibration.yaml's,
+    by anchor id; NaN for an anchor not in it) plus the per-row terms of ``columns`` that the table has (the model
+    terms are inside ``predicted``; non-numeric cells become NaN)."""
+    import pandas as pd
+
+    e = measured_minus_predicted(res)
     b = np.array([float(anchor_bias.get(a, np.nan)) for a in res["anchor"].astype(str)])
-    out = e - b
+    out = e + b
     for c in columns:
         if c in res.columns:
-            out = out - pd.to_numeric(res[c], errors="coerce").to_numpy(float)
+            out = out + pd.to_numeric(res[c], errors="coerce").to_numpy(float)
     return out
+
+
+def calibration_document(result) -> dict:
+    """``result.calibration`` in the one schema of calibration.yaml (:mod:`uwbimu.io.calibration_file`): the
+    time offset a mapping ``value, sd, unit, mode, verdict, ...`` (``mode: fixed`` when held at its prior, the
+    other values conditional on it), NaN sigmas null, ``estimator: batch``."""
+    from uwbimu.io import calibration_file as CF
+    from uwbimu.io.atomic import to_plain
+
+    cal = CF.migrate(to_plain(result.calibration))
+    cal.pop("time_offset_sd", None)
+    return {"schema_version": cal.pop("schema_version"), "estimator": "batch", **cal}
 
 
 def write_calibration(result, out_dir, plots: bool = True) -> list[Path]:
     """Write the result's files into ``out_dir`` (an existing folder); returns the paths."""
     out = Path(out_dir)
     paths = [out / "calibration.yaml", out / "trajectory.csv", out / "residuals.csv"]
-    paths[0].write_text(yaml.safe_dump(result.calibration, sort_keys=False))
+    paths[0].write_text(yaml.safe_dump(calibration_document(result), sort_keys=False, allow_unicode=True))
     result.trajectory.to_csv(paths[1], index=False, float_format="%.9g")
     result.residuals.to_csv(paths[2], index=False, float_format="%.9g")
     if getattr(result, "anchors", None) is not None:
@@ -60,9 +88,13 @@ def _plot_profile(prof, cal, path: Path) -> None:
     d = prof.chi2 - np.nanmin(prof.chi2)
     ax.plot(1000 * prof.grid, d, "o-", ms=3)
     ax.axhline(prof.confidence_chi2, color="gray", ls="--", lw=0.8, label=f"confidence set (Δχ² < {prof.confidence_chi2:g})")
+    from uwbimu.formatting import format_value_sigma
+
     td = cal["time_offset"]
-    if prof.identified:
-        ax.axvline(1000 * td["value"], color="C3", lw=1, label=f"t_d = {1000 * td['value']:.1f} ± {1000 * td['sd']:.1f} ms")
+    if prof.identified and td.get("value") is not None:
+        sd = td.get("sd")
+        ax.axvline(1000 * td["value"], color="C3", lw=1,
+                   label="t_d = " + format_value_sigma(1000 * td["value"], None if sd is None else 1000 * sd, "ms"))
     ax.set_xlabel("time offset t_d [ms]")
     ax.set_ylabel("Δχ² (profile)")
     ax.set_title(f"t_d profile: {prof.verdict}")

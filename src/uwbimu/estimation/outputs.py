@@ -6,9 +6,12 @@
 * ``states.csv``: every output with the full state and the 19 sd (biases,
   lever arm, time offset over time);
 * ``run.json``: ``imu_samples``, ``ranges``, ``filter_cpu_seconds``, ``total_cpu_seconds``.
-* ``calibration.yaml``: calibration values and sd, the configuration, the
-  uwbimu version, the warnings;
+* ``calibration.yaml``: calibration values and sd in the one schema of
+  :mod:`uwbimu.io.calibration_file` (``time_offset`` a mapping ``value, sd, unit, mode,
+  verdict``), the configuration, the uwbimu version, the warnings;
 * ``residuals.csv``: ``t, anchor, range, predicted, innovation, nis, accepted`` (+ ``kind, anchor_b`` with TDoA);
+  innovation = measured − predicted;
+* ``residual_table.csv``: per anchor (ranges) and per anchor pair (TDoA, column ``pair``), natural anchor order;
 * ``events.yaml``: the machine-readable event log;
 * with ground truth: ``metrics.yaml`` and PNG plots (trajectory, position
   errors with +/-3 sigma, lever arm and time offset with +/-3 sigma bands,
@@ -29,6 +32,8 @@ from scipy.stats import chi2
 
 import uwbimu
 from uwbimu.io import atomic
+from uwbimu.formatting import natural_key
+from uwbimu.io import calibration_file as CF
 from uwbimu.io.dataset import Dataset
 from uwbimu.models.state import ERROR_STATE_NAMES, NOMINAL_STATE_NAMES
 from uwbimu.models import state as S
@@ -66,21 +71,72 @@ def states_frame(result) -> pd.DataFrame:
 
 
 def residual_table(result) -> pd.DataFrame:
-    """Per-anchor residual statistics: count, accepted, rejected %, median, MAD of innovations [m]."""
+    """Per-anchor residual statistics: count, accepted, rejected %, median, MAD of innovations [m].
+
+    Innovation = measured − predicted. Range rows are grouped by ``anchor``; TDoA rows (``kind == "tdoa"``) by
+    their ``pair`` ``"a-b"`` (column ``pair``; ``anchor`` is empty for them), ranges first, each in natural order
+    (1, 2, ..., 10).
+    """
     r = result.residuals
+    kind = r["kind"].astype(str).to_numpy() if "kind" in r.columns else np.full(len(r), "range")
+    is_td = kind == "tdoa"
+    key = r["anchor"].astype(str).to_numpy().astype(object)
+    if is_td.any():
+        b = r["anchor_b"].astype(str).to_numpy() if "anchor_b" in r.columns else np.full(len(r), "?")
+        key[is_td] = [f"{a}-{bb}" for a, bb in zip(key[is_td], b[is_td])]
     rows = []
-    for a, g in r.groupby("anchor", sort=True):
-        inn = g["innovation"].to_numpy(float)
-        proc = np.isfinite(inn)
-        acc = g["accepted"].to_numpy(bool)
-        med = float(np.median(inn[proc])) if proc.any() else math.nan
-        mad = float(np.median(np.abs(inn[proc] - med))) if proc.any() else math.nan
-        rows.append({
-            "anchor": str(a), "ranges": int(len(g)), "processed": int(proc.sum()), "accepted": int(acc.sum()),
-            "rejected_pct": float(100.0 * (proc & ~acc).sum() / max(proc.sum(), 1)),
-            "median": med, "mad": mad,
-        })
-    return pd.DataFrame(rows, columns=["anchor", "ranges", "processed", "accepted", "rejected_pct", "median", "mad"])
+    for tdoa in (False, True):
+        sel = is_td == tdoa
+        if not sel.any():
+            continue
+        g_all = r[sel]
+        keys = key[sel]
+        for k in sorted(set(keys), key=natural_key):
+            g = g_all[keys == k]
+            inn = g["innovation"].to_numpy(float)
+            proc = np.isfinite(inn)
+            acc = g["accepted"].to_numpy(bool)
+            med = float(np.median(inn[proc])) if proc.any() else math.nan
+            mad = float(np.median(np.abs(inn[proc] - med))) if proc.any() else math.nan
+            rows.append({
+                "kind": "tdoa" if tdoa else "range", "anchor": "" if tdoa else str(k), "pair": str(k) if tdoa else "",
+                "ranges": int(len(g)), "processed": int(proc.sum()), "accepted": int(acc.sum()),
+                "rejected_pct": float(100.0 * (proc & ~acc).sum() / max(proc.sum(), 1)),
+                "median": med, "mad": mad,
+            })
+    cols = ["anchor", "ranges", "processed", "accepted", "rejected_pct", "median", "mad"]
+    if is_td.any():
+        cols = ["kind", "anchor", "pair"] + cols[1:]
+    return pd.DataFrame(rows, columns=cols)
+
+
+def effective_time_offset_mode(result) -> tuple[str, str]:
+    """``(mode, configured_mode)`` of the time offset: the run's events decide
+    (:func:`uwbimu.io.calibration_file.effective_time_offset_mode`: a ``time_offset_held`` event means consider mode
+    whatever the options asked)."""
+    return CF.effective_time_offset_mode(result.calibration.get("time_offset_mode", "estimate"), result.events)
+
+
+def calibration_document(result) -> dict[str, Any]:
+    """``result.calibration`` in the one schema of calibration.yaml (:mod:`uwbimu.io.calibration_file`).
+
+    The numbers are the estimator's; the time offset becomes the mapping ``value, sd, unit, mode, verdict``
+    (``mode`` from :func:`effective_time_offset_mode`), a NaN sigma becomes null.
+    """
+    cal = dict(_plain(result.calibration))
+    if isinstance(cal.get("time_offset"), dict):
+        return CF.migrate(cal)
+    mode, configured = effective_time_offset_mode(result)
+    entry = CF.time_offset_entry(cal.get("time_offset"), cal.get("time_offset_sd"), mode,
+                                 cal.get("time_offset_verdict"), configured_mode=configured,
+                                 verdict_reason=cal.get("time_offset_verdict_reason"))
+    out = {"schema_version": CF.SCHEMA_VERSION}
+    for k, v in cal.items():
+        if k == "time_offset":
+            out[k] = entry
+        elif k not in ("time_offset_sd", "time_offset_mode", "time_offset_verdict", "time_offset_verdict_reason"):
+            out[k] = v
+    return CF.migrate(out)
 
 
 def _plain(obj: Any) -> Any:
@@ -123,7 +179,7 @@ def write_outputs(result, dataset: Dataset, out_dir: str | Path, plots: bool = T
     res = result.residuals.reindex(columns=list(RESIDUAL_COLUMNS) + extra_cols)
     files.append(atomic.write_csv(out / "residuals.csv", res, float_format=fmt))
     calib = {
-        **_plain(result.calibration),
+        **calibration_document(result),
         "estimator": result.estimator,
         "dataset": dataset.meta.name,
         "uwbimu_version": uwbimu.__version__,

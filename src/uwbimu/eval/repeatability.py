@@ -86,9 +86,11 @@ def _values(cal: dict) -> tuple[dict, dict]:
             vals[n] = float(la[i])
             sds[n] = float(las[i]) if las is not None and las[i] is not None else float("nan")
     if cal.get("time_offset") is not None:
-        to = cal["time_offset"]
-        vals["td"] = float(to["value"] if isinstance(to, Mapping) else to)  # the batch calibrator's dict form
-        s = cal.get("time_offset_sd")
+        from uwbimu.io.calibration_file import time_offset_sd, time_offset_value
+
+        # a number (the ESKF in memory) or the mapping of calibration.yaml's schema / the batch calibrator
+        vals["td"] = time_offset_value(cal)
+        s = time_offset_sd(cal)
         sds["td"] = float(s) if s is not None else float("nan")
     return vals, sds
 
@@ -104,7 +106,8 @@ def consistency(values: np.ndarray, sds: np.ndarray, level: float = 0.01) -> dic
 
     Returns
     -------
-    dict: n, mean (weighted), std (sample), rms_sd, ratio, chi2, dof, p_value, verdict
+    dict: n, mean (weighted), mean_sd (σ of the weighted mean, ``1/sqrt(Σ 1/σ_k²)``), std (sample), rms_sd,
+    ratio, chi2, dof, p_value, verdict
     (``consistent``, ``over-confident`` (spread ≫ σ), ``under-confident`` (σ ≫ spread),
     or ``not estimated`` when σ is zero/NaN).
     """
@@ -112,7 +115,7 @@ def consistency(values: np.ndarray, sds: np.ndarray, level: float = 0.01) -> dic
     s = np.asarray(sds, float)
     ok = np.isfinite(x) & np.isfinite(s) & (s > 0)
     n = int(ok.sum())
-    out = {"n": n, "mean": float(np.nanmean(x)) if len(x) else float("nan"),
+    out = {"n": n, "mean": float(np.nanmean(x)) if len(x) else float("nan"), "mean_sd": float("nan"),
            "std": float(np.std(x[np.isfinite(x)], ddof=1)) if np.isfinite(x).sum() > 1 else float("nan"),
            "rms_sd": float("nan"), "ratio": float("nan"), "chi2": float("nan"), "dof": max(n - 1, 0),
            "p_value": float("nan"), "verdict": "not estimated"}
@@ -134,7 +137,7 @@ def consistency(values: np.ndarray, sds: np.ndarray, level: float = 0.01) -> dic
         verdict = "under-confident"
     rms = float(np.sqrt(np.mean(s**2)))
     std = float(np.std(x, ddof=1))
-    out.update(mean=xbar, std=std, rms_sd=rms, ratio=std / rms, chi2=c2, dof=dof, p_value=p_hi, verdict=verdict)
+    out.update(mean=xbar, mean_sd=float(1.0 / np.sqrt(np.sum(w))), std=std, rms_sd=rms, ratio=std / rms, chi2=c2, dof=dof, p_value=p_hi, verdict=verdict)
     return out
 
 
@@ -200,8 +203,9 @@ def repeatability(
     -------
     dict (JSON-serialisable): ``k``, ``window_s``, ``windows`` (per window:
     ``t0, t1, t_mid, values, sd, warnings`` or ``error``), ``parameters``
-    (per parameter: :func:`consistency` + ``truth``/``mean_error`` when the
-    dataset's truth is known), ``n_failed``.
+    (per parameter: :func:`consistency` + ``truth``, ``mean_error`` = mean − truth and ``mean_error_z`` =
+    mean_error / mean_sd when the dataset's truth is known), ``truth_source`` (``dataset.yaml truth`` or
+    None), ``n_failed``.
     """
     name = estimator if isinstance(estimator, str) else None
     if name is not None:
@@ -253,6 +257,9 @@ def repeatability(
         if p in truth:
             st["truth"] = truth[p]
             st["mean_error"] = st["mean"] - truth[p]
+            ms = st.get("mean_sd")
+            st["mean_error_z"] = (st["mean_error"] / ms) if (ms is not None and np.isfinite(ms) and ms > 0) \
+                else float("nan")
         params[p] = st
     return {
         "k": k,
@@ -260,5 +267,6 @@ def repeatability(
         "level": level,
         "windows": records,
         "parameters": params,
+        "truth_source": "dataset.yaml truth" if truth else None,
         "n_failed": int(sum("error" in r for r in records)),
     }
