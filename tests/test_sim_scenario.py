@@ -196,9 +196,11 @@ def test_cli_builtin_to_folder_and_refuses_overwrite(tmp_path):
     assert header == "t,ax,ay,az,wx,wy,wz"
     assert (out / "groundtruth.csv").read_text().startswith("t,px,py,pz,qw,qx,qy,qz,vx,vy,vz")
 
+    # the output rule: its own unchanged dataset may be replaced; a user's file in it needs --force
+    (out / "notes.txt").write_text("mine")
     before = (out / "imu.csv").read_text()
     res = runner.invoke(app, ["simulate", "circle", "--out", str(out)])
-    assert res.exit_code != 0 and "refusing" in res.output
+    assert res.exit_code == 4 and "refusing" in res.output
     assert (out / "imu.csv").read_text() == before
     res = runner.invoke(app, ["simulate", "circle", "--out", str(out), "--force"])
     assert res.exit_code == 0, res.output
