@@ -31,7 +31,7 @@ import math
 from pathlib import Path
 from typing import Any, Optional
 
-__all__ = ["SCHEMA_VERSION", "NOT_ESTIMATED", "effective_time_offset_mode", "migrate", "read_calibration", "sd_or_none", "time_offset_entry",
+__all__ = ["SCHEMA_VERSION", "NOT_ESTIMATED", "effective_time_offset_mode", "migrate", "time_offset_held", "read_calibration", "sd_or_none", "time_offset_entry",
            "time_offset_sd", "time_offset_value"]
 
 SCHEMA_VERSION = 2
@@ -92,15 +92,30 @@ def time_offset_entry(value: Any, sd: Any, mode: str, verdict: Optional[str] = N
     return out
 
 
-def effective_time_offset_mode(configured: str, events: Any) -> tuple[str, str]:
-    """``(mode, configured)``: how a run treated t_d, from its events.
+def time_offset_held(events: Any) -> bool:
+    """Whether a run's events say it held t_d at its prior in consider mode: ``time_offset_held`` (the ESKF's
+    initial search could not locate it) or ``calibration_held`` with ``time_offset`` in its ``blocks`` (the filter
+    rerun with the blocks the log did not identify held)."""
+    for e in events or []:
+        if not isinstance(e, dict):
+            continue
+        if e.get("kind") == "time_offset_held":
+            return True
+        if e.get("kind") == "calibration_held" and "time_offset" in (e.get("blocks") or []):
+            return True
+    return False
 
-    A ``time_offset_held`` event (the ESKF's initial search could not locate t_d) means the run held it at its
-    prior in consider mode although the options asked ``estimate``; otherwise the configured mode holds.
+
+def effective_time_offset_mode(configured: str, events: Any) -> tuple[str, str]:
+    """``(mode, configured)``: how a run treated t_d, from its events (:func:`time_offset_held`).
+
+    A held t_d is in consider mode although the options asked ``estimate`` (a ``calibration_held`` rerun already
+    reports ``consider`` as its mode: the configured one was ``estimate``); otherwise the configured mode holds.
     """
     configured = str(configured or "estimate")
-    held = any(isinstance(e, dict) and e.get("kind") == "time_offset_held" for e in (events or []))
-    return ("consider" if held and configured == "estimate" else configured), configured
+    if time_offset_held(events):
+        return "consider", ("estimate" if configured == "consider" else configured)
+    return configured, configured
 
 
 def migrate(doc: Optional[dict]) -> Optional[dict]:

@@ -94,7 +94,8 @@ def render_report(out_dir: Union[str, os.PathLike], dataset=None, title: Optiona
         name = dataset.meta.name if dataset is not None else out.name
         title = f"uwbimu calibration report — {name}"
     return _templates().get_template("report.html.j2").render(
-        title=title, version=ver, out_dir=display_path(out), summary=list(run_summary(inp).items()),
+        title=title, version=ver, out_dir=display_path(out),
+        summary=list({**run_summary(inp), "out-dir": display_path(out)}.items()),
         generated=_dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), sections=body,
     )
 

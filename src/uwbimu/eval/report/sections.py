@@ -96,6 +96,9 @@ def _calibration_section(inp: ReportInputs):
         parts.append(_table(["anchor", "estimated bias ± 1σ [cm]", "known bias [cm]"], arows))
     if inp.metrics:
         parts.append(_metrics_table(inp))
+        other = str(((inp.dataset.meta.extra or {}) if inp.dataset is not None else {}).get("groundtruth_align",
+                                                                                             "none")) != "none"
+        attrs["metrics-vs-truth"] = "n/a" if other else "shown"
     return _join(parts), attrs
 
 
