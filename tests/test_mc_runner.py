@@ -7,6 +7,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+
+from uwbimu.errors import OutputError  # a refused study folder: exit 4, the output rule
 import yaml
 from typer.testing import CliRunner
 
@@ -153,11 +155,11 @@ def test_resume_after_interruption_skips_finished_runs(pool_run, tmp_path):
 def test_config_mismatch_is_refused(tmp_path):
     out = tmp_path / "o"
     mc.run_study(_cfg(runs=1), out, workers=1, plots=False)
-    with pytest.raises(mc.MonteCarloError, match="different study configuration.*seed_base"):
+    with pytest.raises(OutputError, match="different study configuration.*seed_base"):
         mc.run_study(_cfg(runs=1, seed_base=12), out, workers=1, plots=False)
     bad = json.loads(json.dumps(CFG))
     bad["scenarios"][0]["overrides"]["uwb"]["sigma"] = 0.2
-    with pytest.raises(mc.MonteCarloError, match=r"scenarios\[0\].scenario.uwb.sigma"):
+    with pytest.raises(OutputError, match=r"scenarios\[0\].scenario.uwb.sigma"):
         mc.run_study(mc.config_from_dict(bad), out, workers=1, plots=False)
     # the CLI refuses with a readable message and a non-zero exit code
     from uwbimu.cli.main import app
@@ -165,15 +167,15 @@ def test_config_mismatch_is_refused(tmp_path):
     cfg_file = tmp_path / "study.yaml"
     cfg_file.write_text(yaml.safe_dump({**CFG, "seed_base": 99}))
     res = CliRunner().invoke(app, ["montecarlo", str(cfg_file), "--out", str(out), "--runs", "1", "--workers", "1"])
-    assert res.exit_code == 1
+    assert res.exit_code == 4  # output refused (the output rule)
     assert "different study configuration" in res.output
     # a folder that is not a study output is never written into
     other = tmp_path / "other"
     other.mkdir()
     (other / "precious.txt").write_text("keep")
-    with pytest.raises(mc.MonteCarloError, match="not empty"):
+    with pytest.raises(OutputError, match="not empty"):
         mc.run_study(_cfg(runs=1), other, workers=1, plots=False)
-    with pytest.raises(mc.MonteCarloError, match="is a file"):
+    with pytest.raises(OutputError, match="is a file"):
         mc.run_study(_cfg(runs=1), other / "precious.txt", workers=1, plots=False)
     assert (other / "precious.txt").read_text() == "keep"
 

@@ -2,16 +2,30 @@
 
 * ``-o/--out DIR``: the output folder of a verb (created if missing; outputs written whole or not
   at all through :func:`uwbimu.io.atomic.output_folder`).
-* ``--force``: write where uwbimu would otherwise refuse -- over files in the output folder that
-  uwbimu did not write (or that were edited since), into a non-empty folder a verb replaces as a
-  whole (``simulate``, ``import``) -- never over a dataset's input files.
+
+The output rule (the same for every verb that writes, documented here once)
+---------------------------------------------------------------------------
+uwbimu records what it writes into a folder in ``.uwbimu-outputs.json`` (file -> sha256).
+
+* A verb may replace a file of its outputs only when uwbimu wrote it there and it is unchanged
+  since; so rerunning a verb into its own output folder just works (``estimate``, ``evaluate``,
+  ``report``, ``observability log``, ``plan``, ``place``, ``check --csv``, ``repeatability``,
+  ``calibrate``).  Other files in the folder are left alone.
+* A verb that replaces a folder as a whole (``simulate``, ``import``, ``demo``, ``check --fix``) may
+  replace it only when every file in it is an unchanged uwbimu output (a previous run's).
+* Anything else -- a file uwbimu did not write, one edited since -- needs ``--force`` (exit 4
+  without it, naming the file, nothing written).
+* Never, even with ``--force``: a dataset's input files, or an input of the command itself.
+  Outputs go into a dataset folder only with ``--force``.
+* ``montecarlo`` has no ``--force``: a rerun into its folder resumes the same study; a folder of
+  another study, or not a study folder, is refused (exit 4).
 """
 
 from __future__ import annotations
 
 #: Help of ``--force`` on every verb.
-FORCE_HELP = ("Replace outputs uwbimu did not write (or a non-empty folder the verb replaces whole); "
-              "never a dataset's input files.")
+FORCE_HELP = ("Replace files uwbimu did not write, or edited since (without it only the verb's own "
+              "unchanged outputs are replaced); never a dataset's input files.")
 
 
 def fit_table(console, table, fold=()):

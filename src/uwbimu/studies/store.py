@@ -17,6 +17,7 @@ from typing import Any, Callable, Optional
 import numpy as np
 import pandas as pd
 
+from uwbimu.errors import OutputError
 from uwbimu.studies.config import CHUNK_DIR, CONFIG_FILE, ROW_COLUMNS, MonteCarloConfig, MonteCarloError
 
 # --------------------------------------------------------------------------
@@ -55,25 +56,30 @@ def _diff_keys(a: Any, b: Any, prefix: str = "") -> list[str]:
 
 
 def prepare_out(out: Path, study: dict) -> None:
-    """Create ``out`` for ``study`` or check that it was started with the same study."""
+    """Create ``out`` for ``study`` or check that it was started with the same study.
+
+    The output rule of every verb, for a study folder: a rerun into it resumes the same study; a
+    folder of another study, a file, or a non-empty folder that is not a study folder is refused
+    (:class:`uwbimu.errors.OutputError`, exit 4; nothing written).
+    """
     if out.exists() and not out.is_dir():
-        raise MonteCarloError(f"{out} is a file, not a folder; refusing to write there")
+        raise OutputError(f"{out} is a file, not a folder; refusing to write there")
     lock = out / CONFIG_FILE
     if lock.exists():
         try:
             old = json.loads(lock.read_text())
         except json.JSONDecodeError as exc:
-            raise MonteCarloError(f"{lock}: unreadable ({exc}); not resuming") from None
+            raise OutputError(f"{lock}: unreadable ({exc}); not resuming") from None
         if old != study:
             diff = _diff_keys(old, study)
             shown = ", ".join(diff[:8]) + (f" (+{len(diff) - 8} more)" if len(diff) > 8 else "")
-            raise MonteCarloError(
+            raise OutputError(
                 f"{out} was started with a different study configuration (differs in: {shown}); "
                 "refusing to mix results. Use another --out, or the original config to resume."
             )
         return
     if out.exists() and any(out.iterdir()):
-        raise MonteCarloError(f"{out} exists, is not empty and holds no {CONFIG_FILE}; refusing to write into it")
+        raise OutputError(f"{out} exists, is not empty and holds no {CONFIG_FILE}; refusing to write into it")
     out.mkdir(parents=True, exist_ok=True)
     (out / CHUNK_DIR).mkdir(exist_ok=True)
     _fsync_write(lock, lambda p: p.write_text(json.dumps(study, sort_keys=True, indent=1)))
