@@ -276,3 +276,27 @@ def test_staging_folder_shows_its_final_name(tmp_path):
     assert display_path(tmp_path / ".estimate.uwbimu-tmp-abc123") == str(tmp_path / "estimate")
     assert display_path(tmp_path / ".demo.uwbimu-tmp-x1" / "estimate") == str(tmp_path / "demo" / "estimate")
     assert display_path(tmp_path / "plain") == str(tmp_path / "plain")
+
+
+def test_residual_tables_list_tdoa_by_pair_in_natural_order():
+    """residual_table.csv (estimation.outputs.residual_table) and the report's per-anchor table: ranges per anchor,
+    TDoA rows per pair "a-b" (column ``pair``), never under anchor a; anchors 1, 2, ..., 10."""
+    from types import SimpleNamespace
+
+    from uwbimu.eval.report import anchor_residual_table
+    from uwbimu.estimation.outputs import residual_table
+
+    anchors = ["10", "2", "1", "3", "10", "2", "1", "3"]
+    res = pd.DataFrame({"t": np.arange(8.0), "anchor": anchors, "range": 1.0, "predicted": 1.0,
+                        "innovation": [0.01, -0.02, 0.0, 0.03, 0.01, 0.0, -0.01, 0.02], "nis": 0.5, "accepted": True,
+                        "kind": ["range"] * 4 + ["tdoa"] * 4, "anchor_b": ["", "", "", "", "1", "1", "2", "2"]})
+    tab = residual_table(SimpleNamespace(residuals=res))
+    rng, tdoa = tab[tab["kind"] == "range"], tab[tab["kind"] == "tdoa"]
+    assert rng["anchor"].tolist() == ["1", "2", "3", "10"] and set(rng["pair"]) == {""}
+    assert tdoa["pair"].tolist() == ["1-2", "2-1", "3-2", "10-1"] and set(tdoa["anchor"]) == {""}
+    rep = anchor_residual_table(res)
+    assert rep["anchor"].tolist() == sorted(rep["anchor"], key=natural_key)
+    assert {"1-2", "2-1", "3-2", "10-1"} <= set(rep["anchor"]) and rep.set_index("anchor").loc["10", "n"] == 1
+    # a range-only run keeps the historical columns
+    plain = residual_table(SimpleNamespace(residuals=res[res["kind"] == "range"].drop(columns=["kind", "anchor_b"])))
+    assert list(plain.columns) == ["anchor", "ranges", "processed", "accepted", "rejected_pct", "median", "mad"]

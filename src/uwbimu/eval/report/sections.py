@@ -197,7 +197,8 @@ def _convergence_section(inp: ReportInputs) -> Markup:
 def anchor_residual_table(res: pd.DataFrame) -> pd.DataFrame:
     """Per-anchor innovation statistics with suspicion flags.
 
-    Columns: ``anchor, n, processed, median, mad, robust_sd, rejected_pct, flags``.
+    Columns: ``anchor, n, processed, median, mad, robust_sd, rejected_pct, flags``; TDoA rows (``kind == "tdoa"``)
+    are grouped by their pair ``"a-b"`` in ``anchor``; rows in natural anchor order.
     ``median``/``mad`` use accepted innovations [m]; ``rejected_pct`` is over
     processed ranges (finite NIS).  Flags: ``biased`` when |median| exceeds half
     the overall robust sd and 5 cm, ``noisy`` when the anchor's robust sd is
@@ -208,7 +209,11 @@ def anchor_residual_table(res: pd.DataFrame) -> pd.DataFrame:
     innov = pd.to_numeric(res["innovation"], errors="coerce").to_numpy(float)
     nis = pd.to_numeric(res["nis"], errors="coerce").to_numpy(float) if "nis" in res.columns else np.full(len(res), np.nan)
     processed = np.isfinite(nis) | acc
-    anchors = res["anchor"].astype(str).to_numpy()
+    anchors = res["anchor"].astype(str).to_numpy().astype(object)
+    if "kind" in res.columns and "anchor_b" in res.columns:  # TDoA rows under their pair "a-b", not anchor a
+        td = (res["kind"].astype(str) == "tdoa").to_numpy()
+        anchors[td] = [f"{a}-{b}" for a, b in zip(anchors[td], res["anchor_b"].astype(str).to_numpy()[td])]
+    anchors = anchors.astype(str)
     ok_all = acc & np.isfinite(innov)
     med_all = np.median(innov[ok_all]) if ok_all.any() else np.nan
     rsd_all = 1.4826 * np.median(np.abs(innov[ok_all] - med_all)) if ok_all.any() else np.nan
