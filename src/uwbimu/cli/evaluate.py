@@ -44,6 +44,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Score OUT/trajectory.csv against ground truth (ATE after alignment, RPE); writes OUT/evaluation.json."""
         from rich.console import Console
+        from rich.markup import escape
 
         from uwbimu.metrics.align import ALIGN_MODES
         from uwbimu.eval.evaluate import evaluate_output
@@ -65,7 +66,7 @@ def register(app: typer.Typer) -> None:
                                 skip_initial=skip_initial, plots=not no_plots, compare_attitude=attitude,
                                 trajectory=out / "trajectory.csv")
         print_summary(console, s)
-        console.print(f"wrote {target / 'evaluation.json'}")
+        console.print(escape(f"wrote {target / 'evaluation.json'}"))
 
 
 def print_summary(console, s: dict) -> None:

@@ -8,6 +8,7 @@ from typing import Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from uwbimu.cli.conventions import FORCE_HELP, fit_table
@@ -99,14 +100,14 @@ def print_structural(console: Console, v: dict) -> None:
     t.add_column("condition")
     t.add_column("holds")
     for k, c in v["conditions"].items():
-        t.add_row(k, ("yes" if c else "no") if isinstance(c, bool) else str(c))
+        t.add_row(escape(k), ("yes" if c else "no") if isinstance(c, bool) else escape(str(c)))
     console.print(t)
     if v["unobservable_directions"]:
         t = Table(title="unobservable directions (weakest point)")
         t.add_column("#")
         t.add_column("direction")
         for i, d in enumerate(v["unobservable_directions"]):
-            t.add_row(str(i), d["name"])
+            t.add_row(str(i), escape(d["name"]))
         console.print(t)
 
 
@@ -126,29 +127,30 @@ def delay(
         typer.echo(json.dumps(_jsonable({k: v[k] for k in keys}), indent=2))
         return
     ok = "[green]identifiable[/green]" if v["identifiable"] else "[yellow]NOT identifiable[/yellow]"
-    console.print(f"[bold]{v['name']}[/bold]: t_d {ok} (basis: {v['basis']})")
+    console.print(f"[bold]{escape(str(v['name']))}[/bold]: t_d {ok} (basis: {escape(str(v['basis']))})")
     t = Table(title="Theorem 1")
     t.add_column("condition")
     t.add_column("holds")
     for k, c in v["conditions"].items():
-        t.add_row(k, "yes" if c else "no")
+        t.add_row(escape(k), "yes" if c else "no")
     t.add_row("T1 and (T2 or T3)", "yes" if v["theorem1"] else "no")
     console.print(t)
     t = Table(title=f"max |d range / d u(t_r - t_d)| at t_d = {v['numeric']['time_offset']:g} s")
     t.add_column("excited input")
     t.add_column("sensitivity", justify="right")
     for k, s in v["numeric"]["sensitivity"].items():
-        t.add_row(k, f"{s:.3e}")
+        t.add_row(escape(k), f"{s:.3e}")
     console.print(t)
     num = v["numeric"]
     power = "" if num["td_power"] is None else f", growing like t_d^{num['td_power']:g}"
     console.print(
-        f"numeric check: the largest sensitivity over t_d in {num['probe_time_offsets']} s is "
+        f"numeric check: the largest sensitivity over t_d in "
+        f"{', '.join(f'{x:g}' for x in num['probe_time_offsets'])} s is "
         f"{num['probe_over_noise']:.3g} x the rounding noise of the range ({num['tolerance']:.2e} m per unit input)"
         f"{power}: the verdict does not depend on the configured t_d"
     )
     if v["explanation"]:
-        console.print(f"note: {v['explanation']}.")
+        console.print(f"note: {escape(str(v['explanation']))}.")
     if v["identifiable"] and not v["theorem1"]:
         # identifiable only through an effect the seed's first-order argument drops:
         # say how large it is so that nobody mistakes "identifiable" for "well determined"
@@ -233,14 +235,14 @@ def log(
             + ", ".join(f"{k} {v:g}" for k, v in opts.prior_sd.items())
             + f" (SI); excited = the window adds >= {need:g} x the prior's precision"
         )
-    t = Table(title=f"{dataset} - {len(table)} window(s) of {window:g} s")
+    t = Table(title=escape(f"{dataset} - {len(table)} window(s) of {window:g} s"))
     for c in ("t_start", "t_end", "min eig", "cond", "weakest", "sd lever max (m)", "sd t_d (s)", "lever", "t_d"):
         t.add_column(c)
     for r in table.itertuples(index=False):
         sdl = max(r.sd_lx, r.sd_ly, r.sd_lz)
         t.add_row(
             f"{r.t_start:.1f}", f"{r.t_end:.1f}", f"{r.min_eigenvalue:.3g}", f"{r.condition_number:.3g}",
-            str(r.weakest_direction)[:40], f"{sdl:.3g}", f"{r.sd_td:.3g}",
+            escape(str(r.weakest_direction)[:40]), f"{sdl:.3g}", f"{r.sd_td:.3g}",
             "ok" if r.lever_arm_excited else "[yellow]weak[/yellow]", "ok" if r.time_offset_excited else "[yellow]weak[/yellow]",
         )  # fmt: skip
     console.print(fit_table(console, t, fold=("weakest",)))
@@ -258,7 +260,7 @@ def log(
             "the trajectory may not be in the anchors' frame (or the lever arm / anchors are off); "
             "the Jacobians are only as good as the trajectory[/yellow]"
         )
-    console.print(f"wrote {csv_path}, {png_path}")
+    console.print(escape(f"wrote {csv_path}, {png_path}"))
 
 
 def register(app: typer.Typer) -> None:

@@ -102,4 +102,4 @@ def register(app: typer.Typer) -> None:
             where = "" if config is None else f"{config}: "
             raise errors.ConfigError(where + " ".join(str(exc).split())) from None
         _print_result(console, res)
-        console.print(f"wrote {out / 'placement.json'}, {out / 'anchors.csv'}" + ("" if no_plots else " and plots"))
+        console.print(escape(f"wrote {out / 'placement.json'}, {out / 'anchors.csv'}" + ("" if no_plots else " and plots")))

@@ -82,7 +82,7 @@ def seed_ocp(
     figs = save_seed_figures(res, out)
     tab = Table(title="Seed OCP: J = int 1/det(O)^2 + |p-p_d|^2/2 + |u|^2/2 dt", collapse_padding=True)
     for col in ("method", "J", "1/det^2", "track", "control", "det mean", "ms", "iter", "max|H_u|"):
-        tab.add_column(col, justify="right", no_wrap=col in ("method", "J"))
+        tab.add_column(escape(col), justify="right", no_wrap=col in ("method", "J"))
     short = {"pd": "PD", "indirect": "indirect", "indirect_continuous": "ind. ODE", "direct": "direct", "direct_fixed_final": "fixed-end"}
     for m in (res.pd, res.indirect, res.indirect_continuous, res.direct, res.fixed_final):
         if m is None:
@@ -133,7 +133,7 @@ def point_mass(
         res = plan_point_mass(cfg)
     tab = Table(title=f"point-mass plan, objective {cfg.objective} ({cfg.info_model} information at {cfg.info_at})")
     for col in ("plan", "status", "solve [s]", "log det", "min eig", "trace inv", "effort", "max violation"):
-        tab.add_column(col, justify="right")
+        tab.add_column(escape(col), justify="right")
     for name, r in (("min effort", base), (cfg.objective, res)):
         m = r.metrics
         tab.add_row(name, r.status, f"{r.solve_time_s:.2f}", f"{m['logdet']:.3f}", f"{m['min_eig']:.4g}", f"{m['trace_inv']:.4g}",
@@ -213,7 +213,7 @@ def calibration(
     tab = Table(title=f"Calibration manoeuvre ({cfg.platform}): predicted 1-sigma (linearised ESKF covariance)")
     tab.add_column("trajectory")
     for col in ("lever x [mm]", "lever y [mm]", "lever z [mm]", "t_d [ms]", "lambda_min (scaled info)"):
-        tab.add_column(col, justify="right")
+        tab.add_column(escape(col), justify="right")
     for name in ("designed", "figure8", "figure8_excited"):
         r = report[f"{name}_flown"]  # evaluated on the splines the simulator flies
         s = r["sigma_lever_arm_m"]

@@ -6,6 +6,7 @@ import time
 from pathlib import Path
 from typing import Optional
 
+from rich.markup import escape
 import typer
 
 from uwbimu.cli.conventions import FORCE_HELP
@@ -23,12 +24,12 @@ def _scenario_table(console: Console) -> None:
     table.add_column("description")
     for name, desc in list_scenarios().items():
         sc = builtin_scenario(name)
-        table.add_row(name, sc.trajectory.type, f"{sc.duration:g}", desc)
+        table.add_row(name, sc.trajectory.type, f"{sc.duration:g}", escape(desc))
     console.print(table)
 
 
 def _summary(console: Console, ds, out: Path, seconds: float) -> None:
-    table = Table(title=f"Simulated {ds.meta.name} -> {out}")
+    table = Table(title=escape(f"Simulated {ds.meta.name} -> {out}"))
     table.add_column("quantity")
     table.add_column("value", justify="right")
     extra = ds.meta.extra
