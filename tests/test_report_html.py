@@ -216,7 +216,7 @@ def test_report_cli(tmp_path):
     assert r.exit_code == 0, r.output
     assert (out / "report.html").is_file()
     r = CliRunner().invoke(app, ["report", str(tmp_path / "nothing")])
-    assert r.exit_code == 1 and "not found" in r.output
+    assert r.exit_code == 2  # a folder that is not an estimator output: a usage error (issue 30 item 4)
 
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
