@@ -41,7 +41,7 @@ def test_sigma_decimals():
 
 @pytest.mark.parametrize("x, unit, expected", [
     (1200.0, "", "1200"), (0.06884, "m", "0.0688 m"), (44.19, "", "44.2"), (12345.6, "", "12346"),
-    (3, "", "3"), (True, "", "True"), (0.0, "m", "0 m"),
+    (3, "", "3"), (True, "", "True"), (0.0, "m", "0 m"), (9.996, "s", "10.0 s"),
 ])
 def test_format_number(x, unit, expected):
     assert format_number(x, unit) == expected

@@ -84,6 +84,9 @@ def format_number(x: Any, unit: str = "", digits: int = 3) -> str:
     if float(v).is_integer() and abs(v) < 10 ** digits:
         return f"{int(v)}{suffix}"
     d = max(digits - 1 - math.floor(math.log10(abs(v))), 0)  # integer digits are never dropped
+    r = round(v, d)
+    if d > 0 and r != 0 and math.floor(math.log10(abs(r))) > math.floor(math.log10(abs(v))):
+        d -= 1  # 9.996 -> 10.0, not 10.00
     return f"{_fixed(v, d)}{suffix}"
 
 

@@ -39,7 +39,7 @@ def _calibration_section(inp: ReportInputs):
         flag = z is not None and abs(z) > 3
         rows.append([
             f"{name} [{unit}]", format_value_sigma(None if v is None else v * scale, None if s is None else s * scale),
-            "–" if ref is None else format_number(ref * scale),
+            "–" if ref is None else _same_place(ref * scale, None if s is None else s * scale),
             "–" if err is None else _same_place(err * scale, None if s is None else s * scale),
             "–" if z is None else _span("bad" if flag else "ok", f"{z:+.2f}"),
         ])
