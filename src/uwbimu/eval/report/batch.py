@@ -43,6 +43,15 @@ def _batch_td(cal: dict) -> dict:
     return td if isinstance(td, dict) else {}
 
 
+def _at(x: Optional[float], sigma: Optional[float]) -> str:
+    """``x`` to the decimal place of ``sigma`` (the one rounding rule), 3 significant digits without one."""
+    if x is None:
+        return "–"
+    if sigma is None or not sigma > 0:
+        return format_number(x)
+    return format_value_sigma(x, sigma).split(" ± ")[0]
+
+
 def _batch_profile_part(inp: ReportInputs) -> Markup:
     from matplotlib.figure import Figure
 
@@ -85,19 +94,20 @@ def _batch_profile_part(inp: ReportInputs) -> Markup:
     ax.legend(fontsize=7)
 
     def ms(v):
-        return "–" if v is None else _fmt(1000 * float(v), 2)
+        return None if v is None else 1000 * float(v)
 
+    sd_m = ms(td.get("sd_marginal", sd))
     rows = [["verdict", _span("ok" if verdict == "identified" else "bad", verdict)],
-            ["t_d [ms]", ms(value)], ["σ (marginal) [ms]", ms(td.get("sd_marginal", sd))],
-            ["σ (profile curvature) [ms]", ms(td.get("sd_curvature"))],
-            ["profile interval [ms]", "–" if ci is None else f"{ms(ci[0])} … {ms(ci[1])}"],
-            ["grid [ms]", f"{ms(np.nanmin(g))} … {ms(np.nanmax(g))} ({len(g)} points)"],
+            ["t_d ± σ (marginal) [ms]", "–" if value is None else format_value_sigma(ms(value), sd_m)],
+            ["σ (profile curvature) [ms]", "–" if td.get("sd_curvature") is None else
+             format_value_sigma(ms(td["sd_curvature"]), ms(td["sd_curvature"])).split(" ± ")[1]],
+            ["profile interval [ms]", "–" if ci is None else
+             f"{_at(ms(ci[0]), sd_m)} … {_at(ms(ci[1]), sd_m)}"],
+            ["grid [ms]", f"{format_number(ms(np.nanmin(g)))} … {format_number(ms(np.nanmax(g)))} ({len(g)} points)"],
             ["held at prior", "yes" if held else "no"]]
     scale = ((inp.calibration or {}).get("imu_noise") or {}).get("scale") or {}
     if scale.get("method") == "variance_component":  # the IMU model the profile was computed under
-        sd_s = scale.get("scale_sd")
-        rows.append(["IMU noise scale (estimated)", _fmt(float(scale["scale"]), 3)
-                     + ("" if sd_s is None else f" ± {_fmt(float(sd_s), 2)}")])
+        rows.append(["IMU noise scale (estimated)", format_value_sigma(float(scale["scale"]), scale.get("scale_sd"))])
     parts = [_table(["t_d", "value"], rows)]
     if td.get("advice"):
         parts.append(_block("warn", Markup("t_d not identified on this log: {}").format(td["advice"])))

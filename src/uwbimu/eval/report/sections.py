@@ -336,7 +336,9 @@ def _trajectory_section(inp: ReportInputs) -> Markup:
             rmse, src = float(m["position_rmse"]), Markup("<code>metrics.yaml</code>, as <code>uwbimu estimate</code> "
                                                          "prints it")
         else:
-            rmse, src = float(a["rmse"]), Markup("ATE after <b>{}</b> alignment").format(mode)
+            rmse = float(a["rmse"])
+            src = (Markup("ATE, no alignment: ground truth in the estimate's frame") if mode == "none"
+                   else Markup("ATE after <b>{}</b> alignment").format(mode))
         attrs["position-rmse"] = repr(rmse)
         parts.append(Markup(
             "<p>Against ground truth: position RMSE <b>{} m</b> ({}); error max {} m over {} samples{}{}. "
