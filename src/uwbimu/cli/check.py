@@ -114,14 +114,16 @@ def _f(x, fmt: str = ".3f") -> str:
         return str(x)
 
 
-def print_check(console, ds, result) -> None:
-    """Rich tables for a :class:`uwbimu.io.check.CheckResult`."""
+def print_check(console, ds, result, path=None) -> None:
+    """Rich tables for a :class:`uwbimu.io.check.CheckResult`; ``path`` is the folder shown (default: the one
+    the dataset was read from; ``demo`` shows where its staging folder ends up)."""
     from rich.table import Table
 
     from uwbimu.cli.conventions import fit_table
 
     rep = ds.report
-    console.print(f"[bold]{escape(ds.meta.name)}[/bold] ({escape(str(ds.path))}): [green]valid[/green]")
+    console.print(f"[bold]{escape(ds.meta.name)}[/bold] ({escape(str(path if path is not None else ds.path))}): "
+                  f"[green]valid[/green]")
     if rep is not None:
         console.print(escape("files: " + ", ".join(rep.files.values())))
         for a in rep.actions:

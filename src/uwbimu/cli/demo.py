@@ -112,13 +112,15 @@ def run_demo(out: Path, console: Console, force: bool = False, duration: float |
     with output_folder(out, force=True, replace=True,
                        finite=NAN_DOCUMENTED + ("observability.csv", "repeatability.json")) as work:
         (work / DEMO_MARKER).write_text("written by uwbimu demo; the folder is replaced on the next run\n")
-        figures = _run_demo_into(work, console, duration)
+        figures = _run_demo_into(work, console, duration, final=out)
     figures["report"] = str(out / Path(figures["report"]).relative_to(work))
     console.print(f"[bold green]report:[/bold green] {escape(figures['report'])}")
     return figures
 
 
-def _run_demo_into(out: Path, console: Console, duration: float | None) -> dict:
+def _run_demo_into(out: Path, console: Console, duration: float | None, final: Path | None = None) -> dict:
+    """The demo's steps, writing into ``out`` (a staging folder that becomes ``final``; paths are shown as
+    they will be once the demo ends)."""
     from uwbimu.cli.check import print_check
     from uwbimu.cli.compile_notice import ensure_compiled
     from uwbimu.cli.estimate import print_truth_comparison, run_with_progress, truth_comparison
@@ -151,7 +153,7 @@ def _run_demo_into(out: Path, console: Console, duration: float | None) -> dict:
     # 2. validate it exactly as a user's dataset
     ds = load_dataset(data_dir)
     check = check_dataset(ds)
-    print_check(console, ds, check)
+    print_check(console, ds, check, path=(final if final is not None else out) / "dataset")
     figures["flags"] = [f.anchor for f in check.flags]
 
     # 3. structural observability of this set-up
