@@ -2,8 +2,10 @@
 
 The sections never recompute a summary: the time-offset mode and verdict (:meth:`ReportInputs.time_offset`), the
 NIS statistics (:func:`nis_summary`) and the warnings (:meth:`ReportInputs.warning_items`) are derived once here,
-from the run's structured outputs (calibration.yaml in the one schema, events.yaml / calibration.yaml ``events``,
-residuals.csv), and the page carries them as ``data-*`` attributes (``#run-summary``).
+from the run's structured outputs (calibration.yaml in the one schema with its ``warnings`` and ``events``,
+residuals.csv), and the page carries them as ``data-*`` attributes (``#run-summary``). A console that prints a run
+uses the same functions (:func:`nis_summary` of ``result.residuals``, :func:`run_warning_items` of
+``result.warnings`` and ``result.events``) so that both say the same.
 """
 
 from __future__ import annotations
@@ -92,6 +94,48 @@ class WarningItem:
     severity: str = "warning"
 
 
+#: event kinds a console prints (prefixes): these and every event of severity warning / refused are warnings
+PRINTED_EVENT_KINDS = ("flight_segment", "anchor_", "lever_arm_not_identified", "range_errors_correlated_over_blocks",
+                       "time_offset_held", "time_offset_not_identified", "calibration_held", "divergence", "clock_",
+                       "second_start_won")
+
+
+def run_warning_items(text_warnings, events, source: str = "calibration.yaml events") -> list[WarningItem]:
+    """The warnings of a run as the console should print them and the report shows them, in this order.
+
+    Parameters
+    ----------
+    text_warnings : list of str or WarningItem
+        The estimator's text warnings (``result.warnings``; calibration.yaml ``warnings``).
+    events : list of dict
+        Its structured events (``result.events``; calibration.yaml ``events``).
+    source : str
+        Where the events came from (shown in the report).
+
+    Returns
+    -------
+    list of WarningItem
+        The text warnings (kind ``estimator_warning``), then the events of severity ``warning`` / ``refused`` or of
+        a kind in :data:`PRINTED_EVENT_KINDS` without a severity (a ``flight_segment`` only with a message), then
+        those of severity ``info`` of such a kind (severity ``info``).
+    """
+    items = [w if isinstance(w, WarningItem) else WarningItem("estimator_warning", "calibration.yaml", str(w))
+             for w in text_warnings]
+    info = []
+    for ev in events or []:
+        if not isinstance(ev, dict) or "kind" not in ev:
+            continue
+        kind = str(ev["kind"])
+        sev = str(ev.get("severity", ""))
+        if kind == "flight_segment" and not ev.get("message"):
+            continue
+        if sev in ("warning", "refused") or (sev not in ("info", "warning", "refused") and kind.startswith(PRINTED_EVENT_KINDS)):
+            items.append(WarningItem(kind, source, event_text(ev), "warning"))
+        elif sev == "info" and kind.startswith(PRINTED_EVENT_KINDS):
+            info.append(WarningItem(kind, source, event_text(ev), "info"))
+    return items + info
+
+
 def event_text(ev: dict) -> str:
     """A one-line text of an event: its ``message`` (or ``advice``), else its fields ``key = value`` (numbers by
     the one rounding rule, lists joined; never a Python repr)."""
@@ -175,24 +219,10 @@ class ReportInputs:
         self.warnings.append(WarningItem(kind, "report", text))
 
     def warning_items(self) -> list[WarningItem]:
-        """Every warning the console printed for this run, then the report's own: the text warnings, and the events
-        of severity ``warning`` (batch) or of a kind the consoles print (flight_segment with a message, anchor_*,
-        lever_arm_not_identified, range_errors_correlated_over_blocks, time_offset_held, time_offset_not_identified,
-        divergence, clock events). Events of severity ``info`` come last with severity ``info``."""
-        printed = ("flight_segment", "anchor_", "lever_arm_not_identified", "range_errors_correlated_over_blocks",
-                   "time_offset_held", "time_offset_not_identified", "divergence", "clock_", "second_start_won")
-        items = [w for w in self.warnings if w.source != "report"]
-        info = []
-        for ev in self.events:
-            kind = str(ev["kind"])
-            sev = str(ev.get("severity", ""))
-            if kind == "flight_segment" and not ev.get("message"):
-                continue
-            if sev in ("warning", "refused") or (sev != "info" and kind.startswith(printed)):
-                items.append(WarningItem(kind, "calibration.yaml events", event_text(ev), "warning"))
-            elif sev == "info" and kind.startswith(printed):
-                info.append(WarningItem(kind, "calibration.yaml events", event_text(ev), "info"))
-        return items + info + [w for w in self.warnings if w.source == "report"]
+        """Every warning the console printed for this run (:func:`run_warning_items` of the folder's text warnings
+        and calibration.yaml ``events``), then the report's own."""
+        own = [w for w in self.warnings if w.source == "report"]
+        return run_warning_items([w for w in self.warnings if w.source != "report"], self.events) + own
 
     def time_offset(self) -> dict[str, Any]:
         """The time offset as every section shows it: ``value, sd`` [s] (sd None when not estimated), ``mode`` (the
