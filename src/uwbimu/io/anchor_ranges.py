@@ -43,7 +43,7 @@ def parse_range_sd(src, df: pd.DataFrame) -> pd.Series:
     for i, v in vals.items():
         if not np.isfinite(v):
             what = "missing or non-numeric" if pd.isna(raw[i]) or np.isnan(v) else "non-finite"
-            raise src.error(f"sd {raw[i]!r} is {what}; a finite standard deviation in m is expected", i, "sd")
+            raise src.error(f"sd '{raw[i]}' is {what}; a finite standard deviation in m is expected", i, "sd")
         if v <= 0:
             raise src.error(f"sd {v:g} m is not positive", i, "sd")
     return vals.astype(float)

@@ -612,7 +612,7 @@ def _refuse_same_anchor(src: _Source, df: pd.DataFrame) -> None:
     same = np.flatnonzero((df["anchor_a"] == df["anchor_b"]).to_numpy())
     if len(same):
         i = df.index[same[0]]
-        raise src.error(f"anchor_a and anchor_b are the same anchor {df.loc[i, 'anchor_a']!r}; a pair "
+        raise src.error(f"anchor_a and anchor_b are the same anchor '{df.loc[i, 'anchor_a']}'; a pair "
                         f"needs two different anchors", i, "anchor_b")
 
 
@@ -745,7 +745,7 @@ def _check_tdoa_bound(src: _Source, tdoa: pd.DataFrame, anchors: pd.DataFrame, m
         i = tdoa.index[k]
         raise src.error(
             f"|tdoa| = {abs(val[k]):.3f} m exceeds the separation {sep[k]:.3f} m of anchors "
-            f"{tdoa.loc[i, 'anchor_a']!r} and {tdoa.loc[i, 'anchor_b']!r} plus the {margin:g} m margin "
+            f"'{tdoa.loc[i, 'anchor_a']}' and '{tdoa.loc[i, 'anchor_b']}' plus the {margin:g} m margin "
             f"({len(bad)} such row(s)); a range difference cannot exceed the anchors' distance: check the "
             f"unit (metres expected, not seconds or ticks) and the anchor positions", i, "tdoa",
             hint="--tdoa-margin widens the margin if these are genuine outliers")

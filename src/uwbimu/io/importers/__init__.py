@@ -144,7 +144,8 @@ def read_text_table(path: Path, columns: list[str]) -> pd.DataFrame:
     header = text.split("\n", 1)[0]
     names = header.lstrip("#").split()
     if names != columns:
-        raise DatasetError(f"{path.name}, line 1: header columns {names} differ from the expected {columns}",
+        raise DatasetError(f"{path.name}, line 1: header columns {' '.join(names)} differ from the expected "
+                           f"{' '.join(columns)}",
                            file=path.name, row=1, column=next((c for c in columns if c not in names), None))
     try:
         df = pd.read_csv(io.StringIO(text), sep=r"\s+", comment=None, skiprows=1, header=None, names=columns,
@@ -160,7 +161,7 @@ def read_text_table(path: Path, columns: list[str]) -> pd.DataFrame:
         if bad.any():
             i = int(np.argmax(bad.to_numpy()))
             raise DatasetError(f"{path.name}, line {i + 2}, column '{c}': not a finite number "
-                               f"({df[c].iloc[i]!r})", file=path.name, row=i + 2, column=c)
+                               f"('{df[c].iloc[i]}')", file=path.name, row=i + 2, column=c)
         out[c] = vals.astype(float)
     return out
 
@@ -172,8 +173,8 @@ def sort_by_time(df: pd.DataFrame, tcol: str, fname: str, changes: list[str]) ->
     n = int(out.sum())
     if n:
         i = int(np.argmax(out))
-        changes.append(f"{fname}: {n} row(s) out of time order (first at line {i + 2}: t={float(t[i])!r} "
-                       f"after t={float(np.maximum.accumulate(t)[i])!r}); rows sorted by time (stable)")
+        changes.append(f"{fname}: {n} row(s) out of time order (first at line {i + 2}: t={float(t[i])} "
+                       f"after t={float(np.maximum.accumulate(t)[i])}); rows sorted by time (stable)")
         df = df.sort_values(tcol, kind="stable").reset_index(drop=True)
     return df
 

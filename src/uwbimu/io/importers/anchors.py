@@ -48,7 +48,7 @@ _RAW_SURVEY = re.compile(r"(anchorAnt\d+|anchor\d+_\d+|uwbDatasetFrame\d+|landma
 def survey_quat_order(path: Path, quat_order: QuatOrder = "auto") -> tuple[str, str]:
     """``("wxyz" | "xyzw", why)``: the ``an_quat`` order of a UTIL survey file."""
     if quat_order not in QUAT_ORDERS:
-        raise UsageError(f"quat_order must be one of {QUAT_ORDERS}, got {quat_order!r}")
+        raise UsageError(f"quat_order must be one of {', '.join(QUAT_ORDERS)}, got '{quat_order}'")
     if quat_order != "auto":
         return quat_order, "given (--survey-quat-order)"
     if _DATED.match(path.name):
@@ -74,7 +74,7 @@ def read_anchors_csv(path: Union[str, os.PathLike]) -> pd.DataFrame:
         bad = ~np.isfinite(vals)
         if bad.any():
             i = int(np.argmax(bad))
-            raise DatasetError(f"{path.name}, line {i + 2}, column '{c}': not a finite number ({df[c].iloc[i]!r})",
+            raise DatasetError(f"{path.name}, line {i + 2}, column '{c}': not a finite number ('{df[c].iloc[i]}')",
                                file=path.name, row=i + 2, column=c)
         df[c] = vals
     return df
@@ -119,7 +119,7 @@ def _read_survey_txt(path: Path) -> tuple[np.ndarray, Optional[np.ndarray]]:
                                row=ln) from None
         (pos_rows if m.group(2) == "p" else quat_rows)[int(m.group(1))] = vals
     if not pos_rows or sorted(pos_rows) != list(range(len(pos_rows))):
-        raise DatasetError(f"{path.name}: anchor positions an0_p .. anN_p expected, got ids {sorted(pos_rows)}",
+        raise DatasetError(f"{path.name}: anchor positions an0_p .. anN_p expected, got ids {', '.join(str(k) for k in sorted(pos_rows))}",
                            file=path.name)
     pos = np.array([pos_rows[i] for i in range(len(pos_rows))])
     quat = np.array([quat_rows[i] for i in range(len(pos_rows))]) if len(quat_rows) == len(pos_rows) else None

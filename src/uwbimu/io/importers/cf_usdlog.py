@@ -210,13 +210,13 @@ def combine_imu(t_acc: np.ndarray, acc_g: np.ndarray, t_gyro: np.ndarray, gyro_d
 
 def _need(events: dict, name: str, variables: list[str], path: Path) -> dict:
     if name not in events:
-        raise DatasetError(f"{path.name}: no {name!r} events in the log (it holds: {sorted(events)})",
+        raise DatasetError(f"{path.name}: no {name!r} events in the log (it holds: {', '.join(sorted(events))})",
                            file=path.name, column=name)
     ev = events[name]
     missing = [v for v in variables if v not in ev]
     if missing:
-        raise DatasetError(f"{path.name}: event {name!r} lacks variable(s) {missing} (it has "
-                           f"{[k for k in ev if k != 'timestamp']})", file=path.name, column=name)
+        raise DatasetError(f"{path.name}: event '{name}' lacks variable(s) {', '.join(missing)} (it has "
+                           f"{', '.join(k for k in ev if k != 'timestamp')})", file=path.name, column=name)
     return ev
 
 

@@ -237,7 +237,7 @@ def _ids(col: pd.Series, fname: str) -> list[str]:
     frac = v != np.round(v)
     if frac.any():
         i = int(np.argmax(frac))
-        raise DatasetError(f"{fname}, line {i + 2}, column 'anchor_id': anchor id {v[i]!r} is not an integer",
+        raise DatasetError(f"{fname}, line {i + 2}, column 'anchor_id': anchor id '{v[i]}' is not an integer",
                            file=fname, row=i + 2, column="anchor_id")
     return [str(int(x)) for x in v]
 

@@ -120,7 +120,7 @@ def _read_csv(path: Path, required: list[str]) -> pd.DataFrame:
         bad = vals.isna() | ~np.isfinite(vals.to_numpy(float))
         if bad.any():
             i = int(np.argmax(bad.to_numpy()))
-            raise DatasetError(f"{path.name}, line {i + 2}, column '{c}': not a finite number ({df[c].iloc[i]!r})",
+            raise DatasetError(f"{path.name}, line {i + 2}, column '{c}': not a finite number ('{df[c].iloc[i]}')",
                                file=path.name, row=i + 2, column=c)
         out[c] = vals.astype(float)
     return out

@@ -42,7 +42,7 @@ def tdoa_table(t: np.ndarray, id_a, id_b, diff, anchors: pd.DataFrame, source: s
     bad = ~np.isfinite(diff)
     if bad.any():
         i = int(np.argmax(bad))
-        raise DatasetError(f"{source}, {what} {i + first}: TDoA value is not finite ({diff[i]!r})", file=source,
+        raise DatasetError(f"{source}, {what} {i + first}: TDoA value is not finite ('{diff[i]}')", file=source,
                            row=i + first, column="tdoa")
     fmt = np.vectorize(lambda v: str(int(v)) if float(v).is_integer() else str(v), otypes=[object])
     sa, sb = (fmt(a), fmt(b)) if len(a) else (a.astype(str), b.astype(str))
@@ -51,7 +51,7 @@ def tdoa_table(t: np.ndarray, id_a, id_b, diff, anchors: pd.DataFrame, source: s
         unknown = ~np.isin(ids, list(known))
         if unknown.any():
             i = int(np.argmax(unknown))
-            raise DatasetError(f"{source}, {what} {i + first}, column '{col}': anchor id {ids[i]!r} is not in "
+            raise DatasetError(f"{source}, {what} {i + first}, column '{col}': anchor id '{ids[i]}' is not in "
                                f"the anchors file ({sorted(known)})", file=source, row=i + first, column=col)
     return pd.DataFrame({"t": t, "anchor_a": sa.astype(str), "anchor_b": sb.astype(str), "tdoa": diff},
                         columns=TDOA_COLUMNS)
@@ -97,7 +97,7 @@ def drop_tdoa_outliers(tdoa: pd.DataFrame, anchors: pd.DataFrame, margin: float,
         i = int(np.argmax(bad))
         raise DatasetError(f"{source}: {k} of {n} TDoA rows ({100.0 * k / n:.0f} %) have |tdoa| beyond the anchors' "
                            f"separation + {margin:g} m (first: {abs(val[i]):.3f} m for anchors "
-                           f"{tdoa['anchor_a'].iloc[i]!r}, {tdoa['anchor_b'].iloc[i]!r}): too many to be outliers; "
+                           f"'{tdoa['anchor_a'].iloc[i]}', '{tdoa['anchor_b'].iloc[i]}'): too many to be outliers; "
                            "check the unit (metres expected) and that the anchors file belongs to this flight",
                            file=source, column="tdoa",
                            hint="--tdoa-margin widens the bound if the anchors are right")

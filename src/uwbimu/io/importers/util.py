@@ -106,7 +106,7 @@ def _stream(raw: pd.DataFrame, cols: list[str], fname: str) -> np.ndarray:
         bad = ~np.isfinite(vals)
         if bad.any():
             i = int(np.argmax(bad))
-            raise DatasetError(f"{fname}, line {i + 2}, column '{c}': not a finite number ({block[c].iloc[i]!r})",
+            raise DatasetError(f"{fname}, line {i + 2}, column '{c}': not a finite number ('{block[c].iloc[i]}')",
                                file=fname, row=i + 2, column=c)
         out[:, j] = vals
     return out
