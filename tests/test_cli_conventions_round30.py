@@ -115,6 +115,26 @@ def test_truth_comparison_follows_the_frame_rule(small):
     assert other["ate_rotation_rmse_deg"] is None and other["n_scored"] > 100 and other["error"] is None
 
 
+def test_estimate_on_isas_walk_prints_only_the_aligned_comparison(tmp_path, monkeypatch):
+    """The ISAS-Walk excerpt (ground truth in a Vive frame): the console gets the se3-aligned ATE, never the raw
+    RMSE/NEES (issue 30 item 3, console side)."""
+    import uwbimu.cli.estimate as est_mod
+
+    excerpt = Path(__file__).parent / "data" / "isas_walk_excerpt"
+    ds = tmp_path / "isas"
+    r = runner.invoke(app, ["import", "isas-walk", str(excerpt), str(ds)])
+    assert r.exit_code == 0, r.output
+    shown = []
+    real = est_mod.print_truth_comparison
+    monkeypatch.setattr(est_mod, "print_truth_comparison", lambda c, cmp: (shown.append(cmp), real(c, cmp)))
+    r = runner.invoke(app, ["estimate", str(ds), "-o", str(tmp_path / "e"), "--preset", "isas-walk", "--no-plots"])
+    assert r.exit_code == 0, r.output
+    (cmp,) = shown
+    assert not cmp["frames_agree"] and cmp["align"] == "se3" and cmp["error"] is None
+    assert np.isfinite(cmp["ate_position_rmse"]) and cmp["ate_rotation_rmse_deg"] is None  # body frames differ
+    assert not {"position_rmse", "orientation_rmse_deg", "nees_mean"} & set(cmp)
+
+
 def test_groundtruth_frame_rule():
     from uwbimu.errors import InputError
     from uwbimu.metrics.align import groundtruth_frame
