@@ -308,6 +308,7 @@ def _batch_ellipse_part(inp: ReportInputs) -> Markup:
         return _part("anchor-ellipses", "Anchor error ellipses", _missing(_not_found_or_lacks(
             "anchors_estimated.csv", a is None, need)), estimated="0")
     cal = inp.calibration or {}
+    a = a.iloc[sorted(range(len(a)), key=lambda k: natural_key(a["anchor"].iloc[k]))].reset_index(drop=True)
     est = _as_bool(a["estimated"])
     xy = a[["x", "y"]].to_numpy(float)
     sd = a[["sd_x", "sd_y"]].to_numpy(float)
