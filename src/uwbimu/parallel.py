@@ -32,7 +32,7 @@ def _one_blas_thread() -> None:
         os.environ.setdefault(k, "1")
 
 
-def _run_pool(fn, tasks: list, workers: int, on_chunk: Callable[[Any], None], describe, preload) -> list[str]:
+def _new_executor(workers: int, preload) -> ProcessPoolExecutor:
     import multiprocessing as mp
 
     ctx = mp.get_context("forkserver") if "forkserver" in mp.get_all_start_methods() else None
@@ -43,8 +43,43 @@ def _run_pool(fn, tasks: list, workers: int, on_chunk: Callable[[Any], None], de
         ctx.set_forkserver_preload([_WORKER_ENV, *preload])
     else:  # spawn (no forkserver): set them in each worker before it runs a task
         initializer = _one_blas_thread
+    return ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=initializer)
+
+
+class ProcessPool:
+    """A local process pool kept open over several :func:`execute` calls (``execute(..., pool=p)``).
+
+    Its worker processes live until the ``with`` block ends, so a module-level cache a task fills in a
+    worker (e.g. the t_d profile's problem and IMU factors, :mod:`uwbimu.calibration.profile_walk`) serves
+    the tasks of the later calls too, and the processes start once.  Same workers and preload rules as
+    :func:`execute`'s own pool::
+
+        with ProcessPool(2, preload=("uwbimu.calibration.profile_walk",)) as pool:
+            execute(fn, tasks_a, keep, workers=2, pool=pool)
+            execute(fn, tasks_b, keep, workers=2, pool=pool)
+    """
+
+    def __init__(self, workers: int, preload: tuple[str, ...] = ("uwbimu.sim", "uwbimu.estimation")):
+        self.workers = int(workers)
+        self.preload = tuple(preload)
+        self.executor: Optional[ProcessPoolExecutor] = None
+
+    def __enter__(self) -> "ProcessPool":
+        self.executor = _new_executor(self.workers, self.preload)
+        return self
+
+    def __exit__(self, exc_type, *exc) -> None:
+        ex, self.executor = self.executor, None
+        if ex is not None:
+            # after an exception (Ctrl-C): do not wait for queued tasks
+            ex.shutdown(wait=exc_type is None, cancel_futures=exc_type is not None)
+
+
+def _run_pool(fn, tasks: list, workers: int, on_chunk: Callable[[Any], None], describe, preload,
+              pool: Optional[ProcessPool] = None) -> list[str]:
     failures: list[str] = []
-    ex = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=initializer)
+    own = pool is None or pool.executor is None
+    ex = _new_executor(workers, preload) if own else pool.executor
     try:
         pending = {ex.submit(fn, t): t for t in tasks}  # workers start here
         while pending:
@@ -59,9 +94,11 @@ def _run_pool(fn, tasks: list, workers: int, on_chunk: Callable[[Any], None], de
                 on_chunk(chunk)
     except BaseException:
         # Ctrl-C or a failed write: do not wait for the queued tasks (finished ones are on disk).
-        ex.shutdown(wait=False, cancel_futures=True)
+        if own:
+            ex.shutdown(wait=False, cancel_futures=True)
         raise
-    ex.shutdown(wait=True)
+    if own:
+        ex.shutdown(wait=True)
     return failures
 
 
@@ -123,6 +160,7 @@ def execute(
     dask_local: bool = False,
     describe: Callable[[Any], str] = repr,
     preload: tuple[str, ...] = ("uwbimu.sim", "uwbimu.estimation"),
+    pool: Optional[ProcessPool] = None,
 ) -> list[str]:
     """Run ``fn(task)`` for every task and pass each result to ``on_result`` as it arrives.
 
@@ -137,6 +175,8 @@ def execute(
         a scheduler address, or a loopback LocalCluster).
     describe : ``task -> str`` naming a task in the failure list.
     preload : modules the forkserver imports once before forking the pool's workers.
+    pool : an open :class:`ProcessPool` to run on (its workers and preload; ``workers`` > 1 still required):
+        the processes and their caches outlive this call.  None: a pool for this call only.
 
     Returns
     -------
@@ -151,4 +191,4 @@ def execute(
         for t in tasks:
             on_result(fn(t))
         return []
-    return _run_pool(fn, tasks, workers, on_result, describe, preload)
+    return _run_pool(fn, tasks, workers, on_result, describe, preload, pool)

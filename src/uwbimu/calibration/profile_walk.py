@@ -177,10 +177,14 @@ def _keep_best(points: list) -> list:
     return [(g, c, it, v if k == i else None) for k, (g, c, it, v) in enumerate(points)]
 
 
-def _run_walks(pb, imf, walks: list, mode: str, workers: int, executor: Optional[dict], on_point, rows) -> list:
+def _run_walks(pb, imf, walks: list, mode: str, workers: int, executor: Optional[dict], on_point, rows,
+               token: Optional[str] = None) -> list:
     """Run independent walks ``(points, start, prev)``: here in order (``workers == 1``, no pickling) or on the
     Monte Carlo executors (:func:`uwbimu.parallel.execute`), one task per walk.  Same points, same
-    warm starts either way, so the same values.  Returns the concatenated points."""
+    warm starts either way, so the same values.  Returns the concatenated points.
+
+    ``token`` names the problem in the workers' cache (:data:`_WORKER_PROBLEM`): the passes of one profile
+    share it, so a worker of a kept pool builds the IMU factors once; None: a new one."""
     walks = [w for w in walks if len(w[0])]
     if workers == 1 and not executor:
         out = []
@@ -192,7 +196,7 @@ def _run_walks(pb, imf, walks: list, mode: str, workers: int, executor: Optional
     from uwbimu.errors import EstimationError
     from uwbimu.parallel import execute
 
-    token = uuid.uuid4().hex
+    token = token or uuid.uuid4().hex
     light = _light_problem(pb)
     got: dict[int, list] = {}
     tasks = [(i, (token, light, [float(g) for g in w[0]], w[1], w[2], mode, rows)) for i, w in enumerate(walks)]
@@ -245,6 +249,17 @@ def run_profile(pb, imf, free_values, centre: float, progress=None, workers: int
     ``progress``: called with the overall fraction of :func:`uwbimu.calibration.calibrate` (0.2 to 0.8 here);
     ``on_point``: called ``(points solved, points planned)`` after each point (the zoom adds planned points).
     """
+    if workers != 1 and not executor:
+        # one local pool for every pass (coarse, fine, zooms): its workers keep the problem and IMU factors
+        # (_WORKER_PROBLEM) from the first pass instead of rebuilding them in a new pool per pass
+        from uwbimu.parallel import ProcessPool
+
+        with ProcessPool(workers, preload=("uwbimu.calibration.profile_walk",)) as pool:
+            return run_profile(pb, imf, free_values, centre, progress, workers, {"pool": pool}, mode, chi2_scale,
+                               on_point)
+    import uuid
+
+    token = uuid.uuid4().hex  # one problem for every pass (the workers' cache key)
     po = pb.options.td_profile
     o = pb.options
     mu = o.time_offset_prior
@@ -275,17 +290,19 @@ def run_profile(pb, imf, free_values, centre: float, progress=None, workers: int
         coarse = _profile_grid_points(mu, po.half_width, po.coarse_step)
         m = int(round(po.coarse_step / po.step))
         n_total = len(coarse) + 2 * m
-        record(_run_walks(pb, imf, walks_from(coarse, centre, base), mode, workers, executor, point_done, rows))
+        record(_run_walks(pb, imf, walks_from(coarse, centre, base), mode, workers, executor, point_done, rows,
+                          token))
         best = min(found, key=lambda g: found[g][0])
         fine = np.round(best + po.step * np.arange(-m, m + 1), 12)
         fine = fine[(fine >= coarse[0]) & (fine <= coarse[-1]) & ~np.isin(fine, list(found))]
         start = (best, found[best][2])
         fw = [(fine[fine > best], start, None), (fine[fine < best][::-1], start, None)]
-        record(_run_walks(pb, imf, fw, mode, workers, executor, point_done, rows))
+        record(_run_walks(pb, imf, fw, mode, workers, executor, point_done, rows, token))
     else:
         grid = _profile_grid_points(mu, po.half_width, po.step)
         n_total = len(grid)
-        record(_run_walks(pb, imf, walks_from(grid, centre, base), mode, workers, executor, point_done, rows))
+        record(_run_walks(pb, imf, walks_from(grid, centre, base), mode, workers, executor, point_done, rows,
+                          token))
     step = po.step
     for _level in range(PROFILE_ZOOM_LEVELS):
         grid = np.array(sorted(found))
@@ -304,7 +321,7 @@ def run_profile(pb, imf, free_values, centre: float, progress=None, workers: int
         n_total += len(zoom)
         start = (best, found[best][2])
         zw = [(np.sort(zoom[zoom > best]), start, None), (np.sort(zoom[zoom < best])[::-1], start, None)]
-        record(_run_walks(pb, imf, zw, mode, workers, executor, point_done, rows))
+        record(_run_walks(pb, imf, zw, mode, workers, executor, point_done, rows, token))
     grid = np.array(sorted(found))
     chi2 = np.array([found[g][0] for g in grid])
     iters = np.array([found[g][1] for g in grid], int)

@@ -76,6 +76,52 @@ def anchor_summary(anchors: dict) -> Table:
     return t
 
 
+class StageBars:
+    """Progress of :func:`uwbimu.calibration.calibrate` from its ``on_stage`` reports
+    (:class:`uwbimu.calibration.stages.StageProgress`): on a terminal, a bar over the stages and one over the
+    t_d profile points; elsewhere (a pipe, a log file), one line per stage started.  Written to ``console``
+    (``uwbimu calibrate`` gives it stderr, so stdout keeps only the results)."""
+
+    def __init__(self, console: Console):
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self.console = console
+        self.live = console.is_terminal
+        self.progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                 TimeElapsedColumn(), console=console, transient=True, disable=not self.live)
+        self.stages = None
+        self.points = None
+        self.t0 = None
+
+    def __enter__(self) -> "StageBars":
+        import time
+
+        self.t0 = time.perf_counter()
+        self.progress.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.progress.__exit__(*exc)
+
+    def update(self, ev) -> None:
+        """The ``on_stage`` callback."""
+        import time
+
+        if self.stages is None:
+            self.stages = self.progress.add_task("calibrate", total=ev.total)
+        if ev.status == "started":
+            self.progress.update(self.stages, description=f"calibrate: {ev.stage}", completed=ev.index)
+            if not self.live:
+                self.console.print(escape(f"calibrate: {ev.stage} ({ev.index + 1}/{ev.total}, "
+                                          f"{time.perf_counter() - self.t0:.0f} s)"), highlight=False)
+        elif ev.status in ("done", "skipped"):
+            self.progress.update(self.stages, completed=ev.index + 1)
+        elif ev.status == "point":
+            if self.points is None:
+                self.points = self.progress.add_task("t_d profile points", total=ev.total_points)
+            self.progress.update(self.points, completed=ev.done, total=ev.total_points)
+
+
 def register(app: typer.Typer) -> None:
     @app.command("calibrate")
     @with_load_options
@@ -101,8 +147,9 @@ def register(app: typer.Typer) -> None:
         from uwbimu.calibration.outputs import OUTPUT_FILES
         from uwbimu.cli.dataset_options import apply_dataset_properties, estimator_options, load, \
             print_load_warnings
+        import numpy as np
+
         from uwbimu.errors import EstimationError, UsageError, UwbimuError
-        from uwbimu.estimation import InitialisationError
         from uwbimu.io.atomic import check_output_target, output_folder
 
         console = Console()
@@ -119,12 +166,14 @@ def register(app: typer.Typer) -> None:
         print_load_warnings(console, ds)
         eskf_opts = apply_dataset_properties(eskf_opts, ds, console)
         try:
-            with console.status("ESKF initialisation, factor graph, t_d profile"):
-                res = calibrate(ds, opts, eskf_options=eskf_opts, workers=workers)
+            with StageBars(Console(stderr=True)) as bars:
+                res = calibrate(ds, opts, eskf_options=eskf_opts, workers=workers, on_stage=bars.update)
         except UwbimuError:
-            raise  # refusals (e.g. anchor self-survey geometry) keep their own exit code
-        except (InitialisationError, ValueError, RuntimeError) as exc:
-            raise EstimationError(str(exc)) from None
+            raise  # refusals (input exit 1, config 2) and EstimationError / InitialisationError (5) keep their code
+        except (RuntimeError, np.linalg.LinAlgError) as exc:
+            # GTSAM's solver failures (indeterminant system: RuntimeError) and singular matrices: the estimation
+            # failed (exit 5).  Any other exception is a bug and reaches the wrapper as one (exit 70).
+            raise EstimationError(f"{type(exc).__name__}: {exc}") from None
         with output_folder(out, force, protect=[dataset], names=sorted(OUTPUT_FILES)) as tmp:
             written = write_calibration(res, tmp, plots=plots)
         cal = res.calibration
