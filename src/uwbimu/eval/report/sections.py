@@ -12,7 +12,7 @@ from uwbimu.eval.report.common import (CAL_COLUMNS, _as_bool, _block, _fig, _fmt
                                        _table)
 from uwbimu.eval.report.inputs import CHI2_1_95, CHI2_1_MEDIAN, ReportInputs
 from uwbimu.formatting import format_number, format_value_sigma, natural_key
-from uwbimu.io.calibration_file import sd_or_none
+from uwbimu.io.calibration_file import sd_or_none, time_offset_sd
 
 
 # --------------------------------------------------------------------------- sections
@@ -539,8 +539,8 @@ def _bound_vs_sigma(df: pd.DataFrame, cal: Optional[dict]) -> Markup:
     sd_l = cal.get("lever_arm_sd") or [None] * 3
     for n, s_f in zip(("lx", "ly", "lz"), sd_l):
         pairs.append((n, s_f, 100.0, "cm"))
-    pairs.append(("td", cal.get("time_offset_sd"), 1000.0, "ms"))
-    cells = []
+    pairs.append(("td", time_offset_sd(cal), 1000.0, "ms"))
+    cells, names = [], []
     for n, s_f, k, unit in pairs:
         col = f"sd_{n}"
         if s_f is None or col not in df.columns:
@@ -548,13 +548,16 @@ def _bound_vs_sigma(df: pd.DataFrame, cal: Optional[dict]) -> Markup:
         b = pd.to_numeric(df[col], errors="coerce").to_numpy(float)[-1]
         if not np.isfinite(b) or b <= 0 or not np.isfinite(float(s_f)):
             continue
-        cells.append(f"{n} {k * b:.2f} vs {k * float(s_f):.2f} {unit} (σ / bound {float(s_f) / b:.2f})")
+        cells.append(f"{n} {format_number(k * b)} vs {format_number(k * float(s_f))} {unit} "
+                     f"(σ / bound {format_number(float(s_f) / b)})")
+        names.append(n)
     if not cells:
         return Markup("")
-    return Markup('<p class="note">Bound at the end of the log (last window; with the chained posterior Cramér-Rao bound '
-            "of <code>uwbimu observability log</code> this is the σ a matched filter should reach) vs the estimator's "
-            "σ of the calibration section: {}. σ / bound well below 1 means an over-confident "
-            "filter, well above 1 one that does not use all the information.</p>").format("; ".join(cells))  # fmt: skip
+    return _tagged("p", "note", {"bound-params": " ".join(names)}, Markup(
+        "Bound at the end of the log (last window; with the chained posterior Cramér-Rao bound "
+        "of <code>uwbimu observability log</code> this is the σ a matched filter should reach) vs the estimator's "
+        "σ of the calibration section: {}. σ / bound well below 1 means an over-confident "
+        "filter, well above 1 one that does not use all the information.").format("; ".join(cells)))
 
 
 def _observability_windows(df: pd.DataFrame, cal: Optional[dict] = None) -> Markup:
