@@ -124,3 +124,41 @@ def test_run_eskf_finds_range_noise_larger_than_declared(sim_flight):
     g = run_eskf(ds, EskfOptions(range_sigma=0.05))
     assert g.extra["noise"]["measurements"]["range"]["given"]
     assert g.config["resolved"]["range_sigma"] == 0.05
+
+
+def _with_correlated_range_errors(ds, sd=0.15, tau=5.0, seed=5):
+    """Each anchor's ranges get a slowly varying error (first-order Gauss-Markov, sd ``sd``, ``tau`` s)."""
+    rng = np.random.default_rng(seed)
+    uwb = ds.uwb.copy()
+    for a in uwb["anchor"].unique():
+        rows = np.flatnonzero((uwb["anchor"] == a).to_numpy())
+        t = uwb["t"].to_numpy(float)[rows]
+        e = np.zeros(rows.size)
+        for k in range(1, rows.size):
+            phi = math.exp(-(t[k] - t[k - 1]) / tau)
+            e[k] = phi * e[k - 1] + sd * math.sqrt(1 - phi**2) * rng.normal()
+        uwb.loc[uwb.index[rows], "range"] += e
+    ds.uwb = uwb
+    return ds
+
+
+def test_unidentified_lever_arm_is_held_when_the_residuals_refute_the_model(sim_flight):
+    clean = run_eskf(simulate(sim_flight))
+    # a log that agrees with its model keeps its estimate
+    assert clean.calibration["sigma_scale"] == 1.0
+    assert not any(e["kind"] == "calibration_held" for e in clean.events)
+    assert clean.config["resolved"]["modes"]["lever_arm"] == "estimate"
+    # translation only (the lever arm not identified) and slowly varying range errors (the model refuted)
+    sc = builtin_scenario("translation").model_copy(update={"duration": 40.0})
+    bad = run_eskf(_with_correlated_range_errors(simulate(sc)))
+    assert bad.calibration["sigma_scale"] > 1.0
+    held = [e for e in bad.events if e["kind"] == "calibration_held"]
+    assert held and held[0]["blocks"] == ["lever_arm"]
+    assert not any(v == "identified" for v in held[0]["first_pass"]["lever_arm_verdict"].values())
+    assert bad.config["resolved"]["modes"]["lever_arm"] == "consider"
+    # held at its prior with the prior's sd (the data's information is shrunk, never the prior's)
+    prior_sd = EskfOptions().lever_arm.prior_sd
+    assert np.allclose(bad.calibration["lever_arm_sd"], prior_sd, rtol=0.05)
+    err = np.array(bad.calibration["lever_arm"]) - np.array(sc.lever_arm)
+    assert np.all(np.abs(err) <= 3 * np.array(bad.calibration["lever_arm_sd"]))
+    assert bad.calibration["time_offset_sd"] >= bad.calibration["time_offset_sd_filter"]

@@ -77,7 +77,7 @@ def _trajectory(f: Eskf):
 
 def _same_as_batch(ds, opts, td, chunks):
     # the streaming filter runs on the given noise; the batch's noise-from-data passes are not streamed
-    opts = opts.model_copy(update={"noise": "preset"})
+    opts = opts.model_copy(update={"noise": "preset", "hold_unidentified": False})
     batch = run_eskf(ds, opts)
     prob, info = build_problem(ds, opts)
     kinds, idx = _arrival_order(prob, td)
@@ -112,7 +112,7 @@ def test_sample_by_sample_and_chunks_equal_batch_on_inrol_excerpt(inrol):
 
 def test_public_pushes_match_run_eskf_and_trimmed_buffers_stay_bounded():
     ds = _sim("calibration-flight", 90.0)
-    opts = EskfOptions(noise="preset")  # the streaming filter runs on the given noise
+    opts = EskfOptions(noise="preset", hold_unidentified=False)  # the streaming filter: one pass
     batch = run_eskf(ds, opts)
     f = Eskf.for_dataset(ds)  # record=False: buffers trimmed
     assert f.state() is None
@@ -143,7 +143,7 @@ def test_public_pushes_match_run_eskf_and_trimmed_buffers_stay_bounded():
 
 def test_tdoa_pushes_match_run_eskf():
     ds = _sim("crazyflie-tdoa2", 30.0)
-    opts = EskfOptions(noise="preset")  # the streaming filter runs on the given noise
+    opts = EskfOptions(noise="preset", hold_unidentified=False)  # the streaming filter: one pass
     batch = run_eskf(ds, opts)
     f = Eskf.for_dataset(ds, opts, record=True)
     imu = ds.imu

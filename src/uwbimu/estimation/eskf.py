@@ -285,16 +285,17 @@ def run_eskf(
     warnings += warn_gap
 
     # noise from the data (rule 1): the IMU densities from the log's spectrum
+    eff = opts  # the options in effect: the given ones with what the log decided filled in
     noise_report: dict[str, Any] = {"mode": opts.noise}
     if opts.noise == "data" and opts.imu_noise is None and opts.imu_noise_scale == 1.0:
         imu_noise, noise_report["imu"] = imu_noise_from_log(prob.imu_t, prob.imu_u, info["imu_noise"])
         if imu_noise is not info["imu_noise"]:
-            opts_run = opts.model_copy(update={"imu_noise": imu_noise})
-            prob, info = build_problem(dataset, opts_run)
+            eff = eff.model_copy(update={"imu_noise": imu_noise})
+            prob, info = build_problem(dataset, eff)
     else:
         noise_report["imu"] = {"status": "given"}
 
-    f, cpu_filter = _filter_pass(prob, priors, opts, initial, cb)
+    f, cpu_filter = _filter_pass(prob, priors, eff, initial, cb)
     if f.initial is None:
         raise InitialisationError(f._init_failure or "not enough data to initialise")
     # rule 2: the range / TDoA noise by covariance matching of the first pass's innovations; one more pass
@@ -302,34 +303,47 @@ def run_eskf(
     if opts.noise == "data":
         match = _match_measurement_noise(f.problem(), f.passes(), info, opts)
         noise_report["measurements"] = match
-        update = {k: v["sigma_new"] for k, v in match.items() if v.get("changed")}
+        update = {f"{k}_sigma": v["sigma_new"] for k, v in match.items() if v.get("changed")}
         if update:
-            opts_m = opts.model_copy(update={"imu_noise": info["imu_noise"],
-                                             **{f"{k}_sigma": v for k, v in update.items()}})
-            if "range" not in update:
-                opts_m = opts_m.model_copy(update={"range_sigma": info["range_sigma"]})
-            prob, info = build_problem(dataset, opts_m)
-            f, cpu2 = _filter_pass(prob, priors, opts, f.initial, cb)
+            eff = eff.model_copy(update={"imu_noise": info["imu_noise"], "range_sigma": info["range_sigma"],
+                                         **update})
+            prob, info = build_problem(dataset, eff)
+            f, cpu2 = _filter_pass(prob, priors, eff, f.initial, cb)
             cpu_filter += cpu2
-            if f.initial is None:
-                raise InitialisationError(f._init_failure or "not enough data to initialise")
-    initial = f.initial
-    passes = f.passes()
-    events += f.events()
-    warnings += f.warnings()
-    prob = f.problem()
-    w_noise, e_noise = _noise_events(noise_report, float(prob.uwb_t[0]))
-    warnings += w_noise
-    events += e_noise
-    result = _assemble(dataset, prob, info, passes, opts)
-    result.extra["noise"] = noise_report
-    _apply_variance_factor(result, prob, opts)
-    _add_time_offset_verdict(result, prob, priors, opts, initial)
+    result = _finish(dataset, f, info, priors, eff, noise_report)
+    # a calibration block the log does not identify is held at its prior (consider mode) and the filter
+    # rerun: a parameter the data cannot determine would otherwise absorb unmodelled errors into the
+    # trajectory (the Crazyflie's 9 cm lever arm wandered to 40 cm and took the position with it)
+    held = _unidentified_blocks(result, eff) if opts.hold_unidentified else {}
+    if held:
+        eff = eff.model_copy(update={"imu_noise": info["imu_noise"], "range_sigma": info["range_sigma"],
+                                     "tdoa_sigma": info.get("tdoa_sigma"), **held})
+        prob, info = build_problem(dataset, eff)
+        first = result.calibration
+        # why the lever arm is not identified (excitation, rotation gate) is said by the first pass
+        first_lever_warnings = [w for w in result.warnings if w.startswith("lever arm")]
+        first_lever_events = [e for e in result.events if e["kind"] == "lever_arm_not_updated"
+                              or (e["kind"] == "low_excitation" and e.get("parameter") == "lever arm")]
+        # from the initialiser again: the first start carries the estimated blocks' search
+        f, cpu2 = _filter_pass(prob, priors, eff, initial, cb)
+        cpu_filter += cpu2
+        result = _finish(dataset, f, info, priors, eff, noise_report)
+        result.events.append({"t": float(prob.uwb_t[0]), "kind": "calibration_held",
+                              "blocks": sorted(held), "first_pass": {
+                                  "lever_arm": first["lever_arm"], "lever_arm_sd": first["lever_arm_sd"],
+                                  "time_offset": first["time_offset"], "time_offset_sd": first["time_offset_sd"],
+                                  "lever_arm_verdict": first.get("lever_arm_verdict"),
+                                  "time_offset_verdict": first.get("time_offset_verdict")}})
+        result.warnings.append("lever arm: no axis identified by this log; held at its prior in consider mode "
+                               "(the filter rerun; first pass in the calibration_held event)")
+        result.warnings += [w for w in first_lever_warnings if w not in result.warnings]
+        result.events += [dict(e, first_pass=True) for e in first_lever_events]
     result.warnings = warnings + result.warnings
     result.events = events + result.events
     result.runtime_s = time.perf_counter() - t_wall
     result.extra["filter_cpu_seconds"] = cpu_filter
     result.extra["init_cpu_seconds"] = f.init_cpu_seconds
+    result.config["resolved"]["modes"] = {"lever_arm": eff.lever_arm.mode, "time_offset": eff.time_offset.mode}
     result.extra["total_cpu_seconds"] = time.process_time() - cpu0
     # The library stays silent: warnings travel in result.warnings / result.events and the
     # caller (the CLI, a study) decides what to show.
@@ -338,6 +352,39 @@ def run_eskf(
 
 #: a noise level this many times the preset's (or below its inverse) is reported as a warning
 FAR_FROM_PRESET = 3.0
+
+
+def _finish(dataset: Dataset, f: Eskf, info: dict[str, Any], priors: dict[str, Any], eff: EskfOptions,
+            noise_report: dict[str, Any]) -> EstimationResult:
+    """A finished filter run turned into a result with noise events, variance factor and verdicts."""
+    if f.initial is None:
+        raise InitialisationError(f._init_failure or "not enough data to initialise")
+    prob = f.problem()
+    w_noise, e_noise = _noise_events(noise_report, float(prob.uwb_t[0]))
+    result = _assemble(dataset, prob, info, f.passes(), eff)
+    result.extra["noise"] = noise_report
+    _apply_variance_factor(result, prob, eff, f.initial.P)
+    _add_time_offset_verdict(result, prob, priors, eff, f.initial)
+    # what the filter itself said comes before the diagnostics in the lists
+    result.warnings = f.warnings() + w_noise + result.warnings
+    result.events = f.events() + e_noise + result.events
+    return result
+
+
+def _unidentified_blocks(result: EstimationResult, eff: EskfOptions) -> dict[str, Any]:
+    """Option updates that hold the lever arm in consider mode when the log identifies none of its axes and its
+    residuals refute the noise model."""
+    cal = result.calibration
+    held: dict[str, Any] = {}
+    lv = cal.get("lever_arm_verdict")
+    # both conditions: none of its axes identified, and residuals that refute the noise model (the variance
+    # factor applied), so that unmodelled errors are there to be absorbed; a clean log keeps its estimate
+    refuted = cal.get("sigma_scale", 1.0) > 1.0
+    if eff.lever_arm.mode == "estimate" and refuted and lv and not any(v == "identified" for v in lv.values()):
+        held["lever_arm"] = eff.lever_arm.model_copy(update={"mode": "consider"})
+    # the time offset is not held: its value in consider mode would be the initial search's, which is the
+    # least reliable of its estimates on the logs where the filter's t_d is not identified (INRoL: -589 ms)
+    return held
 
 
 def _filter_pass(prob: Problem, priors: dict[str, Any], opts: EskfOptions, initial: Optional[InitialState],
@@ -405,7 +452,8 @@ def _noise_events(report: dict[str, Any], t0: float) -> tuple[list[str], list[di
     return warnings, [{"t": t0, "kind": "noise_from_data", **report}]
 
 
-def _apply_variance_factor(result: EstimationResult, prob: Problem, opts: EskfOptions) -> None:
+def _apply_variance_factor(result: EstimationResult, prob: Problem, opts: EskfOptions,
+                           P0: Optional[np.ndarray] = None) -> None:
     """Rule 3 of :mod:`.noise_from_data`: the calibration sds grow with the residuals' long-run variance."""
     res = result.residuals
     acc = res["accepted"].to_numpy(bool)
@@ -423,18 +471,35 @@ def _apply_variance_factor(result: EstimationResult, prob: Problem, opts: EskfOp
     result.extra["residual_variance_factor"] = vf
     fac = cal["sigma_scale"]
     if fac != 1.0:
+        # the data's share of the information is divided by fac^2, the prior's kept:
+        # 1/sd'^2 = 1/sd0^2 + (1/sd^2 - 1/sd0^2) / fac^2 (sd0 the filter's initial sd of the state);
+        # a state held at its prior (no information from the data) keeps its sd
+        sd0 = np.sqrt(np.clip(np.diag(P0), 0, None)) if P0 is not None else None
+
+        def grow(sd: float, i: int) -> float:
+            if sd <= 0 or sd0 is None or not (0 < sd < sd0[i]):
+                return sd if sd0 is not None else sd * fac
+            info = 1.0 / sd0[i] ** 2 + (1.0 / sd**2 - 1.0 / sd0[i] ** 2) / fac**2
+            return float(1.0 / math.sqrt(info))
+
+        L = prob.state_layout()
         cal["lever_arm_sd_filter"] = list(cal["lever_arm_sd"])
         cal["time_offset_sd_filter"] = cal["time_offset_sd"]
-        cal["lever_arm_sd"] = [v * fac for v in cal["lever_arm_sd"]]
-        cal["time_offset_sd"] = cal["time_offset_sd"] * fac
-        for tb in cal.get("tags", {}).values():
-            tb["lever_arm_sd"] = [v * fac for v in tb["lever_arm_sd"]]
-        for key in ("anchor_bias_sd", "tdoa_pair_bias_sd"):
-            if key in cal:
-                cal[key] = {k: v * fac for k, v in cal[key].items()}
+        cal["lever_arm_sd"] = [grow(v, S.EPIU.start + k) for k, v in enumerate(cal["lever_arm_sd"])]
+        cal["time_offset_sd"] = grow(cal["time_offset_sd"], S.ETD)
+        for t_i, tb in enumerate(cal.get("tags", {}).values()):
+            idx = range(L.lever_err(t_i).start, L.lever_err(t_i).stop)
+            tb["lever_arm_sd"] = [grow(v, i) for v, i in zip(tb["lever_arm_sd"], idx)]
+        if "anchor_bias_sd" in cal:
+            i0 = L.err("anchor_bias").start
+            cal["anchor_bias_sd"] = {k: grow(v, i0 + i) for i, (k, v) in enumerate(cal["anchor_bias_sd"].items())}
+        if "tdoa_pair_bias_sd" in cal and prob.pair_index:
+            cal["tdoa_pair_bias_sd"] = {k: grow(v, i) for (k, v), i in
+                                        zip(cal["tdoa_pair_bias_sd"].items(), prob.pair_index.values())}
         result.warnings.append(
             f"the residuals' long-run variance is {vf['long_run_variance']:.3g} (1 when they agree with the "
-            f"noise model; 99 % bound {vf['threshold']:.3g}): calibration sds multiplied by {fac:.3g}")
+            f"noise model; 99 % bound {vf['threshold']:.3g}): the data's information on the calibration "
+            f"divided by {fac**2:.3g} (sds up to {fac:.3g} x)")
     result.events.append({"t": float(prob.uwb_t[0]), "kind": "sigma_from_residuals", **vf})
 
 
@@ -472,7 +537,7 @@ def _add_time_offset_verdict(result: EstimationResult, prob: Problem, priors: di
     if verdict == "not identified":
         result.warnings.append(f"time offset not identified: {reason}")
     # lever arm, per axis, by the same information rule
-    if opts.lever_arm.mode == "estimate":
+    if opts.lever_arm.mode != "fixed":
         prior = np.asarray(priors["sd_lever"], dtype=float).reshape(-1)
         lv = {}
         for i, c in enumerate("xyz"):

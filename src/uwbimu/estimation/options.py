@@ -156,6 +156,11 @@ class EskfOptions(_Strict):
         "range/TDoA sd by covariance matching of a first pass's innovations (uwbimu.estimation.noise_from_data); "
         "a noise option given explicitly (imu_noise, imu_noise_scale, range_sigma, tdoa_sigma) is used as given. "
         "'preset': the preset/dataset values only")
+    hold_unidentified: bool = Field(
+        default=True,
+        description="rerun the filter with the lever arm held at its prior in consider mode when the log "
+        "identifies none of its axes and the residuals refute the noise model (sigma_scale > 1), so that it "
+        "cannot absorb the unmodelled errors into the trajectory")
     sigma_from_residuals: bool = Field(
         default=True,
         description="multiply the calibration sds by the square root of the residuals' long-run variance "
