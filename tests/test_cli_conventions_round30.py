@@ -202,6 +202,11 @@ def test_report_on_a_dataset_folder_hints_estimate_not_force(small):
     ["montecarlo", "--example", "seed-anchor-planes", "--workers", "0", "-o", "o"],
     ["evaluate", "est", "-g", "ds", "--align", "sim3"],
     ["observability", "log", "d", "-o", "o", "--bound", "fisher"],
+    ["evaluate", "est", "-g", "ds", "--distances", "1,x"],
+    ["repeatability", "ds", "-o", "o", "-k", "1"],
+    ["repeatability", "ds", "-o", "o", "--workers", "0"],
+    ["repeatability", "ds", "-o", "o", "--level", "2"],
+    ["report", "no-such-folder"],
 ])
 def test_option_value_errors_exit_2(tmp_path, monkeypatch, args):
     monkeypatch.chdir(tmp_path)

@@ -15,12 +15,15 @@ EVALUATION_FILES = ("evaluation.json", "evaluation_errors.csv", "evaluation_traj
 
 
 def _parse_distances(text: str) -> list[float]:
+    """``--distances`` as a list of positive path lengths [m]; a bad value is a UsageError (exit 2)."""
+    from uwbimu.errors import UsageError
+
     try:
         vals = [float(x) for x in text.split(",") if x.strip()]
     except ValueError:
-        raise typer.BadParameter(f"--distances must be comma-separated numbers, got {text!r}")
+        raise UsageError(f"--distances must be comma-separated numbers, got '{text}'") from None
     if not vals or any(v <= 0 for v in vals):
-        raise typer.BadParameter(f"--distances must be positive, got {text!r}")
+        raise UsageError(f"--distances must be positive, got '{text}'")
     return vals
 
 
@@ -54,7 +57,7 @@ def register(app: typer.Typer) -> None:
 
         console = Console()
         if align not in ALIGN_MODES:
-            raise UsageError(f"--align must be one of {', '.join(ALIGN_MODES)}, got {align!r}")
+            raise UsageError(f"--align must be one of {', '.join(ALIGN_MODES)}, got '{align}'")
         dist = _parse_distances(distances)
         names = list(EVALUATION_FILES)
         gt_folder = groundtruth  # a file is protected itself, a dataset folder as a whole

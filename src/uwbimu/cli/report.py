@@ -69,14 +69,14 @@ def register(app: typer.Typer) -> None:
     def repeatability_cmd(
         dataset: Path = typer.Argument(..., help="Dataset folder."),
         out: Path = typer.Option(..., "--out", "-o", help="Folder for repeatability.json (e.g. the estimator output folder)."),
-        windows: int = typer.Option(4, "--windows", "-k", min=2, help="Number of windows."),
+        windows: int = typer.Option(4, "--windows", "-k", help="Number of windows (at least 2)."),
         method: str = typer.Option("eskf", "--method", help="Estimator: eskf (the filter) or batch (uwbimu calibrate, GTSAM)."),
         config: Optional[Path] = typer.Option(None, "--config", help="Estimator options YAML."),
         preset: Optional[str] = typer.Option(
             None, "--preset", help="Shipped ESKF options: default, real, isas-walk (with --method batch: the "
                                    "initialising ESKF's)."),
         level: float = typer.Option(0.01, "--level", help="Significance level of the chi-square test."),
-        workers: int = typer.Option(1, "--workers", min=1, help="Windows calibrated in parallel (process pool)."),
+        workers: int = typer.Option(1, "--workers", help="Windows calibrated in parallel (process pool, at least 1)."),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
         load_options=None,
     ) -> None:
@@ -91,15 +91,20 @@ def register(app: typer.Typer) -> None:
         from uwbimu.eval.repeatability import repeatability
         from uwbimu.io.atomic import check_output_target, output_folder, write_json
 
+        from uwbimu.errors import UsageError
+
         console = Console()
+        if windows < 2:
+            raise UsageError(f"--windows must be at least 2, got {windows}")
+        if workers < 1:
+            raise UsageError(f"--workers must be at least 1, got {workers}")
+        if not 0 < level < 1:
+            raise UsageError(f"--level must be in (0, 1), got {level:g}")
         check_output_target(out, ["repeatability.json"], force, protect=[dataset])
         if method not in ("eskf", "batch"):
-            from uwbimu.errors import UsageError
-
             raise UsageError(f"--method {method}: expected eskf or batch")
         if method == "batch":
             from uwbimu.calibration import CalibrationOptions
-            from uwbimu.errors import UsageError
 
             try:
                 opts = CalibrationOptions.from_yaml(config) if config is not None else CalibrationOptions()
