@@ -22,6 +22,13 @@ Sections (``<section id=...>``; a section whose input is missing says so):
 ``observability``  excitation / observability timeline (``observability.csv``)
 ``warnings``       estimator warnings
 
+Every summary a section states comes from one place (:mod:`.inputs`: the time-offset mode and verdict of
+calibration.yaml's one schema and the run's events, the NIS summary of residuals.csv, the run's warnings) and the page
+carries it as ``data-*`` attributes: ``#run-summary`` (``data-estimator``, ``data-td-mode``, ``data-td-verdict``,
+``data-nis-*``, ``data-warnings``, ``data-warning-kinds``, ``data-out-dir``), each ``<section>`` its own (e.g.
+``trajectory``: ``data-align``, ``data-band``, ``data-position-rmse``, ``data-outside-band-pct``), each warning
+``data-warning-kind``. Figures follow the one rounding rule of :mod:`uwbimu.formatting`; anchors the natural order.
+
 The package: :mod:`.common` (templates, tables, figures), :mod:`.inputs` (what is read, shared summaries),
 :mod:`.sections` (the sections), :mod:`.batch` (the ``uwbimu calibrate`` section), :mod:`.render` (the page).
 """
