@@ -164,10 +164,12 @@ def print_check(console, ds, result, path=None) -> None:
         rt.add_column("best other", justify="right", overflow="fold")
         rt.add_column("other score", justify="right", min_width=5)
         flagged = {f.anchor for f in result.flags}
-        for aid, r in result.residual_table.iterrows():
+        from uwbimu.cli.conventions import natural_key
+
+        for aid, r in sorted(result.residual_table.iterrows(), key=lambda ar: natural_key(ar[0])):
             style = "red" if aid in flagged else None
             other, other_score = (str(r["best_other"]), _f(r["other_score"])) if r["best_other"] else ("-", "-")
-            rt.add_row(str(aid), str(int(r["n"])), _f(r["median"], "+.3f"), _f(r["mad"]),
+            rt.add_row(escape(str(aid)), str(int(r["n"])), _f(r["median"], "+.3f"), _f(r["mad"]),
                        _f(r["rms"]), _f(r["p95_abs"]), _f(r["fit_shift"]), _f(r["fit_score"]), other, other_score,
                        style=style)
         console.print(rt)
@@ -243,8 +245,10 @@ def _tdoa_table(result):
     for c, w in cols:
         t.add_column(escape(c), justify="right", min_width=w)
     flagged = {f.anchor for f in result.flags}
-    for pair, r in result.tdoa_pairs.iterrows():
-        row = [str(pair), str(int(r["samples"])), _f(r["rate_hz"], ".1f"), _f(r["max_gap"]), str(int(r["n_gaps"]))]
+    from uwbimu.cli.conventions import natural_key
+
+    for pair, r in sorted(result.tdoa_pairs.iterrows(), key=lambda pr: natural_key(pr[0])):
+        row = [escape(str(pair)), str(int(r["samples"])), _f(r["rate_hz"], ".1f"), _f(r["max_gap"]), str(int(r["n_gaps"]))]
         if tab is not None:
             if pair in tab.index:
                 s = tab.loc[pair]

@@ -27,14 +27,14 @@ def _ms(cell: dict, key: str, scale: float, digits: int = 1) -> str:
 def summary_table(summary: dict) -> Table:
     """Every estimated quantity per cell: RMS over runs of position RMSE per axis, of the lever-arm
     error per axis and of the time-offset error; runs that diverged and the fewest runs alive."""
-    table = Table(title=f"{summary['name']}: {summary['runs_per_scenario']} runs per scenario")
+    table = Table(title=escape(f"{summary['name']}: {summary['runs_per_scenario']} runs per scenario"))
     for col in ("scenario", "estimator", "ok/runs", "diverged", "RMSE x [m]", "RMSE y [m]", "RMSE z [m]", "NEES pos",
                 "lever x/y/z RMS [mm]", "t_d RMS [ms]", "est. [s/run]"):
         table.add_column(escape(col), justify="left" if col in ("scenario", "estimator") else "right",
                          no_wrap=col in ("scenario", "estimator", "ok/runs"))
     for c in summary["cells"]:
         table.add_row(
-            c["scenario"], c["estimator"],
+            escape(c["scenario"]), escape(c["estimator"]),
             f"{c['runs'] - c['failed']}/{c['runs']}" + (f" ({c['runs_truncated']} cut)" if c.get("runs_truncated") else ""),
             str(c.get("runs_diverged", 0)),
             *(f"{c[f'rmse_{a}_all_runs']:.3f}" if c.get(f"rmse_{a}_all_runs") is not None else "-" for a in "xyz"),
@@ -130,12 +130,12 @@ def register(app: typer.Typer) -> None:
         if ct is not None:
             console.print(ct)
         ex = summary["execution"]
-        console.print(
+        console.print(escape(
             f"{ex['backend']} x{ex['workers']}, chunks of {ex['chunk_size']} runs, "
             f"{ex['runs_resumed_from_disk']} runs resumed from disk, {ex['wall_s_this_call']:.1f} s. "
             f"Wrote {out / 'montecarlo.csv'}, {out / 'summary.json'}"
             + (f" and {len(summary.get('figures', []))} figures" if summary.get("figures") else "")
-        )
+        ))
         failed = sum(c["failed"] for c in summary["cells"])
         if failed:
             err.print(f"[yellow]{failed} run(s) failed[/] (status=failed rows in montecarlo.csv carry the message)")
