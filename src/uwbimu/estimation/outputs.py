@@ -127,16 +127,11 @@ def calibration_document(result) -> dict[str, Any]:
     if isinstance(cal.get("time_offset"), dict):
         return CF.migrate(cal)
     mode, configured = effective_time_offset_mode(result)
-    entry = CF.time_offset_entry(cal.get("time_offset"), cal.get("time_offset_sd"), mode,
-                                 cal.get("time_offset_verdict"), configured_mode=configured,
-                                 verdict_reason=cal.get("time_offset_verdict_reason"))
-    out = {"schema_version": CF.SCHEMA_VERSION}
-    for k, v in cal.items():
-        if k == "time_offset":
-            out[k] = entry
-        elif k not in ("time_offset_sd", "time_offset_mode", "time_offset_verdict", "time_offset_verdict_reason"):
-            out[k] = v
-    return CF.migrate(out)
+    cal["time_offset_mode"], cal["configured"] = mode, configured
+    out = {"schema_version": CF.SCHEMA_VERSION, **CF.migrate({k: v for k, v in cal.items() if k != "configured"})}
+    if configured != mode:
+        out["time_offset"]["configured_mode"] = configured
+    return out
 
 
 def _plain(obj: Any) -> Any:

@@ -15,7 +15,9 @@ Schema version 2 (``schema_version: 2``)::
       configured_mode: estimate    # what the options asked for, when the run changed it
       verdict: identified | weakly identified | not identified | fixed
       verdict_reason: "..."        # optional
-      ...                          # estimator-specific extras (batch: sd_marginal, sd_curvature, profile interval)
+      ...                          # estimator-specific extras (ESKF: sd_filter, the filter's sigma before the
+                                   # residuals widened it, value_filter before a clock correction; batch:
+                                   # sd_marginal, sd_model, sd_curvature, profile interval, held_at_prior, advice)
 
 Every other key (IMU biases, anchor biases, ``warnings``, ``events``, ``config``) is unchanged. A sigma is never
 NaN: a quantity that was not estimated has ``sd: null``.
@@ -39,6 +41,9 @@ NOT_ESTIMATED = "not estimated"
 #: version-1 keys of the ESKF's time offset, folded into the ``time_offset`` mapping
 _V1_TD_KEYS = {"time_offset_sd": "sd", "time_offset_mode": "mode", "time_offset_verdict": "verdict",
                "time_offset_verdict_reason": "verdict_reason"}
+#: the ESKF's other top-level time-offset keys, folded into the mapping: the filter's own sigma before the residuals
+#: widened it (``sigma_from_residuals``) and the filter's value before a clock-fault correction replaced it
+_V1_TD_EXTRA = {"time_offset_sd_filter": "sd_filter", "time_offset_filter": "value_filter"}
 
 
 def sd_or_none(x: Any) -> Optional[float]:
@@ -142,9 +147,11 @@ def migrate(doc: Optional[dict]) -> Optional[dict]:
     elif td is not None:
         v1 = {new: out.get(old) for old, new in _V1_TD_KEYS.items()}
         mode = v1["mode"] or "estimate"
+        extra = {new: (sd_or_none(out[old]) if new.startswith("sd") else out[old])
+                 for old, new in _V1_TD_EXTRA.items() if old in out}
         out["time_offset"] = time_offset_entry(td, v1["sd"], mode, v1["verdict"],
-                                               verdict_reason=v1["verdict_reason"])
-    for old in _V1_TD_KEYS:
+                                               verdict_reason=v1["verdict_reason"], **extra)
+    for old in (*_V1_TD_KEYS, *_V1_TD_EXTRA):
         out.pop(old, None)
     if isinstance(out.get("lever_arm_sd"), list):
         out["lever_arm_sd"] = [sd_or_none(x) for x in out["lever_arm_sd"]]
