@@ -167,8 +167,8 @@ def test_quaternion_yaw_is_unwrapped(tmp_path):
 @pytest.mark.parametrize(
     "text, needle",
     [
-        ("t,px,py\n0,1,2\n1,1,2\n", "missing column(s) ['pz']"),
-        ("t,px,py,pz,pX\n0,1,2,3,4\n1,1,2,3,4\n", "unknown column(s) ['pX']"),
+        ("t,px,py\n0,1,2\n1,1,2\n", "missing column(s) pz;"),
+        ("t,px,py,pz,pX\n0,1,2,3,4\n1,1,2,3,4\n", "unknown column(s) pX;"),
         ("t,px,py,pz\n0,1,2,3\n1,1,x,3\n", "row 2 (line 3), column 'py'"),
         ("t,px,py,pz\n0,1,2,3\n1,1,nan,3\n", "row 2 (line 3), column 'py'"),
         ("t,px,py,pz\n0,1,2,3\n1,1,2,3\n1,1,2,3\n", "row 3 (line 4), column 't'"),

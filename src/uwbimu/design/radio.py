@@ -201,7 +201,7 @@ def load_pattern_csv(path: str | Path) -> TablePattern:
         header = [h.strip() for h in (reader.fieldnames or [])]
         missing = [c for c in need if c not in header]
         if missing:
-            raise PatternError(f"{path}: missing column(s) {missing}; header is {header}, expected {need}")
+            raise PatternError(f"{path}: missing column(s) {', '.join(missing)}; header is {header}, expected {need}")
         for lineno, row in enumerate(reader, start=2):
             row = {k.strip(): v for k, v in row.items() if k is not None}
             vals = []
@@ -377,7 +377,7 @@ class LinkModel:
     @classmethod
     def from_preset(cls, preset: str, **kw) -> "LinkModel":
         if preset not in RANGE_PRESETS:
-            raise ConfigError(f"unknown radio preset {preset!r}; choose one of {sorted(RANGE_PRESETS)}")
+            raise ConfigError(f"unknown radio preset {preset!r}; choose one of {', '.join(map(str, sorted(RANGE_PRESETS)))}")
         return cls(max_range=RANGE_PRESETS[preset], **kw)
 
     @property

@@ -85,7 +85,7 @@ EXAMPLES: dict[str, dict] = {
 
 def builtin_example(name: str) -> PlacementConfig:
     if name not in EXAMPLES:
-        raise UsageError(f"unknown example {name!r}; choose one of {sorted(EXAMPLES)}")
+        raise UsageError(f"unknown example {name!r}; choose one of {', '.join(map(str, sorted(EXAMPLES)))}")
     return PlacementConfig.model_validate(EXAMPLES[name])
 
 

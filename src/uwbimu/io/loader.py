@@ -759,7 +759,7 @@ def _load_groundtruth(src: _Source, options: LoadOptions, report: LoadReport) ->
     if vel and len(vel) != 3:
         missing = [c for c in GT_VEL_COLUMNS if c not in vel]
         raise DatasetError(f"{src.name}: velocity columns must come as vx, vy, vz together; "
-                           f"missing {missing}, found {list(df.columns)}", file=src.name,
+                           f"missing {', '.join(missing)}, found {', '.join(map(str, df.columns))}", file=src.name,
                            row=1 if src.is_csv else None, column=missing[0])
     df = _to_numeric(src, df, GT_COLUMNS + vel)
     if options.sort:

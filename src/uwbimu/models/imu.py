@@ -88,5 +88,5 @@ def imu_preset(name: str) -> ImuNoise:
     """Look up a preset by (case-insensitive) name, with a clear error."""
     key = name.lower().replace("-", "").replace("_", "")
     if key not in IMU_PRESETS:
-        raise KeyError(f"unknown IMU preset {name!r}; choose one of {sorted(IMU_PRESETS)}")
+        raise KeyError(f"unknown IMU preset {name!r}; choose one of {', '.join(map(str, sorted(IMU_PRESETS)))}")
     return IMU_PRESETS[key]

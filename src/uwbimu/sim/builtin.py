@@ -156,7 +156,7 @@ def list_scenarios() -> dict[str, str]:
 def builtin_scenario(name: str) -> Scenario:
     """A fresh :class:`Scenario` for a built-in name (see :func:`list_scenarios`)."""
     if name not in _BUILTINS:
-        raise KeyError(f"unknown built-in scenario {name!r}; choose one of {sorted(_BUILTINS)}")
+        raise KeyError(f"unknown built-in scenario {name!r}; choose one of {', '.join(map(str, sorted(_BUILTINS)))}")
     data = _merge(_BASE, _BUILTINS[name])
     data["name"] = name
     return Scenario.model_validate(data)

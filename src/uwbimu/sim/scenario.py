@@ -244,7 +244,7 @@ class Scenario(_Spec):
     @classmethod
     def _known_anchor_preset(cls, v):
         if isinstance(v, str) and v not in ANCHOR_PRESETS:
-            raise ValueError(f"unknown anchor preset {v!r}; choose one of {sorted(ANCHOR_PRESETS)}")
+            raise ValueError(f"unknown anchor preset {v!r}; choose one of {', '.join(map(str, sorted(ANCHOR_PRESETS)))}")
         return v
 
     @model_validator(mode="after")

@@ -62,7 +62,7 @@ def read_trajectory_file(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarra
     cols = list(df.columns)
     missing = [c for c in POSITION_COLUMNS if c not in cols]
     if missing:
-        raise TrajectoryFileError(f"{path}: missing column(s) {missing}; found {cols}")
+        raise TrajectoryFileError(f"{path}: missing column(s) {', '.join(missing)}; found {cols}")
     has_q = any(c in cols for c in QUAT_COLUMNS)
     if has_q and not all(c in cols for c in QUAT_COLUMNS):
         raise TrajectoryFileError(f"{path}: quaternion needs all of {QUAT_COLUMNS}; found {cols}")
@@ -71,7 +71,7 @@ def read_trajectory_file(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarra
     allowed = set(POSITION_COLUMNS) | set(QUAT_COLUMNS) | {"yaw"}
     unknown = [c for c in cols if c not in allowed]
     if unknown:
-        raise TrajectoryFileError(f"{path}: unknown column(s) {unknown}; allowed {sorted(allowed)}")
+        raise TrajectoryFileError(f"{path}: unknown column(s) {', '.join(unknown)}; allowed {', '.join(map(str, sorted(allowed)))}")
     if len(df) < 2:
         raise TrajectoryFileError(f"{path}: need at least 2 rows, found {len(df)}")
     for c in cols:

@@ -81,5 +81,5 @@ EXAMPLES: dict[str, dict] = {
 def example_config(name: str) -> dict:
     """A copy of a built-in study as a plain dict (``MonteCarloConfig`` fields)."""
     if name not in EXAMPLES:
-        raise KeyError(f"unknown example {name!r}; choose one of {sorted(EXAMPLES)}")
+        raise KeyError(f"unknown example {name!r}; choose one of {', '.join(map(str, sorted(EXAMPLES)))}")
     return copy.deepcopy(EXAMPLES[name])

@@ -202,7 +202,7 @@ class CalibrationDesignConfig(_Strict):
 
         if isinstance(self.anchors, str):
             if self.anchors not in ANCHOR_PRESETS:
-                raise ConfigError(f"unknown anchor preset {self.anchors!r}; choose one of {sorted(ANCHOR_PRESETS)}")
+                raise ConfigError(f"unknown anchor preset {self.anchors!r}; choose one of {', '.join(map(str, sorted(ANCHOR_PRESETS)))}")
             return list(ANCHOR_PRESETS[self.anchors])
         return [a.id for a in self.anchors]
 
@@ -211,7 +211,7 @@ class CalibrationDesignConfig(_Strict):
 
         if isinstance(self.anchors, str):
             if self.anchors not in ANCHOR_PRESETS:
-                raise ConfigError(f"unknown anchor preset {self.anchors!r}; choose one of {sorted(ANCHOR_PRESETS)}")
+                raise ConfigError(f"unknown anchor preset {self.anchors!r}; choose one of {', '.join(map(str, sorted(ANCHOR_PRESETS)))}")
             return np.array(list(ANCHOR_PRESETS[self.anchors].values()), dtype=float)
         return np.array([a.position for a in self.anchors], dtype=float)
 

@@ -65,8 +65,8 @@ def read_anchors_csv(path: Union[str, os.PathLike]) -> pd.DataFrame:
     df = read_csv_source(path, what="anchors file")
     missing = [c for c in ("anchor", "x", "y", "z") if c not in df.columns]
     if missing:
-        raise DatasetError(f"{path.name}, line 1: missing column(s) {missing}; expected anchor, x, y, z "
-                           f"[, qw, qx, qy, qz], the header has {list(df.columns)}", file=path.name, row=1,
+        raise DatasetError(f"{path.name}, line 1: missing column(s) {', '.join(missing)}; expected anchor, x, y, z "
+                           f"[, qw, qx, qy, qz], the header has {', '.join(map(str, df.columns))}", file=path.name, row=1,
                            column=missing[0])
     df["anchor"] = df["anchor"].str.strip()
     for c in [c for c in ("x", "y", "z", "qw", "qx", "qy", "qz") if c in df.columns]:

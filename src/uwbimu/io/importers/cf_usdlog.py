@@ -146,7 +146,7 @@ def decode(path: Union[str, os.PathLike], ignore_crc: bool = False) -> tuple[dic
         eid, stamp = struct.unpack(head_fmt, data[idx:idx + head_size])
         if eid not in types:
             raise DatasetError(f"{path.name}: record {n} at byte {idx} has unknown event id {eid} (known: "
-                               f"{sorted(types)})", file=path.name, row=n)
+                               f"{', '.join(map(str, sorted(types)))})", file=path.name, row=n)
         ev = types[eid]
         start = idx + head_size
         if start + ev["size"] > end:

@@ -101,7 +101,7 @@ def _read_csv(path: Path, required: list[str]) -> pd.DataFrame:
     missing = [c for c in required if c not in df.columns]
     if missing:
         raise DatasetError(
-            f"{path.name}, line 1: missing column(s) {missing}; the header has {list(df.columns)}",
+            f"{path.name}, line 1: missing column(s) {', '.join(missing)}; the header has {', '.join(map(str, df.columns))}",
             file=path.name, row=1, column=missing[0],
         )
     if len(df) == 0:
@@ -204,7 +204,7 @@ def convert(src: Union[str, os.PathLike], with_groundtruth: bool = True) -> Impo
     unknown = sorted(set(uwb["anchor"]) - set(anchors["anchor"]))
     if unknown:
         raise DatasetError(f"uwb_ranges.csv, column 'anchor_id': anchors {unknown} are not in anchors.csv "
-                           f"({sorted(anchors['anchor'])})", file="uwb_ranges.csv", column="anchor_id")
+                           f"({', '.join(map(str, sorted(anchors['anchor'])))})", file="uwb_ranges.csv", column="anchor_id")
     missing_bias = sorted(set(anchors["anchor"]) - set(TOA_OFFSET))
     if missing_bias:
         changes.append(f"anchors without a documented toa_offset (no known bias): {missing_bias}")

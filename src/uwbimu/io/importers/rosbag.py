@@ -332,7 +332,7 @@ def convert(bag: Union[str, os.PathLike], mapping: Union[RosbagMapping, str, os.
     unknown = sorted(set(uwb["anchor"]) - set(anchors["anchor"]))
     if unknown:
         raise RosbagImportError(f"ranges use anchor id(s) {unknown} that are not in the anchors file "
-                                f"{mapping.resolve(mapping.anchors)} (it has {sorted(anchors['anchor'])})",
+                                f"{mapping.resolve(mapping.anchors)} (it has {', '.join(map(str, sorted(anchors['anchor'])))})",
                                 file=mapping.anchors, column="anchor")
     dt = np.diff(imu["t"].to_numpy())
     meta = DatasetMeta(

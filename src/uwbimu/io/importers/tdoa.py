@@ -52,7 +52,7 @@ def tdoa_table(t: np.ndarray, id_a, id_b, diff, anchors: pd.DataFrame, source: s
         if unknown.any():
             i = int(np.argmax(unknown))
             raise DatasetError(f"{source}, {what} {i + first}, column '{col}': anchor id '{ids[i]}' is not in "
-                               f"the anchors file ({sorted(known)})", file=source, row=i + first, column=col)
+                               f"the anchors file ({', '.join(map(str, sorted(known)))})", file=source, row=i + first, column=col)
     return pd.DataFrame({"t": t, "anchor_a": sa.astype(str), "anchor_b": sb.astype(str), "tdoa": diff},
                         columns=TDOA_COLUMNS)
 
