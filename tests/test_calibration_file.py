@@ -69,3 +69,11 @@ def test_read_calibration(tmp_path):
     (tmp_path / "calibration.yaml").write_text("- 1\n")
     with pytest.raises(ValueError, match="calibration.yaml"):
         read_calibration(tmp_path / "calibration.yaml")
+
+
+def test_eskf_extra_time_offset_keys_fold_into_the_mapping():
+    new = migrate({"time_offset": 0.03, "time_offset_sd": 0.004, "time_offset_sd_filter": 0.002,
+                   "time_offset_filter": 0.025, "lever_arm_sd_filter": [0.01, 0.01, 0.01]})
+    assert new["time_offset"]["sd_filter"] == 0.002 and new["time_offset"]["value_filter"] == 0.025
+    assert "time_offset_sd_filter" not in new and "time_offset_filter" not in new
+    assert new["lever_arm_sd_filter"] == [0.01, 0.01, 0.01]  # per-axis lists stay beside lever_arm_sd
