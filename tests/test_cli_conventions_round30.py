@@ -67,6 +67,8 @@ def test_kernels_cold_reads_the_cache_index(monkeypatch):
     assert not cn.kernels_cold()  # compiled in this process already
     monkeypatch.setattr(cn, "_dispatchers", lambda: [SimpleNamespace(signatures=[], _cache=None)])
     assert cn.kernels_cold()  # unreadable: cold
+    monkeypatch.setattr(cn, "_dispatchers", lambda: [lambda x: x])
+    assert not cn.kernels_cold()  # NUMBA_DISABLE_JIT=1: plain functions, nothing to compile
 
 
 def test_warm_up_failure_is_recorded_not_raised(monkeypatch):

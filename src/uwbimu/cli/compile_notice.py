@@ -66,6 +66,8 @@ def kernels_cold() -> bool:
     cannot be read counts as cold.
     """
     for d in _dispatchers():
+        if not hasattr(d, "signatures"):  # NUMBA_DISABLE_JIT=1: plain Python, nothing to compile
+            return False
         if d.signatures:  # compiled (or loaded) in this process already
             continue
         cache = getattr(d, "_cache", None)

@@ -175,7 +175,7 @@ def _run_demo_into(out: Path, console: Console, duration: float | None, final: P
     metrics = compute_metrics(result, ds)
     console.print(_truth_comparison(result, ds))
     print_truth_comparison(console, truth_comparison(result, ds, metrics))
-    console.print(f"ESKF filter pass {result.runtime_s:.2f} s"
+    console.print(f"ESKF run time {result.runtime_s:.2f} s"
                   + (f" (the kernels were compiled once before it, {compiled.seconds:.0f} s)" if compiled.cold else ""))
     for w in result.warnings:
         console.print(f"[yellow]warning:[/yellow] {escape(w)}")

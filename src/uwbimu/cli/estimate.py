@@ -263,7 +263,7 @@ def register(app: typer.Typer) -> None:
         print_truth_comparison(console, comparison)
         for w in res.warnings:
             console.print(f"[yellow]warning:[/] {escape(w)}")
-        console.print(escape(f"{measurement_counts(ds)}: filter pass {res.runtime_s:.1f} s"
+        console.print(escape(f"{measurement_counts(ds)}: ESKF run {res.runtime_s:.2f} s"
                              + (f" (kernels compiled once before it, {compiled.seconds:.0f} s)" if compiled.cold else "")
                              + f"; wrote {len(written['files'])} files to {out}"))
 
