@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 from rich.markup import escape
 
-from uwbimu.cli.conventions import FORCE_HELP
+from uwbimu.cli.conventions import FORCE_HELP, natural_key
 
 from uwbimu.cli.dataset_options import ACCEL_UNITS, GYRO_UNITS, with_load_options  # noqa: F401 (re-export)
 
@@ -53,7 +53,7 @@ def register(app: typer.Typer) -> None:
         try:
             chk = CheckOptions(move_threshold=move_threshold)
         except ValueError:
-            raise UsageError(f"--move-threshold must be > 0 m, got {move_threshold!r}") from None
+            raise UsageError(f"--move-threshold must be > 0 m, got {move_threshold:g}") from None
         with Progress(TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(),
                       console=console, transient=True) as bar:
             task = bar.add_task(f"loading {dataset}", total=1.0)
@@ -92,7 +92,7 @@ def register(app: typer.Typer) -> None:
                 console.print(f"  repaired: {escape(a)}", soft_wrap=True)
         if strict and result.flags:
             raise CheckFlagged(f"{len(result.flags)} flag(s) on anchor(s) / TDoA pair(s): "
-                               + ", ".join(sorted({f.anchor for f in result.flags})))
+                               + ", ".join(sorted({str(f.anchor) for f in result.flags}, key=natural_key)))
 
 
 def _csv_names(csv: Path) -> list[str]:
