@@ -230,7 +230,9 @@ def demo() -> dict:
         obs = pd.read_csv(f"{d}/demo/estimate/observability.csv")
         import yaml
 
-        cal = yaml.safe_load(Path(f"{d}/demo/estimate/calibration.yaml").read_text())
+        from uwbimu.io.calibration_file import read_calibration
+
+        cal = read_calibration(Path(f"{d}/demo/estimate/calibration.yaml"))
     last = obs.iloc[-1]
     out = {
         f"demo.bound_cm.{n}": 100 * float(last[f"sd_{n}"]) for n in ("lx", "ly", "lz")
@@ -238,7 +240,7 @@ def demo() -> dict:
     out["demo.bound_ms.td"] = 1e3 * float(last["sd_td"])
     for i, n in enumerate(("lx", "ly", "lz")):
         out[f"demo.eskf_sd_cm.{n}"] = 100 * float(cal["lever_arm_sd"][i])
-    out["demo.eskf_sd_ms.td"] = 1e3 * float(cal["time_offset_sd"])
+    out["demo.eskf_sd_ms.td"] = 1e3 * float(cal["time_offset"]["sd"])
     out["demo.all_windows_excited"] = int(
         bool(obs["lever_arm_excited"].all() and obs["time_offset_excited"].all())
     )
