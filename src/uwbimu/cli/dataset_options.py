@@ -48,11 +48,11 @@ def build_load_options(values: dict[str, Any]):
 
     gyro, accel = str(values["gyro_units"]).lower(), str(values["accel_units"]).lower()
     if gyro not in GYRO_UNITS:
-        raise UsageError(f"--gyro-units must be rad or deg, got {values['gyro_units']!r}")
+        raise UsageError(f"--gyro-units must be rad or deg, got '{values['gyro_units']}'")
     if accel not in ACCEL_UNITS:
-        raise UsageError(f"--accel-units must be m/s2 or g, got {values['accel_units']!r}")
+        raise UsageError(f"--accel-units must be m/s2 or g, got '{values['accel_units']}'")
     if not values["tdoa_margin"] >= 0:
-        raise UsageError(f"--tdoa-margin must be >= 0 m, got {values['tdoa_margin']!r}")
+        raise UsageError(f"--tdoa-margin must be >= 0 m, got '{values['tdoa_margin']}'")
     return LoadOptions(drop_duplicate_rows=values["drop_duplicates"], sort=values["sort"],
                        gyro_units=GYRO_UNITS[gyro], accel_units=ACCEL_UNITS[accel],
                        check_units=not values["no_unit_check"], lenient=values["lenient"],

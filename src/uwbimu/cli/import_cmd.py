@@ -98,9 +98,9 @@ def _check_import_options(tdoa_margin: float, quat_order: str) -> str:
     from uwbimu.io.importers.anchors import QUAT_ORDERS
 
     if not tdoa_margin >= 0:
-        raise UsageError(f"--tdoa-margin must be >= 0 m, got {tdoa_margin!r}")
+        raise UsageError(f"--tdoa-margin must be >= 0 m, got '{tdoa_margin}'")
     if quat_order.lower() not in QUAT_ORDERS:
-        raise UsageError(f"--survey-quat-order must be one of {', '.join(QUAT_ORDERS)}, got {quat_order!r}")
+        raise UsageError(f"--survey-quat-order must be one of {', '.join(QUAT_ORDERS)}, got '{quat_order}'")
     return quat_order.lower()
 
 

@@ -79,7 +79,7 @@ def register(app: typer.Typer) -> None:
         if scenario is None or out is None:
             raise UsageError("give a SCENARIO (YAML file or built-in name) and --out DIR, or --list")
         if fmt not in ("csv", "parquet"):
-            raise UsageError(f"--format must be csv or parquet, got {fmt!r}")
+            raise UsageError(f"--format must be csv or parquet, got '{fmt}'")
         from uwbimu.io.atomic import check_output_target, output_folder
 
         path = Path(scenario)
@@ -90,7 +90,7 @@ def register(app: typer.Typer) -> None:
         elif scenario in list_scenarios():
             sc = builtin_scenario(scenario)
         else:
-            raise UsageError(f"{scenario!r} is neither a scenario file nor a built-in name; "
+            raise UsageError(f"'{scenario}' is neither a scenario file nor a built-in name; "
                              f"built-ins: {', '.join(list_scenarios())}")
 
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
