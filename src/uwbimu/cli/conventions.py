@@ -23,6 +23,8 @@ uwbimu records what it writes into a folder in ``.uwbimu-outputs.json`` (file ->
 
 from __future__ import annotations
 
+from uwbimu.formatting import natural_key  # noqa: F401 (the one natural order, re-exported for the verbs)
+
 #: Help of ``--force`` on every verb.
 FORCE_HELP = ("Replace files uwbimu did not write, or edited since (without it only the verb's own "
               "unchanged outputs are replaced); never a dataset's input files.")
@@ -61,13 +63,6 @@ def fit_table(console, table, fold=()):
         if f:
             c.overflow = "fold"
     return table
-
-
-def natural_key(name) -> tuple:
-    """Sort key in natural order: anchor ``"2"`` before ``"10"``, ``"A2"`` before ``"A10"`` (numbers by value)."""
-    import re
-
-    return tuple((0, int(p), "") if p.isdigit() else (1, 0, p) for p in re.split(r"(\d+)", str(name)) if p != "")
 
 
 def value_sd(value, sd, scale: float = 1.0, fmt: str = ".2f", sep: str = " ± ") -> str:
