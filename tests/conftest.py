@@ -52,6 +52,26 @@ SLOW_TESTS: tuple[str, ...] = (
     "tests/test_sim_integration.py::test_ideal_imu_integrates_to_truth",
     "tests/test_sim_integration.py::test_ideal_imu_of_trajectory_file_integrates_to_truth",
     "tests/test_reproducibility.py::test_seed_ocp_cost",  # the seed OCP solved by IPOPT (10 s)
+    # second pass, from the fast subset's own durations (python -m pytest -n 2 -q -m "not slow"
+    # --durations=0 -p no:cacheprovider): the batch-calibration tests above 5 s and modules whose
+    # fixtures solve a graph, the end-to-end CLI runs of calibrate and repeatability
+    "tests/test_calibrate_anchor_loo.py",  # a surveyed graph as fixture (22 s) and leave-one-out re-solves
+    "tests/test_calibrate_identifiability.py",
+    "tests/test_calibrate_linear_split.py",
+    "tests/test_calibrate_survey_sim.py",
+    "tests/test_calibrate_anchor_direction.py",
+    "tests/test_calibrate_anchors.py::test_gauge_convention_and_anchor_ranges_end_to_end",
+    "tests/test_calibrate_frames.py::test_z_down_frame_and_known_bias_give_the_same_calibration",
+    "tests/test_calibrate_direction.py::test_direction_with_drift_keeps_both_terms",
+    "tests/test_calibrate_cli.py::test_calibrate_writes_its_files",
+    "tests/test_calibrate_cli.py::test_repeatability_with_the_batch_method",
+    "tests/test_calibrate_cli.py::test_estimate_anchors_option",
+    "tests/test_calibrate_cli.py::test_repeatability_batch_takes_the_initialising_eskf_preset",
+    "tests/test_clock_drift.py::test_clock_drift_detected_rate_recovered_and_handled",
+    "tests/test_eval_repeatability.py::test_windows_on_the_executors_match_the_serial_run",
+    "tests/test_report_html.py::test_report_repeatability_shows_the_per_window_bound",
+    "tests/test_plan_proof.py::test_proof_runs_through_the_studies_executor_with_the_serial_numbers",
+    "tests/test_cli_conventions.py::test_report_out_is_a_folder_and_html_a_file",
 )
 
 
