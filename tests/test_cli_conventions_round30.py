@@ -337,3 +337,22 @@ def test_no_bare_value_error_for_input_checks():
     assert not bare, "raise InputError / ConfigError / UsageError (uwbimu.errors) instead: " + ", ".join(
         f"{f}:{ln} ({fn})" for f, fn, ln in bare)
     assert {(f, fn) for f, fn, _ in _bare_value_errors()} <= set(ALLOWED)
+
+
+def test_console_warnings_are_the_reports_list():
+    """estimate/demo print run_warning_items (the list the report shows), each text once."""
+    import io
+    from types import SimpleNamespace
+
+    from rich.console import Console
+
+    from uwbimu.cli.estimate import print_run_warnings
+    from uwbimu.eval.report.inputs import run_warning_items
+
+    res = SimpleNamespace(warnings=["w [s] one", "w [s] one"],
+                          events=[{"kind": "range_errors_correlated_over_blocks", "message": "blocks"},
+                                  {"kind": "initialised", "t": 0.0}])
+    shown = print_run_warnings(Console(file=io.StringIO(), width=200), res)
+    expected = run_warning_items(res.warnings, res.events)
+    assert [(i.kind, i.text) for i in shown] == list(dict.fromkeys((i.kind, i.text) for i in expected))
+    assert [i.kind for i in shown] == ["estimator_warning", "range_errors_correlated_over_blocks"]

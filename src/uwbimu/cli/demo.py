@@ -123,7 +123,7 @@ def _run_demo_into(out: Path, console: Console, duration: float | None, final: P
     they will be once the demo ends)."""
     from uwbimu.cli.check import print_check
     from uwbimu.cli.compile_notice import ensure_compiled
-    from uwbimu.cli.estimate import print_truth_comparison, run_with_progress, truth_comparison
+    from uwbimu.cli.estimate import print_run_warnings, print_truth_comparison, run_with_progress, truth_comparison
     from uwbimu.estimation import EskfOptions, compute_metrics, write_outputs
     from uwbimu.estimation import run_eskf
     from uwbimu.eval.repeatability import repeatability
@@ -177,8 +177,7 @@ def _run_demo_into(out: Path, console: Console, duration: float | None, final: P
     print_truth_comparison(console, truth_comparison(result, ds, metrics))
     console.print(f"ESKF run time {result.runtime_s:.2f} s"
                   + (f" (the kernels were compiled once before it, {compiled.seconds:.0f} s)" if compiled.cold else ""))
-    for w in result.warnings:
-        console.print(f"[yellow]warning:[/yellow] {escape(w)}")
+    print_run_warnings(console, result)
     figures.update(metrics)
     figures["calibration"] = result.calibration
 

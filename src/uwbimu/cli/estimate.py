@@ -182,6 +182,23 @@ def _num(v, scale: float = 1.0, fmt: str = ".1f") -> str:
     return "n/a" if v is None or not np.isfinite(v) else format(scale * v, fmt)
 
 
+def print_run_warnings(console: Console, result) -> list:
+    """Print a run's warnings as the report lists them (:func:`uwbimu.eval.report.inputs.run_warning_items` of
+    ``result.warnings`` and ``result.events``: one list for both); a text printed once.  Returns the items."""
+    from uwbimu.eval.report.inputs import run_warning_items
+
+    seen, shown = set(), []
+    for item in run_warning_items(result.warnings, getattr(result, "events", None) or []):
+        if item.text in seen:
+            continue
+        seen.add(item.text)
+        shown.append(item)
+        label = "warning" if item.severity != "info" else "note"
+        kind = "" if item.kind == "estimator_warning" else f" ({escape(item.kind)})"
+        console.print(f"[yellow]{label}{kind}:[/] {escape(item.text)}")
+    return shown
+
+
 def print_truth_comparison(console: Console, cmp: Optional[dict]) -> None:
     """One line of :func:`truth_comparison` (nothing without ground truth)."""
     if cmp is None:
@@ -261,8 +278,7 @@ def register(app: typer.Typer) -> None:
         console.print(calibration_table(res, ds))
         comparison = truth_comparison(res, ds, written["metrics"])
         print_truth_comparison(console, comparison)
-        for w in res.warnings:
-            console.print(f"[yellow]warning:[/] {escape(w)}")
+        print_run_warnings(console, res)
         console.print(escape(f"{measurement_counts(ds)}: ESKF run {res.runtime_s:.2f} s"
                              + (f" (kernels compiled once before it, {compiled.seconds:.0f} s)" if compiled.cold else "")
                              + f"; wrote {len(written['files'])} files to {out}"))
@@ -283,6 +299,5 @@ def estimate_and_print(dataset, console: Console, out: Optional[Path] = None, op
         write_outputs(res, dataset, out)
     console.print(calibration_table(res, dataset))
     print_truth_comparison(console, truth_comparison(res, dataset))
-    for w in res.warnings:
-        console.print(f"[yellow]warning:[/] {escape(w)}")
+    print_run_warnings(console, res)
     return res
