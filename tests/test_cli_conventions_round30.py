@@ -356,3 +356,15 @@ def test_console_warnings_are_the_reports_list():
     expected = run_warning_items(res.warnings, res.events)
     assert [(i.kind, i.text) for i in shown] == list(dict.fromkeys((i.kind, i.text) for i in expected))
     assert [i.kind for i in shown] == ["estimator_warning", "range_errors_correlated_over_blocks"]
+
+
+def test_force_is_not_hinted_over_a_datasets_input_file(small, tmp_path):
+    """place -o DATASET would overwrite anchors.csv, an input file: refused without a --force hint (it would not help)."""
+    import shutil
+
+    ds = tmp_path / "ds"
+    shutil.copytree(small[0], ds)
+    r = runner.invoke(app, ["place", "--example", "room", "-o", str(ds), "--no-plots"])
+    assert r.exit_code == 4 and "anchors.csv" in r.stderr and "--force" not in r.stderr
+    r = runner.invoke(app, ["place", "--example", "room", "-o", str(ds), "--no-plots", "--force"])
+    assert r.exit_code == 4 and "--force" not in r.stderr

@@ -151,19 +151,17 @@ def is_dataset_folder(folder: Path) -> bool:
 
 
 def _input_files(folder: Path) -> set[str]:
-    """Dataset input files in ``folder`` (imu.csv, anchors.csv, ...) that are not uwbimu outputs written there
-    and unchanged since (``place`` writes an anchors.csv of its own)."""
+    """Dataset input files in ``folder`` (imu.csv, anchors.csv, ...): never overwritten, whoever wrote them.
+
+    A folder is a dataset when it holds a stream (imu, uwb, tdoa) or a dataset.yaml -- also one that
+    ``simulate`` or ``import`` wrote; a lone anchors.csv (``place`` writes one) is an ordinary output.
+    """
     folder = Path(folder)
     if not folder.is_dir():
         return set()
-    present = [n for n in DATASET_FILES if (folder / n).is_file()]
-    if not present:
-        return set()
-    manifest = read_manifest(folder)
-    foreign = {n for n in present if manifest.get(n) != _sha256(folder / n)}
-    # a dataset has a stream or a dataset.yaml; a lone anchors.csv (e.g. place's, edited) is an ordinary file
-    core = {n for n in foreign if n.split(".")[0] in ("imu", "uwb", "tdoa", "dataset")}
-    return foreign if core else set()
+    present = {n for n in DATASET_FILES if (folder / n).is_file()}
+    core = {n for n in present if n.split(".")[0] in ("imu", "uwb", "tdoa", "dataset")}
+    return present if core else set()
 
 
 def _inside(a: Path, b: Path) -> bool:
@@ -199,6 +197,10 @@ def check_output_target(out: Path, names=(), force: bool = False, protect=(), re
             raise _output_error(f"replacing {out} would delete the input {p}", hint="choose another output folder")
     if out.is_dir():
         inputs = _input_files(out)
+        clash = sorted(inputs & {str(n) for n in names}) if not replace else []
+        if clash:  # never, --force or not: no --force hint
+            raise _output_error(f"{out / clash[0]} is an input file of a dataset; it is never overwritten",
+                                hint="choose another output folder")
         if inputs and not force and not replace:
             raise _output_error(f"{out} holds a dataset ({', '.join(sorted(inputs))}); outputs are not written into a "
                                 f"dataset folder", hint="choose another output folder (or --force)")
