@@ -70,7 +70,8 @@ def lines_of_sight(pb, assoc, values, td: float, rows: np.ndarray) -> np.ndarray
         kfs, kf = np.unique(np.asarray(assoc.key)[chunk], return_inverse=True)
         grp = RangeGroup([assoc.deltas[r] for r in chunk], pb.anchor_pos[pb.anchor_j[used]], pb.rho[used],
                          np.zeros(len(chunk), np.int64), assoc.td0, kf=kf)
-        u = grp._geometry(R_k[kfs], p_k[kfs], v_k[kfs], values.atVector(keys.lever_arm(pb.tag_of(int(used[0])))), td)["u"]
+        lever = values.atVector(keys.lever_arm(pb.tag_of(int(used[0]))))
+        u = grp._geometry(R_k[kfs], p_k[kfs], v_k[kfs], lever, td)["u"]
         out[pos[chunk]] = u / np.linalg.norm(u, axis=1)[:, None]
     return out
 

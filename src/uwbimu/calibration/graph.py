@@ -1,8 +1,8 @@
 """Full-batch MAP calibration with GTSAM: the factor graph, its solve and its marginals.
 
-Variables (GTSAM keys): ``X(k)`` pose, ``V(k)`` velocity, ``B(k)`` IMU bias of
-keyframe ``k`` (IMU clock); ``L(i)`` lever arm p_IU of tag ``i`` (IMU frame, m; ``L(0)`` with
-one tag); ``T(0)`` time offset t_d (s); ``A(j)`` constant range bias of anchor ``j`` (m).  Factors:
+Variables, named by :mod:`uwbimu.calibration.keys` (GTSAM ``Symbol`` keys): ``x(k)`` pose, ``v(k)``
+velocity, ``b(k)`` IMU bias of keyframe ``k`` (IMU clock); ``l(i)`` lever arm p_IU of tag ``i`` (IMU frame,
+m; ``l(0)`` with one tag); ``t(0)`` time offset t_d (s); ``a(j)`` constant range bias of anchor ``j`` (m).  Factors:
 ``CombinedImuFactor`` between consecutive keyframes (preintegration with bias
 random walk), one robust (Huber) :mod:`uwbimu.calibration.range_factor` per
 range, priors on the first keyframe, the lever arm, t_d and the anchor biases.
@@ -90,7 +90,7 @@ def n_dir_vectors(pb) -> int:
 
 
 def _P():
-    """Deprecated: the key function of an estimated anchor position; use :func:`uwbimu.calibration.keys.anchor_position`."""
+    """Deprecated: the key function of an estimated anchor position (:func:`uwbimu.calibration.keys.anchor_position`)."""
     return keys.anchor_position
 
 
@@ -375,7 +375,8 @@ def _imu_factors(pb: Problem):
             # trajectory lags half an IMU period against the ranges: t_d biased by about -T/2).
             acc = so3_exp(0.5 * h * (mid[3:] - b[3:])) @ (mid[:3] - b[:3]) + b[:3]
             pim.integrateMeasurement(acc, mid[3:], h)
-        factors.append(gtsam.CombinedImuFactor(keys.pose(k), keys.velocity(k), keys.pose(k + 1), keys.velocity(k + 1), keys.imu_bias(k), keys.imu_bias(k + 1), pim))
+        factors.append(gtsam.CombinedImuFactor(keys.pose(k), keys.velocity(k), keys.pose(k + 1), keys.velocity(k + 1),
+                                               keys.imu_bias(k), keys.imu_bias(k + 1), pim))
     return factors
 
 
@@ -513,12 +514,14 @@ def build_graph(pb: Problem, assoc: Association, td_fixed: Optional[float] = Non
         j = int(pb.anchor_j[m])
         if pb.is_tdoa(m):
             jb = int(pb.anchor_b[m])
-            factor_keys = [keys.pose(k), keys.velocity(k), keys.lever_arm(pb.tag_of(m))] + ([keys.time_offset()] if td_fixed is None else []) + [keys.anchor_bias(j), keys.anchor_bias(jb)]
-            g.add(make_gtsam_tdoa_factor(factor_keys, pb.anchor_pos[j], pb.anchor_pos[jb], pb.rho[m], d, assoc.td0, tnoise,
-                                         td_fixed=td_fixed))
+            factor_keys = [keys.pose(k), keys.velocity(k), keys.lever_arm(pb.tag_of(m))] + \
+                ([keys.time_offset()] if td_fixed is None else []) + [keys.anchor_bias(j), keys.anchor_bias(jb)]
+            g.add(make_gtsam_tdoa_factor(factor_keys, pb.anchor_pos[j], pb.anchor_pos[jb], pb.rho[m], d, assoc.td0,
+                                         tnoise, td_fixed=td_fixed))
             continue
         est = pb.estimated(j)
-        factor_keys = [keys.pose(k), keys.velocity(k), keys.lever_arm(pb.tag_of(m))] + ([keys.time_offset()] if td_fixed is None else []) + [keys.anchor_bias(j)] + \
+        factor_keys = [keys.pose(k), keys.velocity(k), keys.lever_arm(pb.tag_of(m))] + \
+            ([keys.time_offset()] if td_fixed is None else []) + [keys.anchor_bias(j)] + \
             ([keys.anchor_position(j)] if est else [])
         g.add(make_gtsam_factor(factor_keys, pb.anchor_pos[j], pb.rho[m], d, assoc.td0, noise, td_fixed=td_fixed,
                                 anchor_variable=est))
@@ -550,8 +553,8 @@ def _group_tdoa(pb: Problem, assoc: Association, g, slots: np.ndarray, grouped: 
         bmat[np.arange(len(ms)), inv[:len(ms)]] -= 1.0
         grp = TdoaGroup([assoc.deltas[i] for i in chunk], pb.anchor_pos[ja], pb.anchor_pos[jb], pb.rho[ms], bmat,
                         assoc.td0, kf=kf)
-        _add_group(g, assoc, slots, chunk, grp, kfs, pb.tag_of(int(ms[0])), [keys.anchor_bias(int(j)) for j in uj], pb.tdoa_sigma,
-                   o.huber_k, td_fixed)
+        _add_group(g, assoc, slots, chunk, grp, kfs, pb.tag_of(int(ms[0])), [keys.anchor_bias(int(j)) for j in uj],
+                   pb.tdoa_sigma, o.huber_k, td_fixed)
         grouped[chunk] = True
 
 
@@ -738,7 +741,8 @@ def anchor_factors(pb: Problem) -> list:
             a, b = int(a), int(b)
             if not (s.estimated[a] or s.estimated[b]):
                 continue  # both fixed: a check only (reported), no variable to constrain
-            out.append(_pair_factor(keys.anchor_position(a) if s.estimated[a] else None, keys.anchor_position(b) if s.estimated[b] else None,
+            out.append(_pair_factor(keys.anchor_position(a) if s.estimated[a] else None,
+                                    keys.anchor_position(b) if s.estimated[b] else None,
                                     s.pos[a], s.pos[b], float(r), float(sd)))
     return out
 

@@ -99,7 +99,8 @@ def _profile_chi2_scale(pb, graph, values, assoc) -> float:
     if pb.options.covariance == "model":
         return 1.0
     td = float(values.atVector(keys.time_offset())[0])
-    cov, cov_model, _ = _calibration_covariance(pb, graph, values, assoc, [keys.lever_arm(0), keys.time_offset()], td, True)
+    cov, cov_model, _ = _calibration_covariance(pb, graph, values, assoc, [keys.lever_arm(0), keys.time_offset()],
+                                                td, True)
     return float(min(1.0, cov_model[3, 3] / cov[3, 3])) if cov[3, 3] > 0 else 1.0
 
 
