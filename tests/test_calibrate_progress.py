@@ -28,8 +28,8 @@ def flight():
 def test_every_stage_is_reported_in_order(flight, capsys):
     events: list[StageProgress] = []
     fractions: list[float] = []
-    calibrate(flight, CalibrationOptions.model_validate({"td_profile": {"half_width": 0.2, "step": 0.1},
-                                                         "max_iterations": 10}),
+    opts = {"td_profile": {"half_width": 0.2, "coarse_step": 0.1, "step": 0.05}, "max_iterations": 10}
+    calibrate(flight, CalibrationOptions.model_validate(opts),
               progress=fractions.append, on_stage=events.append)
     assert capsys.readouterr().out == ""  # silent library
     stage_events = [e for e in events if e.status != "point"]
@@ -49,7 +49,7 @@ def test_every_stage_is_reported_in_order(flight, capsys):
     assert by["t_d profile"] == "done" and by["free solve"] == "done"
     assert by["adaptive Huber"] == ("done" if CalibrationOptions().huber_k == "adaptive" else "skipped")
     points = [e for e in events if e.status == "point"]
-    assert len(points) >= 5  # a 5-point grid (the zoom may add points)
+    assert len(points) >= 6  # 5 coarse points, then the fine ones that are new (the zoom may add more)
     assert [p.done for p in points] == list(range(1, len(points) + 1))
     assert points[-1].done == points[-1].total_points
     assert fractions == sorted(fractions) and fractions[-1] == 1.0

@@ -295,6 +295,7 @@ def run_profile(pb, imf, free_values, centre: float, progress=None, workers: int
         best = min(found, key=lambda g: found[g][0])
         fine = np.round(best + po.step * np.arange(-m, m + 1), 12)
         fine = fine[(fine >= coarse[0]) & (fine <= coarse[-1]) & ~np.isin(fine, list(found))]
+        n_total = len(coarse) + len(fine)  # the points the fine pass really solves (progress only)
         start = (best, found[best][2])
         fw = [(fine[fine > best], start, None), (fine[fine < best][::-1], start, None)]
         record(_run_walks(pb, imf, fw, mode, workers, executor, point_done, rows, token))
