@@ -368,3 +368,30 @@ def test_force_is_not_hinted_over_a_datasets_input_file(small, tmp_path):
     assert r.exit_code == 4 and "anchors.csv" in r.stderr and "--force" not in r.stderr
     r = runner.invoke(app, ["place", "--example", "room", "-o", str(ds), "--no-plots", "--force"])
     assert r.exit_code == 4 and "--force" not in r.stderr
+
+
+def test_position_only_groundtruth_is_accepted_with_a_structured_warning(small, tmp_path):
+    """A ground truth without qw..qz loads (positions only) with a warning naming the columns; estimate then
+    scores the position only; half a quaternion is refused, naming what is missing."""
+    import shutil
+
+    from uwbimu.cli.estimate import truth_comparison
+    from uwbimu.errors import InputError
+    from uwbimu.estimation import EskfOptions, run_eskf
+    from uwbimu.io.loader import load_dataset
+
+    ds_dir = tmp_path / "ds"
+    shutil.copytree(small[0], ds_dir)
+    gt = pd.read_csv(ds_dir / "groundtruth.csv")
+    gt.drop(columns=["qw", "qx", "qy", "qz"]).to_csv(ds_dir / "groundtruth.csv", index=False)
+    with pytest.warns(Warning):
+        ds = load_dataset(ds_dir)
+    (w,) = [w for w in ds.report.warnings if w["code"] == "groundtruth_without_attitude"]
+    assert w["file"] == "groundtruth.csv" and w["missing_columns"] == ["qw", "qx", "qy", "qz"]
+    assert "qw" not in ds.groundtruth.columns
+    cmp = truth_comparison(run_eskf(ds, EskfOptions()), ds)
+    assert cmp["frames_agree"] and np.isfinite(cmp["position_rmse"]) and cmp["orientation_rmse_deg"] is None
+    gt.drop(columns=["qz"]).to_csv(ds_dir / "groundtruth.csv", index=False)
+    with pytest.raises(InputError) as exc:
+        load_dataset(ds_dir)
+    assert exc.value.column == "qz"

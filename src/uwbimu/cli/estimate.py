@@ -204,9 +204,11 @@ def print_truth_comparison(console: Console, cmp: Optional[dict]) -> None:
     if cmp is None:
         return
     if cmp["frames_agree"]:
+        ori = ("orientation n/a (no attitude in the ground truth or the estimate)"
+               if cmp["orientation_rmse_deg"] is None else
+               f"orientation RMSE {_num(cmp['orientation_rmse_deg'], 1, '.2f')} deg")
         line = (f"position RMSE {_num(cmp['position_rmse'], 100)} cm (after 10 s: "
-                f"{_num(cmp['position_rmse_after'], 100)} cm), orientation RMSE "
-                f"{_num(cmp['orientation_rmse_deg'], 1, '.2f')} deg, NEES {_num(cmp['nees_mean'])} "
+                f"{_num(cmp['position_rmse_after'], 100)} cm), {ori}, NEES {_num(cmp['nees_mean'])} "
                 f"(dof {cmp['nees_dof']})")
         console.print(f"[bold]vs ground truth:[/] {escape(line)}")
         return

@@ -199,10 +199,11 @@ def log(
     if not 0 < excited_ratio < 1:
         _fail(f"--excited-sd-ratio must be in (0, 1), got {excited_ratio}")
     csv_path, png_path = out / "observability.csv", out / "observability.png"
+    from uwbimu.cli.dataset_options import load, print_load_warnings
     from uwbimu.errors import InputError
-    from uwbimu.io.loader import load_dataset
 
-    ds = load_dataset(dataset, load_options)  # a refused dataset is an InputError (exit 1, file / line / column named)
+    ds = load(dataset, load_options)  # a refused dataset is an InputError (exit 1, file / line / column named)
+    print_load_warnings(console, ds)
     traj = None
     if trajectory is not None:
         try:

@@ -216,8 +216,10 @@ def interpolate_pose(gt: pd.DataFrame, t: np.ndarray, max_gap: float = np.inf
     t = np.asarray(t, float)
     tg = gt["t"].to_numpy(float)
     P = gt[["px", "py", "pz"]].to_numpy(float)
-    Q = gt[["qw", "qx", "qy", "qz"]].to_numpy(float)
     n = len(t)
+    if not all(c in gt.columns for c in ("qw", "qx", "qy", "qz")):
+        raise InputError("the ground truth has no attitude (qw, qx, qy, qz): the antenna pose cannot be interpolated")
+    Q = gt[["qw", "qx", "qy", "qz"]].to_numpy(float)
     p = np.full((n, 3), np.nan)
     q = np.full((n, 4), np.nan)
     if len(tg) < 2:
@@ -489,6 +491,12 @@ def check_dataset(ds: Dataset, options: Optional[CheckOptions] = None,
                                 f"(no nominal lever arm)")
     if ds.groundtruth is None:
         result.notes.append("no ground truth: range and TDoA residuals not computed")
+        report("done", 1.0)
+        return result
+    if not all(c in ds.groundtruth.columns for c in ("qw", "qx", "qy", "qz")):
+        # position-only ground truth: the antenna (p + R l) cannot be placed; the loader warned already
+        result.notes.append("ground truth without attitude (qw, qx, qy, qz): range and TDoA residuals against it "
+                            "not computed")
         report("done", 1.0)
         return result
     gt_frame = str((ds.meta.extra or {}).get("groundtruth_align", "none"))

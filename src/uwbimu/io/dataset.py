@@ -231,7 +231,8 @@ def write_dataset(ds: Dataset, folder: str | os.PathLike, overwrite: bool = Fals
             _write_table(ds.anchor_ranges[ANCHOR_RANGE_COLUMNS + [c for c in ("sd",) if c in ds.anchor_ranges.columns]],
                          tmp / f"anchor_ranges.{fmt}")
         if ds.groundtruth is not None:
-            cols = GT_COLUMNS + [c for c in GT_VEL_COLUMNS if c in ds.groundtruth.columns]
+            cols = [c for c in GT_COLUMNS if c in ds.groundtruth.columns]  # attitude optional (position-only)
+            cols += [c for c in GT_VEL_COLUMNS if c in ds.groundtruth.columns]
             _write_table(ds.groundtruth[cols], tmp / f"groundtruth.{fmt}")
         with open(tmp / "dataset.yaml", "w") as fh:
             yaml.safe_dump(ds.meta.model_dump(exclude_none=True), fh, sort_keys=False)

@@ -754,18 +754,34 @@ def _check_tdoa_bound(src: _Source, tdoa: pd.DataFrame, anchors: pd.DataFrame, m
 def _load_groundtruth(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
     df = _read_raw(src, GT_COLUMNS)
     report.rows_read["groundtruth"] = len(df)
-    _require_columns(src, df, GT_COLUMNS, report, optional=tuple(GT_VEL_COLUMNS))
+    quat = ["qw", "qx", "qy", "qz"]
+    present_q = [c for c in quat if c in df.columns]
+    if present_q and len(present_q) != 4:
+        missing = [c for c in quat if c not in present_q]
+        raise DatasetError(f"{src.name}: attitude columns must come as qw, qx, qy, qz together; missing "
+                           f"{', '.join(missing)}, found {', '.join(map(str, df.columns))}", file=src.name,
+                           row=1 if src.is_csv else None, column=missing[0])
+    has_q = bool(present_q)
+    if not has_q:
+        # a position-only ground truth (e.g. a total station): accepted, attitude not compared -- said once
+        report.warn("groundtruth_without_attitude", src.name,
+                    "no attitude columns (qw, qx, qy, qz): positions only; attitude errors are not computed",
+                    missing_columns=quat)
+    required = GT_COLUMNS if has_q else [c for c in GT_COLUMNS if c not in quat]
+    _require_columns(src, df, required, report, optional=tuple(GT_VEL_COLUMNS))
     vel = [c for c in GT_VEL_COLUMNS if c in df.columns]
     if vel and len(vel) != 3:
         missing = [c for c in GT_VEL_COLUMNS if c not in vel]
         raise DatasetError(f"{src.name}: velocity columns must come as vx, vy, vz together; "
                            f"missing {', '.join(missing)}, found {', '.join(map(str, df.columns))}", file=src.name,
                            row=1 if src.is_csv else None, column=missing[0])
-    df = _to_numeric(src, df, GT_COLUMNS + vel)
+    df = _to_numeric(src, df, required + vel)
     if options.sort:
         df = _sort_by_time(src, df, report)
     df = _check_time_order(src, df, options, report)
     df = _drop_or_refuse_duplicates(src, df, ["t"], "ground-truth timestamp", options, report)
+    if not has_q:
+        return df[required + vel]
     q = df[["qw", "qx", "qy", "qz"]].to_numpy()
     n = np.linalg.norm(q, axis=1)
     bad = np.flatnonzero(np.abs(n - 1.0) > QUAT_NORM_TOL)
@@ -985,7 +1001,7 @@ def load_dataset(path: str | Path, options: Optional[LoadOptions] = None, **kwar
         plausibility.check_coordinates(srcs["groundtruth"], gt, ["px", "py", "pz"], "ground-truth")
     plausibility.check_anchor_geometry(srcs["anchors"], anchors, options.lenient, report.warn)
 
-    if gt is not None and options.check_units and options.gyro_units == "rad/s":
+    if gt is not None and "qw" in gt.columns and options.check_units and options.gyro_units == "rad/s":
         _check_gyro_against_truth(srcs["imu"], imu, gt)
 
     if options.start is not None or options.end is not None:

@@ -42,13 +42,15 @@ def truth_at(dataset: Dataset, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, O
     t = np.asarray(t, dtype=float)
     valid = (t >= tg[0]) & (t <= tg[-1])
     P = gt[["px", "py", "pz"]].to_numpy(float)
-    Q = gt[["qw", "qx", "qy", "qz"]].to_numpy(float)
-    # make the quaternion sequence continuous in sign before interpolating
-    s = np.sign(np.sum(Q[1:] * Q[:-1], axis=1))
-    s = np.concatenate([[1.0], np.cumprod(np.where(s == 0, 1.0, s))])
-    Q = Q * s[:, None]
     p = np.column_stack([np.interp(t, tg, P[:, i]) for i in range(3)])
-    q = quat_normalize(np.column_stack([np.interp(t, tg, Q[:, i]) for i in range(4)]))
+    q = None  # a position-only ground truth has no attitude
+    if all(c in gt.columns for c in ("qw", "qx", "qy", "qz")):
+        Q = gt[["qw", "qx", "qy", "qz"]].to_numpy(float)
+        # make the quaternion sequence continuous in sign before interpolating
+        s = np.sign(np.sum(Q[1:] * Q[:-1], axis=1))
+        s = np.concatenate([[1.0], np.cumprod(np.where(s == 0, 1.0, s))])
+        Q = Q * s[:, None]
+        q = quat_normalize(np.column_stack([np.interp(t, tg, Q[:, i]) for i in range(4)]))
     if all(c in gt.columns for c in ("vx", "vy", "vz")):
         V = gt[["vx", "vy", "vz"]].to_numpy(float)
         v = np.column_stack([np.interp(t, tg, V[:, i]) for i in range(3)])
@@ -108,7 +110,7 @@ def compute_metrics(result, dataset: Dataset, skip_s: float = 10.0) -> dict[str,
     def estimated(sl) -> bool:  # a block another estimator does not estimate has NaN sd
         return bool(np.any(np.all(np.isfinite(sd[:, sl]), axis=1)))
 
-    has_att = estimated(ST.ETH)
+    has_att = estimated(ST.ETH) and q is not None  # no attitude in a position-only ground truth
     has_vel = estimated(ST.EV) and v is not None
     ok = valid & np.all(np.isfinite(X[:, ST.P]), axis=1)
     if not ok.any():

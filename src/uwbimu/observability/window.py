@@ -136,6 +136,9 @@ def trajectory_from_groundtruth(ds, lever_arm=None, t_d: Optional[float] = None)
     gt = ds.groundtruth
     if gt is None or len(gt) < 2:
         raise InputError("the dataset has no ground truth; pass an estimator trajectory")
+    if not all(c in gt.columns for c in ("qw", "qx", "qy", "qz")):
+        raise InputError("the dataset's ground truth has no attitude (qw, qx, qy, qz); pass an estimator "
+                         "trajectory (--trajectory states.csv) to linearise about")
     t = gt["t"].to_numpy(float)
     p = gt[["px", "py", "pz"]].to_numpy(float)
     q = quat_normalize(gt[["qw", "qx", "qy", "qz"]].to_numpy(float))
