@@ -72,6 +72,11 @@ SLOW_TESTS: tuple[str, ...] = (
     "tests/test_report_html.py::test_report_repeatability_shows_the_per_window_bound",
     "tests/test_plan_proof.py::test_proof_runs_through_the_studies_executor_with_the_serial_numbers",
     "tests/test_cli_conventions.py::test_report_out_is_a_folder_and_html_a_file",
+    "tests/test_obs_engine.py::test_vertical_anchor_line_is_yaw",
+    "tests/test_obs_cli.py::test_structural_json_directions_are_name_vector_pairs",
+    "tests/test_place_crane_readings.py::test_place_cli_draws_the_seed_layout_for_each_reading",
+    "tests/test_measurement_models.py::test_altimeter_bias_is_estimated_and_height_tightens",
+    "tests/test_measurement_models.py::test_user_model_with_finite_difference_jacobian_matches_builtin_height",
 )
 
 
