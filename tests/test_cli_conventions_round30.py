@@ -395,3 +395,41 @@ def test_position_only_groundtruth_is_accepted_with_a_structured_warning(small, 
     with pytest.raises(InputError) as exc:
         load_dataset(ds_dir)
     assert exc.value.column == "qz"
+
+
+def _entry_point_cases(tmp_path):
+    from uwbimu.design.metrics import measurement_information
+    from uwbimu.design.run import builtin_example
+    from uwbimu.io.dataset import write_dataset
+    from uwbimu.io.importers.anchors import survey_quat_order
+    from uwbimu.metrics.trajectory import detect_glitches
+    from uwbimu.models.imu import imu_preset
+    from uwbimu.models.quaternion import quat_normalize
+    from uwbimu.observability.window import trajectory_from_states_csv
+    from uwbimu.sim.trajfile import write_trajectory_file
+
+    return [
+        ("design: unknown example", lambda: builtin_example("ship"), 2),
+        ("design: unknown measurement", lambda: measurement_information(np.zeros((1, 3)), np.zeros((4, 3)), "aoa"), 2),
+        ("io: unknown table format", lambda: write_dataset(None, tmp_path / "x", fmt="xlsx"), 2),
+        ("io: unknown quaternion order", lambda: survey_quat_order(tmp_path / "a.txt", "zyxw"), 2),
+        ("metrics: t and p of different length", lambda: detect_glitches(np.zeros(3), np.zeros((2, 3))), 1),
+        ("models: zero quaternion", lambda: quat_normalize(np.zeros(4)), 1),
+        ("models: non-positive IMU period", lambda: imu_preset("bmi088").discrete_sigmas(0.0), 2),
+        ("observability: missing states file", lambda: trajectory_from_states_csv(tmp_path / "none.csv"), 1),
+        ("sim: q and yaw together", lambda: write_trajectory_file(tmp_path / "t.csv", [0, 1], np.zeros((2, 3)),
+                                                                   q=np.tile([1.0, 0, 0, 0], (2, 1)), yaw=[0, 0]), 2),
+    ]
+
+
+def test_library_entry_points_raise_typed_errors_with_their_exit_codes(tmp_path, capsys):
+    """A representative bad input per package whose raises were typed: the class the CLI wrapper maps to the
+    documented exit code (1 refused input, 2 usage/configuration); never a plain ValueError (70)."""
+    from uwbimu.cli.main import report_error
+    from uwbimu.errors import UwbimuError
+
+    for name, call, code in _entry_point_cases(tmp_path):
+        with pytest.raises(UwbimuError) as exc:
+            call()
+        assert report_error(exc.value) == code, name
+    capsys.readouterr()
