@@ -42,12 +42,12 @@ def test_compile_notice_cold_and_warm(monkeypatch):
     from uwbimu.cli import compile_notice as cn
 
     calls = []
-    monkeypatch.setattr(cn, "warm_up", lambda: calls.append("warm_up"))
-    monkeypatch.setattr(cn, "kernels_cold", lambda: True)
+    monkeypatch.setattr(cn, "warm_up", lambda group="eskf": calls.append(group))
+    monkeypatch.setattr(cn, "kernels_cold", lambda group="eskf": True)
     n = cn.ensure_compiled(None)
-    assert n.cold and n.seconds >= 0.0 and n.error is None and calls == ["warm_up"]
-    monkeypatch.setattr(cn, "kernels_cold", lambda: False)
-    assert cn.ensure_compiled(None) == cn.CompileNotice(cold=False) and calls == ["warm_up"]
+    assert n.cold and n.seconds >= 0.0 and n.error is None and calls == ["eskf"]
+    monkeypatch.setattr(cn, "kernels_cold", lambda group="eskf": False)
+    assert cn.ensure_compiled(None) == cn.CompileNotice(cold=False) and calls == ["eskf"]
 
 
 def test_kernels_cold_reads_the_cache_index(monkeypatch):
@@ -59,25 +59,33 @@ def test_kernels_cold_reads_the_cache_index(monkeypatch):
         return SimpleNamespace(signatures=list(signatures),
                                _cache=SimpleNamespace(_cache_file=SimpleNamespace(_load_index=lambda: index)))
 
-    monkeypatch.setattr(cn, "_dispatchers", lambda: [disp({})])
+    monkeypatch.setattr(cn, "_dispatchers", lambda group="eskf": [disp({})])
     assert cn.kernels_cold()  # an empty (or stale: numba empties it) index
-    monkeypatch.setattr(cn, "_dispatchers", lambda: [disp({"sig": "entry"})])
+    monkeypatch.setattr(cn, "_dispatchers", lambda group="eskf": [disp({"sig": "entry"})])
     assert not cn.kernels_cold()
-    monkeypatch.setattr(cn, "_dispatchers", lambda: [disp({}, signatures=["compiled"])])
+    monkeypatch.setattr(cn, "_dispatchers", lambda group="eskf": [disp({}, signatures=["compiled"])])
     assert not cn.kernels_cold()  # compiled in this process already
-    monkeypatch.setattr(cn, "_dispatchers", lambda: [SimpleNamespace(signatures=[], _cache=None)])
+    monkeypatch.setattr(cn, "_dispatchers", lambda group="eskf": [SimpleNamespace(signatures=[], _cache=None)])
     assert cn.kernels_cold()  # unreadable: cold
-    monkeypatch.setattr(cn, "_dispatchers", lambda: [lambda x: x])
+    monkeypatch.setattr(cn, "_dispatchers", lambda group="eskf": [lambda x: x])
     assert not cn.kernels_cold()  # NUMBA_DISABLE_JIT=1: plain functions, nothing to compile
+
+
+def test_every_kernel_group_names_real_dispatchers():
+    from uwbimu.cli import compile_notice as cn
+
+    for group in cn.GROUPS:
+        ds = cn._dispatchers(group)
+        assert ds and all(hasattr(d, "signatures") and hasattr(d, "_cache") for d in ds), group
 
 
 def test_warm_up_failure_is_recorded_not_raised(monkeypatch):
     from uwbimu.cli import compile_notice as cn
 
-    def boom():
+    def boom(group="eskf"):
         raise RuntimeError("x")
 
-    monkeypatch.setattr(cn, "kernels_cold", lambda: True)
+    monkeypatch.setattr(cn, "kernels_cold", lambda group="eskf": True)
     monkeypatch.setattr(cn, "warm_up", boom)
     n = cn.ensure_compiled(None)
     assert n.cold and n.error == "RuntimeError: x"
@@ -87,8 +95,8 @@ def test_estimate_compiles_before_the_run_and_times_them_apart(small, tmp_path, 
     from uwbimu.cli import compile_notice as cn
 
     order = []
-    monkeypatch.setattr(cn, "kernels_cold", lambda: True)
-    monkeypatch.setattr(cn, "warm_up", lambda: order.append("compile"))
+    monkeypatch.setattr(cn, "kernels_cold", lambda group="eskf": True)
+    monkeypatch.setattr(cn, "warm_up", lambda group="eskf": order.append("compile"))
     import uwbimu.cli.estimate as est_mod
 
     real = est_mod.run_with_progress

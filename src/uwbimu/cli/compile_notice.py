@@ -26,6 +26,14 @@ from typing import Optional
 #: Entry points of the ESKF's compiled code (module ``uwbimu.estimation.kernels``); the filter
 #: loop calls every other kernel of a run, so its cache entry stands for them all.
 ESKF_KERNELS = ("filter_loop",)
+#: Entry points of the per-window observability bounds (module ``uwbimu.observability.window``):
+#: the posterior CRB (``--bound pcrb``) and the Gramian (``--bound gramian``).
+WINDOW_KERNELS = ("_window_pcrb", "_window_information")
+#: Kernel groups: module, entry points and a one-word description for the notice.
+GROUPS = {
+    "eskf": ("uwbimu.estimation.kernels", ESKF_KERNELS, "the estimator's kernels"),
+    "window": ("uwbimu.observability.window", WINDOW_KERNELS, "the observability kernels"),
+}
 #: Duration of the warm-up flight [s]: long enough for the initialiser and every update kind
 #: the built-in flight has, short enough that the filter pass itself takes milliseconds.
 WARMUP_DURATION_S = 3.0
@@ -51,21 +59,23 @@ class CompileNotice:
     error: Optional[str] = None
 
 
-def _dispatchers():
-    from uwbimu.estimation import kernels as K
+def _dispatchers(group: str = "eskf"):
+    import importlib
 
-    return [getattr(K, name) for name in ESKF_KERNELS]
+    module, names, _ = GROUPS[group]
+    mod = importlib.import_module(module)
+    return [getattr(mod, name) for name in names]
 
 
-def kernels_cold() -> bool:
-    """True when the ESKF's compiled kernels are neither in this process nor in numba's disk cache.
+def kernels_cold(group: str = "eskf") -> bool:
+    """True when a group's compiled kernels are neither in this process nor in numba's disk cache.
 
-    Reads the cache index of each entry point (:data:`ESKF_KERNELS`): numba returns an empty
-    index when none was written or when it was written for another version of the source
-    (which :func:`uwbimu.models.kernels.refresh_stale_cache` also empties).  An index that
-    cannot be read counts as cold.
+    Reads the cache index of each entry point (:data:`GROUPS`): numba returns an empty index
+    when none was written or when it was written for another version of the source (which
+    :func:`uwbimu.models.kernels.refresh_stale_cache` also empties).  An index that cannot be
+    read counts as cold.
     """
-    for d in _dispatchers():
+    for d in _dispatchers(group):
         if not hasattr(d, "signatures"):  # NUMBA_DISABLE_JIT=1: plain Python, nothing to compile
             return False
         if d.signatures:  # compiled (or loaded) in this process already
@@ -80,40 +90,50 @@ def kernels_cold() -> bool:
     return False
 
 
-def warm_up() -> None:
-    """Compile the ESKF's kernels by running the ESKF on a short built-in simulated flight."""
-    from uwbimu.estimation import EskfOptions, run_eskf
+def warm_up(group: str = "eskf") -> None:
+    """Compile a group's kernels by running its code on a short built-in simulated flight."""
     from uwbimu.sim import builtin_scenario, simulate
 
-    ds = simulate(builtin_scenario("calibration-flight").updated(duration=WARMUP_DURATION_S))
-    run_eskf(ds, EskfOptions())
+    if group == "eskf":
+        from uwbimu.estimation import EskfOptions, run_eskf
+
+        run_eskf(simulate(builtin_scenario("calibration-flight").updated(duration=WARMUP_DURATION_S)), EskfOptions())
+        return
+    from uwbimu.observability.window import WindowOptions, window_observability
+
+    ds = simulate(builtin_scenario("calibration-flight").updated(duration=4 * WARMUP_DURATION_S))
+    for bound in ("pcrb", "gramian"):
+        window_observability(ds, None, WindowOptions(window=2 * WARMUP_DURATION_S, bound=bound))
 
 
-def ensure_compiled(console=None) -> CompileNotice:
-    """Compile the ESKF's kernels now when the cache is cold, with a notice and its measured cost.
+def ensure_compiled(console=None, group: str = "eskf") -> CompileNotice:
+    """Compile a group of kernels now when the cache is cold, with a notice and its measured cost.
 
     Parameters
     ----------
     console : rich.console.Console, optional
         Where the two lines go (nothing is printed without one).
+    group : str
+        ``"eskf"`` (the filter) or ``"window"`` (the per-window observability bounds).
 
     Returns
     -------
     CompileNotice
         ``cold`` and the compile time [s]; a warm cache returns at once with ``cold=False``.
     """
-    if not kernels_cold():
+    if not kernels_cold(group):
         return CompileNotice(cold=False)
+    what = GROUPS[group][2]
     if console is not None:
-        console.print("compiling the estimator's kernels (once per installation; up to a few minutes) ...")
+        console.print(f"compiling {what} (once per installation; up to a few minutes) ...")
     t0 = time.perf_counter()
     error = None
     try:
         if console is not None:
-            with console.status("compiling the ESKF kernels (numba)"):
-                warm_up()
+            with console.status(f"compiling {what} (numba)"):
+                warm_up(group)
         else:
-            warm_up()
+            warm_up(group)
     except Exception as exc:  # noqa: BLE001 - the real run reports its own error
         error = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
     seconds = time.perf_counter() - t0

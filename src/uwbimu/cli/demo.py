@@ -182,6 +182,7 @@ def _run_demo_into(out: Path, console: Console, duration: float | None, final: P
     figures["calibration"] = result.calibration
 
     # 5. observability timeline along the estimated trajectory
+    figures["compile_s"] += ensure_compiled(console, "window").seconds
     with console.status("per-window observability"):
         obs, _info = window_observability(ds, trajectory_from_result(result), WindowOptions(window=5.0))
         write_csv(est_dir / "observability.csv", obs)

@@ -222,6 +222,9 @@ def log(
 
     names = [csv_path.name, png_path.name, "observability_meta.json"]
     check_output_target(out, names, force=force, protect=[dataset])  # refused before any work (OutputError)
+    from uwbimu.cli.compile_notice import ensure_compiled
+
+    ensure_compiled(console, "window")  # a cold cache: one line, then its measured cost
     with console.status("computing per-window information"):
         table, meta = window_observability(ds, traj, options=opts)
     # outputs whole or not at all; sd columns may hold inf (--bound gramian: unbounded direction)
