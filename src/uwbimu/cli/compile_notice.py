@@ -12,6 +12,9 @@ a 3-second built-in simulated flight (the same argument types as a real run, so 
 run finds the compiled code), and prints the measured cost.  The verb's own timings then
 hold the filter pass only, and the compile time is reported next to them.
 
+The per-window observability bounds (``observability log``, the demo's timeline) have their own
+kernels and the same treatment (group ``"window"``, :data:`GROUPS`).
+
 Cold is read from numba's cache index of the kernels (an index holding no entry for the
 current source, see ``numba.core.caching``), never by compiling; kernels already compiled
 in this process count as warm.
