@@ -156,8 +156,8 @@ def resolve_scenario(entry: ScenarioEntry) -> dict:
         else:
             base = dict(entry.scenario or {})
         sc = Scenario.model_validate(_deep_merge(base, entry.overrides))
-    except (ValidationError, KeyError, ValueError) as exc:
-        raise StudyConfigError(f"scenario {entry.name!r}: {exc}") from None
+    except (ValidationError, KeyError, InputError) as exc:  # a scenario that cannot be used (a plain ValueError is a bug)
+        raise StudyConfigError(f"scenario '{entry.name}': {exc}") from None
     return sc.model_dump(mode="json", exclude_none=True)
 
 
