@@ -57,7 +57,7 @@ def test_no_module_uses_the_private_key_tuple():
 
     import uwbimu.calibration as pkg
 
-    allowed = {"graph.py", "noise_scale.py"}  # graph.py: the deprecated alias itself
+    allowed = {"graph.py"}  # graph.py: the deprecated alias itself
     bad = [p.name for p in Path(pkg.__file__).parent.glob("*.py")
            if p.name not in allowed and "_keys()" in p.read_text()]
     assert not bad, bad

@@ -339,7 +339,8 @@ def _bootstrap(dataset, o: CalibrationOptions, setup, eo, eskf, events: list):
         guesses = int(setup.surveyed.sum()) < 4 and bool((setup.estimated & ~setup.surveyed).any())
         if guesses:
             sigma = max(float(o.range_sigma or dataset.meta.range_sigma or 0.1), o.bootstrap_range_sigma)
-            eo = eo.model_copy(update={"range_sigma": sigma})
+            # its residuals refute the guessed anchors, not the lever arm: the lever arm is not held
+            eo = eo.model_copy(update={"range_sigma": sigma, "hold_unidentified": False})
             events.append({"kind": "anchor_bootstrap_from_guesses", "range_sigma": sigma,
                            "message": f"fewer than 4 surveyed anchors: the initialising ESKF used the anchors.csv "
                                       f"guesses of the unsurveyed anchors with a range sd of {sigma:g} m"})

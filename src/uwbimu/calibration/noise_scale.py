@@ -106,9 +106,7 @@ def estimate_imu_noise_scale(pb, imf, graph, values, assoc, iters: int, solve: C
     (relative to the configured densities), ``scale_sd``, ``chi2``, ``redundancy``, ``rows``, ``steps``,
     ``converged``, ``history`` ``[(scale, chi2 / redundancy), ...]``.
     """
-    from uwbimu.calibration import graph as G
-
-    _X, _V, _B, _L, T, _A = G._keys()
+    from uwbimu.calibration import keys
     base = float(pb.options.imu_noise_inflation)
     nu0 = float(pb.options.imu_noise_prior_dof)
     log_s = 0.0  # relative to base
@@ -125,7 +123,7 @@ def estimate_imu_noise_scale(pb, imf, graph, values, assoc, iters: int, solve: C
                 log_s = 0.0
                 pb = dataclasses.replace(pb, options=pb.options.model_copy(update={"imu_noise_inflation": base}))
                 imf = build_imu(pb)
-                graph, values, assoc, iters = solve(pb, imf, values, float(values.atVector(T(0))[0]), assoc)
+                graph, values, assoc, iters = solve(pb, imf, values, float(values.atVector(keys.time_offset())[0]), assoc)
                 chi2, red, rows = imu_variance_ratio(graph, values)
             break
         # the estimating equation with the prior: (chi2 + nu0 / s^2) / (redundancy + nu0) = 1
@@ -145,7 +143,7 @@ def estimate_imu_noise_scale(pb, imf, graph, values, assoc, iters: int, solve: C
         pb = dataclasses.replace(pb, options=pb.options.model_copy(update={"imu_noise_inflation":
                                                                           base * float(np.exp(log_s))}))
         imf = build_imu(pb)
-        td = float(values.atVector(T(0))[0])
+        td = float(values.atVector(keys.time_offset())[0])
         graph, values, assoc, iters = solve(pb, imf, values, td, assoc)
     scale = float(np.exp(log_s))
     info = {"method": "variance_component", "scale": scale,
