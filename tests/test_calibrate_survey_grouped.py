@@ -98,7 +98,7 @@ def test_kernel_and_numpy_agree_with_estimated_anchors(monkeypatch):
 
 def test_group_with_estimated_anchors_needs_their_positions():
     grp = _group(np.random.default_rng(1))
-    with pytest.raises(ValueError, match="anchor_pos"):
+    with pytest.raises(TypeError, match="anchor_pos"):
         grp.evaluate(*STATE)
 
 
