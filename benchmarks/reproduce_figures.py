@@ -209,7 +209,10 @@ def pcrb() -> dict:
         sim.builtin_scenario("calibration-flight").model_copy(update={"duration": 60.0})
     )
     opts = EskfOptions.model_validate({"lever_arm": {"min_rotation_rate": 0.0}, "gating": {"probability": 1.0, "robust": "none"},
-                                       "supervisor": {"enabled": False}})  # fmt: skip
+                                       "supervisor": {"enabled": False},
+                                       # matched by construction: the simulator's own noise, one pass
+                                       "noise": "preset", "sigma_from_residuals": False,
+                                       "hold_unidentified": False})  # fmt: skip
     res = run_eskf(ds, opts)
     P_end, _ = posterior_crb(
         ds, t_start=float(res.t_imu[0]), prior_cov=res.covariances[0]

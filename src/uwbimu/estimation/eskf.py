@@ -322,7 +322,9 @@ def run_eskf(
         first = result.calibration
         # why the lever arm is not identified (excitation, rotation gate) is said by the first pass
         first_lever_warnings = [w for w in result.warnings if w.startswith("lever arm")]
-        first_lever_events = [e for e in result.events if e["kind"] == "lever_arm_not_updated"
+        # ... and so are its divergences / re-initialisations (the held rerun may not repeat them)
+        first_lever_events = [e for e in result.events if e["kind"] in ("lever_arm_not_updated", "divergence",
+                                                                         "reinitialised")
                               or (e["kind"] == "low_excitation" and e.get("parameter") == "lever arm")]
         # from the initialiser again: the first start carries the estimated blocks' search
         f, cpu2 = _filter_pass(prob, priors, eff, initial, cb)
