@@ -17,6 +17,7 @@ from typing import Any, Callable, Optional
 import numpy as np
 import pandas as pd
 
+from uwbimu.errors import InputError
 from uwbimu.estimation import kernels as K
 from uwbimu.estimation.diagnostics import excitation_warnings, imu_gap_events, outage_warnings
 from uwbimu.estimation.filterpass import (
@@ -71,7 +72,7 @@ def resolve_anchor_frame_up(ds: Dataset, opts: EskfOptions, warnings: list[str],
     is used and reported (warning + ``anchor_frame_override`` event)."""
     from_ds = getattr(ds.meta, "anchor_frame_up", None) or (ds.meta.extra or {}).get("anchor_frame_up")
     if from_ds not in (None, "+z", "-z"):
-        raise ValueError(f"dataset {ds.meta.name!r}: anchor_frame_up must be '+z' or '-z', got {from_ds!r}")
+        raise InputError(f"dataset {ds.meta.name!r}: anchor_frame_up must be '+z' or '-z', got {from_ds!r}")
     if opts.anchor_frame_up is None:
         return from_ds or "+z"
     if from_ds is not None and from_ds != opts.anchor_frame_up:
@@ -98,14 +99,14 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
     imu_t = np.ascontiguousarray(t[keep])
     imu_u = np.ascontiguousarray(imu[["ax", "ay", "az", "wx", "wy", "wz"]].to_numpy(float)[keep])
     if len(imu_t) < 10:
-        raise ValueError(f"dataset {ds.meta.name!r}: only {len(imu_t)} IMU samples")
+        raise InputError(f"dataset {ds.meta.name!r}: only {len(imu_t)} IMU samples")
     uwb = ds.uwb
     tag = opts.tag
     tag_names: list[str] = []
     if "tag" in uwb.columns:
         tags = list(pd.unique(uwb["tag"].astype(str)))
         if tag is not None and tag not in tags:
-            raise ValueError(f"tag {tag!r} not in the UWB log (tags: {tags})")
+            raise InputError(f"tag {tag!r} not in the UWB log (tags: {', '.join(map(str, tags))})")
         if tag is None and len(tags) > 1:
             # several tags, one filter: one lever arm each (dataset.yaml's order first)
             meta_order = [tm.name for tm in ds.meta.tags if tm.name in tags]
@@ -154,7 +155,7 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
         # about x (y -> -y, z -> -z, a proper rotation); _assemble turns the outputs back
         anchors = anchors * FLIP_X
     if len(uwb_t) < 8:
-        raise ValueError(f"dataset {ds.meta.name!r}: only {len(uwb_t)} usable ranges / TDoA")
+        raise InputError(f"dataset {ds.meta.name!r}: only {len(uwb_t)} usable ranges / TDoA")
 
     noise = opts.resolve_imu_noise(ds.meta.imu_noise)
     rsig = opts.range_sigma or ds.meta.range_sigma or 0.1

@@ -51,6 +51,7 @@ import pandas as pd
 from numba import njit
 from pydantic import BaseModel, ConfigDict, Field
 
+from uwbimu.errors import InputError
 from uwbimu.estimation.result import EstimationResult
 from uwbimu.models import state as S
 from uwbimu.models.imu import ICM20948
@@ -420,9 +421,9 @@ def run_pointmass(
     s = dataset.imu_t
     u = dataset.imu_u
     if len(s) < 2:
-        raise ValueError("point-mass EKF needs at least two IMU samples")
+        raise InputError("point-mass EKF needs at least two IMU samples")
     if np.any(np.diff(s) <= 0):
-        raise ValueError("IMU stamps must be strictly increasing")
+        raise InputError("IMU stamps must be strictly increasing")
     t_d = float(opts.time_offset)
 
     # ---- attitude source (yaw 0 first; a yaw is a left rotation about world z) ----
@@ -459,7 +460,7 @@ def run_pointmass(
     ids = uwb["anchor"].astype(str).to_numpy()
     unknown = sorted(set(ids) - set(anchor_pos))
     if unknown:
-        raise ValueError(f"uwb ranges reference anchors not in anchors table: {unknown}")
+        raise InputError(f"uwb ranges reference anchors not in anchors table: {unknown}")
     rng_meas = uwb["range"].to_numpy(float).copy()
     if dataset.meta.known_anchor_bias:
         for a, b in dataset.meta.known_anchor_bias.items():
@@ -471,7 +472,7 @@ def run_pointmass(
         tags = uwb["tag"].astype(str).to_numpy()
         missing = sorted(set(tags) - set(arms))
         if missing:
-            raise ValueError(f"uwb ranges from tags without a lever arm in dataset.yaml: {missing}")
+            raise InputError(f"uwb ranges from tags without a lever arm in dataset.yaml: {missing}")
         arm_per = np.array([arms[tg] for tg in tags]) if len(tags) else np.zeros((0, 3))
     else:
         arm0 = next(iter(arms.values())) if arms else np.zeros(3)
@@ -553,7 +554,9 @@ def run_pointmass(
         win_ids = ids[first]
         uniq = sorted(set(win_ids))
         if len(uniq) < 3:
-            raise ValueError("cannot initialise: fewer than 3 anchors heard and no initial_position given")
+            from uwbimu.estimation.init import InitialisationError
+
+            raise InitialisationError("cannot initialise: fewer than 3 anchors heard and no initial_position given")
         med = np.array([np.median(rng_meas[first][win_ids == a]) for a in uniq])
         p_ant, cov, ambiguous = multilaterate(np.array([anchor_pos[a] for a in uniq]), med, opts.mirror)
         P0[0:3, 0:3] = cov * sigma**2 + np.eye(3) * 0.05**2

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from importlib import resources
 
+from uwbimu.errors import UsageError
 from uwbimu.estimation.options import EskfOptions
 
 _PACKAGE = "uwbimu.data"
@@ -35,7 +36,7 @@ def load_preset(name: str) -> EskfOptions:
     """
     names = preset_names()
     if name not in names:
-        raise ValueError(f"unknown estimator preset {name!r}; known presets: {', '.join(names)}")
+        raise UsageError(f"unknown estimator preset {name!r}; known presets: {', '.join(names)}")
     with resources.as_file(resources.files(_PACKAGE).joinpath("presets", f"{name}.yaml")) as path:
         return EskfOptions.from_yaml(path)
 
