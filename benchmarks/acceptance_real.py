@@ -106,8 +106,9 @@ def main() -> int:
         t0 = time.process_time()
         b = calibrate(ds, eskf=None)
         bc = b.calibration
-        bl_v = {c: e.get("verdict") for c, e in
-                (next(iter(((bc.get("identifiability") or {}).get("lever_arm") or {}).values()), {}) or {}).items()}
+        from uwbimu.calibration.agreement import _batch_lever_verdicts
+
+        bl_v = _batch_lever_verdicts(bc)
         td = bc["time_offset"]
         tdv, tds, tdverd = (td.get("value"), td.get("sd"), td.get("verdict")) if isinstance(td, dict) else (
             td, bc.get("time_offset_sd"), bc.get("time_offset_verdict"))

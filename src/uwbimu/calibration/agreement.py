@@ -30,7 +30,8 @@ def _batch_time_offset(cal: dict) -> tuple[Optional[float], Optional[float], Opt
 
 def _batch_lever_verdicts(cal: dict) -> dict[str, Optional[str]]:
     ident = (cal.get("identifiability") or {}).get("lever_arm") or {}
-    first = next(iter(ident.values()), {}) if ident else {}
+    # one tag: {x|y|z: {...}}; several: {TAG: {x|y|z: {...}}} (the first tag's is the top-level lever arm)
+    first = ident if "x" in ident else next((v for v in ident.values() if isinstance(v, dict)), {})
     return {c: (first.get(c) or {}).get("verdict") for c in "xyz"}
 
 
