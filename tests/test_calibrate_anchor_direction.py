@@ -213,7 +213,7 @@ def test_anchor_side_bias_is_recovered():
     names = model.calibration["correlations"]["names"]
     assert f"anchor_direction_{ids[0]}_elevation" in names
     r = model.residuals
-    np.testing.assert_allclose(r["predicted"] - r["range"], r["residual"], atol=1e-12)
+    np.testing.assert_allclose(r["range"] - r["predicted"], r["residual"], atol=1e-12)
     rows = np.searchsorted(ds.uwb["t"].to_numpy(), r["t"].to_numpy())
     # the per-anchor constant bias takes the mean of the pattern: compare the variation about each anchor's mean
     est = r["bias_anchor_direction"] - r.groupby("anchor")["bias_anchor_direction"].transform("mean")

@@ -154,7 +154,7 @@ def test_direction_refused_without_grouped_factors():
 
 def test_direction_with_drift_keeps_both_terms():
     """With range_bias_drift too, every grouped factor carries bias, drift and direction keys: both columns
-    are in residuals.csv and predicted = range + residual still holds."""
+    are in residuals.csv and residual = range − predicted still holds."""
     pytest.importorskip("gtsam")
     from uwbimu.calibration import CalibrationOptions, calibrate
     from uwbimu.sim import builtin_scenario, simulate
@@ -166,7 +166,7 @@ def test_direction_with_drift_keeps_both_terms():
     res = r.residuals
     assert {"bias_drift", "bias_direction"} <= set(res.columns)
     assert res["bias_direction"].abs().max() > 0.01 and res["bias_drift"].abs().max() > 0.0
-    np.testing.assert_allclose(res["predicted"] - res["range"], res["residual"], atol=1e-12)
+    np.testing.assert_allclose(res["range"] - res["predicted"], res["residual"], atol=1e-12)
 
 
 @pytest.mark.parametrize("td_fixed", [None, 0.031])

@@ -317,17 +317,41 @@ def test_a_malformed_input_fails_its_part_only(batch_out, tmp_path):
 
 
 def test_residual_without_removes_the_named_model_terms():
-    """calibration.outputs.residual_without: measured − predicted (here: −residual, no range/predicted columns) +
+    """calibration.outputs.residual_without: measured − predicted (here: the residual, no range/predicted columns) +
     anchor bias + each present model column; an anchor without a bias and a non-numeric cell give NaN."""
     from uwbimu.calibration.outputs import residual_without
 
     res = pd.DataFrame({"anchor": ["A", "B", "C", "A"], "residual": [0.10, -0.20, 0.05, "x"],
                         "bias_drift": [0.01, 0.02, 0.0, 0.0], "bias_direction": [0.03, 0.0, 0.0, 0.0]})
     out = residual_without(res, {"A": 0.05, "B": -0.1})
-    np.testing.assert_allclose(out[:2], [-(0.10 - 0.05 - 0.01 - 0.03), -(-0.20 + 0.1 - 0.02)])
+    np.testing.assert_allclose(out[:2], [0.10 + 0.05 + 0.01 + 0.03, -0.20 - 0.1 + 0.02])
     assert np.isnan(out[2]) and np.isnan(out[3])
     only_drift = residual_without(res, {"A": 0.05, "B": -0.1}, columns=("bias_drift",))
-    assert only_drift[0] == pytest.approx(-(0.10 - 0.05 - 0.01))
+    assert only_drift[0] == pytest.approx(0.10 + 0.05 + 0.01)
     # with range and predicted columns, the residual column's sign does not matter
     both = pd.DataFrame({"anchor": ["A"], "range": [5.0], "predicted": [5.2], "residual": [99.0]})
     assert residual_without(both, {"A": 0.05}, columns=())[0] == pytest.approx(5.0 - 5.2 + 0.05)
+
+
+def test_estimators_part_says_whether_the_batch_agrees_with_the_eskf(batch_out, tmp_path):
+    """calibration.yaml ``estimators`` (the batch against its initialising ESKF) in the batch section: attribute
+    ``estimators`` agree / disagree, the disagreeing parameters named; a file without the check reads unknown."""
+    out, _ds = batch_out
+    cal = yaml.safe_load((out / "calibration.yaml").read_text())
+    ev = cal["estimators"]
+    assert ev["kind"] in ("estimators_agree", "estimators_disagree")
+    assert any(e["kind"] == ev["kind"] for e in cal["events"])
+    doc = _parse(render_report(out))
+    assert doc.parts["estimators"]["estimators"] == ("agree" if ev["kind"] == "estimators_agree" else "disagree")
+    # the same run with a time offset 10 combined sigma away from the ESKF's
+    o = _copy(out, tmp_path / "o")
+    row = {"name": "time_offset", "eskf": 0.03, "eskf_sd": 0.003, "batch": -0.0124, "batch_sd": 0.003, "z": 10.0,
+           "eskf_verdict": "identified", "batch_verdict": "identified", "favours": "neither", "reason": "r"}
+    cal["estimators"] = {"kind": "estimators_disagree", "severity": "warning", "parameters": [row],
+                         "disagreeing": ["time_offset"], "z_threshold": 3.0}
+    (o / "calibration.yaml").write_text(yaml.safe_dump(cal))
+    part = _parse(render_report(o)).parts["estimators"]
+    assert part["estimators"] == "disagree" and part["disagreeing"] == "time_offset"
+    del cal["estimators"]
+    (o / "calibration.yaml").write_text(yaml.safe_dump(cal))
+    assert _parse(render_report(o)).parts["estimators"]["estimators"] == "unknown"

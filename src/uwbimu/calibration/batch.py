@@ -32,7 +32,8 @@ class CalibrationResult:
     ----------
     calibration : plain dict written to ``calibration.yaml`` (value, sd, correlations, verdicts).
     trajectory : DataFrame ``t`` (UWB clock), ``t_imu``, position, quaternion, velocity and their sd.
-    residuals : DataFrame ``t, anchor, range, predicted, residual, z, outlier`` (z = residual / sigma).
+    residuals : DataFrame ``t, anchor, range, predicted, residual, z, outlier`` (residual = range − predicted, the
+        ESKF's innovation sign; z = residual / sigma).
     anchors : DataFrame in the ``anchors.csv`` format plus ``sd_x, sd_y, sd_z`` [m] (marginal; 0 for
         fixed anchors) and ``estimated`` (bool), every anchor, in the gauge frame.
     profile : the t_d profile, or None when disabled.
@@ -124,6 +125,9 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
     for ev in events:
         if ev["kind"] == "time_offset_not_identified":
             cal["time_offset"]["advice"] = ev["advice"]
+    agree = _estimator_agreement(start.eskf, cal)
+    events.append(agree)
+    cal["estimators"] = agree
     cal["events"] = [{k: v for k, v in ev.items()} for ev in events]
     out = CalibrationResult(calibration=cal, trajectory=traj, residuals=res, profile=profiled.profile,
                             eskf=start.eskf, events=events, anchors=anchor_table)
@@ -133,6 +137,41 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
     report.done("marginals and report", 1.0)
     out.runtime_s = time.perf_counter() - t_start
     return out
+
+
+def _plain_number(v):
+    """A finite float, or None (inf / NaN are not YAML / JSON safe); other values as they are."""
+    if isinstance(v, (bool, str)) or v is None:
+        return v
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return v
+    return f if np.isfinite(f) else None
+
+
+def _estimator_agreement(eskf, cal: dict) -> dict:
+    """The event comparing the batch's calibration ``cal`` with the initialising ESKF's
+    (:func:`uwbimu.calibration.agreement.estimator_agreement`): kind ``estimators_agree`` (severity ``info``) or
+    ``estimators_disagree`` (severity ``warning``, with the one-line ``message`` of
+    :func:`~uwbimu.calibration.agreement.agreement_message`); values in m and s, plain floats (a non-finite ``z``
+    is None)."""
+    from uwbimu.calibration.agreement import agreement_message, estimator_agreement
+
+    modes = ((getattr(eskf, "config", None) or {}).get("resolved") or {}).get("modes")
+    ident = cal.get("identifiability") or {}
+    lever = ident.get("lever_arm") or {}
+    view = cal
+    if "x" in lever:  # one tag: identifiability's lever_arm is {x|y|z: ...}; the comparison reads {TAG: {x|y|z}}
+        view = dict(cal, identifiability=dict(ident, lever_arm={"": lever}))
+    ev = estimator_agreement(getattr(eskf, "calibration", None) or {}, view, modes)
+    msg = agreement_message(ev)
+    ev["parameters"] = [{k: _plain_number(v) for k, v in row.items()} for row in ev["parameters"]]
+    ev["z_threshold"] = float(ev["z_threshold"])
+    ev["severity"] = "warning" if msg is not None else "info"
+    if msg is not None:
+        ev["message"] = msg
+    return ev
 
 
 class _StageReporter:
@@ -461,7 +500,7 @@ def _report(pb, profiled: Profiled, dataset):
     e = graph.range_residuals(solved.graph, assoc, values, td)
     used = assoc.used
     res = pd.DataFrame({"t": pb.t_range[used], "anchor": np.array(pb.anchor_ids, dtype=object)[pb.anchor_j[used]],
-                        "range": pb.rho[used], "predicted": pb.rho[used] + e, "residual": e})
+                        "range": pb.rho[used], "predicted": pb.rho[used] + e, "residual": -e})
     if pb.tag_column:  # the log names its tags: so does residuals.csv
         ti = pb.tag_i[used] if pb.tag_i is not None else np.zeros(len(used), np.int64)
         res.insert(2, "tag", np.array(pb.tag_names, dtype=object)[ti])
@@ -640,7 +679,7 @@ def _anchor_report(pb, values, sd_p: dict, dataset):
     if s.pairs is not None:
         out["anchor_ranges"] = [
             {"anchor_a": pb.anchor_ids[int(a)], "anchor_b": pb.anchor_ids[int(b)], "range": float(r), "sd": float(sd),
-             "residual": float(np.linalg.norm(pos[int(a)] - pos[int(b)]) - r),
+             "residual": float(r - np.linalg.norm(pos[int(a)] - pos[int(b)])),  # measured - predicted
              "in_graph": bool(s.estimated[int(a)] or s.estimated[int(b)])}
             for a, b, r, sd in s.pairs[["a", "b", "range", "sd"]].itertuples(index=False)]
     j_of = {a: j for j, a in enumerate(pb.anchor_ids)}

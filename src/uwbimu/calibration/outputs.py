@@ -21,7 +21,8 @@ def measured_minus_predicted(res) -> np.ndarray:
     """Residual [m] of each row of a batch ``residuals.csv`` as measured − predicted (the ESKF's innovation sign).
 
     From the ``range`` and ``predicted`` columns when the table has both (whatever the sign of its ``residual``
-    column); else minus ``residual`` (the batch writes ``residual = predicted − measured``). Non-numeric cells
+    column); else ``residual`` (the batch writes ``residual = measured − predicted``; files written before the
+    sign was unified had ``predicted − measured`` but always carry ``range`` and ``predicted``). Non-numeric cells
     become NaN.
     """
     import pandas as pd
@@ -29,7 +30,7 @@ def measured_minus_predicted(res) -> np.ndarray:
     if "range" in res.columns and "predicted" in res.columns:
         return (pd.to_numeric(res["range"], errors="coerce").to_numpy(float)
                 - pd.to_numeric(res["predicted"], errors="coerce").to_numpy(float))
-    return -pd.to_numeric(res["residual"], errors="coerce").to_numpy(float)
+    return pd.to_numeric(res["residual"], errors="coerce").to_numpy(float)
 
 
 def residual_without(res, anchor_bias: dict, columns=RANGE_MODEL_COLUMNS) -> np.ndarray:

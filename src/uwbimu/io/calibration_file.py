@@ -19,6 +19,15 @@ Schema version 2 (``schema_version: 2``)::
                                    # residuals widened it, value_filter before a clock correction; batch:
                                    # sd_marginal, sd_model, sd_curvature, profile interval, held_at_prior, advice)
 
+    estimators:                    # batch only: the batch checked against the ESKF it started from
+      kind: estimators_agree | estimators_disagree    # (uwbimu.calibration.agreement; also in ``events``)
+      severity: info | warning
+      message: "..."               # only when they disagree: which estimate the evidence favours, and why
+      z_threshold: 3.0             # combined sigmas beyond which a parameter disagrees
+      disagreeing: [time_offset]   # names of the parameters beyond it
+      parameters:                  # one per compared parameter (lever_arm_x/y/z [m], time_offset [s])
+        - {name, eskf, eskf_sd, batch, batch_sd, z, eskf_verdict, batch_verdict, favours, reason}
+
 Every other key (IMU biases, anchor biases, ``warnings``, ``events``, ``config``) is unchanged. A sigma is never
 NaN: a quantity that was not estimated has ``sd: null``.
 

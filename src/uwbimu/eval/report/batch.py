@@ -502,12 +502,42 @@ def _batch_sigma_part(inp: ReportInputs) -> Markup:
                  widened=widened)
 
 
+def _batch_estimators_part(inp: ReportInputs) -> Markup:
+    """The batch checked against the ESKF it started from (calibration.yaml ``estimators``,
+    :mod:`uwbimu.calibration.agreement`): attribute ``estimators`` = ``agree``, ``disagree`` or ``unknown`` (a file
+    without the check); a warning line with :func:`~uwbimu.calibration.agreement.agreement_message` when they
+    disagree."""
+    from uwbimu.calibration.agreement import agreement_message
+
+    title = "ESKF and batch"
+    ev = (inp.calibration or {}).get("estimators")
+    if not isinstance(ev, dict) or ev.get("kind") not in ("estimators_agree", "estimators_disagree"):
+        return _part("estimators", title, _missing(Markup("<code>calibration.yaml</code> has no <code>estimators</code> "
+                                                          "check (older output).")),
+                     estimators="unknown")
+    rows = [r for r in ev.get("parameters") or [] if isinstance(r, dict) and "z" in r]
+    thr = ev.get("z_threshold", 3.0)
+    if ev["kind"] == "estimators_disagree":
+        # a distance written as null was infinite (zero combined sigma, different values)
+        msg = agreement_message({"kind": ev["kind"], "parameters": [
+            dict(r, z=float("inf") if r.get("z") is None else float(r["z"])) for r in rows]})
+        body = _block("warn", msg or ev.get("message", ""))
+    else:
+        zmax = max((float(r["z"]) for r in rows if r.get("z") is not None), default=None)
+        body = Markup("<p>The batch agrees with the initialising ESKF on every compared parameter (largest distance "
+                      "{} combined σ; they disagree beyond {}).</p>").format(
+            "–" if zmax is None else format_number(zmax), format_number(float(thr)))
+    return _part("estimators", title, body, estimators="disagree" if ev["kind"] == "estimators_disagree" else "agree",
+                 disagreeing=" ".join(str(n) for n in ev.get("disagreeing") or []))
+
+
 def _batch_section(inp: ReportInputs) -> Optional[Markup]:
     """The ``uwbimu calibrate`` section, or None when the folder holds no batch-calibration output."""
     if not is_batch_output(inp):
         return None
     parts = []
-    for key, title, fn in (("td-profile", "Time-offset profile", _batch_profile_part),
+    for key, title, fn in (("estimators", "ESKF and batch", _batch_estimators_part),
+                           ("td-profile", "Time-offset profile", _batch_profile_part),
                            ("residual-angle", "Residual vs line-of-sight angle", _batch_angle_part),
                            ("anchor-ellipses", "Anchor error ellipses", _batch_ellipse_part),
                            ("before-after", "Residuals without / with the range bias", _batch_before_after_part),
