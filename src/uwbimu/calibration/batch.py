@@ -159,12 +159,7 @@ def _estimator_agreement(eskf, cal: dict) -> dict:
     from uwbimu.calibration.agreement import agreement_message, estimator_agreement
 
     modes = ((getattr(eskf, "config", None) or {}).get("resolved") or {}).get("modes")
-    ident = cal.get("identifiability") or {}
-    lever = ident.get("lever_arm") or {}
-    view = cal
-    if "x" in lever:  # one tag: identifiability's lever_arm is {x|y|z: ...}; the comparison reads {TAG: {x|y|z}}
-        view = dict(cal, identifiability=dict(ident, lever_arm={"": lever}))
-    ev = estimator_agreement(getattr(eskf, "calibration", None) or {}, view, modes)
+    ev = estimator_agreement(getattr(eskf, "calibration", None) or {}, cal, modes)
     msg = agreement_message(ev)
     ev["parameters"] = [{k: _plain_number(v) for k, v in row.items()} for row in ev["parameters"]]
     ev["z_threshold"] = float(ev["z_threshold"])
