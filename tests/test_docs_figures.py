@@ -104,6 +104,19 @@ REGISTRY: tuple[Figure, ...] = (
         "python benchmarks/real_data.py",
     ),
     Figure(
+        "ESKF sigma_scale (residuals' variance factor) on the shared real logs",
+        ((rf"1\.0 on the simulated demo, (?P<v>{NUM}) on the real logs", 3),),
+        "python benchmarks/acceptance_real.py",
+    ),
+    Figure(
+        "clock false alarms out of 20 simulated null logs (coloured range noise)",
+        (
+            (rf"gives (?P<v>{NUM}) of 20 null logs with a clock event", 1),
+            (rf"\) (?P<v>{NUM}) of 20 simulated null logs raises? a clock event", 1),
+        ),
+        "python benchmarks/check_clock_false_alarms.py --seeds 5",
+    ),
+    Figure(
         "fast test subset, wall time on the loaded 2-core machine [s]",
         ((r"fast subset[^.\n]{0,60}?(?P<v>[0-9]+) s wall", 2),),
         'pytest -n 2 -q -m "not slow"',

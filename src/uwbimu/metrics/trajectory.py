@@ -304,8 +304,9 @@ def relative_pose_error(
     For each start sample ``i`` the end sample ``j`` is the first one where the
     ground-truth path length from ``i`` reaches ``d``.  With relative motions
     ``T_ij = T_i^-1 T_j`` the error is ``E = T_ij,gt^-1 T_ij,est``; we report
-    ``|trans(E)|`` [m] and ``angle(E)`` [deg].  RPE does not depend on the
-    global alignment (it is invariant to a rigid change of world frame).
+    ``|trans(E)|`` [m] and ``angle(E)`` [deg].  With attitudes, RPE is invariant
+    to a rigid change of world frame; with world-frame displacements (no
+    attitudes) it depends on the alignment's rotation.
 
     Parameters
     ----------
