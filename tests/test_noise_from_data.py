@@ -105,6 +105,14 @@ def test_run_eskf_with_matched_noise_changes_nothing(sim_flight):
     assert r.calibration["sigma_scale"] == 1.0
     assert any(e["kind"] == "noise_from_data" for e in r.events)
     assert any(e["kind"] == "sigma_from_residuals" for e in r.events)
+    # what was used is in calibration.yaml
+    from uwbimu.estimation.outputs import calibration_document
+
+    doc = calibration_document(r)
+    assert doc["imu_noise"]["source"] == "log"
+    assert doc["imu_noise"]["accel_noise_density"] == pytest.approx(n["imu"]["accel"]["used"])
+    assert doc["measurement_noise"]["range"]["source"] == "preset"
+    assert doc["measurement_noise"]["range"]["sigma"] == r.config["resolved"]["range_sigma"]
     p = run_eskf(ds, EskfOptions(noise="preset"))
     assert "measurements" not in p.extra["noise"]
     # the same log, the same answer to well within a sigma

@@ -347,6 +347,8 @@ def run_eskf(
     result.extra["filter_cpu_seconds"] = cpu_filter
     result.extra["init_cpu_seconds"] = f.init_cpu_seconds
     result.config["resolved"]["modes"] = {"lever_arm": eff.lever_arm.mode, "time_offset": eff.time_offset.mode}
+    for key, value in _noise_used(noise_report, info).items():
+        result.calibration[key] = value
     result.extra["total_cpu_seconds"] = time.process_time() - cpu0
     # The library stays silent: warnings travel in result.warnings / result.events and the
     # caller (the CLI, a study) decides what to show.
@@ -388,6 +390,31 @@ def _unidentified_blocks(result: EstimationResult, eff: EskfOptions) -> dict[str
     # the time offset is not held: its value in consider mode would be the initial search's, which is the
     # least reliable of its estimates on the logs where the filter's t_d is not identified (INRoL: -589 ms)
     return held
+
+
+def _noise_used(report: dict[str, Any], info: dict[str, Any]) -> dict[str, Any]:
+    """calibration.yaml ``imu_noise`` and ``measurement_noise``: the noise the final pass used, and whence."""
+    n = info["imu_noise"]
+    imu = report.get("imu", {})
+    src = "log" if imu.get("status") == "measured" else ("given" if imu.get("status") == "given" else "preset")
+    out_imu = {"accel_noise_density": n.accel_noise_density, "gyro_noise_density": n.gyro_noise_density,
+               "accel_bias_rw": n.accel_bias_rw, "gyro_bias_rw": n.gyro_bias_rw, "source": src}
+    if src == "log":
+        out_imu.update({"ratio_to_preset": {"accel": imu["accel"]["ratio"], "gyro": imu["gyro"]["ratio"]},
+                        "preset": {"accel_noise_density": imu["accel"]["preset"],
+                                   "gyro_noise_density": imu["gyro"]["preset"]},
+                        "band_hz": imu["band_hz"]})
+    meas = {}
+    for kind, key in (("range", "range_sigma"), ("tdoa", "tdoa_sigma")):
+        m = (report.get("measurements") or {}).get(kind)
+        if m is None:
+            continue
+        meas[kind] = {"sigma": float(info[key] if info.get(key) is not None else m["sigma_new"]),
+                      "source": "given" if m.get("given") else ("log" if m.get("changed") else "preset"),
+                      "robust_variance_ratio": m.get("k"), "rejected_fraction": m.get("rejected_fraction")}
+    if not meas:
+        meas["range"] = {"sigma": float(info["range_sigma"]), "source": "preset"}
+    return {"imu_noise": out_imu, "measurement_noise": meas}
 
 
 def _filter_pass(prob: Problem, priors: dict[str, Any], opts: EskfOptions, initial: Optional[InitialState],
