@@ -10,6 +10,7 @@ import pandas as pd
 import typer
 
 from uwbimu.cli.conventions import FORCE_HELP, measurement_counts, natural_key, value_sd
+from uwbimu.formatting import format_number, format_value_sigma
 from rich.console import Console
 from rich.markup import escape
 
@@ -50,8 +51,11 @@ def calibration_table(result, dataset=None, title: str = "Calibration (value ± 
     tv = truth.time_offset if truth is not None else None
     table.add_row("time offset (ms)", value_sd(v, s, 1000), f"{1000 * tv:.2f}" if tv is not None else "-",
                   _z(v, s, tv))
-    if cal.get("time_offset_verdict"):
-        table.add_row("time offset verdict", str(cal["time_offset_verdict"]), "-", "-")
+    td = time_offset_document(result)
+    if td.get("verdict") or td.get("mode"):
+        # mode and verdict as calibration.yaml and the report carry them (one source: calibration_document)
+        table.add_row("time offset mode, verdict", escape(f"{td.get('mode', '-')}, {td.get('verdict') or '-'}"),
+                      "-", "-")
     for name, key, scale, unit in (("accel bias", "accel_bias", 1.0, "m/s²"), ("gyro bias", "gyro_bias", 180 / np.pi, "deg/s")):
         vals = ", ".join(value_sd(a, b, scale, ".4f", sep="±") for a, b in zip(cal[key], cal[key + "_sd"]))
         table.add_row(f"{name} ({unit})", vals, "-", "-")
@@ -61,6 +65,86 @@ def calibration_table(result, dataset=None, title: str = "Calibration (value ± 
         table.add_row(f"range bias {escape(str(a))} (cm)", value_sd(b, s, 100),
                       f"{100 * tv:.2f}" if tv is not None else "-", _z(b, s, tv))
     return table
+
+
+def time_offset_document(result) -> dict:
+    """The ``time_offset`` mapping of calibration.yaml for ``result`` (value, sd, mode, verdict, ...), from
+    :func:`uwbimu.estimation.outputs.calibration_document`: the console, calibration.yaml and the report read the
+    same one (a result without events reads as one with none)."""
+    from types import SimpleNamespace
+
+    from uwbimu.estimation.outputs import calibration_document
+
+    view = SimpleNamespace(calibration=result.calibration, events=getattr(result, "events", None) or [])
+    td = calibration_document(view).get("time_offset")
+    return td if isinstance(td, dict) else {}
+
+
+def nis_line(result) -> Optional[str]:
+    """One line of the NIS summary of the run's range/TDoA updates, the report's
+    (:func:`uwbimu.eval.report.inputs.nis_summary` of ``result.residuals``); None without NIS."""
+    from uwbimu.eval.report.inputs import nis_summary
+
+    s = nis_summary(getattr(result, "residuals", None))
+    if s is None:
+        return None
+    return (f"NIS of {s.n} range/TDoA updates (1 dof each): mean {format_number(s.mean_accepted)} over the "
+            f"{s.n_accepted} accepted (expected 1), median {format_number(s.median)}, "
+            f"{format_number(s.above_95_pct)} % above the 95 % bound (expected 5 %): {s.verdict}")
+
+
+def noise_line(result) -> Optional[str]:
+    """One line of the noise the run used (``result.extra["noise"]``): the IMU noise densities used and their ratio
+    to the preset, each measurement kind's sigma; None when the run reports none."""
+    rep = (getattr(result, "extra", None) or {}).get("noise")
+    if not isinstance(rep, dict):
+        return None
+    parts = []
+    imu = rep.get("imu") or {}
+    for key, unit in (("accel", "m/s²/√Hz"), ("gyro", "rad/s/√Hz")):
+        e = imu.get(key)
+        if isinstance(e, dict) and e.get("used") is not None:
+            ratio = e.get("ratio")
+            parts.append(f"{key} {format_number(e['used'], unit)}"
+                         + (f" ({format_number(ratio)} × preset)" if ratio is not None else ""))
+    if imu.get("status") == "given":
+        parts.append("IMU noise as given")
+    for kind, e in (rep.get("measurements") or {}).items():
+        if isinstance(e, dict) and e.get("sigma_new") is not None:
+            parts.append(f"{kind} σ {format_number(100 * float(e['sigma_new']), 'cm')}"
+                         + (f" (configured {format_number(100 * float(e['sigma']), 'cm')})"
+                            if e.get("sigma") is not None else ""))
+    if not parts:
+        return None
+    return f"noise used ({rep.get('mode', 'given')}): " + ", ".join(parts)
+
+
+def held_line(result) -> Optional[str]:
+    """One line for a ``calibration_held`` event (the filter rerun with the blocks the log did not identify held at
+    their prior in consider mode): which blocks, and the first pass's estimate; None without one."""
+    ev = next((e for e in getattr(result, "events", None) or [] if e.get("kind") == "calibration_held"), None)
+    if ev is None:
+        return None
+    first = ev.get("first_pass") or {}
+    blocks = ", ".join(str(b).replace("_", " ") for b in ev.get("blocks") or []) or "calibration"
+    out = f"{blocks} held at the prior (consider mode): the log did not identify it"
+    lv, ls = first.get("lever_arm"), first.get("lever_arm_sd")
+    if lv is not None and ls is not None and "lever_arm" in (ev.get("blocks") or []):
+        out += "; first pass lever arm " + ", ".join(
+            f"{c} {format_value_sigma(100 * v, 100 * s, 'cm')}" for c, v, s in zip("xyz", lv, ls))
+    if first.get("time_offset") is not None and "time_offset" in (ev.get("blocks") or []):
+        sd = first.get("time_offset_sd")
+        out += (f"; first pass time offset "
+                f"{format_value_sigma(1000 * first['time_offset'], None if sd is None else 1000 * sd, 'ms')}")
+    return out
+
+
+def print_run_summary(console: Console, result) -> None:
+    """The NIS summary and the noise used, one line each (the report's figures; a held calibration is printed with
+    the warnings, :func:`print_run_warnings`)."""
+    for line in (nis_line(result), noise_line(result)):
+        if line is not None:
+            console.print(escape(line), highlight=False)
 
 
 def _z(v, s, tv) -> str:
@@ -114,7 +198,7 @@ def run_with_progress(dataset, options, console: Console):
     """Run the ESKF with a rich progress bar."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from uwbimu.eval.estimators import get_estimator
+    from uwbimu.estimators import get_estimator
 
     run_eskf = get_estimator("eskf").run
     with Progress(TextColumn("[bold]ESKF"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
@@ -185,10 +269,15 @@ def _num(v, scale: float = 1.0, fmt: str = ".1f") -> str:
 def print_run_warnings(console: Console, result) -> list:
     """Print a run's warnings as the report lists them (:func:`uwbimu.eval.report.inputs.run_warning_items` of
     ``result.warnings`` and ``result.events``: one list for both); a text printed once.  Returns the items."""
+    import dataclasses
+
     from uwbimu.eval.report.inputs import run_warning_items
 
     seen, shown = set(), []
+    held = held_line(result)
     for item in run_warning_items(result.warnings, getattr(result, "events", None) or []):
+        if item.kind == "calibration_held" and held is not None:
+            item = dataclasses.replace(item, text=held)  # the same event, in words
         if item.text in seen:
             continue
         seen.add(item.text)
@@ -250,7 +339,7 @@ def register(app: typer.Typer) -> None:
         from uwbimu.io.atomic import check_output_target, output_folder
 
         console = Console()
-        from uwbimu.eval.estimators import get_estimator
+        from uwbimu.estimators import get_estimator
 
         if estimator not in ("eskf", "pointmass"):  # batch has its own verb (uwbimu calibrate)
             raise UsageError(f"--estimator must be eskf or pointmass, got '{estimator}'")
@@ -280,6 +369,7 @@ def register(app: typer.Typer) -> None:
         console.print(calibration_table(res, ds))
         comparison = truth_comparison(res, ds, written["metrics"])
         print_truth_comparison(console, comparison)
+        print_run_summary(console, res)
         print_run_warnings(console, res)
         console.print(escape(f"{measurement_counts(ds)}: ESKF run {res.runtime_s:.2f} s"
                              + (f" (kernels compiled once before it, {compiled.seconds:.0f} s)" if compiled.cold else "")
@@ -301,5 +391,6 @@ def estimate_and_print(dataset, console: Console, out: Optional[Path] = None, op
         write_outputs(res, dataset, out)
     console.print(calibration_table(res, dataset))
     print_truth_comparison(console, truth_comparison(res, dataset))
+    print_run_summary(console, res)
     print_run_warnings(console, res)
     return res
