@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import pandas as pd
 
 from uwbimu.eval.baseline import multilaterate
@@ -55,3 +56,23 @@ def test_gyro_truth_time_offset_recovers_shift():
     r = gyro_truth_time_offset(ds, max_shift=0.3)
     assert abs(r["shift"] - td) <= 0.006
     assert r["correlation"] > 0.99
+
+
+def test_gyro_truth_time_offset_refusals_are_input_errors():
+    """A ground truth without attitude columns (or too short an overlap) is refused as an InputError naming the
+    missing columns (exit 1), not a bare ValueError."""
+    from uwbimu.errors import InputError
+    from uwbimu.eval.baseline import gyro_truth_time_offset
+
+    t = np.arange(0.0, 30.0, 0.01)
+    imu = pd.DataFrame({"t": t, "ax": 0.0, "ay": 0.0, "az": 9.81, "wx": 0.1, "wy": 0.0, "wz": 0.0})
+    gt = pd.DataFrame({"t": t, "px": 0.0, "py": 0.0, "pz": 0.0})
+    ds = Dataset(imu=imu, uwb=pd.DataFrame(), anchors=pd.DataFrame(), groundtruth=gt)
+    with pytest.raises(InputError, match="qw, qx, qy, qz"):
+        gyro_truth_time_offset(ds)
+    ds_none = Dataset(imu=imu, uwb=pd.DataFrame(), anchors=pd.DataFrame(), groundtruth=None)
+    with pytest.raises(InputError):
+        gyro_truth_time_offset(ds_none)
+    short = gt.assign(qw=1.0, qx=0.0, qy=0.0, qz=0.0).iloc[:50]  # 0.5 s of overlap
+    with pytest.raises(InputError, match="overlap"):
+        gyro_truth_time_offset(Dataset(imu=imu, uwb=pd.DataFrame(), anchors=pd.DataFrame(), groundtruth=short))

@@ -85,11 +85,18 @@ def gyro_truth_time_offset(
     -------
     dict ``shift`` [s], ``correlation`` (at the best shift), ``correlation_at_zero``.
     """
+    from uwbimu.errors import InputError
     from uwbimu.models.quaternion import quat_conjugate, quat_log, quat_multiply, quat_normalize, quat_slerp
 
     if ds.groundtruth is None or len(ds.groundtruth) < 10:
-        raise ValueError("gyro_truth_time_offset needs ground truth with attitudes")
+        n = 0 if ds.groundtruth is None else len(ds.groundtruth)
+        raise InputError(f"gyro_truth_time_offset: groundtruth.csv has {n} rows; at least 10 with attitudes "
+                         "(qw, qx, qy, qz) are needed")
     g = ds.groundtruth
+    missing = [c for c in ("qw", "qx", "qy", "qz") if c not in g.columns]
+    if missing:
+        raise InputError(f"gyro_truth_time_offset: groundtruth.csv lacks the attitude column(s) {', '.join(missing)}; "
+                         "the scan compares rotation rates")
     tg = g["t"].to_numpy(float)
     q = quat_normalize(g[["qw", "qx", "qy", "qz"]].to_numpy(float))
     ti = ds.imu_t
@@ -97,7 +104,8 @@ def gyro_truth_time_offset(
     lo = max(tg[0], ti[0]) + max_shift + half_step
     hi = min(tg[-1], ti[-1]) - max_shift - half_step
     if hi - lo < 10 * half_step:
-        raise ValueError("IMU and ground truth overlap too little for a time-offset scan")
+        raise InputError(f"gyro_truth_time_offset: imu.csv and groundtruth.csv overlap over {max(hi - lo, 0.0):.2f} s "
+                         f"after the ±{max_shift:g} s scan margin; at least {10 * half_step:g} s are needed")
     grid = np.arange(lo, hi, 0.01)
 
     def q_at(t):
