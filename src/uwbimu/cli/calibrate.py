@@ -15,6 +15,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from uwbimu.cli.dataset_options import with_load_options
+from uwbimu.formatting import format_number, format_value_sigma
 
 
 def calibration_summary(cal: dict, truth=None) -> Table:
@@ -74,6 +75,22 @@ def anchor_summary(anchors: dict) -> Table:
         t.add_row(escape(str(a)), *[value_sd(v, s, fmt=".3f") for v, s in zip(e["position"], e["sd"])],
                   "none" if e["prior_sd"] is None else f"{e['prior_sd']:g} m")
     return t
+
+
+def print_agreement(console: Console, event: Optional[dict]) -> None:
+    """The batch against its initialising ESKF (calibration.yaml ``estimators``): one warning line with
+    :func:`uwbimu.calibration.agreement.agreement_message` when they disagree, else one short line."""
+    from uwbimu.calibration.agreement import agreement_message
+
+    if not isinstance(event, dict) or "kind" not in event:
+        return
+    rows = [dict(r, z=math.inf if r.get("z") is None else float(r["z"])) for r in event.get("parameters") or []]
+    msg = agreement_message(dict(event, parameters=rows))
+    if msg is not None:
+        console.print(f"[yellow]warning (estimators_disagree):[/] {escape(msg)}", highlight=False)
+    elif rows:
+        console.print(escape(f"the batch agrees with the initialising ESKF (largest distance "
+                             f"{format_number(max(r['z'] for r in rows))} combined σ)"), highlight=False)
 
 
 class StageBars:
@@ -144,7 +161,10 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Batch MAP calibration over the whole log: lever arm, time offset (profile + verdict), anchor biases."""
         from uwbimu.calibration import CalibrationOptions, calibrate, write_calibration
+        from types import SimpleNamespace
+
         from uwbimu.calibration.outputs import OUTPUT_FILES
+        from uwbimu.cli.estimate import print_run_warnings
         from uwbimu.cli.dataset_options import apply_dataset_properties, estimator_options, load, \
             print_load_warnings
         import numpy as np
@@ -165,6 +185,10 @@ def register(app: typer.Typer) -> None:
         ds = load(dataset, load_options)
         print_load_warnings(console, ds)
         eskf_opts = apply_dataset_properties(eskf_opts, ds, console)
+        from uwbimu.cli.compile_notice import ensure_compiled
+
+        # the initialising ESKF's kernels: a cold cache compiles them now, announced and timed, not in silence
+        compiled = ensure_compiled(console)
         try:
             with StageBars(Console(stderr=True)) as bars:
                 res = calibrate(ds, opts, eskf_options=eskf_opts, workers=workers, on_stage=bars.update)
@@ -179,35 +203,24 @@ def register(app: typer.Typer) -> None:
         cal = res.calibration
         console.print(calibration_summary(cal, ds.meta.truth))
         td = cal["time_offset"]
-        if td.get("advice"):
-            console.print(f"[yellow]time offset not identified ({escape(str(td['verdict']))}):[/] "
-                          f"{escape(str(td['advice']))}")
-            console.print(f"the other values and sigmas are conditional on t_d = {1000 * td['value']:.1f} ms "
-                          "(held at the prior; its uncertainty is not in them)")
+        if td.get("held_at_prior"):
+            console.print(escape(f"the other values and sigmas are conditional on t_d = "
+                                 f"{format_number(1000 * td['value'], 'ms')} (held at the prior; its uncertainty is "
+                                 "not in them)"), highlight=False)
         if "anchors" in cal and cal["anchors"]["estimated"]:
             console.print(anchor_summary(cal["anchors"]))
-        for ev in res.events:
-            if ev["kind"] == "flight_segment" and ev.get("message"):
-                console.print(f"[yellow]warning:[/] {escape(ev['message'])}")
-            if ev["kind"].startswith("anchor_"):
-                console.print(f"[yellow]{ev['kind']}:[/] {escape(str(ev['message']))}")
         sc = cal.get("imu_noise", {}).get("scale", {})
         if sc.get("method") == "variance_component":
             sd = sc.get("scale_sd")
-            console.print(f"IMU noise model scaled by {sc['scale']:.3g}"
-                          + (f" ± {sd:.2g}" if sd is not None and math.isfinite(sd) and sd > 0 else "")
-                          + " (estimated from the log; imu_noise_scale: fixed to keep the stated one)")
-        for ev in res.events:
-            if ev["kind"] == "lever_arm_not_identified":
-                console.print(f"[yellow]{ev['kind']}:[/] {escape(str(ev['message']))}")
-            if ev["kind"] == "range_errors_correlated_over_blocks":
-                console.print(f"[yellow]{ev['kind']}:[/] " + escape(
-                    f"sigma of {', '.join(ev['parameters'])} widened to the spread between the {ev['blocks']} parts "
-                    f"of the log (the range model misses an error that follows the motion; see calibration.yaml "
-                    f"covariance.block_check); {ev['advice']}"))
-        if any(ev["kind"] == "second_start_won" for ev in res.events):
-            console.print("note: the solve started from the robust-range ESKF reached a lower cost and was used "
-                          "(event second_start_won)")
+            fig = (format_value_sigma(sc["scale"], sd) if sd is not None and math.isfinite(sd) and sd > 0
+                   else format_number(sc["scale"]))
+            console.print(escape(f"IMU noise model scaled by {fig} (estimated from the log; imu_noise_scale: fixed "
+                                 "to keep the stated one)"), highlight=False)
+        print_agreement(console, cal.get("estimators"))
+        # every warning and event the report lists (run_warning_items), each once; the disagreement is printed above
+        print_run_warnings(console, SimpleNamespace(
+            warnings=list(cal.get("warnings") or []),
+            events=[ev for ev in res.events if ev.get("kind") != "estimators_disagree"]))
         r = cal["ranges"]
         hub = cal["range_model"].get("huber", {})
         # cal["ranges"] counts every measurement row of the solve (ranges and TDoA)
@@ -215,5 +228,7 @@ def register(app: typer.Typer) -> None:
         console.print(escape(
             f"{measurement_counts(ds)}: {r['used']} {used} in the solve ({r['downweighted']} down-weighted by Huber "
             f"at {r['huber_k']:.2f} sigma{' (adaptive)' if hub.get('selection') == 'adaptive' else ''}, "
-            f"{r['expected_downweighted']:.0f} expected from Gaussian noise), {len(written)} files in {out}, "
-            f"{res.runtime_s:.1f} s"))
+            f"{format_number(int(round(r['expected_downweighted'])))} expected from Gaussian noise), {len(written)} "
+            f"files in {out}, {format_number(res.runtime_s, 's')}"
+            + (f" (the ESKF's kernels compiled once before it, {format_number(compiled.seconds, 's')})"
+               if compiled.cold else "")), highlight=False)
