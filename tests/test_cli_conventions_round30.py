@@ -301,9 +301,9 @@ def test_natural_anchor_order():
 # --- no bare ValueError for input checks ----------------------------------------------------------
 #: Modules whose input checks must raise the typed errors (issue 31 item 3).
 TYPED_ERROR_MODULES = ["design", "observability", "sim", "metrics", "models", "io", "studies", "eval/evaluate.py",
-                       "eval/files.py", "errors.py", "cli"]
-#: Not input handling: studies' executor/worker (the pool) and calibrate's verb are owned elsewhere.
-NOT_SCANNED = {"studies/executors.py", "studies/worker.py", "cli/calibrate.py"}
+                       "eval/files.py", "errors.py", "cli", "calibration"]
+#: Not input handling: studies' executor/worker (the pool).
+NOT_SCANNED = {"studies/executors.py", "studies/worker.py"}
 #: ``raise ValueError`` kept on purpose, with the reason.
 ALLOWED = {
     ("models/state.py", "__init__"): "StateLayout's internal contract: only code builds a layout; a violation is a bug",

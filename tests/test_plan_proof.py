@@ -58,19 +58,19 @@ def test_the_estimator_sees_no_truth():
 
 
 def test_proof_runs_through_the_studies_executor_with_the_serial_numbers(tmp_path, monkeypatch):
-    """run_proof hands its runs to uwbimu.studies.executors.execute; the rows (pool of 2) are the
+    """run_proof hands its runs to uwbimu.parallel.execute; the rows (pool of 2) are the
     ones the serial loop run_one(file, seed) gives, in seed-major order, whatever the finish order."""
     from uwbimu.design.trajectory import proof
     from uwbimu.design.trajectory.calibration import CalibrationDesignConfig, design_and_write
-    from uwbimu.studies import executors
+    from uwbimu import parallel
 
     cfg = CalibrationDesignConfig(
         duration=8.0, ramp=1.5, design={"n_harmonics": 1, "period": 4.0, "dt": 0.05}, optimizer={"n_random": 2, "max_evals": 2}
     )
     design_and_write(cfg, tmp_path / "design")
     calls = []
-    real = executors.execute
-    monkeypatch.setattr(executors, "execute", lambda *a, **k: calls.append(k["workers"]) or real(*a, **k))
+    real = parallel.execute
+    monkeypatch.setattr(parallel, "execute", lambda *a, **k: calls.append(k["workers"]) or real(*a, **k))
     summary = proof.run_proof(tmp_path / "design", n_seeds=2, workers=2, out=tmp_path / "proof")
     assert calls == [2]
     runs = pd.read_csv(tmp_path / "proof" / "proof_runs.csv")
