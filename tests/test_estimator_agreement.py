@@ -33,6 +33,7 @@ def test_agreement_within_three_combined_sigma():
     ({}, {}, None, "neither"),                                               # both confident, both healthy
     ({"scale": 2.5}, {"verdict": "not_identified"}, None, "neither"),
     ({}, {}, {"time_offset": "consider"}, "batch"),                          # ESKF held it
+    ({}, {"verdict": "not_identified"}, {"time_offset": "consider"}, "neither"),  # held, batch unsure
 ])
 def test_disagreement_names_the_favoured_estimate(eskf_kw, batch_kw, modes, favours):
     ev = estimator_agreement(_eskf(td=0.020, **eskf_kw), _batch(td=-0.010, **batch_kw), modes)

@@ -5,7 +5,8 @@ model; a smoother with robust loss, honest HAC sigmas and range-error models). W
 3 combined sigma on a calibration parameter, the batch output says so, with which estimate the evidence
 favours, by this stated rule:
 
-* the ESKF held the parameter at its prior (consider mode): it made no estimate of its own - the batch;
+* the ESKF held the parameter at its prior (consider mode) and the batch identifies it: the batch (the ESKF
+  made no estimate of its own);
 * the ESKF's residuals refute its noise model (its variance factor ``sigma_scale`` > 1) and the batch
   identifies the parameter: the batch (its robust loss and range models absorb what the filter's cannot);
 * the batch does not identify it and the ESKF does with residuals that agree with its model: the ESKF;
@@ -78,12 +79,13 @@ def estimator_agreement(eskf_cal: dict, batch_cal: dict, eskf_modes: Optional[di
         row = {"name": name, "eskf": float(a), "eskf_sd": float(sa), "batch": float(b), "batch_sd": float(sb),
                "z": z, "eskf_verdict": va, "batch_verdict": vb, "favours": None, "reason": ""}
         if z > Z_DISAGREE:
-            if held:
-                row["favours"], row["reason"] = "batch", "the ESKF held it at its prior (no estimate of its own)"
+            if held and _identified(vb):
+                row["favours"], row["reason"] = ("batch", "the ESKF held it at its prior (no estimate of its own); "
+                                                 "the batch identifies it")
             elif refuted and _identified(vb):
                 row["favours"], row["reason"] = ("batch", "the ESKF's residuals refute its noise model "
                                                  "(sigma_scale > 1); the batch identifies it")
-            elif not _identified(vb) and _identified(va) and not refuted:
+            elif not held and not _identified(vb) and _identified(va) and not refuted:
                 row["favours"], row["reason"] = ("eskf", "the batch does not identify it; the ESKF does, with "
                                                  "residuals that agree with its model")
             else:
