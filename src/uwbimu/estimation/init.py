@@ -82,14 +82,25 @@ def multilaterate(prob: Problem, j0: int, window: float) -> tuple[np.ndarray, np
         ra = np.linalg.norm(a - p, axis=1)
         return sign * np.linalg.norm(b - p, axis=1) + (1.0 - 2.0 * sign) * ra - r
 
+    def fit(z0):
+        # absurd ranges (a stream of garbage) can overflow the solver into non-finite values: no fix from there
+        try:
+            sol = least_squares(resid, z0, loss="soft_l1", f_scale=0.3, max_nfev=200)
+        except (ValueError, np.linalg.LinAlgError):
+            return None
+        return sol if np.all(np.isfinite(sol.x)) and np.isfinite(sol.cost) else None
+
     best = None
     # two starting points, above and below the anchors' centre: with near-planar
     # anchors the mirror solution is a local minimum too
     for dz in (-0.25 * spread, 0.25 * spread, 0.0):
         z0 = np.concatenate([centre + np.array([0.0, 0.0, dz]), np.zeros(3)])
-        sol = least_squares(resid, z0, loss="soft_l1", f_scale=0.3, max_nfev=200)
-        if best is None or sol.cost < best.cost - 1e-9:
+        sol = fit(z0)
+        if sol is not None and (best is None or sol.cost < best.cost - 1e-9):
             best = sol
+    if best is None:
+        raise InitialisationError(f"cannot initialise at t={t0:.3f} s: the multilateration of the first ranges "
+                                  f"diverged (non-finite solution)")
     # gross outliers (e.g. a +100 m range spike) must not set the position prior: residuals beyond 5 sd of
     # the inliers' robust scale (never below the range noise) are dropped and the fit repeated without them
     res = resid(best.x)
@@ -99,7 +110,7 @@ def multilaterate(prob: Problem, j0: int, window: float) -> tuple[np.ndarray, np
     n_out = int((~inl).sum())
     if n_out and inl.sum() >= 8 and len(np.union1d(prob.uwb_a[sel][inl], bsel[inl & is_td])) >= 4:
         a, b, sign, r, dt = a[inl], b[inl], sign[inl], r[inl], dt[inl]
-        best = least_squares(resid, best.x, loss="soft_l1", f_scale=0.3, max_nfev=200)
+        best = fit(best.x) or best
         res = resid(best.x)
     elif n_out:
         res = res[inl] if inl.any() else res
