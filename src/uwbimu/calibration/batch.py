@@ -13,6 +13,7 @@ from math import erfc
 import numpy as np
 import pandas as pd
 
+from uwbimu.formatting import finite_or_none
 from uwbimu.calibration import anchor_loo, anchors, graph, keys, noise_scale, robust_loss
 from uwbimu.calibration.identifiability import identifiability
 from uwbimu.calibration.uncertainty import (SparseMarginals, _block_event, _calibration_covariance,  # noqa: F401
@@ -144,10 +145,10 @@ def _plain_number(v):
     if isinstance(v, (bool, str)) or v is None:
         return v
     try:
-        f = float(v)
+        float(v)
     except (TypeError, ValueError):
         return v
-    return f if np.isfinite(f) else None
+    return finite_or_none(v)
 
 
 def _estimator_agreement(eskf, cal: dict) -> dict:

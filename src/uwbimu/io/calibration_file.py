@@ -37,8 +37,8 @@ Version 1 (before this module; no ``schema_version``) held ``time_offset`` as a 
 """
 
 from __future__ import annotations
+from uwbimu.formatting import finite_or_none
 
-import math
 from pathlib import Path
 from typing import Any, Optional
 
@@ -57,13 +57,8 @@ _V1_TD_EXTRA = {"time_offset_sd_filter": "sd_filter", "time_offset_filter": "val
 
 def sd_or_none(x: Any) -> Optional[float]:
     """A 1-sigma value as written: a finite, non-negative float, else None (not estimated)."""
-    if x is None or isinstance(x, bool):
-        return None
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        return None
-    return v if math.isfinite(v) and v >= 0 else None
+    v = finite_or_none(x)
+    return v if v is not None and v >= 0 else None
 
 
 def time_offset_entry(value: Any, sd: Any, mode: str, verdict: Optional[str] = None, *,
