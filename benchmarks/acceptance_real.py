@@ -47,9 +47,10 @@ def position_rmse(ds, t, p):
 
     if not groundtruth_frame(ds.meta.extra).frames_agree:
         return None
-    m = (t >= gt["t"].iloc[0]) & (t <= gt["t"].iloc[-1])
-    ref = np.column_stack([np.interp(t[m], gt["t"], gt[c]) for c in ("px", "py", "pz")])
-    return float(np.sqrt(np.mean(np.sum((p[m] - ref) ** 2, axis=1))))
+    from uwbimu.metrics.filter import truth_at
+
+    ref, _, _, m = truth_at(ds, t)
+    return float(np.sqrt(np.mean(np.sum((p[m] - ref[m]) ** 2, axis=1))))
 
 
 def lever_cells(lever, sd, verdicts, doc):

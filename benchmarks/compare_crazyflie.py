@@ -66,37 +66,37 @@ def flight_segment(gt) -> tuple[float, float]:
     return float(t[up[0]]), float(t[up[-1]])
 
 
-def rmse(gt, t, p, span=None) -> tuple[float | None, int]:
-    """Position RMSE [m] of ``p`` (n, 3) at stamps ``t`` [s] against the interpolated ground truth,
-    over the stamps inside the ground truth (and ``span``); ``(None, 0)`` when none or non-finite."""
+def _errors(ds, t, p, span=None) -> tuple[np.ndarray, np.ndarray]:
+    """Position error norms [m] at the stamps inside the ground truth (and ``span``), and those stamps' indices;
+    the ground truth interpolated by :func:`uwbimu.metrics.filter.truth_at`."""
+    from uwbimu.metrics.filter import truth_at
+
     t = np.asarray(t, float)
-    p = np.asarray(p, float)
-    g = gt["t"].to_numpy(float)
-    m = (t >= g[0]) & (t <= g[-1])
+    ref, _, _, m = truth_at(ds, t)
     if span is not None:
         m &= (t >= span[0]) & (t <= span[1])
-    if not m.any():
+    idx = np.flatnonzero(m)
+    return np.linalg.norm(np.asarray(p, float)[idx] - ref[idx], axis=1), idx
+
+
+def rmse(ds, t, p, span=None) -> tuple[float | None, int]:
+    """Position RMSE [m] of ``p`` (n, 3) at stamps ``t`` [s] against the interpolated ground truth,
+    over the stamps inside the ground truth (and ``span``); ``(None, 0)`` when none or non-finite."""
+    e, idx = _errors(ds, t, p, span)
+    if idx.size == 0:
         return None, 0
-    ref = np.column_stack([np.interp(t[m], g, gt[c].to_numpy(float)) for c in ("px", "py", "pz")])
-    e = np.sum((p[m] - ref) ** 2, axis=1)
     if not np.all(np.isfinite(e)):
-        return None, int(m.sum())
-    return float(np.sqrt(np.mean(e))), int(m.sum())
+        return None, int(idx.size)
+    return float(np.sqrt(np.mean(e**2))), int(idx.size)
 
 
-def max_error(gt, t, p) -> str:
+def max_error(ds, t, p) -> str:
     """``"max error X m at T s"`` over the stamps inside the ground truth ("" when none is finite)."""
-    t = np.asarray(t, float)
-    g = gt["t"].to_numpy(float)
-    m = np.flatnonzero((t >= g[0]) & (t <= g[-1]))
-    if m.size == 0:
-        return ""
-    ref = np.column_stack([np.interp(t[m], g, gt[c].to_numpy(float)) for c in ("px", "py", "pz")])
-    e = np.linalg.norm(np.asarray(p, float)[m] - ref, axis=1)
-    if not np.isfinite(e).any():
+    e, idx = _errors(ds, t, p)
+    if idx.size == 0 or not np.isfinite(e).any():
         return ""
     k = int(np.nanargmax(e))
-    return f"max error {e[k]:.3g} m at {t[m[k]]:.1f} s"
+    return f"max error {e[k]:.3g} m at {np.asarray(t, float)[idx[k]]:.1f} s"
 
 
 def multilaterate_tdoa(ds, window_s: float = ML_WINDOW_S, loss_scale: float = ML_LOSS_SCALE):
@@ -240,12 +240,12 @@ def main() -> int:
             if t is None:
                 rows.append((name, None, None, note))
                 return
-            whole, n = rmse(gt, t, p)
-            fl, _ = rmse(gt, t, p, span)
+            whole, n = rmse(ds, t, p)
+            fl, _ = rmse(ds, t, p, span)
             if whole is None and n:
                 note = "; ".join(x for x in (note, "non-finite positions") if x)
             cover = f"covers {float(np.min(t)):.1f}-{float(np.max(t)):.1f} s"
-            extra = "; ".join(x for x in (note, cover, max_error(gt, t, p), None if secs is None else f"{secs:.0f} s") if x)
+            extra = "; ".join(x for x in (note, cover, max_error(ds, t, p), None if secs is None else f"{secs:.0f} s") if x)
             rows.append((name, whole, fl, extra))
 
         t0 = time.perf_counter()
