@@ -21,7 +21,7 @@ from uwbimu.errors import InputError
 from uwbimu.estimation import kernels as K
 from uwbimu.estimation.diagnostics import excitation_warnings, imu_gap_events, outage_warnings
 from uwbimu.estimation.filterpass import (
-    REC_ACC, REC_INNOV, REC_NIS, REC_PRED, REC_S, REC_STATUS, STATUS_IN_GAP, STATUS_NOT_PROCESSED, PassResult, Problem, gap_inputs,
+    REC_ACC, REC_INNOV, REC_NIS, REC_PRED, REC_STATUS, STATUS_IN_GAP, STATUS_NOT_PROCESSED, PassResult, Problem, gap_inputs,
     rotation_window_stats,
 )
 from uwbimu.estimation.init import InitialisationError, InitialState
@@ -366,7 +366,7 @@ def _finish(dataset: Dataset, f: Eskf, info: dict[str, Any], priors: dict[str, A
     w_noise, e_noise = noise_events(noise_report, float(prob.uwb_t[0]))
     result = _assemble(dataset, prob, info, f.passes(), eff)
     result.extra["noise"] = noise_report
-    apply_variance_factor(result, prob, eff, f.initial.P)
+    apply_variance_factor(result, prob, f.passes(), eff, f.initial.P)
     _add_time_offset_verdict(result, prob, priors, eff, f.initial)
     # what the filter itself said comes before the diagnostics in the lists
     result.warnings = f.warnings() + w_noise + result.warnings
@@ -565,8 +565,6 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
         covariances=covs[:, :S.ERROR_DIM, :S.ERROR_DIM].copy() if covs is not None else None, warnings=warnings, events=events,
         estimator="eskf", config=cfg, t_imu=t_imu,
     )
-    # predicted innovation variances of the records (the residual variance factor needs them; popped there)
-    res.extra["_innovation_var"] = rec[:, REC_S].copy()
     if nb:
         res.extra["anchor_bias_states"] = X[:, L.nom("anchor_bias")].copy()
         res.extra["anchor_ids"] = list(prob.anchor_ids)

@@ -73,15 +73,11 @@ def noise_events(report: dict[str, Any], t0: float) -> tuple[list[str], list[dic
     return warnings, [{"t": t0, "kind": "noise_from_data", **report}]
 
 
-def apply_variance_factor(result: EstimationResult, prob: Problem, opts: EskfOptions,
+def apply_variance_factor(result: EstimationResult, prob: Problem, passes: list[PassResult], opts: EskfOptions,
                            P0: Optional[np.ndarray] = None) -> None:
     """Rule 3 of :mod:`.noise_from_data`: the calibration sds grow with the residuals' long-run variance."""
-    res = result.residuals
-    acc = res["accepted"].to_numpy(bool)
-    innov = res["innovation"].to_numpy(float)
-    rec_s = result.extra.pop("_innovation_var", None)
-    if rec_s is None:
-        return
+    rec, acc = accepted_records(prob, passes)
+    innov, rec_s = rec[:, REC_INNOV], rec[:, REC_S]
     a = prob.uwb_a
     b = prob.uwb_b if prob.uwb_b is not None else np.full(len(a), -1)
     channel = a * 1000 + (b + 1)
