@@ -37,7 +37,7 @@ def _batch_lever_verdicts(cal: dict) -> dict[str, Optional[str]]:
 
 
 def _identified(verdict: Optional[str]) -> bool:
-    return verdict in ("identified", "profile_identified", "well_identified")
+    return verdict == "identified"
 
 
 def estimator_agreement(eskf_cal: dict, batch_cal: dict, eskf_modes: Optional[dict] = None) -> dict[str, Any]:
