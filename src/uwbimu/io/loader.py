@@ -655,16 +655,24 @@ def _load_anchor_ranges(src: _Source, options: LoadOptions, report: LoadReport) 
     return df[ANCHOR_RANGE_COLUMNS + (["sd"] if "sd" in df.columns else [])]
 
 
+def _quaternion_group(src: _Source, df: pd.DataFrame, columns: list[str], what: str,
+                      name_found: bool = False) -> list[str]:
+    """The quaternion columns present: all four or none (a partial group is refused, naming the missing)."""
+    present = [c for c in columns if c in df.columns]
+    if present and len(present) != 4:
+        missing = [c for c in columns if c not in present]
+        found = f", found {', '.join(map(str, df.columns))}" if name_found else ""
+        raise DatasetError(f"{src.name}: {what} must come as qw, qx, qy, qz together; missing "
+                           f"{', '.join(missing)}{found}", file=src.name,
+                           row=1 if src.is_csv else None, column=missing[0])
+    return present
+
+
 def _load_anchors(src: _Source, options: LoadOptions, report: LoadReport) -> pd.DataFrame:
     df = _read_raw(src, ANCHOR_COLUMNS)
     report.rows_read["anchors"] = len(df)
     _require_columns(src, df, ANCHOR_COLUMNS, report, optional=tuple(ANCHOR_QUAT_COLUMNS) + ("surveyed",))
-    quat = [c for c in ANCHOR_QUAT_COLUMNS if c in df.columns]
-    if quat and len(quat) != 4:
-        missing = [c for c in ANCHOR_QUAT_COLUMNS if c not in quat]
-        raise DatasetError(f"{src.name}: antenna orientation columns must come as qw, qx, qy, qz together; "
-                           f"missing {', '.join(missing)}", file=src.name,
-                           row=1 if src.is_csv else None, column=missing[0])
+    quat = _quaternion_group(src, df, list(ANCHOR_QUAT_COLUMNS), "antenna orientation columns")
     df = _to_text(src, df, "anchor")
     df = _to_numeric(src, df, ["x", "y", "z"] + quat)
     df = _drop_or_refuse_duplicates(src, df, ["anchor"], "anchor id", options, report)
@@ -755,12 +763,7 @@ def _load_groundtruth(src: _Source, options: LoadOptions, report: LoadReport) ->
     df = _read_raw(src, GT_COLUMNS)
     report.rows_read["groundtruth"] = len(df)
     quat = ["qw", "qx", "qy", "qz"]
-    present_q = [c for c in quat if c in df.columns]
-    if present_q and len(present_q) != 4:
-        missing = [c for c in quat if c not in present_q]
-        raise DatasetError(f"{src.name}: attitude columns must come as qw, qx, qy, qz together; missing "
-                           f"{', '.join(missing)}, found {', '.join(map(str, df.columns))}", file=src.name,
-                           row=1 if src.is_csv else None, column=missing[0])
+    present_q = _quaternion_group(src, df, quat, "attitude columns", name_found=True)
     has_q = bool(present_q)
     if not has_q:
         # a position-only ground truth (e.g. a total station): accepted, attitude not compared -- said once
