@@ -9,7 +9,7 @@ from uwbimu.estimation import kernels as K
 from uwbimu.estimation.jacobians import error_F, error_G, van_loan
 from uwbimu.models import reference as ref
 from uwbimu.models.quaternion import quat_exp, quat_normalize
-from uwbimu.models.state import boxminus, boxplus
+from uwbimu.models.state import StateLayout, boxminus, boxplus
 
 
 def _rand_state(rng, nb=0):
@@ -353,16 +353,21 @@ def test_cov_step_gauss_markov_anchor_biases_match_dense_transition():
     P_const = P.copy()
     K.cov_step(P_const, x, u, dt, s**2)  # constant biases (6-entry noise vector)
     P_gm = P.copy()
-    K.cov_step(P_gm, x, u, dt, np.r_[s**2, var_b, 1.0 / tau])
+    # the declared blocks' tables: anchor biases Gauss-Markov (var_b, 1 / tau), lever and t_d random walks
+    pn = StateLayout(nb).process_noise(s[:4] ** 2, {"lever": (s[4] ** 2, 0.0), "t_d": (s[5] ** 2, 0.0),
+                                                     "anchor_bias": (var_b, 1.0 / tau)})
+    K.cov_step_blocks(P_gm, x, u, dt, pn)
     f = np.exp(-dt / tau)
     D = np.diag(np.r_[np.ones(19), np.full(nb, f)])
     expect = D @ P_const @ D
     expect[19:, 19:] += np.eye(nb) * var_b * (1 - f**2)
     np.testing.assert_allclose(P_gm, expect, rtol=1e-12, atol=1e-15)
     xb = x.copy()
-    K.decay_biases(xb, dt, np.r_[s**2, var_b, 1.0 / tau])
+    K.decay_biases(xb, dt, pn)
     np.testing.assert_allclose(xb[20:], x[20:] * f)
     np.testing.assert_array_equal(xb[:20], x[:20])
     xc = x.copy()
-    K.decay_biases(xc, dt, s**2)  # constant biases: untouched
+    pn_const = StateLayout(nb).process_noise(s[:4] ** 2, {"lever": (s[4] ** 2, 0.0), "t_d": (s[5] ** 2, 0.0),
+                                                           "anchor_bias": (var_b, 0.0)})
+    K.decay_biases(xc, dt, pn_const)  # constant biases (1 / tau = 0): untouched
     np.testing.assert_array_equal(xc, x)

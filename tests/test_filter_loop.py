@@ -25,6 +25,7 @@ from uwbimu.estimation import streaming
 from uwbimu.estimation.eskf import build_problem
 from uwbimu.estimation.init import initialise
 from uwbimu.models import kernels as MK
+from uwbimu.models.state import StateLayout
 from uwbimu.sim import builtin_scenario, simulate
 
 
@@ -242,10 +243,10 @@ def test_run_pass_engines_agree_and_progress_reaches_the_end():
 def test_cov_step_rows_is_bit_identical_to_cov_step(n_extra, gauss_markov):
     rng = np.random.default_rng(n_extra)
     N = 19 + n_extra
-    noise = [4e-4, 3e-5, 1e-6, 1e-8, 1e-9, 1e-10]
-    if gauss_markov:
-        noise += [0.01, 0.5]
-    noise = np.array(noise)
+    noise = np.array([4e-4, 3e-5, 1e-6, 1e-8, 1e-9, 1e-10])
+    # the declared blocks' tables: the extras are anchor biases (Gauss-Markov or constant)
+    pn = StateLayout(n_extra).process_noise(noise[:4], {"lever": (noise[4], 0.0), "t_d": (noise[5], 0.0),
+                                                        "anchor_bias": (0.01, 0.5 if gauss_markov else 0.0)})
     B, W = np.empty((7, 3, 3)), np.empty((6, 3, 3))
     A, T, U = np.empty((15, N)), np.empty((15, N)), np.empty((15, N))
     for dt in (1e-3, -2e-3, 0.0, 0.3):
@@ -256,8 +257,8 @@ def test_cov_step_rows_is_bit_identical_to_cov_step(n_extra, gauss_markov):
         P0 = A @ A.T
         P0[3, 7] += 1e-3  # not symmetric: the two steps must agree on any matrix
         P1, P2 = P0.copy(), P0.copy()
-        MK.cov_step(P1, x, u, dt, noise)
-        MK._cov_step_rows(P2, x, u, dt, noise, B, W, A, T, U)
+        MK.cov_step_blocks(P1, x, u, dt, pn)
+        MK._cov_step_rows(P2, x, u, dt, pn, B, W, A, T, U)
         assert np.array_equal(P1, P2) and np.array_equal(np.signbit(P1), np.signbit(P2))
 
 

@@ -38,6 +38,7 @@ from uwbimu.estimation.kernels import (  # noqa: F401  (re-exported)
     REC_ACC, REC_INNOV, REC_NIS, REC_PRED, REC_S, REC_STATUS, REC_W, STATUS_IN_GAP, STATUS_STALE,
 )
 from uwbimu.models.measurements import vector_update
+from uwbimu.models.blocks import ProcessNoise
 from uwbimu.models.state import StateLayout
 from uwbimu.models import state as S
 
@@ -58,7 +59,10 @@ class Problem:
     uwb_r: np.ndarray  # (m,) range [m] (documented biases already removed)
     anchor_ids: list[str]
     anchors: np.ndarray  # (M, 3)
-    noise: np.ndarray  # (6,) squared densities for kernels.cov_step (+ (2,) Gauss-Markov bias variance, 1/tau)
+    # (6,) the base 19-state's squared densities for the public ``kernels.cov_step`` (IMU accel / gyro white
+    # noise, accel / gyro bias random walks, lever-arm and t_d random walks); the filter itself reads
+    # process_noise
+    noise: np.ndarray
     r_var: float  # range variance [m^2]
     bias_idx: np.ndarray  # (M,) error index of each anchor's bias or -1
     gain_mask: np.ndarray  # (N,)
@@ -114,10 +118,28 @@ class Problem:
     uwb_tag: Optional[np.ndarray] = None
     tag_lever_err: Optional[np.ndarray] = None
     tag_names: list = field(default_factory=list)
-    # TDoA pair biases: (a, b) anchor indices -> error index of the pair's bias state; prior sd [m]
+    # TDoA pair biases: (a, b) anchor indices -> error index of the pair's bias state
     pair_index: dict = field(default_factory=dict)
-    pair_sd0: float = 0.0
-    height_sd0: float = 0.0  # prior sd of the altimeter bias state (when the layout has one) [m]
+    # the declared blocks' process-noise tables (StateLayout.process_noise; None: the base 19-state's
+    # from ``noise``, extras constant) and priors (estimation.problem.BlockPriors)
+    process_noise: Optional[ProcessNoise] = None
+    priors: Any = None
+
+    @property
+    def pair_sd0(self) -> float:
+        """Prior sd of the TDoA pair-bias states [m] (``priors.pair_bias_sd``; 0 without priors)."""
+        return float(self.priors.pair_bias_sd) if self.priors is not None else 0.0
+
+    @property
+    def height_sd0(self) -> float:
+        """Prior sd of the altimeter-bias state [m] (``priors.height_bias_sd``; 0 without priors)."""
+        return float(self.priors.height_bias_sd) if self.priors is not None else 0.0
+
+    def process_noise_tables(self) -> ProcessNoise:
+        """The process-noise tables the kernels take (:attr:`process_noise`, else the base state's)."""
+        if self.process_noise is None:
+            self.process_noise = K.base_process_noise(np.ascontiguousarray(self.noise, dtype=float))
+        return self.process_noise
 
     def state_layout(self) -> StateLayout:
         return self.layout if self.layout is not None else StateLayout.for_dims(self.gain_mask.shape[0])
@@ -209,13 +231,13 @@ def _propagate(prob: Problem, x: np.ndarray, P: np.ndarray, k: int, t_target: fl
             if i >= len(gi) or gi[i] + 1 >= n or prob.imu_t[gi[i]] >= t_target:
                 break
             g = int(gi[i])
-            k = K.propagate_until(x, P, prob.imu_t, prob.imu_u, prob.imu_um, k, prob.imu_t[g + 1], prob.noise,
-                                  prob.dt_max, prob.cov_every, ws)
+            k = K.propagate_until(x, P, prob.imu_t, prob.imu_u, prob.imu_um, k, prob.imu_t[g + 1],
+                                  prob.process_noise_tables(), prob.dt_max, prob.cov_every, ws)
             if k < g + 1:
                 return k
             gap_inflation(P, prob.imu_t[g + 1] - prob.imu_t[g], prob.gap_sd[i, 0], prob.gap_sd[i, 1])
-    return K.propagate_until(x, P, prob.imu_t, prob.imu_u, prob.imu_um, k, t_target, prob.noise, prob.dt_max,
-                             prob.cov_every, ws)
+    return K.propagate_until(x, P, prob.imu_t, prob.imu_u, prob.imu_um, k, t_target, prob.process_noise_tables(),
+                             prob.dt_max, prob.cov_every, ws)
 
 
 def _diverged(prob: Problem, x: np.ndarray, P: np.ndarray, all_rej: int) -> Optional[str]:
@@ -499,7 +521,7 @@ def advance(
         out_P = st.out_P if st.out_P is not None else a.no_cov
         code = K.filter_loop(x, P, imu_t, prob.imu_u, prob.imu_um, prob.uwb_t, prob.uwb_a, uwb_b, prob.uwb_r,
                              uwb_tag, prob.anchors, prob.bias_idx, a.gain_mask, mask_frozen, tag_lever_err,
-                             pair_mat, prob.noise, prob.hull_lo, prob.hull_hi, rot_mean, rot_ms, gap_idx,
+                             pair_mat, prob.process_noise_tables(), prob.hull_lo, prob.hull_hi, rot_mean, rot_ms, gap_idx,
                              st.consec, rec, st.out_t, st.out_x, st.out_d, out_P, ev, fpar, ipar, ist, fst)
         st.k, st.j, st.all_rej, st.n_frozen, st.n_out, phase, gap_i, _, n_ev = ist.tolist()
         st.next_out = float(fst[0])
@@ -611,11 +633,11 @@ def advance_python(
         # no rotation, no lever-arm information: Schmidt (consider) update for the lever arm only
         # (the rate must stand out from the gyro-bias uncertainty: before the bias has converged an
         # uncorrected bias would otherwise pass for rotation)
-        frozen = gate_lever and (prob.rotation_rms(k, x[i_bg + 1:i_bg + 4])
+        frozen = gate_lever and (prob.rotation_rms(k, x[S.BG])
                                  - math.sqrt(max(P[i_bg, i_bg] + P[i_bg + 1, i_bg + 1] + P[i_bg + 2, i_bg + 2], 0.0))
                                  < prob.lever_min_rate)
         mask = mask_frozen if frozen else prob.gain_mask
-        lev = int(prob.tag_lever_err[prob.uwb_tag[j]]) if multi else 15
+        lev = int(prob.tag_lever_err[prob.uwb_tag[j]]) if multi else S.E_L
         if model is not None:
             _model_update(prob, x, P, k, tau, model, prob.models[-b - 2][1], force, mask, o)
         elif b < 0:

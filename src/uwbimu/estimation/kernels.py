@@ -19,10 +19,11 @@ import numpy as np
 from numba import njit
 
 from uwbimu.models import kernels as _physics
-from uwbimu.models.state import E_BG, E_L, ERROR_DIM, N_L, N_TD, NOMINAL_DIM
+from uwbimu.models.state import E_BG, E_L, N_DYN, N_L, N_TD, NOM_SHIFT
 from uwbimu.models.kernels import (  # noqa: F401  (re-exported)
     GRAVITY, rotmat, _deriv, _rk4_core, _rk4_s, _rk4, rk4_step_mid, rk4_step, propagate_interval, _mm3,
-    _skew3, _phi_blocks, phi_blocks, _phi_vec, _cov_step, _cov_step_rows, cov_step, decay_biases, range_jacobian,
+    _skew3, _phi_blocks, phi_blocks, _phi_vec, _cov_step, _cov_step_rows, cov_step, cov_step_blocks, decay_biases,
+    base_process_noise, range_jacobian,
     inject, quat_mul, quat_exp, error_transition, tdoa_jacobian, refresh_stale_cache,
 )
 
@@ -67,23 +68,23 @@ def cubic_at(imu_t, imu_u, i, t, out):
 
 
 @njit(cache=True)
-def propagate_until(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_every, ws):
+def propagate_until(x, P, imu_t, imu_u, imu_um, k, t_target, pn, dt_max, cov_every, ws):
     """Advance the filter from IMU sample ``k`` until ``imu_t[k] >= t_target``.
 
     Nominal state by reference RK4 steps with the cubic mid-interval inputs
     ``imu_um`` (``reference.midpoint_inputs``; linear sub-steps across IMU
-    gaps longer than ``dt_max``), covariance by :func:`cov_step`
-    every ``cov_every`` samples (one step over the block, linearised at the
+    gaps longer than ``dt_max``), covariance by :func:`cov_step_blocks` with the declared blocks' process
+    noise ``pn`` (:class:`~uwbimu.models.blocks.ProcessNoise`, ``StateLayout.process_noise``) every ``cov_every`` samples (one step over the block, linearised at the
     block's start with its mean input); the pending block is always flushed
     before returning so that ``P`` belongs to ``imu_t[k]``.  ``ws`` is unused
     (kept for signature stability).  Returns the new sample index.
     """
     nx = x.shape[0]
     N = P.shape[0]
-    return _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_every,
+    return _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, pn, dt_max, cov_every,
                          np.empty(nx), np.empty(nx), np.zeros(6), np.empty(6), np.empty(6), np.empty(6),
-                         np.empty((6, max(10, nx))), np.empty((7, 3, 3)), np.empty((6, 3, 3)), np.empty((15, N)),
-                         np.empty((15, N)), np.empty((15, N)))
+                         np.empty((6, max(10, nx))), np.empty((7, 3, 3)), np.empty((6, 3, 3)), np.empty((N_DYN, N)),
+                         np.empty((N_DYN, N)), np.empty((N_DYN, N)))
 
 
 @njit(cache=True)
@@ -93,7 +94,7 @@ def _row6(A, k):
 
 
 @njit(cache=True)
-def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_every,
+def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, pn, dt_max, cov_every,
                   xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U):
     """:func:`propagate_until` with its work arrays passed in (no allocation: :func:`filter_loop` calls it for
     every output and measurement); the covariance step is the SIMD form ``_cov_step_rows`` (bit-identical
@@ -111,7 +112,7 @@ def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_ev
             if cnt > 0:
                 for i in range(6):
                     ub[i] = usum[i] / cnt
-                _cov_step_rows(P, xb, ub, dts, noise, B, W, A, T, U)
+                _cov_step_rows(P, xb, ub, dts, pn, B, W, A, T, U)
                 cnt = 0
                 dts = 0.0
                 for i in range(6):
@@ -123,9 +124,9 @@ def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_ev
                     ua[i] = imu_u[k, i] + (s / m) * (imu_u[k + 1, i] - imu_u[k, i])
                     ue[i] = imu_u[k, i] + ((s + 1) / m) * (imu_u[k + 1, i] - imu_u[k, i])
                     ub[i] = 0.5 * (ua[i] + ue[i])
-                _cov_step_rows(P, x, ub, h, noise, B, W, A, T, U)
+                _cov_step_rows(P, x, ub, h, pn, B, W, A, T, U)
                 _rk4(x, ua, ue, h, x, wk)
-                decay_biases(x, h, noise)
+                decay_biases(x, h, pn)
             k += 1
             continue
         if cnt == 0:
@@ -139,12 +140,12 @@ def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_ev
         _rk4_s(x, _row6(imu_u, k), _row6(imu_um, k), _row6(imu_u, k + 1), dt, xn)
         for i in range(nx):
             x[i] = xn[i]
-        decay_biases(x, dt, noise)
+        decay_biases(x, dt, pn)
         k += 1
         if cnt >= cov_every:
             for i in range(6):
                 ub[i] = usum[i] / cnt
-            _cov_step_rows(P, xb, ub, dts, noise, B, W, A, T, U)
+            _cov_step_rows(P, xb, ub, dts, pn, B, W, A, T, U)
             cnt = 0
             dts = 0.0
             for i in range(6):
@@ -152,7 +153,7 @@ def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_ev
     if cnt > 0:
         for i in range(6):
             ub[i] = usum[i] / cnt
-        _cov_step_rows(P, xb, ub, dts, noise, B, W, A, T, U)
+        _cov_step_rows(P, xb, ub, dts, pn, B, W, A, T, U)
     return k
 
 
@@ -227,7 +228,7 @@ def _other_tag(xt, lever_err):
     first tag's place (nominal ``N_L``), so the one-tag Jacobians apply; see :func:`_move_lever_rows`."""
     x2 = xt.copy()
     for i in range(3):
-        x2[N_L + i] = xt[lever_err + (NOMINAL_DIM - ERROR_DIM) + i]  # nominal = error index + 1 after q
+        x2[N_L + i] = xt[lever_err + NOM_SHIFT + i]
     return x2
 
 
@@ -241,7 +242,7 @@ def _move_lever_rows(h, lever_err):
 
 @njit(cache=True)
 def range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor, bias_idx, z, r_var, gate, force,
-                 robust_kind, robust_c, gain_mask, dt_max, out, lever_err=15, pair_idx=-1):
+                 robust_kind, robust_c, gain_mask, dt_max, out, lever_err=E_L, pair_idx=-1):
     """Process one range: predict at IMU time ``tau``, gate, re-weight, Joseph update.
 
     ``x``, ``P`` belong to IMU time ``imu_t[k] >= tau`` and are updated in
@@ -251,7 +252,7 @@ def range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor, bias_idx, z, r_var,
     ``gate`` is the NIS threshold (<= 0: no gate); ``force`` accepts regardless.
     ``out`` (7,) receives ``predicted, innovation, nis, accepted, weight, status, S``
     (``S`` the innovation variance before robust re-weighting).  ``lever_err``: error index of the
-    measuring tag's lever-arm block (15: the first tag).
+    measuring tag's lever-arm block (``E_L``: the first tag).
     """
     N = P.shape[0]
     xt = np.empty_like(x)
@@ -265,7 +266,7 @@ def range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor, bias_idx, z, r_var,
     delta = imu_t[k] - tau
     if delta < 0:
         delta = 0.0
-    if lever_err != 15:
+    if lever_err != E_L:
         pred = range_jacobian(_other_tag(xt, lever_err), u_tau, anchor, bias_idx, delta, h)
         _move_lever_rows(h, lever_err)
     else:
@@ -275,7 +276,7 @@ def range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor, bias_idx, z, r_var,
 
 @njit(cache=True)
 def tdoa_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor_a, anchor_b, bias_a, bias_b, z, r_var, gate, force,
-                robust_kind, robust_c, gain_mask, dt_max, out, lever_err=15, pair_idx=-1):
+                robust_kind, robust_c, gain_mask, dt_max, out, lever_err=E_L, pair_idx=-1):
     """Process one TDoA ``z = |p_U - p_b| - |p_U - p_a|`` [m] as :func:`range_update` does a range.
 
     Prediction and Jacobian from :func:`tdoa_jacobian` (pinned to ``reference.tdoa_measurement``);
@@ -295,21 +296,21 @@ def tdoa_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor_a, anchor_b, bias_a, 
     delta = imu_t[k] - tau
     if delta < 0:
         delta = 0.0
-    if lever_err != 15:
+    if lever_err != E_L:
         pred = tdoa_jacobian(_other_tag(xt, lever_err), u_tau, anchor_a, anchor_b, -1, delta, h, work)
         _move_lever_rows(h, lever_err)
     else:
         pred = tdoa_jacobian(xt, u_tau, anchor_a, anchor_b, -1, delta, h, work)
     if bias_b >= 0:
         h[bias_b] += 1.0
-        pred += xt[bias_b + 1]
+        pred += xt[bias_b + NOM_SHIFT]
     if bias_a >= 0:
         h[bias_a] -= 1.0
-        pred -= xt[bias_a + 1]
+        pred -= xt[bias_a + NOM_SHIFT]
     if pair_idx >= 0:
-        # a constant bias of this anchor pair (error index pair_idx, nominal pair_idx + 1)
+        # a constant bias of this anchor pair (error index pair_idx, nominal pair_idx + NOM_SHIFT)
         h[pair_idx] += 1.0
-        pred += xt[pair_idx + 1]
+        pred += xt[pair_idx + NOM_SHIFT]
     scalar_update(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, gain_mask, out)
 
 
@@ -480,11 +481,11 @@ IS_K, IS_J, IS_ALL_REJ, IS_N_FROZEN, IS_N_OUT, IS_PHASE, IS_GAP, IS_DIV, IS_N_EV
 PHASE_ROWS, PHASE_TAIL, PHASE_DONE = range(3)
 
 _I_TD = N_TD  # nominal index of t_d
-_I_BG = E_BG  # error index of the gyro bias; nominal b_g at _I_BG + 1
+_I_BG = E_BG  # error index of the gyro bias; nominal b_g at _I_BG + NOM_SHIFT
 
 
 @njit(cache=True)
-def _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_every, gap_idx,
+def _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, t_target, pn, dt_max, cov_every, gap_idx,
                     xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U):
     """``filterpass._propagate`` up to the first IMU gap that needs an inflation of ``P``.
 
@@ -497,25 +498,25 @@ def _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_
         i = np.searchsorted(gap_idx, k)
         if not (i >= ng or gap_idx[i] + 1 >= n or imu_t[gap_idx[i]] >= t_target):
             g = gap_idx[i]
-            k = _propagate_ws(x, P, imu_t, imu_u, imu_um, k, imu_t[g + 1], noise, dt_max, cov_every,
+            k = _propagate_ws(x, P, imu_t, imu_u, imu_um, k, imu_t[g + 1], pn, dt_max, cov_every,
                               xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U)
             if k < g + 1:
                 return k, -1
             return k, i
-    k = _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, noise, dt_max, cov_every,
+    k = _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, pn, dt_max, cov_every,
                       xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U)
     return k, -1
 
 
 @njit(cache=True)
-def _output_row(x, P, imu_t, imu_u, imu_um, k, noise, dt_max, cov_every, gap_idx, n_out, next_out, out_period,
+def _output_row(x, P, imu_t, imu_u, imu_um, k, pn, dt_max, cov_every, gap_idx, n_out, next_out, out_period,
                 out_t, out_x, out_d, out_P, store_cov, ist, xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U):
     """Propagate to the output time ``next_out`` and record the state there.  Returns
     ``(code, k, n_out, next_out)``: ``LOOP_DONE`` when recorded, ``LOOP_OUT_FULL`` (nothing done) or
     ``LOOP_GAP`` (stopped at the end of gap ``ist[IS_GAP]``, not recorded yet)."""
     if n_out >= out_t.shape[0]:
         return LOOP_OUT_FULL, k, n_out, next_out
-    k, g = _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, next_out, noise, dt_max, cov_every, gap_idx,
+    k, g = _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, next_out, pn, dt_max, cov_every, gap_idx,
                            xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U)
     if g >= 0:
         ist[IS_GAP] = g
@@ -540,7 +541,7 @@ def _record_output(n_out, k, imu_t, x, P, out_t, out_x, out_d, out_P, store_cov)
 
 @njit(cache=True)
 def filter_loop(x, P, imu_t, imu_u, imu_um, uwb_t, uwb_a, uwb_b, uwb_r, uwb_tag, anchors, bias_idx,
-                gain_mask, mask_frozen, tag_lever_err, pair_mat, noise, hull_lo, hull_hi, rot_mean, rot_ms,
+                gain_mask, mask_frozen, tag_lever_err, pair_mat, pn, hull_lo, hull_hi, rot_mean, rot_ms,
                 gap_idx, consec, rec, out_t, out_x, out_d, out_P, ev, fpar, ipar, ist, fst):
     """The filter pass of ``filterpass.advance`` as one compiled loop: IMU propagation (covariance every
     ``cov_every`` samples), the range and TDoA updates in time order with the gate, the robust loss, the
@@ -597,9 +598,9 @@ def filter_loop(x, P, imu_t, imu_u, imu_um, uwb_t, uwb_a, uwb_b, uwb_r, uwb_tag,
     wk = np.empty((6, max(10, nx)))
     B = np.empty((7, 3, 3))
     W = np.empty((6, 3, 3))
-    A = np.empty((15, N))
-    T = np.empty((15, N))
-    U = np.empty((15, N))
+    A = np.empty((N_DYN, N))
+    T = np.empty((N_DYN, N))
+    U = np.empty((N_DYN, N))
 
     k = ist[IS_K]
     j = ist[IS_J]
@@ -635,7 +636,7 @@ def filter_loop(x, P, imu_t, imu_u, imu_um, uwb_t, uwb_a, uwb_b, uwb_r, uwb_tag,
             if record:
                 while next_out <= tau:
                     code, k, n_out, next_out = _output_row(
-                        x, P, imu_t, imu_u, imu_um, k, noise, dt_max, cov_every, gap_idx, n_out, next_out,
+                        x, P, imu_t, imu_u, imu_um, k, pn, dt_max, cov_every, gap_idx, n_out, next_out,
                         out_period, out_t, out_x, out_d, out_P, store_cov, ist, xn, xb, usum, ub, ua, ue, wk, B, W,
                         A, T, U)
                     if code != LOOP_DONE:
@@ -653,7 +654,7 @@ def filter_loop(x, P, imu_t, imu_u, imu_um, uwb_t, uwb_a, uwb_b, uwb_r, uwb_tag,
                             break
                 if code != LOOP_DONE:
                     break
-            k, g = _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, tau, noise, dt_max, cov_every, gap_idx,
+            k, g = _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, tau, pn, dt_max, cov_every, gap_idx,
                                    xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U)
             if g >= 0:
                 ist[IS_GAP] = g
@@ -678,9 +679,9 @@ def filter_loop(x, P, imu_t, imu_u, imu_um, uwb_t, uwb_a, uwb_b, uwb_r, uwb_tag,
                 m0 = rot_mean[kk, 0]
                 m1 = rot_mean[kk, 1]
                 m2 = rot_mean[kk, 2]
-                b0 = x[_I_BG + 1]
-                b1 = x[_I_BG + 2]
-                b2 = x[_I_BG + 3]
+                b0 = x[_I_BG + NOM_SHIFT]
+                b1 = x[_I_BG + NOM_SHIFT + 1]
+                b2 = x[_I_BG + NOM_SHIFT + 2]
                 ms = rot_ms[kk] - 2.0 * (m0 * b0 + m1 * b1 + m2 * b2) + (b0 * b0 + b1 * b1 + b2 * b2)
                 rms = math.sqrt(ms) if ms > 0.0 else 0.0
                 pv = P[_I_BG, _I_BG] + P[_I_BG + 1, _I_BG + 1] + P[_I_BG + 2, _I_BG + 2]
@@ -688,7 +689,7 @@ def filter_loop(x, P, imu_t, imu_u, imu_um, uwb_t, uwb_a, uwb_b, uwb_r, uwb_tag,
                     pv = 0.0
                 frozen = rms - math.sqrt(pv) < lever_min_rate
             mask = mask_frozen if frozen else gain_mask
-            lev = tag_lever_err[uwb_tag[j]] if multi else 15
+            lev = tag_lever_err[uwb_tag[j]] if multi else E_L
             o = rec[j]
             if b < 0:
                 range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchors[a], bias_idx[a], uwb_r[j], r_var, gate,
@@ -722,7 +723,7 @@ def filter_loop(x, P, imu_t, imu_u, imu_um, uwb_t, uwb_a, uwb_b, uwb_r, uwb_tag,
             if record:
                 while next_out <= t_out_end:
                     code, k, n_out, next_out = _output_row(
-                        x, P, imu_t, imu_u, imu_um, k, noise, dt_max, cov_every, gap_idx, n_out, next_out,
+                        x, P, imu_t, imu_u, imu_um, k, pn, dt_max, cov_every, gap_idx, n_out, next_out,
                         out_period, out_t, out_x, out_d, out_P, store_cov, ist, xn, xb, usum, ub, ua, ue, wk, B, W,
                         A, T, U)
                     if code != LOOP_DONE:

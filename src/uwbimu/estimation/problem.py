@@ -13,7 +13,9 @@ Everything here is causal: the nominal IMU period is the median of the first
 from __future__ import annotations
 
 import math
-from typing import Any, Optional, Sequence
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, ClassVar, Optional, Sequence
 
 import numpy as np
 from scipy.stats import chi2
@@ -36,6 +38,84 @@ def nominal_period(imu_t: np.ndarray) -> float:
     return float(np.median(d))
 
 
+@dataclass
+class BlockPriors(Mapping):
+    """The prior of every declared block that is not fixed by the initialiser's fix (typed record).
+
+    Fields are named after the blocks of :mod:`uwbimu.models.blocks` (``<block>`` the prior mean,
+    ``<block>_sd`` its sd) in SI units; ``search_t_d`` says whether the initialiser searches the time
+    offset over ``init.td_grid`` (no configured prior value).
+
+    Read-only mapping access with the keys that ``estimation/init.py`` and ``estimation/streaming.py``
+    still use (``priors["td_sd"]``, ...: :data:`LEGACY_KEYS`) keeps those modules working until they
+    read the fields.
+    """
+
+    lever: np.ndarray  # (3,) first tag's lever arm [m], IMU frame
+    tag_levers: np.ndarray  # (T, 3) every tag's lever arm [m]
+    lever_sd: np.ndarray  # (3,) [m]; zero when fixed
+    anchor_bias: np.ndarray  # (nb,) [m]
+    anchor_bias_sd: float  # [m]; zero without anchor-bias states
+    b_a: np.ndarray  # (3,) [m/s^2]
+    b_g: np.ndarray  # (3,) [rad/s]
+    b_a_sd: float
+    b_g_sd: float
+    t_d: float  # [s]
+    t_d_sd: float  # [s]; zero when fixed
+    search_t_d: bool
+    pair_bias_sd: float = 0.0  # [m]; zero without pair-bias states
+    height_bias_sd: float = 0.0  # [m]; zero without a height-bias state
+
+    #: legacy mapping key -> field
+    LEGACY_KEYS: ClassVar[dict[str, str]] = {
+        "lever": "lever", "tag_levers": "tag_levers", "sd_lever": "lever_sd", "anchor_bias": "anchor_bias",
+        "sd_bias": "anchor_bias_sd", "ba": "b_a", "bg": "b_g", "sd_ba": "b_a_sd", "sd_bg": "b_g_sd",
+        "td": "t_d", "td_sd": "t_d_sd", "search_td": "search_t_d"}
+
+    def __getitem__(self, key: str):
+        return getattr(self, self.LEGACY_KEYS[key])
+
+    def __iter__(self):
+        return iter(self.LEGACY_KEYS)
+
+    def __len__(self) -> int:
+        return len(self.LEGACY_KEYS)
+
+
+def _option(opts: EskfOptions, path: str):
+    """The option at dotted ``path`` (``"lever_arm.random_walk"``)."""
+    v: Any = opts
+    for part in path.split("."):
+        v = getattr(v, part)
+    return v
+
+
+def block_process_noise(opts: EskfOptions, layout: S.StateLayout) -> dict[str, tuple[float, float]]:
+    """``(q, 1/tau)`` of every present block not driven by the IMU, from its declared ``noise_option``.
+
+    Random walk: ``q`` = the option squared (density^2); Gauss-Markov: ``q`` = the first option squared
+    (stationary variance), ``1/tau`` = 1 / the second (0 when unset: a constant); constant: none.
+    """
+    out: dict[str, tuple[float, float]] = {}
+    for b in layout.blocks:
+        if b.process_noise == "random_walk":
+            out[b.name] = (float(_option(opts, b.noise_option[0])) ** 2, 0.0)
+        elif b.process_noise == "gauss_markov":
+            tau = _option(opts, b.noise_option[1])
+            out[b.name] = (float(_option(opts, b.noise_option[0])) ** 2, 1.0 / tau if tau else 0.0)
+    return out
+
+
+def gain_mask(opts: EskfOptions, layout: S.StateLayout) -> np.ndarray:
+    """1 for estimated error components, 0 for consider / fixed ones: each block's declared
+    ``mode_option`` section (``mode`` other than ``estimate``)."""
+    mask = np.ones(layout.n_err)
+    for b in layout.blocks:
+        if b.mode_option is not None and _option(opts, b.mode_option).mode != "estimate":
+            mask[layout.err(b.name)] = 0.0
+    return mask
+
+
 def make_settings(
     opts: EskfOptions,
     anchor_ids: Sequence[str],
@@ -46,8 +126,8 @@ def make_settings(
     lever_prior: Sequence,
     tag_names: Optional[Sequence[str]] = None,
     tdoa_pairs: Optional[Sequence[tuple[int, int]]] = None,
-) -> tuple[Problem, dict[str, Any]]:
-    """A :class:`Problem` with the resolved settings and no data, and the calibration priors.
+) -> tuple[Problem, BlockPriors]:
+    """A :class:`Problem` with the resolved settings and no data, and the blocks' priors.
 
     Parameters
     ----------
@@ -57,6 +137,10 @@ def make_settings(
     lever_prior : (3,) prior lever arm [m], IMU frame, or ``(T, 3)``: one per tag of ``tag_names``.
     tag_names : the tags whose lever arms are estimated (one filter, one lever arm each); None: one tag.
     tdoa_pairs : anchor-index pairs ``(a, b)`` that get a bias state (``tdoa_pair_bias.mode: estimate``).
+
+    The state layout, its process-noise tables and gain mask are compiled from the block declarations
+    (:mod:`uwbimu.models.blocks`): multiplicities from the anchors, tags and pairs, process noise and
+    modes from each block's declared options.
     """
     anchors = np.ascontiguousarray(np.asarray(anchors, dtype=float).reshape(-1, 3))
     M = len(anchor_ids)
@@ -69,28 +153,35 @@ def make_settings(
         raise ValueError(f"make_settings: {len(levers)} lever-arm priors for {n_tags} tags")
     pairs = [tuple(int(v) for v in pq) for pq in (tdoa_pairs or [])] if opts.tdoa_pair_bias.mode == "estimate" else []
     layout = S.StateLayout(nb, 1 if opts.height.bias == "estimate" else 0, n_tags, len(pairs))
-    N = layout.n_err
-    mask = np.ones(N)
-    if opts.lever_arm.mode != "estimate":
-        mask[S.EPIU] = 0.0
-        mask[layout.err("extra_levers")] = 0.0
-    if opts.time_offset.mode != "estimate":
-        mask[S.ETD] = 0.0
-    if nb and opts.anchor_bias.mode != "estimate":
-        mask[layout.err("anchor_bias")] = 0.0
     bias_idx = np.full(M, -1, dtype=np.int64)
     if nb:
-        bias_idx[:] = S.ERROR_DIM + np.arange(M)
+        bias_idx[:] = layout.err("anchor_bias").start + np.arange(M)
+    sd_ba = opts.accel_bias_sd or (noise.accel_bias_sigma0 if noise.accel_bias_sigma0 > 0 else 0.1)
+    sd_bg = opts.gyro_bias_sd or (noise.gyro_bias_sigma0 if noise.gyro_bias_sigma0 > 0 else math.radians(1.0))
+    t_d_mode = opts.time_offset.mode
+    priors = BlockPriors(
+        lever=levers[0].copy(), tag_levers=levers,
+        lever_sd=np.zeros(3) if opts.lever_arm.mode == "fixed" else np.full(3, opts.lever_arm.prior_sd),
+        anchor_bias=np.zeros(nb), anchor_bias_sd=opts.anchor_bias.prior_sd if nb else 0.0,
+        b_a=np.zeros(3), b_g=np.zeros(3), b_a_sd=sd_ba, b_g_sd=sd_bg,
+        t_d=float(opts.time_offset.prior or 0.0),
+        t_d_sd=0.0 if t_d_mode == "fixed" else opts.time_offset.prior_sd,
+        search_t_d=t_d_mode != "fixed" and opts.time_offset.prior is None and opts.init.search_time_offset,
+        pair_bias_sd=opts.tdoa_pair_bias.prior_sd if pairs else 0.0,
+        height_bias_sd=opts.height.bias_prior_sd if layout.count["height_bias"] else 0.0,
+    )
     gate = float(chi2.ppf(opts.gating.probability, 1)) if opts.gating.probability < 1 else -1.0
+    imu = np.array([noise.accel_noise_density**2, noise.gyro_noise_density**2, noise.accel_bias_rw**2,
+                    noise.gyro_bias_rw**2])
+    pn_values = block_process_noise(opts, layout)
     empty = np.zeros(0)
     prob = Problem(
         imu_t=empty, imu_u=np.zeros((0, 6)), imu_um=np.zeros((0, 6)),
         uwb_t=empty, uwb_a=np.zeros(0, dtype=np.int64), uwb_r=empty, anchor_ids=[str(a) for a in anchor_ids],
         anchors=anchors,
-        noise=np.array([noise.accel_noise_density**2, noise.gyro_noise_density**2, noise.accel_bias_rw**2,
-                        noise.gyro_bias_rw**2, opts.lever_arm.random_walk**2, opts.time_offset.random_walk**2]
-                       + _extra_noise(opts, nb, layout.n_height_bias, n_tags - 1, len(pairs))),
-        r_var=float(range_sigma**2), bias_idx=bias_idx, gain_mask=mask, dt_nom=float("nan"),
+        noise=np.r_[imu, pn_values["lever"][0], pn_values["t_d"][0]],
+        process_noise=layout.process_noise(imu, pn_values),
+        r_var=float(range_sigma**2), bias_idx=bias_idx, gain_mask=gain_mask(opts, layout), dt_nom=float("nan"),
         dt_max=float("nan"), gate=gate, robust_kind=_ROBUST[opts.gating.robust],
         robust_c=opts.gating.robust_c, reopen_after=opts.gating.reopen_after, cov_every=opts.cov_every,
         max_lookback=opts.max_lookback_s, out_period=1.0 / opts.output_rate_hz, store_cov=opts.store_covariance,
@@ -98,39 +189,13 @@ def make_settings(
         hull_hi=anchors.max(axis=0) + opts.supervisor.hull_margin,
         max_pos_var=opts.supervisor.max_position_sd**2,
         all_reject_run=opts.supervisor.all_reject_run, supervise=opts.supervisor.enabled,
+        layout=layout, tag_names=list(tag_names) if tag_names else [],
+        tag_lever_err=np.array([layout.lever_err(i).start for i in range(n_tags)], dtype=np.int64),
+        pair_index={pq: layout.err("pair_bias").start + i for i, pq in enumerate(pairs)},
+        tdoa_var=float(tdoa_sigma or math.sqrt(2.0) * range_sigma) ** 2,
+        priors=priors,
     )
-    prob.layout = layout
-    prob.tag_names = list(tag_names) if tag_names else []
-    prob.tag_lever_err = np.array([layout.lever_err(i).start for i in range(n_tags)], dtype=np.int64)
-    prob.pair_index = {pq: layout.err("pair_bias").start + i for i, pq in enumerate(pairs)}
-    prob.pair_sd0 = opts.tdoa_pair_bias.prior_sd if pairs else 0.0
-    prob.height_sd0 = opts.height.bias_prior_sd if layout.n_height_bias else 0.0
-    tsig = tdoa_sigma or math.sqrt(2.0) * range_sigma
-    prob.tdoa_var = float(tsig) ** 2
-    sd_ba = opts.accel_bias_sd or (noise.accel_bias_sigma0 if noise.accel_bias_sigma0 > 0 else 0.1)
-    sd_bg = opts.gyro_bias_sd or (noise.gyro_bias_sigma0 if noise.gyro_bias_sigma0 > 0 else math.radians(1.0))
-    td_mode = opts.time_offset.mode
-    priors = {
-        "lever": levers[0].copy(),
-        "tag_levers": levers,
-        "sd_lever": np.zeros(3) if opts.lever_arm.mode == "fixed" else np.full(3, opts.lever_arm.prior_sd),
-        "anchor_bias": np.zeros(nb),
-        "sd_bias": opts.anchor_bias.prior_sd if nb else 0.0,
-        "ba": np.zeros(3), "bg": np.zeros(3), "sd_ba": sd_ba, "sd_bg": sd_bg,
-        "td": float(opts.time_offset.prior or 0.0),
-        "td_sd": 0.0 if td_mode == "fixed" else opts.time_offset.prior_sd,
-        "search_td": td_mode != "fixed" and opts.time_offset.prior is None and opts.init.search_time_offset,
-    }
     return prob, priors
-
-
-def _extra_noise(opts: EskfOptions, nb: int, nh: int, n_lev: int = 0, n_pair: int = 0) -> list[float]:
-    """Noise entries after the six densities (see ``models.kernels.cov_step``)."""
-    gm = [opts.anchor_bias.prior_sd**2, 1.0 / opts.anchor_bias.correlation_time] \
-        if nb and opts.anchor_bias.correlation_time else [0.0, 0.0]
-    if nh or n_lev or n_pair:
-        return gm + [float(nb), opts.height.bias_random_walk**2, 3.0 * n_lev, float(n_pair)]
-    return gm if nb and opts.anchor_bias.correlation_time else []
 
 
 def set_imu_timing(prob: Problem, opts: EskfOptions, dt_nom: float) -> None:

@@ -18,7 +18,9 @@ Public API (all ``@njit``; arrays are float64, outputs written in place)
 ``propagate_interval(x, u0, u1, dt, dt_max, out)``  same, sub-stepped to ``dt_max``
 ``phi_blocks(x, u, dt, B)``        3x3 blocks of the 19-error-state transition (see below)
 ``error_transition(x, u, dt, Phi)`` dense ``Phi`` (N, N), N >= 19, second order
-``cov_step(P, x, u, dt, noise)``   ``P <- Phi P Phi^T + Q`` in place (block sparse, O(N^2))
+``cov_step(P, x, u, dt, noise)``   ``P <- Phi P Phi^T + Q`` in place (block sparse, O(N^2)), base 19-state noise
+``cov_step_blocks(P, x, u, dt, pn)`` the same with the declared blocks' process-noise tables
+``decay_biases(x, dt, pn)``        mean decay of the Gauss-Markov blocks
 ``inject(x, dx)``                  ``x <- x ⊞ dx`` (right attitude perturbation)
 ``range_jacobian(xt, u, anchor, bias_idx, delta, h)``  predicted range, ``h`` (N,)
 ``tdoa_jacobian(xt, u, anchor_a, anchor_b, bias_idx, delta, h, work)``  predicted
@@ -55,9 +57,16 @@ edited.  Every module that calls these primitives from cached kernels ends
 with ``refresh_stale_cache(globals(), [uwbimu.models.kernels])``: it keys the
 cache on a SHA-256 of the dependency sources (stored next to numba's index
 files) and flushes that module's cached kernels when the sources changed.
-``models/state.py`` is always part of that key: the kernels index the state by
-its block offsets (``N_*`` nominal, ``E_*`` error state), which numba freezes
-into the machine code as compile-time constants.
+``models/state.py`` and ``models/blocks.py`` are always part of that key: the kernels index the
+state by its block offsets (``N_*`` nominal, ``E_*`` error state, ``NOM_SHIFT``) and the blocks'
+process-noise codes (``PN_*``), which numba freezes into the machine code as compile-time constants.
+
+Process noise
+-------------
+The kernels never infer a block from an array length: the IMU densities come as a fixed (4,) array
+and every other block's process noise as a row of the :class:`~uwbimu.models.blocks.ProcessNoise`
+tables (kind, error / nominal offset, size, ``q``, ``1/tau``) compiled by
+``StateLayout.process_noise`` from the declarations in :mod:`uwbimu.models.blocks`.
 """
 
 from __future__ import annotations
@@ -71,8 +80,10 @@ import numpy as np
 from numba import njit
 
 from uwbimu.models import state as _state
-from uwbimu.models.state import (E_BA, E_BG, E_L, E_P, E_TD, E_TH, E_V, ERROR_DIM, N_BA, N_BG, N_L, N_P, N_Q, N_V,
-                                 NOMINAL_DIM)
+from uwbimu.models import blocks as _blocks
+from uwbimu.models.blocks import PN_GAUSS_MARKOV, PN_RANDOM_WALK, ProcessNoise
+from uwbimu.models.state import (E_BA, E_BG, E_L, E_P, E_TD, E_TH, E_V, ERROR_DIM, N_BA, N_BG, N_L, N_P, N_Q, N_TD,
+                                 N_DYN, N_V, NOM_SHIFT, NOMINAL_DIM)
 
 GRAVITY = 9.81  # must equal uwbimu.models.reference.GRAVITY (pinned by a test)
 
@@ -95,8 +106,9 @@ def refresh_stale_cache(module_globals: dict, dependencies) -> bool:
         flushed the same way).
     """
     digest = hashlib.sha256()
-    # the state layout's offsets are compile-time constants in every kernel: always part of the key
-    for mod in [_state, *[m for m in dependencies if m is not _state]]:
+    # the state layout's offsets and the block declarations' codes are compile-time constants in every
+    # kernel: always part of the key
+    for mod in [_state, _blocks, *[m for m in dependencies if m not in (_state, _blocks)]]:
         digest.update(Path(inspect.getfile(mod)).read_bytes())
     key = digest.hexdigest()
     dispatchers = [v for v in module_globals.values()
@@ -435,72 +447,70 @@ def phi_left_R(M, R, f, w, dt, B, W, col):
     matrices."""
     _phi_blocks_R(R, f[0], f[1], f[2], w[0], w[1], w[2], dt, B, W)
     for c in range(M.shape[1]):
-        for i in range(15):
+        for i in range(N_DYN):
             col[i] = M[i, c]
         _phi_vec(B, dt, col)
-        for i in range(15):
+        for i in range(N_DYN):
             M[i, c] = col[i]
 
 
 @njit(cache=True)
-def _cov_step(P, x, u, dt, noise, B, W, col):
-    """:func:`cov_step` with work arrays (B (7,3,3), W (6,3,3), col (N,))."""
+def _cov_step(P, x, u, dt, pn, B, W, col):
+    """:func:`cov_step_blocks` with work arrays (B (7,3,3), W (6,3,3), col (N,))."""
     N = P.shape[0]
     _phi_blocks(x, u, dt, B, W)
     # left multiplication: columns
     for c in range(N):
-        for i in range(15):
+        for i in range(N_DYN):
             col[i] = P[i, c]
         _phi_vec(B, dt, col)
-        for i in range(15):
+        for i in range(N_DYN):
             P[i, c] = col[i]
     # right multiplication: rows
     for r in range(N):
-        for i in range(15):
+        for i in range(N_DYN):
             col[i] = P[r, i]
         _phi_vec(B, dt, col)
-        for i in range(15):
+        for i in range(N_DYN):
             P[r, i] = col[i]
-    _add_process_noise(P, dt, noise)
+    _add_process_noise(P, dt, pn)
 
 
 @njit(cache=True)
-def _add_process_noise(P, dt, noise):
-    """The process-noise part of :func:`cov_step`: ``P <- P + Q`` over ``dt`` (Gauss-Markov anchor biases
-    scaled as well; see :func:`cov_step` for ``noise``)."""
+def _add_process_noise(P, dt, pn):
+    """The process-noise part of :func:`cov_step`: ``P <- P + Q`` over ``dt``, read from the tables ``pn``
+    (:class:`~uwbimu.models.blocks.ProcessNoise`): the IMU densities drive p, v, theta, b_a, b_g (Van Loan
+    to leading order); then each declared block by its kind (random walk: ``q |dt|`` on the diagonal;
+    Gauss-Markov: rows and columns scaled by ``exp(-|dt| / tau)``, ``q (1 - f^2)`` added; constant: none).
+    """
     N = P.shape[0]
     adt = abs(dt)
+    imu = pn.imu
     for i in range(3):
-        P[E_P + i, E_P + i] += noise[0] * adt**3 / 3.0
-        P[E_P + i, E_V + i] += noise[0] * adt**2 / 2.0
-        P[E_V + i, E_P + i] += noise[0] * adt**2 / 2.0
-        P[E_V + i, E_V + i] += noise[0] * adt
-        P[E_TH + i, E_TH + i] += noise[1] * adt
-        P[E_BA + i, E_BA + i] += noise[2] * adt
-        P[E_BG + i, E_BG + i] += noise[3] * adt
-        P[E_L + i, E_L + i] += noise[4] * adt
-    P[E_TD, E_TD] += noise[5] * adt
-    n_gm = _n_gauss_markov(noise, N)
-    if noise.shape[0] >= 8 and noise[7] > 0.0 and n_gm > 0:
-        # per-anchor range biases as first-order Gauss-Markov processes
-        # (b' = -b / tau + w, stationary variance noise[6], 1 / tau = noise[7]):
-        # Phi_bb = exp(-|dt| / tau) I, Q_bb = var (1 - Phi_bb^2)
-        f = math.exp(-adt * noise[7])
-        for r in range(ERROR_DIM, ERROR_DIM + n_gm):
-            for c in range(N):
-                P[r, c] *= f
-                P[c, r] *= f
-            P[r, r] += noise[6] * (1.0 - f * f)
-    if noise.shape[0] >= 10:
-        # further additive states after the anchor biases: the lever arms of further tags (``noise[10]``
-        # of them, random walks like the first lever arm), then an altimeter bias (random walk noise[9])
-        n_lev = int(noise[10]) if noise.shape[0] >= 11 else 0
-        # constant TDoA pair biases (noise[11] of them) come first: no process noise
-        r0 = ERROR_DIM + int(noise[8]) + (int(noise[11]) if noise.shape[0] >= 12 else 0)
-        for r in range(r0, r0 + n_lev):
-            P[r, r] += noise[4] * adt
-        for r in range(r0 + n_lev, N):
-            P[r, r] += noise[9] * adt
+        P[E_P + i, E_P + i] += imu[0] * adt**3 / 3.0
+        P[E_P + i, E_V + i] += imu[0] * adt**2 / 2.0
+        P[E_V + i, E_P + i] += imu[0] * adt**2 / 2.0
+        P[E_V + i, E_V + i] += imu[0] * adt
+        P[E_TH + i, E_TH + i] += imu[1] * adt
+        P[E_BA + i, E_BA + i] += imu[2] * adt
+        P[E_BG + i, E_BG + i] += imu[3] * adt
+    for blk in range(pn.kind.shape[0]):
+        kind = pn.kind[blk]
+        r0 = pn.err0[blk]
+        r1 = r0 + pn.size[blk]
+        q = pn.q[blk]
+        if kind == PN_RANDOM_WALK:
+            for r in range(r0, r1):
+                P[r, r] += q * adt
+        elif kind == PN_GAUSS_MARKOV and pn.inv_tau[blk] > 0.0:
+            # first-order Gauss-Markov (b' = -b / tau + w, stationary variance q):
+            # Phi_bb = exp(-|dt| / tau) I, Q_bb = q (1 - Phi_bb^2)
+            f = math.exp(-adt * pn.inv_tau[blk])
+            for r in range(r0, r1):
+                for c in range(N):
+                    P[r, c] *= f
+                    P[c, r] *= f
+                P[r, r] += q * (1.0 - f * f)
 
 
 @njit(cache=True)
@@ -551,71 +561,77 @@ def _phi_rows(M, O, B, dt):
             O[i, c] = M[i, c] + (dt * M[3 + i, c] + sp)
             O[6 + i, c] = st
             O[3 + i, c] = M[3 + i, c] + sv
-    for r in range(9, 15):
+    for r in range(E_BA, N_DYN):
         for c in range(nc):
             O[r, c] = M[r, c]
 
 
 @njit(cache=True)
-def _cov_step_rows(P, x, u, dt, noise, B, W, A, T, U):
-    """:func:`cov_step` arranged for SIMD: bit-identical to :func:`_cov_step` (the same operations on
+def _cov_step_rows(P, x, u, dt, pn, B, W, A, T, U):
+    """:func:`cov_step_blocks` arranged for SIMD: bit-identical to :func:`_cov_step` (the same operations on
     every element, in the same order), faster.
 
     ``A = (Phi P)[0:15]`` by rows (:func:`_phi_rows`), then ``(Phi P) Phi^T`` as ``Phi`` applied to the
     transpose ``T`` of its first 15 columns (into ``U``).  Work arrays: ``B`` (7, 3, 3), ``W`` (6, 3, 3),
-    ``A``, ``T``, ``U`` (15, N)."""
+    ``A``, ``T``, ``U`` (N_DYN, N)."""
     N = P.shape[0]
     _phi_blocks(x, u, dt, B, W)
     _phi_rows(P, A, B, dt)
-    for r in range(15):
-        for c in range(15):
+    for r in range(N_DYN):
+        for c in range(N_DYN):
             T[c, r] = A[r, c]
-    for r in range(15, N):
-        for c in range(15):
+    for r in range(N_DYN, N):
+        for c in range(N_DYN):
             T[c, r] = P[r, c]
     _phi_rows(T, U, B, dt)
     for r in range(N):
-        for c in range(15):
+        for c in range(N_DYN):
             P[r, c] = U[c, r]
-    for r in range(15):
-        for c in range(15, N):
+    for r in range(N_DYN):
+        for c in range(N_DYN, N):
             P[r, c] = A[r, c]
-    _add_process_noise(P, dt, noise)
+    _add_process_noise(P, dt, pn)
 
 
 @njit(cache=True)
-def _n_gauss_markov(noise, N):
-    """Number of anchor-bias states (error indices 19 ..): ``noise[8]`` when given, else all extras."""
-    if noise.shape[0] >= 9:
-        return int(noise[8])
-    return N - 19
+def base_process_noise(noise):
+    """The tables of the base 19-state for the six densities ``noise`` =
+    ``[s_a^2, s_g^2, s_ba^2, s_bg^2, s_piu^2, s_td^2]`` (IMU white noises and bias random walks, lever-arm
+    and time-offset random walks): extra states beyond index 18 constant."""
+    return ProcessNoise(noise[0:4].copy(), np.array([PN_RANDOM_WALK, PN_RANDOM_WALK]), np.array([E_L, E_TD]),
+                        np.array([N_L, N_TD]), np.array([3, 1]), np.array([noise[4], noise[5]]), np.zeros(2))
 
 
 @njit(cache=True)
 def cov_step(P, x, u, dt, noise):
-    """``P <- Phi P Phi^T + Q`` over ``dt`` (in place, full covariance).
+    """``P <- Phi P Phi^T + Q`` over ``dt`` (in place, full covariance) for the base 19-state densities.
 
-    ``noise`` = ``[s_a^2, s_g^2, s_ba^2, s_bg^2, s_piu^2, s_td^2]``: continuous
-    densities squared (accel, gyro white noise; bias, lever-arm and time-offset
-    random walks), optionally followed by ``[var_b, 1 / tau_b]``: the per-anchor
-    range biases (error components 19..N-1) are then first-order Gauss-Markov
-    processes of stationary variance ``var_b`` and correlation time ``tau_b``
-    (``1 / tau_b = 0``: constant biases), optionally followed by ``[n_b, s_x^2]``: only the first ``n_b``
-    extra states are anchor biases, the rest (e.g. an altimeter bias) random walks of density ``s_x``.
-    ``Q`` is the Van Loan expansion to the leading order of
-    each block (``pp = s_a^2 dt^3/3``, ``pv = s_a^2 dt^2/2``, ``vv = s_a^2 dt``, ...).
+    ``noise`` (6,) = ``[s_a^2, s_g^2, s_ba^2, s_bg^2, s_piu^2, s_td^2]``: continuous densities squared
+    (accel, gyro white noise; bias, lever-arm and time-offset random walks); further error states
+    (N > 19) are constant.  :func:`cov_step_blocks` takes the declared blocks' tables instead.
+    ``Q`` is the Van Loan expansion to the leading order of each block (``pp = s_a^2 dt^3/3``,
+    ``pv = s_a^2 dt^2/2``, ``vv = s_a^2 dt``, ...).
     """
-    _cov_step(P, x, u, dt, noise, np.empty((7, 3, 3)), np.empty((6, 3, 3)), np.empty(P.shape[0]))
+    _cov_step(P, x, u, dt, base_process_noise(noise), np.empty((7, 3, 3)), np.empty((6, 3, 3)),
+              np.empty(P.shape[0]))
 
 
 @njit(cache=True)
-def decay_biases(x, dt, noise):
-    """Mean of Gauss-Markov range biases over ``dt``: ``b <- exp(-|dt| / tau) b`` (no-op when constant)."""
-    n_gm = _n_gauss_markov(noise, x.shape[0] - 1)
-    if noise.shape[0] >= 8 and noise[7] > 0.0 and n_gm > 0:
-        f = math.exp(-abs(dt) * noise[7])
-        for i in range(20, 20 + n_gm):
-            x[i] *= f
+def cov_step_blocks(P, x, u, dt, pn):
+    """:func:`cov_step` with the process noise of the declared blocks: ``pn`` a
+    :class:`~uwbimu.models.blocks.ProcessNoise` (``StateLayout.process_noise``)."""
+    _cov_step(P, x, u, dt, pn, np.empty((7, 3, 3)), np.empty((6, 3, 3)), np.empty(P.shape[0]))
+
+
+@njit(cache=True)
+def decay_biases(x, dt, pn):
+    """Mean of the Gauss-Markov blocks of ``pn`` over ``dt``: ``b <- exp(-|dt| / tau) b`` (no-op when
+    there are none or ``1/tau = 0``)."""
+    for blk in range(pn.kind.shape[0]):
+        if pn.kind[blk] == PN_GAUSS_MARKOV and pn.inv_tau[blk] > 0.0:
+            f = math.exp(-abs(dt) * pn.inv_tau[blk])
+            for i in range(pn.nom0[blk], pn.nom0[blk] + pn.size[blk]):
+                x[i] *= f
 
 
 @njit(cache=True)
@@ -687,7 +703,7 @@ def range_jacobian(xt, u_tau, anchor, bias_idx, delta, h):
     bias = 0.0
     if bias_idx >= 0:
         h[bias_idx] = 1.0
-        bias = xt[bias_idx + (NOMINAL_DIM - ERROR_DIM)]  # extras sit one further in the nominal state (q has 4)
+        bias = xt[bias_idx + NOM_SHIFT]  # additive blocks sit NOM_SHIFT further in the nominal state
     return rho + bias
 
 
@@ -715,8 +731,8 @@ def inject(x, dx):
     x[N_Q + 1] = qx / n
     x[N_Q + 2] = qy / n
     x[N_Q + 3] = qz / n
-    for i in range(E_BA, dx.shape[0]):  # everything after the attitude is additive, one index further on
-        x[i + (N_BA - E_BA)] += dx[i]
+    for i in range(E_BA, dx.shape[0]):  # every block after the attitude is additive, NOM_SHIFT further on
+        x[i + NOM_SHIFT] += dx[i]
 
 
 @njit(cache=True)
@@ -778,7 +794,7 @@ def tdoa_jacobian(xt, u_tau, anchor_a, anchor_b, bias_idx, delta, h, work):
 
     Difference of two :func:`range_jacobian` rows (same time mapping
     ``delta = t_filter - tau``); ``bias_idx`` >= 0 adds a per-pair bias state
-    (error index; nominal index ``bias_idx + 1``).  ``work`` (N,) is scratch.
+    (error index; nominal index ``bias_idx + NOM_SHIFT``).  ``work`` (N,) is scratch.
     """
     ra = range_jacobian(xt, u_tau, anchor_a, -1, delta, work)
     rb = range_jacobian(xt, u_tau, anchor_b, -1, delta, h)
@@ -787,7 +803,7 @@ def tdoa_jacobian(xt, u_tau, anchor_a, anchor_b, bias_idx, delta, h, work):
     pred = rb - ra
     if bias_idx >= 0:
         h[bias_idx] = 1.0
-        pred += xt[bias_idx + 1]
+        pred += xt[bias_idx + NOM_SHIFT]
     return pred
 
 

@@ -29,52 +29,53 @@ import numpy as np
 
 from uwbimu.models.quaternion import quat_exp, quat_multiply, quat_normalize, quat_conjugate, quat_log
 
-# nominal-state slices
-P = slice(0, 3)
-V = slice(3, 6)
-Q = slice(6, 10)
-BA = slice(10, 13)
-BG = slice(13, 16)
-PIU = slice(16, 19)
-TD = 19
-NOMINAL_DIM = 20
+from uwbimu.models.blocks import BLOCK, BLOCKS, COUNT_ARGS, PN_IMU, BlockSpec, ProcessNoise
+
+
+def _base_offsets() -> tuple[dict[str, slice], dict[str, slice], int, int]:
+    """Slices of the always-present blocks (multiplicity ``"one"``), from the declarations."""
+    err, nom, e, n = {}, {}, 0, 0
+    for b in BLOCKS:
+        if b.multiplicity != "one":
+            continue
+        err[b.name], nom[b.name] = slice(e, e + b.size), slice(n, n + b.n_nom)
+        e, n = e + b.size, n + b.n_nom
+    return err, nom, e, n
+
+
+_E, _N, ERROR_DIM, NOMINAL_DIM = _base_offsets()
+
+# nominal-state slices (from the declarations in models/blocks.py)
+P, V, Q, BA, BG, PIU = _N["p"], _N["v"], _N["theta"], _N["b_a"], _N["b_g"], _N["lever"]
+TD = _N["t_d"].start  # nominal index of the time offset t_d
 
 # error-state slices
-EP = slice(0, 3)
-EV = slice(3, 6)
-ETH = slice(6, 9)
-EBA = slice(9, 12)
-EBG = slice(12, 15)
-EPIU = slice(15, 18)
-ETD = 18
-ERROR_DIM = 19
+EP, EV, ETH, EBA, EBG, EPIU = _E["p"], _E["v"], _E["theta"], _E["b_a"], _E["b_g"], _E["lever"]
+ETD = _E["t_d"].start  # error index of the time offset t_d
 
 # First indices of the blocks, for numba kernels (integer globals are compile-time constants there;
 # slices are not): nominal ``N_*`` and error-state ``E_*`` offsets of the slices above.
 N_P, N_V, N_Q, N_BA, N_BG, N_L, N_TD = P.start, V.start, Q.start, BA.start, BG.start, PIU.start, TD
 E_P, E_V, E_TH, E_BA, E_BG, E_L, E_TD = EP.start, EV.start, ETH.start, EBA.start, EBG.start, EPIU.start, ETD
 
+#: nominal index - error index of every block after the attitude (the quaternion has one component more
+#: than its error): ``x[i + NOM_SHIFT]`` is the nominal component of error component ``i >= E_BA``
+NOM_SHIFT = N_BA - E_BA
+if any(_N[b.name].start - _E[b.name].start != NOM_SHIFT for b in BLOCKS[BLOCKS.index(BLOCK["theta"]) + 1:]
+       if b.multiplicity == "one"):  # pragma: no cover - a declaration change must keep the shift uniform
+    raise ImportError("models.state: every block after the attitude must sit NOM_SHIFT further in the nominal state")
+
+#: error components driven by the IMU through the transition (p, v, theta, b_a, b_g: the first N_DYN): the
+#: kernels apply ``Phi`` to these rows only, every later block has identity transition rows
+N_DYN = sum(b.size for b in BLOCKS if b.process_noise == "imu")
+if any(_E[b.name].stop > N_DYN for b in BLOCKS if b.process_noise == "imu"):  # pragma: no cover
+    raise ImportError("models.state: the IMU-driven blocks must come first")
+
 #: Names of the 19 error-state components, in order (used for CSV columns and reports).
-ERROR_STATE_NAMES = (
-    "px", "py", "pz",
-    "vx", "vy", "vz",
-    "thx", "thy", "thz",
-    "bax", "bay", "baz",
-    "bgx", "bgy", "bgz",
-    "lx", "ly", "lz",
-    "td",
-)  # fmt: skip
+ERROR_STATE_NAMES = tuple(n for b in BLOCKS if b.multiplicity == "one" for n in b.output_names)
 
 #: Names of the 20 nominal-state components, in order.
-NOMINAL_STATE_NAMES = (
-    "px", "py", "pz",
-    "vx", "vy", "vz",
-    "qw", "qx", "qy", "qz",
-    "bax", "bay", "baz",
-    "bgx", "bgy", "bgz",
-    "lx", "ly", "lz",
-    "td",
-)  # fmt: skip
+NOMINAL_STATE_NAMES = tuple(n for b in BLOCKS if b.multiplicity == "one" for n in b.nom_names)
 
 
 def make_state(
@@ -132,25 +133,20 @@ def boxminus(x: np.ndarray, x_ref: np.ndarray) -> np.ndarray:
 
 
 class StateLayout:
-    """Named blocks of the extended filter state, so that no code needs a literal index.
+    """The extended filter state's blocks, compiled from the declarations of :mod:`uwbimu.models.blocks`.
 
     The extended nominal state is the 20 numbers above followed by ``n_anchor_bias`` per-anchor range
     biases [m], ``n_pair_bias`` TDoA pair biases [m] (``pair_bias``), the lever arms of tags
-    2..``n_tags`` [m] (``extra_levers``; the first tag's is ``lever``)
-    and ``n_height_bias`` (0 or 1) altimeter biases [m]; the error state is the 19 above followed by the
-    same additive components.  Blocks: ``p, v, q`` (nominal) / ``theta`` (error), ``b_a, b_g, lever,
-    t_d, anchor_bias, pair_bias, extra_levers, height_bias``; ``lever_err(i)`` / ``lever_nom(i)`` per tag.  ``err(name)`` and ``nom(name)``
-    give slices, ``cov(P, a, b)`` a covariance block (as OpenVINS addresses its covariance by the
-    variable's id).
+    2..``n_tags`` [m] (``extra_levers``; the first tag's is ``lever``) and ``n_height_bias`` (0 or 1)
+    altimeter biases [m], in the order of :data:`~uwbimu.models.blocks.BLOCKS`; the error state is the 19
+    above followed by the same additive components.  ``err(name)`` and ``nom(name)`` give slices,
+    ``cov(P, a, b)`` a covariance block (as OpenVINS addresses its covariance by the variable's id),
+    :meth:`process_noise` the numba tables, ``lever_err(i)`` / ``lever_nom(i)`` per tag.
 
     >>> L = StateLayout(n_anchor_bias=8)
     >>> L.err("lever"), L.err("anchor_bias"), L.n_err
     (slice(15, 18, None), slice(19, 27, None), 27)
     """
-
-    _BASE_ERR = {"p": EP, "v": EV, "theta": ETH, "b_a": EBA, "b_g": EBG, "lever": EPIU,
-                 "t_d": slice(ETD, ETD + 1)}
-    _BASE_NOM = {"p": P, "v": V, "q": Q, "b_a": BA, "b_g": BG, "lever": PIU, "t_d": slice(TD, TD + 1)}
 
     def __init__(self, n_anchor_bias: int = 0, n_height_bias: int = 0, n_tags: int = 1, n_pair_bias: int = 0):
         if n_anchor_bias < 0 or n_height_bias not in (0, 1) or n_tags < 1 or n_pair_bias < 0:
@@ -160,18 +156,56 @@ class StateLayout:
         self.n_height_bias = int(n_height_bias)
         self.n_tags = int(n_tags)
         self.n_pair_bias = int(n_pair_bias)
-        self._err = dict(self._BASE_ERR)
-        self._nom = dict(self._BASE_NOM)
-        e, n = ERROR_DIM, NOMINAL_DIM
-        # order of the extras: anchor biases, TDoA pair biases, the lever arms of tags 2.., the altimeter bias
-        for name, size in (("anchor_bias", self.n_anchor_bias), ("pair_bias", self.n_pair_bias),
-                           ("extra_levers", 3 * (self.n_tags - 1)), ("height_bias", self.n_height_bias)):
-            self._err[name] = slice(e, e + size)
-            self._nom[name] = slice(n, n + size)
-            e += size
-            n += size
+        counts = {"n_anchor_bias": self.n_anchor_bias, "n_pair_bias": self.n_pair_bias,
+                  "n_extra_tags": self.n_tags - 1, "n_height_bias": self.n_height_bias}
+        #: number of instances of each declared block (1 for the base blocks)
+        self.count: dict[str, int] = {}
+        self._err: dict[str, slice] = {}
+        self._nom: dict[str, slice] = {}
+        e = n = 0
+        for b in BLOCKS:
+            c = 1 if b.multiplicity == "one" else counts[COUNT_ARGS[b.multiplicity]]
+            self.count[b.name] = c
+            self._err[b.name] = slice(e, e + c * b.size)
+            self._nom["q" if b.name == "theta" else b.name] = slice(n, n + c * b.n_nom)
+            e += c * b.size
+            n += c * b.n_nom
         self.n_err = e
         self.n_nom = n
+
+    @property
+    def blocks(self) -> tuple[BlockSpec, ...]:
+        """The declarations of the blocks present (count > 0), in state order."""
+        return tuple(b for b in BLOCKS if self.count[b.name] > 0)
+
+    def error_names(self) -> tuple[str, ...]:
+        """Error-state component names of the whole layout (instances after the first get ``_<i>``)."""
+        return tuple(nm if c == 1 else f"{b.name}_{i}_{nm}" for b in self.blocks for c in [self.count[b.name]]
+                     for i in range(c) for nm in b.output_names)
+
+    def process_noise(self, imu: np.ndarray, values: dict[str, tuple[float, float]]) -> ProcessNoise:
+        """The numba tables of the process noise (:class:`~uwbimu.models.blocks.ProcessNoise`).
+
+        Parameters
+        ----------
+        imu : (4,) squared IMU densities ``[s_a^2, s_g^2, s_ba^2, s_bg^2]``.
+        values : block name -> ``(q, inv_tau)`` for every present block not driven by the IMU (random
+            walk: ``q`` the density^2 [unit^2/s]; Gauss-Markov: ``q`` the stationary variance [unit^2],
+            ``inv_tau`` [1/s], 0: constant; constant: ignored).
+        """
+        rows = [b for b in self.blocks if b.kind != PN_IMU]
+        missing = [b.name for b in rows if b.process_noise != "constant" and b.name not in values]
+        if missing:
+            raise ValueError(f"StateLayout.process_noise: no process noise for blocks {missing}")
+        q = [float(values.get(b.name, (0.0, 0.0))[0]) for b in rows]
+        it = [float(values.get(b.name, (0.0, 0.0))[1]) for b in rows]
+        return ProcessNoise(
+            imu=np.ascontiguousarray(np.asarray(imu, dtype=float).reshape(4)),
+            kind=np.array([b.kind for b in rows], dtype=np.int64),
+            err0=np.array([self._err[b.name].start for b in rows], dtype=np.int64),
+            nom0=np.array([self._nom[b.name].start for b in rows], dtype=np.int64),
+            size=np.array([self._err[b.name].stop - self._err[b.name].start for b in rows], dtype=np.int64),
+            q=np.array(q, dtype=float), inv_tau=np.array(it, dtype=float))
 
     def lever_err(self, tag: int) -> slice:
         """Error-state slice of the lever arm of tag number ``tag`` (0: the first, block ``lever``)."""

@@ -1,0 +1,149 @@
+"""The filter state's blocks, declared once.
+
+Every block of the ESKF state (nominal ``x`` and error ``dx``) is one :class:`BlockSpec` in
+:data:`BLOCKS`, in state order.  :class:`uwbimu.models.state.StateLayout` compiles the declarations
+with the run's multiplicities (how many anchors, pairs, tags) into slices for Python and into the
+integer / float tables of :class:`ProcessNoise` for the numba kernels, so no code infers a block's
+presence, size or offset from an array length or a literal (OpenVINS' ``Type``/``id`` idea in a form
+numba reads).
+
+What a declaration says
+-----------------------
+``name``           the block's one name: ``StateLayout.err(name)`` / ``nom(name)``, covariance blocks
+                   (``EskfState.cov(name)``), the keys of the calibration outputs' ``*_sd`` fields.
+``size``           error-state components per instance; ``nominal_size`` nominal components per
+                   instance (4 for the attitude quaternion, whose error is a 3-vector).
+``multiplicity``   ``"one"`` (always present), ``"optional"`` (0 or 1 instance), ``"per_anchor"``,
+                   ``"per_pair"`` (TDoA anchor pairs), ``"per_extra_tag"`` (tags 2..T): the count is
+                   the :class:`~uwbimu.models.state.StateLayout` argument named in :data:`COUNT_ARGS`.
+``process_noise``  ``"imu"`` (driven by the IMU densities through the transition: p, v, theta, b_a,
+                   b_g), ``"constant"``, ``"random_walk"`` (density^2 ``q`` [unit^2/s] added per second)
+                   or ``"gauss_markov"`` (first order: stationary variance ``q`` [unit^2], ``1/tau``
+                   [1/s]; ``1/tau = 0`` falls back to constant).
+``noise_option``   the :class:`~uwbimu.estimation.options.EskfOptions` path(s) that give ``q``
+                   (and ``1/tau``): resolved by ``estimation.problem.block_process_noise``.
+``mode_option``    the options section whose ``mode`` (``estimate`` / ``consider`` / ``fixed``) sets
+                   the block's gain mask (None: always estimated).
+``prior``          where the initial value and sd come from, and whether the initialiser searches it.
+``output_names``   the error-state component names (CSV ``sd_*`` columns, reports) of one instance;
+                   ``nominal_names`` the nominal ones.
+``unit``           SI unit of the block's components.
+
+Adding a block
+--------------
+One more :class:`BlockSpec` in :data:`BLOCKS` (after the blocks it must follow: additive blocks go
+after the base 19), its count argument in :data:`COUNT_ARGS` when it is not ``"one"``, and the
+Jacobian columns of the measurements that see it (a :class:`~uwbimu.models.measurements.MeasurementModel`
+``jacobian`` or a numba update), pinned by the finite-difference harness
+(``uwbimu.models.measurements.fd_jacobian``); see CONTRIBUTING.md, "Adding a state block".
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple, Optional
+
+import numpy as np
+
+#: process-noise kind codes of the numba tables (:class:`ProcessNoise` ``kind``)
+PN_IMU = 0
+PN_CONSTANT = 1
+PN_RANDOM_WALK = 2
+PN_GAUSS_MARKOV = 3
+PN_CODES = {"imu": PN_IMU, "constant": PN_CONSTANT, "random_walk": PN_RANDOM_WALK,
+            "gauss_markov": PN_GAUSS_MARKOV}
+
+#: multiplicity -> the StateLayout count argument that gives the number of instances
+COUNT_ARGS = {"per_anchor": "n_anchor_bias", "per_pair": "n_pair_bias", "per_extra_tag": "n_extra_tags",
+              "optional": "n_height_bias"}
+
+
+@dataclass(frozen=True)
+class BlockSpec:
+    """One block of the filter state (see the module docstring for the fields)."""
+
+    name: str
+    size: int
+    multiplicity: str
+    process_noise: str
+    output_names: tuple[str, ...]
+    unit: str
+    nominal_size: Optional[int] = None  # None: equal to size
+    nominal_names: Optional[tuple[str, ...]] = None  # None: equal to output_names
+    noise_option: tuple[str, ...] = ()
+    mode_option: Optional[str] = None
+    prior: str = ""
+    doc: str = ""
+
+    @property
+    def n_nom(self) -> int:
+        """Nominal components per instance."""
+        return self.size if self.nominal_size is None else self.nominal_size
+
+    @property
+    def nom_names(self) -> tuple[str, ...]:
+        return self.output_names if self.nominal_names is None else self.nominal_names
+
+    @property
+    def kind(self) -> int:
+        """Process-noise kind code (``PN_*``)."""
+        return PN_CODES[self.process_noise]
+
+
+def _xyz(prefix: str) -> tuple[str, str, str]:
+    return (prefix + "x", prefix + "y", prefix + "z")
+
+
+#: The state's blocks in state order.  The first seven (19 error / 20 nominal components) are always
+#: present; the rest are additive extras whose counts come from the run (``StateLayout`` arguments).
+BLOCKS: tuple[BlockSpec, ...] = (
+    BlockSpec("p", 3, "one", "imu", _xyz("p"), "m", prior="initialiser (multilateration)",
+              doc="IMU position, world frame"),
+    BlockSpec("v", 3, "one", "imu", _xyz("v"), "m/s", prior="initialiser", doc="IMU velocity, world frame"),
+    BlockSpec("theta", 3, "one", "imu", _xyz("th"), "rad", nominal_size=4, nominal_names=("qw", "qx", "qy", "qz"),
+              prior="initialiser (gravity, yaw search)",
+              doc="attitude: nominal Hamilton q [qw, qx, qy, qz] body->world, error q = q_hat ⊗ Exp(theta)"),
+    BlockSpec("b_a", 3, "one", "imu", _xyz("ba"), "m/s^2", prior="zero, sd accel_bias_sd (or the IMU's)",
+              doc="accelerometer bias, IMU frame"),
+    BlockSpec("b_g", 3, "one", "imu", _xyz("bg"), "rad/s", prior="still-phase mean, sd gyro_bias_sd",
+              doc="gyroscope bias, IMU frame"),
+    BlockSpec("lever", 3, "one", "random_walk", _xyz("l"), "m", noise_option=("lever_arm.random_walk",),
+              mode_option="lever_arm", prior="lever_arm.prior (dataset), sd lever_arm.prior_sd",
+              doc="lever arm p_IU of the first tag: UWB antenna in the IMU frame"),
+    BlockSpec("t_d", 1, "one", "random_walk", ("td",), "s", noise_option=("time_offset.random_walk",),
+              mode_option="time_offset",
+              prior="time_offset.prior, sd time_offset.prior_sd; searched on init.td_grid when no prior",
+              doc="time offset: an IMU sample stamped s describes the motion at UWB time s - t_d"),
+    BlockSpec("anchor_bias", 1, "per_anchor", "gauss_markov", ("b",), "m",
+              noise_option=("anchor_bias.prior_sd", "anchor_bias.correlation_time"), mode_option="anchor_bias",
+              prior="zero, sd anchor_bias.prior_sd",
+              doc="per-anchor range bias (Gauss-Markov when anchor_bias.correlation_time is set, else constant)"),
+    BlockSpec("pair_bias", 1, "per_pair", "constant", ("b",), "m", mode_option="tdoa_pair_bias",
+              prior="zero, sd tdoa_pair_bias.prior_sd", doc="TDoA bias of one anchor pair"),
+    BlockSpec("extra_levers", 3, "per_extra_tag", "random_walk", _xyz("l"), "m",
+              noise_option=("lever_arm.random_walk",), mode_option="lever_arm",
+              prior="the tag's lever arm, sd lever_arm.prior_sd", doc="lever arms of tags 2..T, IMU frame"),
+    BlockSpec("height_bias", 1, "optional", "random_walk", ("hb",), "m", noise_option=("height.bias_random_walk",),
+              prior="zero, sd height.bias_prior_sd (height.bias: estimate)", doc="altimeter (barometer) bias"),
+)
+
+BLOCK = {b.name: b for b in BLOCKS}
+
+
+class ProcessNoise(NamedTuple):
+    """The process-noise tables the numba kernels take (built by ``StateLayout.process_noise``).
+
+    ``imu`` (4,): squared continuous densities ``[s_a^2, s_g^2, s_ba^2, s_bg^2]`` (accel, gyro white
+    noise [m^2/s^3, rad^2/s]; accel, gyro bias random walks [m^2/s^5, rad^2/s^3]).  Then one row per
+    present block that is not driven by the IMU: ``kind`` (``PN_*``), ``err0`` / ``nom0`` the first
+    error / nominal index, ``size`` the number of components (all instances), ``q`` the random-walk
+    density^2 or the Gauss-Markov stationary variance, ``inv_tau`` the Gauss-Markov ``1/tau`` [1/s].
+    """
+
+    imu: np.ndarray
+    kind: np.ndarray
+    err0: np.ndarray
+    nom0: np.ndarray
+    size: np.ndarray
+    q: np.ndarray
+    inv_tau: np.ndarray
