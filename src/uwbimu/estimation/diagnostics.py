@@ -105,14 +105,14 @@ def excitation_warnings(prob: Problem, t_imu_out, X, sd, priors, opts) -> tuple[
     # the honest test: did the uncertainty actually shrink?
     sd_end = sd[-1]
     if opts.lever_arm.mode == "estimate":
-        prior = priors["sd_lever"]
+        prior = priors.lever_sd
         ratio = sd_end[S.EPIU] / np.where(prior > 0, prior, np.nan)
         if np.any(ratio > ex.sd_ratio_warn):
             warnings.append(
                 f"lever arm not well determined: final sd {np.round(100 * sd_end[S.EPIU], 1).tolist()} cm "
                 f"vs prior {np.round(100 * prior, 1).tolist()} cm; excite rotations about all axes"
             )
-    if opts.time_offset.mode == "estimate" and priors["td_sd"] > 0:
+    if opts.time_offset.mode == "estimate" and priors.t_d_sd > 0:
         td_prior = time_offset_prior_sd(priors, opts)
         if sd_end[S.ETD] > ex.sd_ratio_warn * td_prior:
             warnings.append(

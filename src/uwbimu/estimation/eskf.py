@@ -31,6 +31,7 @@ from uwbimu.estimation.noise_passes import (
 from uwbimu.estimation.timeoffset import information_verdict, time_offset_prior_sd, time_offset_verdict
 from uwbimu.models import state as S
 from uwbimu.estimation.options import EskfOptions
+from uwbimu.estimation.outputs import block_calibration, fixed_components
 from uwbimu.estimation.problem import make_settings, nominal_period, set_imu_timing
 from uwbimu.estimation.streaming import Eskf
 from uwbimu.estimation.result import EstimationResult
@@ -425,7 +426,7 @@ def _add_time_offset_verdict(result: EstimationResult, prob: Problem, priors: di
         result.warnings.append(f"time offset not identified: {reason}")
     # lever arm, per axis, by the same information rule
     if opts.lever_arm.mode != "fixed":
-        prior = np.asarray(priors["sd_lever"], dtype=float).reshape(-1)
+        prior = np.asarray(priors.lever_sd, dtype=float).reshape(-1)
         lv = {}
         for i, c in enumerate("xyz"):
             v, gain = information_verdict(float(cal["lever_arm_sd"][i]), float(prior[i % prior.size]))
@@ -452,11 +453,8 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
     L = prob.state_layout()
     nb = L.n_anchor_bias
     t_out = t_imu - X[:, S.TD]
-    fixed = np.zeros(19, dtype=bool)
-    if opts.lever_arm.mode == "fixed":
-        fixed[S.EPIU] = True
-    if opts.time_offset.mode == "fixed":
-        fixed[S.ETD] = True
+    fixed_err = fixed_components(L, opts)  # blocks whose declared mode option is "fixed"
+    fixed = fixed_err[:S.ERROR_DIM]
     sd = np.sqrt(np.clip(D[:, :S.ERROR_DIM], 0, None))
     sd[:, fixed] = np.nan
 
@@ -510,39 +508,13 @@ def _assemble(ds: Dataset, prob: Problem, info: dict[str, Any], passes: list[Pas
     x_end = passes[-1].x
     sd_end = np.sqrt(np.clip(np.diag(passes[-1].P), 0, None))
     noise = info["imu_noise"]
-    calibration: dict[str, Any] = {
-        "lever_arm": [float(v) for v in x_end[S.PIU]],
-        "lever_arm_sd": [float(v) if not fixed[S.EPIU.start] else 0.0 for v in sd_end[S.EPIU]],
-        "lever_arm_mode": opts.lever_arm.mode,
-        "time_offset": float(x_end[S.TD]),
-        "time_offset_sd": float(sd_end[S.ETD]) if not fixed[S.ETD] else 0.0,
-        "time_offset_mode": opts.time_offset.mode,
-        "accel_bias": [float(v) for v in x_end[S.BA]],
-        "accel_bias_sd": [float(v) for v in sd_end[S.EBA]],
-        "gyro_bias": [float(v) for v in x_end[S.BG]],
-        "gyro_bias_sd": [float(v) for v in sd_end[S.EBG]],
-    }
-    # per-tag block (the top-level lever_arm keys stay for the first/used tag)
-    calibration["tags"] = {str(info["tag"] or "tag0"): {"lever_arm": calibration["lever_arm"],
-                                                         "lever_arm_sd": calibration["lever_arm_sd"]}}
-    for i, name in enumerate(prob.tag_names[1:], start=1):
-        calibration["tags"][str(name)] = {
-            "lever_arm": [float(v) for v in x_end[L.lever_nom(i)]],
-            "lever_arm_sd": [float(v) if not fixed[S.EPIU.start] else 0.0 for v in sd_end[L.lever_err(i)]]}
-    if nb:
-        xb, sb = x_end[L.nom("anchor_bias")], sd_end[L.err("anchor_bias")]
-        calibration["anchor_bias"] = {a: float(xb[i]) for i, a in enumerate(prob.anchor_ids)}
-        calibration["anchor_bias_sd"] = {a: float(sb[i]) for i, a in enumerate(prob.anchor_ids)}
-        calibration["anchor_bias_mode"] = opts.anchor_bias.mode
-        if opts.anchor_bias.correlation_time:
-            # Gauss-Markov biases vary in time: the values above are the last ones (whole series in
-            # result.extra["anchor_bias_states"])
-            calibration["anchor_bias_correlation_time"] = float(opts.anchor_bias.correlation_time)
-
-    if prob.pair_index:
-        ids = prob.anchor_ids
-        calibration["tdoa_pair_bias"] = {f"{ids[a_]}-{ids[b_]}": float(x_end[i + 1]) for (a_, b_), i in prob.pair_index.items()}
-        calibration["tdoa_pair_bias_sd"] = {f"{ids[a_]}-{ids[b_]}": float(sd_end[i]) for (a_, b_), i in prob.pair_index.items()}
+    # one entry per declared block (models/blocks.py), the per-tag lever arms after the base blocks
+    fixed_lever = bool(fixed_err[S.EPIU.start])
+    names = [str(info["tag"] or "tag0")] + [str(n) for n in prob.tag_names[1:]]
+    tags = {name: {"lever_arm": [float(v) for v in x_end[L.lever_nom(i)]],
+                   "lever_arm_sd": [float(v) if not fixed_lever else 0.0 for v in sd_end[L.lever_err(i)]]}
+            for i, name in enumerate(names)}
+    calibration = block_calibration(L, x_end, sd_end, opts, prob.anchor_ids, prob.pair_index, tags)
 
     # diagnostics: excitation, outages
     w_exc, e_exc = excitation_warnings(prob, t_imu, X, sd, info["priors"], opts)

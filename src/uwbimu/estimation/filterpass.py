@@ -127,13 +127,13 @@ class Problem:
 
     @property
     def pair_sd0(self) -> float:
-        """Prior sd of the TDoA pair-bias states [m] (``priors.pair_bias_sd``; 0 without priors)."""
-        return float(self.priors.pair_bias_sd) if self.priors is not None else 0.0
+        """Prior sd of the TDoA pair-bias states [m] (``priors.block_sd``; 0 without priors)."""
+        return float(self.priors.block_sd.get("pair_bias", 0.0)) if self.priors is not None else 0.0
 
     @property
     def height_sd0(self) -> float:
-        """Prior sd of the altimeter-bias state [m] (``priors.height_bias_sd``; 0 without priors)."""
-        return float(self.priors.height_bias_sd) if self.priors is not None else 0.0
+        """Prior sd of the altimeter-bias state [m] (``priors.block_sd``; 0 without priors)."""
+        return float(self.priors.block_sd.get("height_bias", 0.0)) if self.priors is not None else 0.0
 
     def process_noise_tables(self) -> ProcessNoise:
         """The process-noise tables the kernels take (:attr:`process_noise`, else the base state's)."""

@@ -37,6 +37,72 @@ from uwbimu.io import calibration_file as CF
 from uwbimu.io.dataset import Dataset
 from uwbimu.models.state import ERROR_STATE_NAMES, NOMINAL_STATE_NAMES
 from uwbimu.models import state as S
+from uwbimu.models.blocks import BLOCK, OUTPUT_ORDER
+
+def fixed_components(layout: S.StateLayout, opts) -> np.ndarray:
+    """(N,) True for the error components of blocks whose declared ``mode_option`` is ``fixed``."""
+    fixed = np.zeros(layout.n_err, dtype=bool)
+    for b in layout.blocks:
+        if b.mode_option is not None and _option(opts, b.mode_option).mode == "fixed":
+            fixed[layout.err(b.name)] = True
+    return fixed
+
+
+def _option(opts, path: str):
+    v = opts
+    for part in path.split("."):
+        v = getattr(v, part)
+    return v
+
+
+def block_calibration(layout: S.StateLayout, x: np.ndarray, sd: np.ndarray, opts, anchor_ids,
+                      pair_index: Optional[dict] = None, tags: Optional[dict] = None) -> dict[str, Any]:
+    """The calibration outputs of a final filter state, one entry per declared block with an ``output_key``.
+
+    Parameters
+    ----------
+    layout : the run's :class:`~uwbimu.models.state.StateLayout`.
+    x, sd : the final extended nominal state and the error-state standard deviations (N,).
+    opts : the run's :class:`~uwbimu.estimation.options.EskfOptions` (modes, correlation times).
+    anchor_ids : labels of the per-anchor instances; ``pair_index`` ``(a, b) -> error index`` of the
+        per-pair instances (labels ``"<id_a>-<id_b>"``).
+    tags : written after the blocks that are ``"one"`` (the per-tag lever arms), when given.
+
+    Returns
+    -------
+    dict with ``<key>`` (float, list, or a dict per anchor / pair) and ``<key>_sd`` (0 for a fixed block),
+    ``<key>_mode`` when the block's mode may be other than ``estimate``, ``<key>_correlation_time`` for a
+    Gauss-Markov block that has one; in :data:`uwbimu.models.blocks.OUTPUT_ORDER`.
+    """
+    fixed = fixed_components(layout, opts)
+    out: dict[str, Any] = {}
+    order = [BLOCK[n] for n in OUTPUT_ORDER if layout.count.get(n, 0) > 0 and BLOCK[n].output_key]
+    for i, b in enumerate(order):
+        if tags is not None and b.multiplicity != "one" and (i == 0 or order[i - 1].multiplicity == "one"):
+            out["tags"] = tags
+        key, en, nm = b.output_key, layout.err(b.name), layout.nom(b.name)
+        sd_b = np.where(fixed[en], 0.0, sd[en])
+        if b.multiplicity == "per_anchor":
+            out[key] = {a: float(x[nm][i]) for i, a in enumerate(anchor_ids)}
+            out[key + "_sd"] = {a: float(sd[en][i]) for i, a in enumerate(anchor_ids)}
+        elif b.multiplicity == "per_pair":
+            labels = {i_: f"{anchor_ids[a_]}-{anchor_ids[b_]}" for (a_, b_), i_ in (pair_index or {}).items()}
+            out[key] = {lab: float(x[i_ + S.NOM_SHIFT]) for i_, lab in labels.items()}
+            out[key + "_sd"] = {lab: float(sd[i_]) for i_, lab in labels.items()}
+        elif b.size == 1:
+            out[key], out[key + "_sd"] = float(x[nm][0]), float(sd_b[0])
+        else:
+            out[key], out[key + "_sd"] = [float(v) for v in x[nm]], [float(v) for v in sd_b]
+        modes = b.enabled_by[1] if b.enabled_by is not None else ("estimate", "consider", "fixed")
+        if b.mode_option is not None and set(modes) != {"estimate"}:
+            out[key + "_mode"] = _option(opts, b.mode_option).mode
+        if b.process_noise == "gauss_markov" and _option(opts, b.noise_option[1]):
+            # Gauss-Markov states vary in time: the values above are the last ones
+            out[key + "_correlation_time"] = float(_option(opts, b.noise_option[1]))
+    if tags is not None and "tags" not in out:
+        out["tags"] = tags
+    return out
+
 
 TRAJ_COLUMNS = ["t", "px", "py", "pz", "qw", "qx", "qy", "qz", "vx", "vy", "vz"]
 TRAJ_SD = ["sd_px", "sd_py", "sd_pz", "sd_vx", "sd_vy", "sd_vz", "sd_thx", "sd_thy", "sd_thz"]

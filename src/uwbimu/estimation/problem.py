@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar, Optional, Sequence
 
 import numpy as np
@@ -25,6 +25,7 @@ from uwbimu.estimation.filterpass import Problem
 from uwbimu.estimation.options import EskfOptions
 from uwbimu.models.imu import ImuNoise
 from uwbimu.models import state as S
+from uwbimu.models.blocks import BLOCKS, BlockSpec
 
 #: IMU periods whose median is the nominal period (the first ones: known early by a streaming filter)
 NOMINAL_PERIOD_SAMPLES = 1000
@@ -63,8 +64,9 @@ class BlockPriors(Mapping):
     t_d: float  # [s]
     t_d_sd: float  # [s]; zero when fixed
     search_t_d: bool
-    pair_bias_sd: float = 0.0  # [m]; zero without pair-bias states
-    height_bias_sd: float = 0.0  # [m]; zero without a height-bias state
+    #: prior sd of every additive extra block with a declared ``prior_sd_option`` [block unit]; 0 when the
+    #: run has no instance of it (prior mean zero)
+    block_sd: dict[str, float] = field(default_factory=dict)
 
     #: legacy mapping key -> field
     LEGACY_KEYS: ClassVar[dict[str, str]] = {
@@ -88,6 +90,20 @@ def _option(opts: EskfOptions, path: str):
     for part in path.split("."):
         v = getattr(v, part)
     return v
+
+
+def block_counts(opts: EskfOptions, n_anchors: int, n_pairs: int, n_tags: int,
+                 blocks: tuple[BlockSpec, ...] = BLOCKS) -> dict[str, int]:
+    """Instances of every declared block that is not ``"one"``: the multiplicity's number (anchors, pairs,
+    extra tags, 1 for ``"optional"``) when the block's ``enabled_by`` option has an enabling value, else 0."""
+    per = {"optional": 1, "per_anchor": n_anchors, "per_pair": n_pairs, "per_extra_tag": n_tags - 1}
+    out = {}
+    for b in blocks:
+        if b.multiplicity == "one":
+            continue
+        on = b.enabled_by is None or _option(opts, b.enabled_by[0]) in b.enabled_by[1]
+        out[b.name] = per[b.multiplicity] if on else 0
+    return out
 
 
 def block_process_noise(opts: EskfOptions, layout: S.StateLayout) -> dict[str, tuple[float, float]]:
@@ -144,15 +160,15 @@ def make_settings(
     """
     anchors = np.ascontiguousarray(np.asarray(anchors, dtype=float).reshape(-1, 3))
     M = len(anchor_ids)
-    nb = M if opts.anchor_bias.mode != "fixed" else 0
     levers = np.array(lever_prior, dtype=float).reshape(-1, 3)
     n_tags = max(len(tag_names) if tag_names else 1, 1)
     if len(levers) == 1 and n_tags > 1:
         levers = np.repeat(levers, n_tags, axis=0)
     if len(levers) != n_tags:
         raise ValueError(f"make_settings: {len(levers)} lever-arm priors for {n_tags} tags")
-    pairs = [tuple(int(v) for v in pq) for pq in (tdoa_pairs or [])] if opts.tdoa_pair_bias.mode == "estimate" else []
-    layout = S.StateLayout(nb, 1 if opts.height.bias == "estimate" else 0, n_tags, len(pairs))
+    layout = S.StateLayout(counts=block_counts(opts, M, len(tdoa_pairs or []), n_tags))
+    pairs = [tuple(int(v) for v in pq) for pq in (tdoa_pairs or [])] if layout.count["pair_bias"] else []
+    nb = layout.count["anchor_bias"]
     bias_idx = np.full(M, -1, dtype=np.int64)
     if nb:
         bias_idx[:] = layout.err("anchor_bias").start + np.arange(M)
@@ -167,8 +183,8 @@ def make_settings(
         t_d=float(opts.time_offset.prior or 0.0),
         t_d_sd=0.0 if t_d_mode == "fixed" else opts.time_offset.prior_sd,
         search_t_d=t_d_mode != "fixed" and opts.time_offset.prior is None and opts.init.search_time_offset,
-        pair_bias_sd=opts.tdoa_pair_bias.prior_sd if pairs else 0.0,
-        height_bias_sd=opts.height.bias_prior_sd if layout.count["height_bias"] else 0.0,
+        block_sd={b.name: float(_option(opts, b.prior_sd_option)) if layout.count[b.name] else 0.0
+                  for b in layout.declarations if b.prior_sd_option is not None},
     )
     gate = float(chi2.ppf(opts.gating.probability, 1)) if opts.gating.probability < 1 else -1.0
     imu = np.array([noise.accel_noise_density**2, noise.gyro_noise_density**2, noise.accel_bias_rw**2,

@@ -125,17 +125,17 @@ def _out(status, td, sd, reason, tds, m, counts, delta=None) -> dict:
 GAIN_IDENTIFIED, GAIN_WEAK = 99.0, 1.0
 
 
-def time_offset_prior_sd(priors: dict, opts) -> float:
+def time_offset_prior_sd(priors, opts) -> float:
     """The one definition of the time offset's prior sd [s]: what is known of t_d before the data.
 
     The configured ``time_offset.prior_sd``; when the initialiser searches the grid ``init.td_grid``
     (no configured prior value), the sd of a uniform over the searched span when that is larger. Used by
     the verdict (:func:`time_offset_verdict`), the excitation diagnostics and the reports; 0 when fixed.
     """
-    sd = float(priors["td_sd"])
+    sd = float(priors.t_d_sd)
     if sd <= 0:
         return 0.0
-    if priors["search_td"] and len(opts.init.td_grid) > 1:
+    if priors.search_t_d and len(opts.init.td_grid) > 1:
         g = np.asarray(opts.init.td_grid, dtype=float)
         sd = max(sd, float(g.max() - g.min()) / math.sqrt(12.0))
     return sd

@@ -15,7 +15,7 @@ What a declaration says
                    instance (4 for the attitude quaternion, whose error is a 3-vector).
 ``multiplicity``   ``"one"`` (always present), ``"optional"`` (0 or 1 instance), ``"per_anchor"``,
                    ``"per_pair"`` (TDoA anchor pairs), ``"per_extra_tag"`` (tags 2..T): the count is
-                   the :class:`~uwbimu.models.state.StateLayout` argument named in :data:`COUNT_ARGS`.
+                   given to :class:`~uwbimu.models.state.StateLayout` (``counts={name: n}``).
 ``process_noise``  ``"imu"`` (driven by the IMU densities through the transition: p, v, theta, b_a,
                    b_g), ``"constant"``, ``"random_walk"`` (density^2 ``q`` [unit^2/s] added per second)
                    or ``"gauss_markov"`` (first order: stationary variance ``q`` [unit^2], ``1/tau``
@@ -24,15 +24,22 @@ What a declaration says
                    (and ``1/tau``): resolved by ``estimation.problem.block_process_noise``.
 ``mode_option``    the options section whose ``mode`` (``estimate`` / ``consider`` / ``fixed``) sets
                    the block's gain mask (None: always estimated).
+``enabled_by``     for a block that is not ``"one"``: the option and the values that create it (the count
+                   is then the number of anchors / pairs / extra tags, or 1); None: always (by count).
+``prior_sd_option`` the option of an extra block's prior sd (prior mean zero unless said otherwise).
 ``prior``          where the initial value and sd come from, and whether the initialiser searches it.
 ``output_names``   the error-state component names (CSV ``sd_*`` columns, reports) of one instance;
                    ``nominal_names`` the nominal ones.
 ``unit``           SI unit of the block's components.
+``output_key``     the key of the block's final estimate in the calibration outputs (``result.calibration``,
+                   calibration.yaml; ``<key>_sd`` its sd, ``<key>_mode`` its mode when it can be other than
+                   ``estimate``): the options section's name where the block has one.  Per-anchor blocks are
+                   keyed by anchor id, per-pair blocks by ``"<a>-<b>"``; None: not a calibration output.
 
 Adding a block
 --------------
 One more :class:`BlockSpec` in :data:`BLOCKS` (after the blocks it must follow: additive blocks go
-after the base 19), its count argument in :data:`COUNT_ARGS` when it is not ``"one"``, and the
+after the base 19), and the
 Jacobian columns of the measurements that see it (a :class:`~uwbimu.models.measurements.MeasurementModel`
 ``jacobian`` or a numba update), pinned by the finite-difference harness
 (``uwbimu.models.measurements.fd_jacobian``); see CONTRIBUTING.md, "Adding a state block".
@@ -53,9 +60,8 @@ PN_GAUSS_MARKOV = 3
 PN_CODES = {"imu": PN_IMU, "constant": PN_CONSTANT, "random_walk": PN_RANDOM_WALK,
             "gauss_markov": PN_GAUSS_MARKOV}
 
-#: multiplicity -> the StateLayout count argument that gives the number of instances
-COUNT_ARGS = {"per_anchor": "n_anchor_bias", "per_pair": "n_pair_bias", "per_extra_tag": "n_extra_tags",
-              "optional": "n_height_bias"}
+#: the multiplicities; a block that is not ``"one"`` has a count per run (``StateLayout(counts=...)``)
+MULTIPLICITIES = ("one", "optional", "per_anchor", "per_pair", "per_extra_tag")
 
 
 @dataclass(frozen=True)
@@ -72,8 +78,18 @@ class BlockSpec:
     nominal_names: Optional[tuple[str, ...]] = None  # None: equal to output_names
     noise_option: tuple[str, ...] = ()
     mode_option: Optional[str] = None
+    output_key: Optional[str] = None  # key of the block's estimate in the calibration outputs (None: not there)
+    enabled_by: Optional[tuple[str, tuple[str, ...]]] = None  # (option path, values that create the block)
+    prior_sd_option: Optional[str] = None  # option path of the prior sd of an additive extra block
     prior: str = ""
     doc: str = ""
+
+    def __post_init__(self):
+        if self.multiplicity not in MULTIPLICITIES or self.process_noise not in PN_CODES:
+            raise ValueError(f"BlockSpec {self.name!r}: multiplicity in {MULTIPLICITIES}, process_noise in "
+                             f"{tuple(PN_CODES)}")
+        if len(self.output_names) != self.size or len(self.nom_names) != self.n_nom:
+            raise ValueError(f"BlockSpec {self.name!r}: one output name per component")
 
     @property
     def n_nom(self) -> int:
@@ -103,31 +119,43 @@ BLOCKS: tuple[BlockSpec, ...] = (
     BlockSpec("theta", 3, "one", "imu", _xyz("th"), "rad", nominal_size=4, nominal_names=("qw", "qx", "qy", "qz"),
               prior="initialiser (gravity, yaw search)",
               doc="attitude: nominal Hamilton q [qw, qx, qy, qz] body->world, error q = q_hat ⊗ Exp(theta)"),
-    BlockSpec("b_a", 3, "one", "imu", _xyz("ba"), "m/s^2", prior="zero, sd accel_bias_sd (or the IMU's)",
+    BlockSpec("b_a", 3, "one", "imu", _xyz("ba"), "m/s^2", output_key="accel_bias", prior="zero, sd accel_bias_sd (or the IMU's)",
               doc="accelerometer bias, IMU frame"),
-    BlockSpec("b_g", 3, "one", "imu", _xyz("bg"), "rad/s", prior="still-phase mean, sd gyro_bias_sd",
+    BlockSpec("b_g", 3, "one", "imu", _xyz("bg"), "rad/s", output_key="gyro_bias", prior="still-phase mean, sd gyro_bias_sd",
               doc="gyroscope bias, IMU frame"),
     BlockSpec("lever", 3, "one", "random_walk", _xyz("l"), "m", noise_option=("lever_arm.random_walk",),
+              output_key="lever_arm",
               mode_option="lever_arm", prior="lever_arm.prior (dataset), sd lever_arm.prior_sd",
               doc="lever arm p_IU of the first tag: UWB antenna in the IMU frame"),
     BlockSpec("t_d", 1, "one", "random_walk", ("td",), "s", noise_option=("time_offset.random_walk",),
+              output_key="time_offset",
               mode_option="time_offset",
               prior="time_offset.prior, sd time_offset.prior_sd; searched on init.td_grid when no prior",
               doc="time offset: an IMU sample stamped s describes the motion at UWB time s - t_d"),
     BlockSpec("anchor_bias", 1, "per_anchor", "gauss_markov", ("b",), "m",
               noise_option=("anchor_bias.prior_sd", "anchor_bias.correlation_time"), mode_option="anchor_bias",
+              output_key="anchor_bias",
+              enabled_by=("anchor_bias.mode", ("estimate", "consider")), prior_sd_option="anchor_bias.prior_sd",
               prior="zero, sd anchor_bias.prior_sd",
               doc="per-anchor range bias (Gauss-Markov when anchor_bias.correlation_time is set, else constant)"),
     BlockSpec("pair_bias", 1, "per_pair", "constant", ("b",), "m", mode_option="tdoa_pair_bias",
+              output_key="tdoa_pair_bias",
+              enabled_by=("tdoa_pair_bias.mode", ("estimate",)), prior_sd_option="tdoa_pair_bias.prior_sd",
               prior="zero, sd tdoa_pair_bias.prior_sd", doc="TDoA bias of one anchor pair"),
     BlockSpec("extra_levers", 3, "per_extra_tag", "random_walk", _xyz("l"), "m",
               noise_option=("lever_arm.random_walk",), mode_option="lever_arm",
               prior="the tag's lever arm, sd lever_arm.prior_sd", doc="lever arms of tags 2..T, IMU frame"),
     BlockSpec("height_bias", 1, "optional", "random_walk", ("hb",), "m", noise_option=("height.bias_random_walk",),
-              prior="zero, sd height.bias_prior_sd (height.bias: estimate)", doc="altimeter (barometer) bias"),
+              enabled_by=("height.bias", ("estimate",)), prior_sd_option="height.bias_prior_sd",
+              output_key="height_bias",
+              prior="zero, sd height.bias_prior_sd", doc="altimeter (barometer) bias, added to the measured height"),
 )
 
 BLOCK = {b.name: b for b in BLOCKS}
+
+#: the order of the blocks' estimates in the calibration outputs (calibration.yaml reads top-down: the
+#: calibration first, the IMU biases, then the per-anchor / per-pair extras)
+OUTPUT_ORDER = ("lever", "t_d", "b_a", "b_g", "anchor_bias", "pair_bias", "height_bias")
 
 
 class ProcessNoise(NamedTuple):

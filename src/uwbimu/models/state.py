@@ -29,7 +29,7 @@ import numpy as np
 
 from uwbimu.models.quaternion import quat_exp, quat_multiply, quat_normalize, quat_conjugate, quat_log
 
-from uwbimu.models.blocks import BLOCK, BLOCKS, COUNT_ARGS, PN_IMU, BlockSpec, ProcessNoise
+from uwbimu.models.blocks import BLOCK, BLOCKS, PN_IMU, BlockSpec, ProcessNoise
 
 
 def _base_offsets() -> tuple[dict[str, slice], dict[str, slice], int, int]:
@@ -148,24 +148,28 @@ class StateLayout:
     (slice(15, 18, None), slice(19, 27, None), 27)
     """
 
-    def __init__(self, n_anchor_bias: int = 0, n_height_bias: int = 0, n_tags: int = 1, n_pair_bias: int = 0):
-        if n_anchor_bias < 0 or n_height_bias not in (0, 1) or n_tags < 1 or n_pair_bias < 0:
-            raise ValueError("StateLayout: n_anchor_bias >= 0, n_height_bias in (0, 1), n_tags >= 1, "
-                             "n_pair_bias >= 0")
-        self.n_anchor_bias = int(n_anchor_bias)
-        self.n_height_bias = int(n_height_bias)
-        self.n_tags = int(n_tags)
-        self.n_pair_bias = int(n_pair_bias)
-        counts = {"n_anchor_bias": self.n_anchor_bias, "n_pair_bias": self.n_pair_bias,
-                  "n_extra_tags": self.n_tags - 1, "n_height_bias": self.n_height_bias}
+    def __init__(self, n_anchor_bias: int = 0, n_height_bias: int = 0, n_tags: int = 1, n_pair_bias: int = 0,
+                 *, counts: Optional[dict[str, int]] = None, blocks: tuple[BlockSpec, ...] = BLOCKS):
+        counts = {"anchor_bias": n_anchor_bias, "height_bias": n_height_bias, "extra_levers": n_tags - 1,
+                  "pair_bias": n_pair_bias, **(counts or {})}
+        #: the declarations this layout is compiled from (models.blocks.BLOCKS unless given)
+        self.declarations = tuple(blocks)
         #: number of instances of each declared block (1 for the base blocks)
         self.count: dict[str, int] = {}
+        for b in self.declarations:
+            c = 1 if b.multiplicity == "one" else int(counts.get(b.name, 0))
+            if c < 0 or (b.multiplicity == "optional" and c > 1):
+                raise ValueError(f"StateLayout: {c} instances of block {b.name!r} ({b.multiplicity})")
+            self.count[b.name] = c
+        self.n_anchor_bias = self.count.get("anchor_bias", 0)
+        self.n_height_bias = self.count.get("height_bias", 0)
+        self.n_tags = self.count.get("extra_levers", 0) + 1
+        self.n_pair_bias = self.count.get("pair_bias", 0)
         self._err: dict[str, slice] = {}
         self._nom: dict[str, slice] = {}
         e = n = 0
-        for b in BLOCKS:
-            c = 1 if b.multiplicity == "one" else counts[COUNT_ARGS[b.multiplicity]]
-            self.count[b.name] = c
+        for b in self.declarations:
+            c = self.count[b.name]
             self._err[b.name] = slice(e, e + c * b.size)
             self._nom["q" if b.name == "theta" else b.name] = slice(n, n + c * b.n_nom)
             e += c * b.size
@@ -176,7 +180,7 @@ class StateLayout:
     @property
     def blocks(self) -> tuple[BlockSpec, ...]:
         """The declarations of the blocks present (count > 0), in state order."""
-        return tuple(b for b in BLOCKS if self.count[b.name] > 0)
+        return tuple(b for b in self.declarations if self.count[b.name] > 0)
 
     def error_names(self) -> tuple[str, ...]:
         """Error-state component names of the whole layout (instances after the first get ``_<i>``)."""
