@@ -59,11 +59,102 @@ def write_json(path: str | os.PathLike, obj: Any) -> Path:
 
 
 def write_csv(path: str | os.PathLike, df, **kwargs) -> Path:
-    """Write a pandas DataFrame atomically (``index=False`` by default)."""
+    """Write a pandas DataFrame atomically (``index=False`` by default).
+
+    A printf-style ``float_format`` (e.g. ``"%.9g"``) is applied here, column by column, before pandas
+    writes the frame: pandas applies it through a Python closure and two NA checks per cell (about 5 µs a
+    cell, 2 s for the million cells of a 10-minute run's outputs); here it is one ``%`` per cell (the same
+    operator on the same numbers, so the file is byte-identical: ``tests/test_write_csv_fast.py``).
+    """
     kwargs.setdefault("index", False)
+    fmt = kwargs.get("float_format")
+    if isinstance(fmt, str) and _plain_csv_call(kwargs):
+        na_rep = kwargs.get("na_rep", "")
+        if set(kwargs) <= {"index", "float_format", "na_rep"}:
+            text = _csv_text(df, fmt, na_rep)
+            if text is not None:
+                return write_bytes(path, text.encode("utf-8"))
+        df = _format_float_columns(df, fmt, na_rep)
+        kwargs.pop("float_format")
     with atomic_path(path) as tmp:
         df.to_csv(tmp, **kwargs)
     return Path(path)
+
+
+_CSV_SPECIAL = (",", '"', "\n", "\r")
+
+
+def _csv_text(df, fmt: str, na_rep: str):
+    """The text ``df.to_csv(index=False, float_format=fmt, na_rep=na_rep)`` writes, built column-wise, or None
+    for a frame this does not cover (then pandas writes it): columns of NumPy float, int or bool, or text
+    (str cells, NaN / None read as ``na_rep``) that needs no CSV quoting, at least two columns (a
+    one-column row of an empty cell is quoted by the csv module), string column names needing no quoting."""
+    import numpy as np
+
+    if df.shape[1] < 2 or not all(isinstance(c, str) for c in df.columns):
+        return None
+    if any(any(ch in c for ch in _CSV_SPECIAL) for c in df.columns) or any(ch in na_rep for ch in _CSV_SPECIAL):
+        return None
+    cols = []
+    for i, dtype in enumerate(df.dtypes):
+        ser = df.iloc[:, i]
+        if isinstance(dtype, np.dtype) and dtype.kind == "f":
+            vals = ser.to_numpy()
+            text = [fmt % v for v in vals.tolist()]
+            nan = np.flatnonzero(np.isnan(vals))
+            for k in nan.tolist():
+                text[k] = na_rep
+        elif isinstance(dtype, np.dtype) and dtype.kind in "iub":
+            text = list(map(str, ser.to_numpy().tolist()))
+        elif dtype == object or str(dtype) in ("str", "string"):
+            vals = ser.to_numpy(dtype=object, na_value=None) if dtype != object else ser.to_numpy()
+            text = []
+            for v in vals.tolist():
+                if isinstance(v, str):
+                    text.append(v)
+                elif v is None or (isinstance(v, float) and v != v):
+                    text.append(na_rep)
+                else:
+                    return None
+            if any(any(ch in v for ch in _CSV_SPECIAL) for v in set(text)):
+                return None
+        else:
+            return None
+        cols.append(text)
+    lines = [",".join(df.columns)]
+    lines.extend(map(",".join, zip(*cols)))
+    return os.linesep.join(lines) + os.linesep
+
+
+# to_csv arguments under which preformatting the float columns changes nothing but the speed
+_PLAIN_CSV_KEYS = {"index", "float_format", "na_rep", "header", "columns", "sep", "lineterminator", "encoding"}
+
+
+def _plain_csv_call(kwargs: dict) -> bool:
+    return (set(kwargs) <= _PLAIN_CSV_KEYS and kwargs.get("index") is False
+            and kwargs.get("columns") is None)
+
+
+def _format_float_columns(df, fmt: str, na_rep: str):
+    """``df`` with its NumPy float columns replaced by their text under ``fmt`` (``na_rep`` for NaN), as
+    pandas' ``float_format`` writes them (``fmt % value`` for every non-NaN cell, infinities included)."""
+    import numpy as np
+    import pandas as pd
+
+    out = None
+    for i, dtype in enumerate(df.dtypes):
+        if not (isinstance(dtype, np.dtype) and dtype.kind == "f"):
+            continue
+        vals = df.iloc[:, i].to_numpy()
+        text = np.array([fmt % v for v in vals.tolist()], dtype=object)
+        nan = np.isnan(vals)
+        if nan.any():
+            text[nan] = na_rep
+        if out is None:
+            out = df.copy(deep=False)
+        # an object Series: pandas would otherwise convert the texts to its string dtype and back
+        out.isetitem(i, pd.Series(text, index=df.index, dtype=object, copy=False))
+    return df if out is None else out
 
 
 def save_figure(path: str | os.PathLike, fig, **kwargs) -> Path:
