@@ -37,7 +37,7 @@ from uwbimu.io import calibration_file as CF
 from uwbimu.io.dataset import Dataset
 from uwbimu.models.state import ERROR_STATE_NAMES, NOMINAL_STATE_NAMES
 from uwbimu.models import state as S
-from uwbimu.models.blocks import BLOCK, OUTPUT_ORDER
+from uwbimu.models.blocks import OUTPUT_ORDER
 
 def fixed_components(layout: S.StateLayout, opts) -> np.ndarray:
     """(N,) True for the error components of blocks whose declared ``mode_option`` is ``fixed``."""
@@ -72,11 +72,14 @@ def block_calibration(layout: S.StateLayout, x: np.ndarray, sd: np.ndarray, opts
     -------
     dict with ``<key>`` (float, list, or a dict per anchor / pair) and ``<key>_sd`` (0 for a fixed block),
     ``<key>_mode`` when the block's mode may be other than ``estimate``, ``<key>_correlation_time`` for a
-    Gauss-Markov block that has one; in :data:`uwbimu.models.blocks.OUTPUT_ORDER`.
+    Gauss-Markov block that has one; in :data:`uwbimu.models.blocks.OUTPUT_ORDER` (other declared blocks
+    after those).
     """
     fixed = fixed_components(layout, opts)
     out: dict[str, Any] = {}
-    order = [BLOCK[n] for n in OUTPUT_ORDER if layout.count.get(n, 0) > 0 and BLOCK[n].output_key]
+    decl = [b for b in layout.blocks if b.output_key]
+    rank = {n: i for i, n in enumerate(OUTPUT_ORDER)}  # blocks not listed there come last, in state order
+    order = sorted(decl, key=lambda b: rank.get(b.name, len(rank)))
     for i, b in enumerate(order):
         if tags is not None and b.multiplicity != "one" and (i == 0 or order[i - 1].multiplicity == "one"):
             out["tags"] = tags

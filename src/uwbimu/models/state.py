@@ -183,9 +183,10 @@ class StateLayout:
         return tuple(b for b in self.declarations if self.count[b.name] > 0)
 
     def error_names(self) -> tuple[str, ...]:
-        """Error-state component names of the whole layout (instances after the first get ``_<i>``)."""
-        return tuple(nm if c == 1 else f"{b.name}_{i}_{nm}" for b in self.blocks for c in [self.count[b.name]]
-                     for i in range(c) for nm in b.output_names)
+        """Error-state component names of the whole layout: a ``"one"`` or ``"optional"`` block's output names,
+        ``<block>_<i>_<name>`` for the instances of the other blocks."""
+        return tuple(nm if b.multiplicity in ("one", "optional") else f"{b.name}_{i}_{nm}" for b in self.blocks
+                     for i in range(self.count[b.name]) for nm in b.output_names)
 
     def process_noise(self, imu: np.ndarray, values: dict[str, tuple[float, float]]) -> ProcessNoise:
         """The numba tables of the process noise (:class:`~uwbimu.models.blocks.ProcessNoise`).
