@@ -278,3 +278,20 @@ def test_height_bias_is_one_declaration_and_its_jacobian_column():
     rng = np.random.default_rng(9)
     x = _rand_state(rng, L)
     np.testing.assert_allclose(m.jacobian(x, np.zeros(6), L), fd_jacobian(m, x, np.zeros(6), L), atol=1e-8)
+
+
+def test_block_prior_covariance_sets_every_declared_extra_block():
+    from uwbimu.estimation.problem import block_prior_covariance
+
+    opts = EskfOptions(anchor_bias={"mode": "estimate", "prior_sd": 0.3}, height={"bias": "estimate"},
+                       tdoa_pair_bias={"mode": "estimate", "prior_sd": 0.05})
+    noise = ImuNoise(accel_noise_density=0.01, gyro_noise_density=1e-3, accel_bias_rw=1e-4, gyro_bias_rw=1e-5)
+    prob, pr = make_settings(opts, list("abc"), np.arange(9.0).reshape(3, 3), noise, 0.1, None, [0, 0, 0],
+                             None, [(0, 1)])
+    L = prob.layout
+    P = np.zeros((L.n_err, L.n_err))
+    block_prior_covariance(P, L, pr)
+    assert np.array_equal(np.diag(P)[L.err("anchor_bias")], np.full(3, 0.3**2))
+    assert np.diag(P)[L.err("pair_bias")].tolist() == [0.05**2]
+    assert np.diag(P)[L.err("height_bias")].tolist() == [opts.height.bias_prior_sd**2]
+    assert not P[:19].any()  # the base blocks are the initialiser's

@@ -132,6 +132,15 @@ def gain_mask(opts: EskfOptions, layout: S.StateLayout) -> np.ndarray:
     return mask
 
 
+def block_prior_covariance(P: np.ndarray, layout: S.StateLayout, priors: BlockPriors) -> None:
+    """Set the initial covariance of every extra block with a declared prior sd (in place):
+    ``P[b, b] = sd^2 I`` from ``priors.block_sd`` (blocks absent from it are left alone)."""
+    for b in layout.blocks:
+        if b.multiplicity != "one" and b.name in priors.block_sd:
+            sl = layout.err(b.name)
+            P[sl, sl] = np.eye(sl.stop - sl.start) * priors.block_sd[b.name] ** 2
+
+
 def make_settings(
     opts: EskfOptions,
     anchor_ids: Sequence[str],
