@@ -426,8 +426,9 @@ class Eskf:
         same_length("push_imu_chunk", t=t, acc=acc, gyro=gyro)
         t = t + self._imu_shift
         u = np.hstack([acc, gyro])
-        finite = np.isfinite(t) & np.all(np.isfinite(u), axis=1)
-        if not finite.all():
+        # the checks of push_imu, vectorised; the whole-chunk tests first (the usual case: all pass)
+        if not (np.isfinite(t).all() and np.isfinite(u).all()):
+            finite = np.isfinite(t) & np.all(np.isfinite(u), axis=1)
             self._rej.add("imu", "imu_not_finite", t[~finite][0], n=int((~finite).sum()))
             t, u = t[finite], u[finite]
         plausible = (np.einsum("ij,ij->i", u[:, :3], u[:, :3]) <= self._acc2) & \
@@ -435,6 +436,13 @@ class Eskf:
         if not plausible.all():
             self._rej.add("imu", "imu_implausible", t[~plausible][0], n=int((~plausible).sum()))
             t, u = t[plausible], u[plausible]
+        if len(t) and self._t.n:
+            # strictly increasing, no clock restart, no gap: what the loop below keeps whole
+            last = float(self._t.a[self._t.n - 1])
+            d = t[1:] - t[:-1]
+            if t[0] > last and t[0] - last <= self.max_gap_s and (not len(d) or (d.min() > 0 and d.max() <= self.max_gap_s)):
+                self._append_imu(t, u)
+                return
         while len(t):
             last = float(self._t.a[self._t.n - 1]) if self._t.n else -np.inf
             # strictly increasing stamps (repeated stamps of the batch loader are dropped the same way): a
