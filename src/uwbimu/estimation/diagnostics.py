@@ -113,11 +113,11 @@ def excitation_warnings(prob: Problem, t_imu_out, X, sd, priors, opts) -> tuple[
                 f"vs prior {np.round(100 * prior, 1).tolist()} cm; excite rotations about all axes"
             )
     if opts.time_offset.mode == "estimate" and priors.t_d_sd > 0:
-        td_prior = time_offset_prior_sd(priors, opts)
-        if sd_end[S.ETD] > ex.sd_ratio_warn * td_prior:
+        t_d_prior_sd = time_offset_prior_sd(priors, opts)
+        if sd_end[S.ETD] > ex.sd_ratio_warn * t_d_prior_sd:
             warnings.append(
                 f"time offset not well determined: final sd {1000 * sd_end[S.ETD]:.1f} ms vs prior "
-                f"{1000 * td_prior:.1f} ms; move with changing velocity"
+                f"{1000 * t_d_prior_sd:.1f} ms; move with changing velocity"
             )
     return warnings, events
 

@@ -584,7 +584,7 @@ def advance_python(
     # locals for the per-range loop (attribute lookups cost as much as the kernels' calls here)
     uwb_t, uwb_a, uwb_b, uwb_r = prob.uwb_t, prob.uwb_a, prob.uwb_b, prob.uwb_r
     imu_u, imu_um, anchors, bias_idx = prob.imu_u, prob.imu_um, prob.anchors, prob.bias_idx
-    i_td, i_bg = S.TD, S.EBG.start
+    i_bg = S.EBG.start
     pair_index = prob.pair_index
     store_cov = bool(prob.store_cov)
 
@@ -601,7 +601,7 @@ def advance_python(
         b = -1 if uwb_b is None else int(uwb_b[j])
         model = prob.models[-b - 2][0] if b <= -2 else None
         # a UWB-clock stamp sees the IMU-clock state t_d later
-        tau = tj + x[i_td] if model is None or model.clock == "uwb" else tj
+        tau = tj + x[S.TD] if model is None or model.clock == "uwb" else tj
         if tau > t_last:
             break
         if record:

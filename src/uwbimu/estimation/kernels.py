@@ -19,7 +19,7 @@ import numpy as np
 from numba import njit
 
 from uwbimu.models import kernels as _physics
-from uwbimu.models.state import E_BG, E_L, N_DYN, N_L, N_TD, NOM_SHIFT
+from uwbimu.models.state import E_BG, E_L, N_BG, N_DYN, N_L, N_TD, NOM_SHIFT
 from uwbimu.models.kernels import (  # noqa: F401  (re-exported)
     GRAVITY, rotmat, _deriv, _rk4_core, _rk4_s, _rk4, rk4_step_mid, rk4_step, propagate_interval, _mm3,
     _skew3, _phi_blocks, phi_blocks, _phi_vec, _cov_step, _cov_step_rows, cov_step, cov_step_blocks, decay_biases,
@@ -480,8 +480,6 @@ IS_K, IS_J, IS_ALL_REJ, IS_N_FROZEN, IS_N_OUT, IS_PHASE, IS_GAP, IS_DIV, IS_N_EV
 # phases of a pass: measurements in time order, then the outputs after the last one, then done
 PHASE_ROWS, PHASE_TAIL, PHASE_DONE = range(3)
 
-_I_TD = N_TD  # nominal index of t_d
-_I_BG = E_BG  # error index of the gyro bias; nominal b_g at _I_BG + NOM_SHIFT
 
 
 @njit(cache=True)
@@ -629,7 +627,7 @@ def filter_loop(x, P, imu_t, imu_u, imu_um, uwb_t, uwb_a, uwb_b, uwb_r, uwb_tag,
                 code = LOOP_MODEL
                 break
             # a UWB-clock stamp sees the IMU-clock state t_d later
-            tau = tj + x[_I_TD]
+            tau = tj + x[N_TD]
             if tau > t_last:
                 phase = PHASE_TAIL
                 continue
@@ -679,12 +677,12 @@ def filter_loop(x, P, imu_t, imu_u, imu_um, uwb_t, uwb_a, uwb_b, uwb_r, uwb_tag,
                 m0 = rot_mean[kk, 0]
                 m1 = rot_mean[kk, 1]
                 m2 = rot_mean[kk, 2]
-                b0 = x[_I_BG + NOM_SHIFT]
-                b1 = x[_I_BG + NOM_SHIFT + 1]
-                b2 = x[_I_BG + NOM_SHIFT + 2]
+                b0 = x[N_BG]
+                b1 = x[N_BG + 1]
+                b2 = x[N_BG + 2]
                 ms = rot_ms[kk] - 2.0 * (m0 * b0 + m1 * b1 + m2 * b2) + (b0 * b0 + b1 * b1 + b2 * b2)
                 rms = math.sqrt(ms) if ms > 0.0 else 0.0
-                pv = P[_I_BG, _I_BG] + P[_I_BG + 1, _I_BG + 1] + P[_I_BG + 2, _I_BG + 2]
+                pv = P[E_BG, E_BG] + P[E_BG + 1, E_BG + 1] + P[E_BG + 2, E_BG + 2]
                 if 0.0 > pv:  # Python's max(pv, 0.0), NaN kept
                     pv = 0.0
                 frozen = rms - math.sqrt(pv) < lever_min_rate

@@ -274,8 +274,8 @@ def _plots(result, dataset: Dataset, out: Path) -> list[Path]:
 
     files = []
     truth = dataset.meta.truth
-    td_true = truth.time_offset if truth is not None else None
-    tt = result.t_imu - td_true if (result.t_imu is not None and td_true is not None) else result.t
+    t_d_true = truth.time_offset if truth is not None else None
+    tt = result.t_imu - t_d_true if (result.t_imu is not None and t_d_true is not None) else result.t
     p, q, v, valid = truth_at(dataset, tt)
     X, sd, t = result.states, result.sd, result.t
     anchors = dataset.anchors[["x", "y", "z"]].to_numpy(float)
@@ -325,8 +325,8 @@ def _plots(result, dataset: Dataset, out: Path) -> list[Path]:
     ax = fig.add_subplot(4, 1, 4)
     ax.plot(t, 1000 * X[:, S.TD], "C0-", lw=0.8)
     ax.fill_between(t, 1000 * (X[:, S.TD] - 3 * sd[:, S.ETD]), 1000 * (X[:, S.TD] + 3 * sd[:, S.ETD]), color="C0", alpha=0.2)
-    if td_true is not None:
-        ax.axhline(1000 * td_true, color="k", ls="--", lw=1)
+    if t_d_true is not None:
+        ax.axhline(1000 * t_d_true, color="k", ls="--", lw=1)
     ax.set_ylabel("t_d [ms]"); ax.set_xlabel("t [s]")
     files.append(atomic.save_figure(out / "calibration.png", fig))
 

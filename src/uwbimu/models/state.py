@@ -19,6 +19,13 @@ Error state (attitude error as a 3-vector, right/body perturbation
 
     dx = (dp, dv, dtheta, db_a, db_g, dp_IU, dt_d)
           0:3 3:6  6:9    9:12  12:15 15:18  18
+
+Every block is declared once in :mod:`uwbimu.models.blocks`; the slices and index constants here
+(``P`` .. ``TD`` nominal, ``EP`` .. ``ETD`` error, ``N_*`` / ``E_*`` their first indices for numba,
+``NOM_SHIFT``, ``N_DYN``) are computed from those declarations, and :class:`StateLayout` compiles
+them with a run's multiplicities.  The time offset is ``t_d`` everywhere in code (block ``t_d``;
+``TD`` / ``ETD`` / ``N_TD`` / ``E_TD`` are its indices), ``time_offset`` in the options and the
+calibration outputs, ``td`` as its state-column name.
 """
 
 from __future__ import annotations
