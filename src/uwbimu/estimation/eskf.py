@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 from typing import Any, Callable, Optional
 
 import numpy as np
@@ -32,7 +33,7 @@ from uwbimu.estimation.timeoffset import information_verdict, time_offset_prior_
 from uwbimu.models import state as S
 from uwbimu.estimation.options import EskfOptions
 from uwbimu.estimation.outputs import block_calibration, fixed_components
-from uwbimu.estimation.problem import make_settings, nominal_period, set_imu_timing
+from uwbimu.estimation.problem import imu_timing, make_settings, nominal_period
 from uwbimu.estimation.streaming import Eskf
 from uwbimu.estimation.result import EstimationResult
 from uwbimu.estimation.segments import select_segment
@@ -172,18 +173,17 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
     if opts.tdoa_pair_bias.mode == "estimate" and (uwb_b >= 0).any():
         td_rows = uwb_b >= 0
         pairs = sorted({(int(a_), int(b_)) for a_, b_ in zip(uwb_a[td_rows], uwb_b[td_rows])})
-    prob, priors = make_settings(opts, anchor_ids, anchors, noise, rsig, tsig, levers, tag_names or None, pairs)
-    if tag_names:
-        prob.uwb_tag = np.ascontiguousarray(uwb_tag)
-    prob.imu_t, prob.imu_u = imu_t, imu_u
-    prob.imu_um = np.ascontiguousarray(midpoint_inputs(imu_t, imu_u))
-    prob.uwb_t, prob.uwb_a, prob.uwb_r = uwb_t, uwb_a, uwb_r
-    set_imu_timing(prob, opts, nominal_period(imu_t))
-    prob.gap_idx, prob.gap_sd = gap_inputs(imu_t, imu_u, prob.dt_max)
-    if (uwb_b >= 0).any():
-        prob.uwb_b = np.ascontiguousarray(uwb_b)
-    if prob.lever_min_rate > 0:
-        prob.rot_mean, prob.rot_ms = rotation_window_stats(imu_u, prob.lever_win)
+    settings, priors = make_settings(opts, anchor_ids, anchors, noise, rsig, tsig, levers, tag_names or None, pairs)
+    # the settings plus the data, in one construction
+    timing = imu_timing(opts, nominal_period(imu_t))
+    gap_idx, gap_sd = gap_inputs(imu_t, imu_u, timing["dt_max"])
+    rot_mean, rot_ms = (rotation_window_stats(imu_u, timing["lever_win"]) if timing["lever_min_rate"] > 0
+                        else (None, None))
+    prob = replace(settings, imu_t=imu_t, imu_u=imu_u, imu_um=np.ascontiguousarray(midpoint_inputs(imu_t, imu_u)),
+                   uwb_t=uwb_t, uwb_a=uwb_a, uwb_r=uwb_r,
+                   uwb_b=np.ascontiguousarray(uwb_b) if (uwb_b >= 0).any() else None,
+                   uwb_tag=np.ascontiguousarray(uwb_tag) if tag_names else None,
+                   gap_idx=gap_idx, gap_sd=gap_sd, rot_mean=rot_mean, rot_ms=rot_ms, **timing)
     info = {"warnings": warnings, "events": events, "imu_noise": noise, "range_sigma": rsig, "tdoa_sigma": tsig,
             "tag": tag,
             "tags": tag_names or [tag],

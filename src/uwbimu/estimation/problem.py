@@ -223,10 +223,22 @@ def make_settings(
     return prob, priors
 
 
-def set_imu_timing(prob: Problem, opts: EskfOptions, dt_nom: float) -> None:
-    """Fix the nominal IMU period and what depends on it (gap threshold, rotation-gate window)."""
-    prob.dt_nom = float(dt_nom)
-    prob.dt_max = opts.imu_gap_factor * prob.dt_nom
+def imu_timing(opts: EskfOptions, dt_nom: float) -> dict[str, Any]:
+    """The :class:`Problem` fields fixed by the nominal IMU period ``dt_nom`` [s]: ``dt_nom``, the gap
+    threshold ``dt_max`` [s], the lever-arm rotation gate's window ``lever_win`` [samples] and threshold
+    ``lever_min_rate`` [rad/s] (0: no gate)."""
+    out: dict[str, Any] = {"dt_nom": float(dt_nom), "dt_max": opts.imu_gap_factor * float(dt_nom),
+                           "lever_win": 0, "lever_min_rate": 0.0}
     if opts.lever_arm.mode == "estimate" and opts.lever_arm.min_rotation_rate > 0:
-        prob.lever_win = max(1, int(round(opts.excitation.window_s / prob.dt_nom)))
-        prob.lever_min_rate = float(opts.lever_arm.min_rotation_rate)
+        out["lever_win"] = max(1, int(round(opts.excitation.window_s / out["dt_nom"])))
+        out["lever_min_rate"] = float(opts.lever_arm.min_rotation_rate)
+    return out
+
+
+def set_imu_timing(prob: Problem, opts: EskfOptions, dt_nom: float) -> None:
+    """Fix the nominal IMU period and what depends on it on ``prob`` (:func:`imu_timing`; the streaming
+    filter learns the period from its first samples, after construction)."""
+    t = imu_timing(opts, dt_nom)
+    prob.dt_nom, prob.dt_max = t["dt_nom"], t["dt_max"]
+    if t["lever_min_rate"] > 0:
+        prob.lever_win, prob.lever_min_rate = t["lever_win"], t["lever_min_rate"]
