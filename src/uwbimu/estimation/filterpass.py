@@ -383,11 +383,13 @@ def run_pass(
 
 
 def _frozen_mask(prob: Problem) -> np.ndarray:
-    """The gain mask of an update whose lever arms are frozen by the rotation gate (consider mode)."""
+    """The gain mask of an update whose lever arms are frozen by the rotation gate (consider mode): every
+    block declared with the ``lever_arm`` mode option (``lever``, ``extra_levers``)."""
     mask = prob.gain_mask.copy()
-    mask[S.EPIU] = 0.0
-    if prob.layout is not None:
-        mask[prob.layout.err("extra_levers")] = 0.0
+    L = prob.state_layout()
+    for b in L.blocks:
+        if b.mode_option == "lever_arm":
+            mask[L.err(b.name)] = 0.0
     return mask
 
 

@@ -15,7 +15,7 @@ from uwbimu.models import state as S
 from uwbimu.models.quaternion import quat_to_rotmat, skew
 
 
-def error_F(x: np.ndarray, u: np.ndarray, n_err: int = 19) -> np.ndarray:
+def error_F(x: np.ndarray, u: np.ndarray, n_err: int = S.ERROR_DIM) -> np.ndarray:
     """Continuous-time error-state Jacobian ``F`` (n_err x n_err) at state ``x`` and input ``u``."""
     R = quat_to_rotmat(x[S.Q])
     a = u[0:3] - x[S.BA]
@@ -29,7 +29,7 @@ def error_F(x: np.ndarray, u: np.ndarray, n_err: int = 19) -> np.ndarray:
     return F
 
 
-def error_G(x: np.ndarray, n_err: int = 19) -> np.ndarray:
+def error_G(x: np.ndarray, n_err: int = S.ERROR_DIM) -> np.ndarray:
     """Continuous-time noise Jacobian ``G`` (n_err x 12) for ``[n_a, n_g, n_ba, n_bg]``."""
     R = quat_to_rotmat(x[S.Q])
     G = np.zeros((n_err, 12))  # noise columns: n_a, n_g, n_ba, n_bg
