@@ -47,6 +47,7 @@ def posterior_crlb(prob: Problem, x_true: np.ndarray, P0: np.ndarray, k0: int, j
     h = np.empty(N)
     xt = np.empty(x_true.shape[1])
     ut = np.empty(6)
+    pn = prob.process_noise_tables()  # every declared block's process noise (not only the base 19)
     k = k0
     k_last = n - 1 if t_end is None else min(n - 1, int(np.searchsorted(prob.imu_t, t_end)))
     for j in range(j0, len(prob.uwb_t)):
@@ -57,7 +58,7 @@ def posterior_crlb(prob: Problem, x_true: np.ndarray, P0: np.ndarray, k0: int, j
         if k_tau > k_last:
             break
         while k < k_tau:
-            K.cov_step(P, x_true[k], prob.imu_u[k], prob.imu_t[k + 1] - prob.imu_t[k], prob.noise)
+            K.cov_step_blocks(P, x_true[k], prob.imu_u[k], prob.imu_t[k + 1] - prob.imu_t[k], pn)
             k += 1
         if K.state_at(x_true[k], prob.imu_t, prob.imu_u, prob.imu_um, k, tau, prob.dt_max, xt, ut) != K.UPD_OK:
             continue
@@ -67,6 +68,6 @@ def posterior_crlb(prob: Problem, x_true: np.ndarray, P0: np.ndarray, k0: int, j
         s = float(h @ Ph) + prob.r_var
         P -= np.outer(Ph, Ph) / s
     while k < k_last:
-        K.cov_step(P, x_true[k], prob.imu_u[k], prob.imu_t[k + 1] - prob.imu_t[k], prob.noise)
+        K.cov_step_blocks(P, x_true[k], prob.imu_u[k], prob.imu_t[k + 1] - prob.imu_t[k], pn)
         k += 1
     return 0.5 * (P + P.T)
