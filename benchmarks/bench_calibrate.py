@@ -6,6 +6,7 @@
     python benchmarks/bench_calibrate.py profile DATASET [--workers N] [--baseline]
     python benchmarks/bench_calibrate.py long [--duration 600] [--imu-rate 1000] [--workers N] [--baseline]
     python benchmarks/bench_calibrate.py tdoa [--duration 30]
+    python benchmarks/bench_calibrate.py workers [DATASET] [--duration 120] [--imu-rate 200] [--repeat 2] [--windows 4]
 
 DATASET: an imported INRoL folder (``uwbimu import inrol ../shared/datasets/inrol_uwb_imu DIR``).
 
@@ -25,6 +26,12 @@ the simulation's truth (lever arm and t_d error in sigmas, ATE).  The simulation
 calibrated (profile off) with the TDoA rows grouped per block of keyframes (default) and, in the same run,
 with one factor per row (``group_range_factors: false``, the baseline): CPU of each, their ratio, and the
 difference of the results (final cost, lever arm, t_d).
+``workers`` (issue 31): in one run, ``calibrate`` (t_d profile on) with ``workers=1`` and ``workers=2`` (the
+profile's walks on a process pool, the caller walking too) on the same ESKF, and ``--windows`` repeatability
+windows (ESKF) with ``workers=1`` and ``2``, both through :func:`uwbimu.eval.repeatability.repeatability` as it
+is and through ``execute(..., caller=True)``; wall seconds, the best of ``--repeat`` runs each (the 2-core
+machine is shared: the minimum is the figure), the ratio 1 worker / 2 workers, and whether the results are
+identical.  DATASET: an imported folder (default: the built-in ``calibration-flight`` of ``--duration`` s).
 State the machine load (``uptime``) next to any figure.  Nothing is hard-coded: every number is
 measured in the run (docs/calibrate.md holds the tables).
 """
@@ -209,23 +216,98 @@ def tdoa(duration: float) -> None:
           f"load after: {os.getloadavg()}")
 
 
+def _window_tasks(ds, k: int):
+    from uwbimu.estimators import get_estimator
+    from uwbimu.eval.repeatability import split_windows
+
+    opts = get_estimator("eskf").options(None)
+    return [(i, w, "eskf", opts) for i, w in enumerate(split_windows(ds, k))]
+
+
+def workers_bench(path, duration: float, imu_rate: float, repeat: int, k: int) -> None:
+    from uwbimu.calibration import CalibrationOptions
+    from uwbimu.estimation import EskfOptions, run_eskf
+    from uwbimu.eval.repeatability import _window_task, repeatability
+    from uwbimu.parallel import execute
+
+    if path:
+        from uwbimu.io.loader import load_dataset
+
+        ds, eo = load_dataset(path), EskfOptions.from_yaml(REAL)
+    else:
+        from uwbimu.sim import builtin_scenario, simulate
+
+        sc = builtin_scenario("calibration-flight")
+        ds = simulate(sc.model_copy(update={"duration": duration, "imu": sc.imu.model_copy(update={"rate_hz": imu_rate})}))
+        eo = EskfOptions()
+    print(f"log: {ds.duration:.0f} s, {len(ds.imu)} IMU samples, {len(ds.uwb)} ranges; load before: {os.getloadavg()}")
+    eskf = run_eskf(ds, eo)
+    opts = CalibrationOptions()
+    best: dict = {}
+    res: dict = {}
+    for _ in range(max(1, repeat)):
+        for w in (1, 2):
+            r, _cpu, wall = _timed_calibrate(ds, opts, eo, eskf, workers=w)
+            best[w] = min(best.get(w, np.inf), wall)
+            res[w] = r
+    a, b = res[1], res[2]
+    same = (np.array_equal(a.profile.grid, b.profile.grid) and np.array_equal(a.profile.chi2, b.profile.chi2)
+            and a.calibration["lever_arm"] == b.calibration["lever_arm"]
+            and a.calibration["time_offset"]["value"] == b.calibration["time_offset"]["value"])
+    print(f"calibrate (t_d profile, {len(a.profile.grid)} points): 1 worker {best[1]:.1f} s wall, 2 workers "
+          f"{best[2]:.1f} s wall (best of {repeat}); RATIO 1 worker / 2 workers {best[1] / best[2]:.2f}x; "
+          f"profile and calibration identical: {same}")
+
+    tasks = _window_tasks(ds, k)
+    wins: dict = {}
+    outs: dict = {}
+    for _ in range(max(1, repeat)):
+        for label, run in (
+            ("repeatability(), 1 worker", lambda: repeatability(ds, k, "eskf", workers=1)["windows"]),
+            ("repeatability(), 2 workers", lambda: repeatability(ds, k, "eskf", workers=2)["windows"]),
+            ("execute(caller=True), 2 workers", lambda: _collect(execute, _window_task, tasks)),
+        ):
+            w0 = time.perf_counter()
+            out = run()
+            wins[label] = min(wins.get(label, np.inf), time.perf_counter() - w0)
+            outs[label] = sorted((r["i"], r.get("values")) for r in out)
+    one = wins["repeatability(), 1 worker"]
+    for label, wall in wins.items():
+        print(f"{k} repeatability windows (ESKF), {label}: {wall:.2f} s wall (best of {repeat}); RATIO 1 worker / "
+              f"this {one / wall:.2f}x; windows identical to 1 worker: "
+              f"{outs[label] == outs['repeatability(), 1 worker']}")
+    print(f"load after: {os.getloadavg()}")
+
+
+def _collect(execute, fn, tasks):
+    got = []
+    failed = execute(fn, tasks, got.append, workers=2, preload=("uwbimu.sim", "uwbimu.estimation", "uwbimu.estimators"),
+                     caller=True)
+    assert not failed, failed
+    return got
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["cost", "shift", "full", "profile", "long", "tdoa"])
+    ap.add_argument("what", choices=["cost", "shift", "full", "profile", "long", "tdoa", "workers"])
     ap.add_argument("dataset", nargs="?")
     ap.add_argument("--window", type=float, default=40.0)
     ap.add_argument("--shifts", default="0,0.05,-0.05,0.1,-0.1")
     ap.add_argument("--workers", type=int, default=1, help="profile / long: processes for the t_d profile")
     ap.add_argument("--baseline", action="store_true", help="profile / long: also the reference solver, same run")
     ap.add_argument("--duration", type=float, default=None, help="long / tdoa: simulated log length [s] (600 / 30)")
-    ap.add_argument("--imu-rate", type=float, default=1000.0, help="long: IMU rate [Hz]")
+    ap.add_argument("--imu-rate", type=float, default=None, help="long / workers: IMU rate [Hz] (1000 / 200)")
+    ap.add_argument("--repeat", type=int, default=2, help="workers: runs of each variant (the best is reported)")
+    ap.add_argument("--windows", type=int, default=4, help="workers: repeatability windows")
     a = ap.parse_args(argv)
     if a.what == "cost":
         cost()
     elif a.what == "tdoa":
         tdoa(a.duration or 30.0)
     elif a.what == "long":
-        long(a.duration or 600.0, a.imu_rate, a.workers, a.baseline)
+        long(a.duration or 600.0, a.imu_rate or 1000.0, a.workers, a.baseline)
+    elif a.what == "workers":
+        workers_bench(a.dataset, a.duration or 120.0, a.imu_rate or 200.0, a.repeat, a.windows)
     elif a.dataset is None:
         ap.error("shift, full and profile need DATASET")
     elif a.what == "profile":

@@ -15,6 +15,7 @@ import os
 import time
 import uuid
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Callable, Optional
 
 from uwbimu.optional import require
@@ -24,6 +25,8 @@ from uwbimu.optional import require
 # --------------------------------------------------------------------------
 # one BLAS thread per worker, set in the workers only (a top-level module: importing it loads no NumPy)
 _WORKER_ENV = "uwbimu._worker_env"
+# imported by the server after the preload when the tasks run the ESKF: loads its machine code once
+_WARM_ESKF = "uwbimu.studies.warm_eskf"
 
 
 def _one_blas_thread() -> None:
@@ -40,10 +43,109 @@ def _new_executor(workers: int, preload) -> ProcessPoolExecutor:
     if ctx is not None:
         # Workers fork from a server that has already imported the heavy modules; the server
         # imports _worker_env first, so the BLAS thread variables are set before NumPy loads.
-        ctx.set_forkserver_preload([_WORKER_ENV, *preload])
+        # Tasks that run the ESKF: the server also loads its compiled kernels (_WARM_ESKF), once,
+        # instead of every worker loading them on its first task.
+        extra = [_WARM_ESKF] if "uwbimu.estimation" in preload else []
+        ctx.set_forkserver_preload([_WORKER_ENV, *preload, *extra])
     else:  # spawn (no forkserver): set them in each worker before it runs a task
         initializer = _one_blas_thread
     return ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=initializer)
+
+
+def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], None], describe, preload,
+                     pool: Optional["ProcessPool"] = None) -> list[str]:
+    """:func:`execute` with the caller as one of the ``workers``: ``workers - 1`` pool processes and this one.
+
+    Why: a pool's processes start cold (the forkserver imports the preload, each worker loads numba's
+    machine code and rebuilds its caches: seconds of start), while this process is warm.  The caller runs
+    tasks from the back of the list at once; feeder threads hand tasks from the front to the pool only
+    after a probe task came back (the pool is up), so no task waits for a pool that is still starting, and a
+    short job ends as fast as serially.  Each task is pickled and unpickled before the caller runs it (the
+    copy a worker gets), so a task's result does not depend on where it ran.
+    """
+    import pickle
+    import queue as _queue
+    import threading
+    from collections import deque
+
+    failures: list[str] = []
+    own = pool is None or pool.executor is None
+    ex = _new_executor(max(1, workers - 1), preload) if own else pool.executor
+    todo = deque(tasks)
+    results: _queue.Queue = _queue.Queue()
+    stop = threading.Event()
+    probe = ex.submit(os.getpid)
+
+    def feeder() -> None:
+        try:
+            probe.result()  # the pool is up
+        except Exception:  # noqa: BLE001 - a pool that cannot start: the caller runs everything
+            return
+        while not stop.is_set():
+            try:
+                t = todo.popleft()
+            except IndexError:
+                return
+            try:
+                f = ex.submit(fn, t)
+            except Exception:  # noqa: BLE001 - shut down or broken: back to the caller
+                todo.appendleft(t)
+                return
+            wait([f])
+            results.put((f, t))
+            if isinstance(f.exception(), BrokenProcessPool):
+                return
+
+    feeders = [threading.Thread(target=feeder, daemon=True, name=f"uwbimu-feeder-{i}")
+               for i in range(max(1, workers - 1))]
+    for th in feeders:
+        th.start()
+
+    def handle(f, t) -> None:
+        try:
+            chunk = f.result()
+        except Exception as exc:  # e.g. BrokenProcessPool: a worker died
+            failures.append(f"{describe(t)}: {type(exc).__name__}: {exc}")
+            return
+        on_chunk(chunk)
+
+    handled = 0
+    try:
+        while handled < len(tasks):
+            while True:  # pool results first (on_chunk runs in this thread only)
+                try:
+                    f, t = results.get_nowait()
+                except _queue.Empty:
+                    break
+                handle(f, t)
+                handled += 1
+            try:
+                t = todo.pop()
+            except IndexError:
+                try:  # the rest is in the pool (or handed back by a feeder: look again)
+                    f, t = results.get(timeout=0.05)
+                except _queue.Empty:
+                    continue
+                handle(f, t)
+                handled += 1
+                continue
+            try:
+                chunk = fn(pickle.loads(pickle.dumps(t)))
+            except Exception as exc:  # noqa: BLE001 - reported like a worker's failure
+                failures.append(f"{describe(t)}: {type(exc).__name__}: {exc}")
+            else:
+                on_chunk(chunk)
+            handled += 1
+    except BaseException:
+        stop.set()
+        if own:
+            ex.shutdown(wait=False, cancel_futures=True)
+        raise
+    stop.set()
+    if own:
+        # a pool that never came up is not waited for (its start may still be running)
+        ex.shutdown(wait=probe.done(), cancel_futures=True)
+    return failures
 
 
 class ProcessPool:
@@ -59,13 +161,16 @@ class ProcessPool:
             execute(fn, tasks_b, keep, workers=2, pool=pool)
     """
 
-    def __init__(self, workers: int, preload: tuple[str, ...] = ("uwbimu.sim", "uwbimu.estimation")):
+    def __init__(self, workers: int, preload: tuple[str, ...] = ("uwbimu.sim", "uwbimu.estimation"),
+                 caller: bool = False):
         self.workers = int(workers)
         self.preload = tuple(preload)
+        #: the caller is one of the workers (``execute(..., caller=True)``): the pool has ``workers - 1``
+        self.caller = bool(caller)
         self.executor: Optional[ProcessPoolExecutor] = None
 
     def __enter__(self) -> "ProcessPool":
-        self.executor = _new_executor(self.workers, self.preload)
+        self.executor = _new_executor(max(1, self.workers - 1) if self.caller else self.workers, self.preload)
         return self
 
     def __exit__(self, exc_type, *exc) -> None:
@@ -161,6 +266,7 @@ def execute(
     describe: Callable[[Any], str] = repr,
     preload: tuple[str, ...] = ("uwbimu.sim", "uwbimu.estimation"),
     pool: Optional[ProcessPool] = None,
+    caller: bool = False,
 ) -> list[str]:
     """Run ``fn(task)`` for every task and pass each result to ``on_result`` as it arrives.
 
@@ -177,6 +283,12 @@ def execute(
     preload : modules the forkserver imports once before forking the pool's workers.
     pool : an open :class:`ProcessPool` to run on (its workers and preload; ``workers`` > 1 still required):
         the processes and their caches outlive this call.  None: a pool for this call only.
+    caller : the calling process is one of the ``workers`` (local pool only): it runs tasks at once while
+        ``workers - 1`` pool processes start, and the pool gets tasks once it is up
+        (:func:`_run_with_caller`).  Worth it where a worker's start (imports, numba's machine code, a
+        per-worker cache) is not small against a task: the t_d profile's two walks, short windows.  A
+        task that raises in the caller is reported like a worker's failure; ``on_result`` still runs in
+        the caller's thread only.
 
     Returns
     -------
@@ -191,4 +303,6 @@ def execute(
         for t in tasks:
             on_result(fn(t))
         return []
+    if caller:
+        return _run_with_caller(fn, tasks, workers, on_result, describe, preload, pool)
     return _run_pool(fn, tasks, workers, on_result, describe, preload, pool)

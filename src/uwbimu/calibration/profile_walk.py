@@ -197,6 +197,10 @@ def _run_walks(pb, imf, walks: list, mode: str, workers: int, executor: Optional
     from uwbimu.parallel import execute
 
     token = token or uuid.uuid4().hex
+    # this process runs walks too (execute(caller=True)): it has the problem's IMU factors already
+    if _WORKER_PROBLEM.get("token") != token:
+        _WORKER_PROBLEM.clear()
+        _WORKER_PROBLEM.update(token=token, pb=pb, imf=imf)
     light = _light_problem(pb)
     got: dict[int, list] = {}
     tasks = [(i, (token, light, [float(g) for g in w[0]], w[1], w[2], mode, rows)) for i, w in enumerate(walks)]
@@ -209,10 +213,18 @@ def _run_walks(pb, imf, walks: list, mode: str, workers: int, executor: Optional
                 on_point()
 
     failed = execute(_indexed_walk_task, tasks, keep, workers=workers, describe=lambda t: f"t_d profile walk {t[0]}",
-                     preload=("uwbimu.calibration.profile_walk",), **(executor or {}))
+                     preload=("uwbimu.calibration.profile_walk",),
+                     **({"caller": True} if _local(executor) else {}), **(executor or {}))
     if failed:
         raise EstimationError("t_d profile: " + "; ".join(failed))
     return [p for i in range(len(walks)) for p in got[i]]
+
+
+def _local(executor: Optional[dict]) -> bool:
+    """The walks run on a local process pool (not Dask): the caller then walks too (``execute(caller=True)``:
+    a pool's workers start cold, seconds of imports and IMU factors, while this process is warm)."""
+    ex = executor or {}
+    return not (ex.get("client") is not None or ex.get("scheduler") or ex.get("dask_local"))
 
 
 def _indexed_walk_task(task):
@@ -254,9 +266,12 @@ def run_profile(pb, imf, free_values, centre: float, progress=None, workers: int
         # (_WORKER_PROBLEM) from the first pass instead of rebuilding them in a new pool per pass
         from uwbimu.parallel import ProcessPool
 
-        with ProcessPool(workers, preload=("uwbimu.calibration.profile_walk",)) as pool:
-            return run_profile(pb, imf, free_values, centre, progress, workers, {"pool": pool}, mode, chi2_scale,
-                               on_point)
+        with ProcessPool(workers, preload=("uwbimu.calibration.profile_walk",), caller=True) as pool:
+            try:
+                return run_profile(pb, imf, free_values, centre, progress, workers, {"pool": pool}, mode,
+                                   chi2_scale, on_point)
+            finally:
+                _WORKER_PROBLEM.clear()  # this process's copy (the caller walked too)
     import uuid
 
     token = uuid.uuid4().hex  # one problem for every pass (the workers' cache key)
