@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 
 from uwbimu.estimation import EskfOptions, run_eskf
-from uwbimu.eval.clock_faults import handle_clock_faults, likelihood_gain
+from uwbimu.eval.clock_faults import confirm_fault, handle_clock_faults, likelihood_gain
 from uwbimu.eval.clock_windows import ALPHA, consistency_tests, windowed_time_offsets
 from uwbimu.sim import builtin_scenario, simulate
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from check_clock_false_alarms import ar1_ranges  # noqa: E402  (the benchmark's coloured-noise model, one copy)
+from check_clock_false_alarms import ar1_ranges, null_log  # noqa: E402  (the benchmark's coloured-noise model, one copy)
 
 
 def _flight(seed: int):
@@ -75,7 +75,9 @@ def test_correction_reverted_when_likelihood_does_not_improve(monkeypatch):
     assert out is res and used is ds
     (clock,) = _clock_events(out)
     assert clock["corrected"] is False and clock["handled"].startswith("not corrected")
-    assert clock["likelihood_gain"] <= clock["likelihood_threshold"]
+    assert clock["confirmed"] is False
+    assert (clock["likelihood_gain_calibrated"] <= clock["likelihood_threshold"]
+            or clock["z_calibrated"] <= clock["crit"])
     assert np.isfinite(clock["sigma"])
 
 
@@ -100,3 +102,49 @@ def test_no_nan_sigma_when_the_corrected_run_cannot_be_measured(monkeypatch):
     assert _clock_events(out)  # the fault is found (and reported even when not corrected)
     for e in _clock_events(out):
         assert np.isfinite(e["sigma"]) and e["sigma"] > 0
+
+
+class _Run:
+    """Stand-in for a corrected run: only the long-run variance record the confirmation reads."""
+
+    def __init__(self, lrv: float):
+        self.extra = {"residual_variance_factor": {"long_run_variance": lrv}}
+
+
+@pytest.mark.parametrize("kind", ["clock_jump", "clock_drift"])
+def test_confirmation_counts_the_long_run_variance(kind):
+    """The same window statistic and likelihood gain: confirmed with white residuals (L = 1, and L
+    below 1 is not credited), rejected when the residuals' long-run variance is 9."""
+    from scipy.stats import chi2
+
+    thr = chi2.isf(ALPHA, 2 if kind == "clock_jump" else 1)
+    ev = {"kind": kind, "z": 1.5 * 5.0, "crit": 5.0, "dispersion": 1.2}
+    white = confirm_fault(ev, _Run(1.0), 2.0 * thr)
+    assert white["confirmed"] and white["z_calibrated"] == pytest.approx(ev["z"])
+    assert confirm_fault(ev, _Run(0.5), 2.0 * thr)["long_run_variance"] == 1.0
+    col = confirm_fault(ev, _Run(9.0), 2.0 * thr)
+    assert not col["confirmed"]
+    assert col["z_calibrated"] == pytest.approx(ev["z"] * 1.2 / 3.0)
+    assert col["likelihood_gain_calibrated"] == pytest.approx(2.0 * thr / 9.0)
+    # a dispersion already above sqrt(L) is not scaled twice
+    assert confirm_fault(dict(ev, dispersion=4.0), _Run(9.0), 20 * thr)["z_calibrated"] == pytest.approx(ev["z"])
+
+
+def test_forced_candidate_on_coloured_noise_is_not_confirmed(monkeypatch):
+    """A jump candidate (the window tests' best split) on a clock-fault-free log with AR(1) range
+    errors: the 'corrected' run keeps coloured residuals, so the fault is not confirmed and the
+    input run is returned."""
+    import uwbimu.eval.clock_faults as cf
+
+    ds = null_log("ar1 3 s 10 cm", 8)
+    res = run_eskf(ds, EskfOptions())
+    win = windowed_time_offsets(res)
+    c = consistency_tests(win, float(res.t[0]))
+    ev = {"kind": "clock_jump", "t": c["t_split"], "size": c["m2"] - c["m1"], "sigma": c["step_sd"],
+          "z": 1.2 * c["crit_jump"], "crit": c["crit_jump"], "region": [float(win["t0"][0]), float(win["t1"][-1])],
+          "stamp_gap": None, "alpha": ALPHA, "dispersion": c["scale"], "windows": c["n"], "window_s": 1.5}
+    monkeypatch.setattr(cf, "_candidates", lambda *a, **k: [dict(ev)])
+    out, used = cf.handle_clock_faults(res, ds, _rerun, max_rounds=2)
+    assert out is res and used is ds
+    (clock,) = _clock_events(out)
+    assert clock["corrected"] is False and clock["long_run_variance"] > 2.0
