@@ -106,3 +106,34 @@ def test_chunks_give_the_per_sample_state_and_the_same_guards(flight_with_faults
     rest = [[{k: v for k, v in e.items()} for e in f.events() if e["kind"] != "input_rejected"] for f in (one, many)]
     assert rest[0] == rest[1]
     assert [e["kind"] for e in rest[0]].count("initialised") == 1
+
+
+def test_push_imu_batching_is_invisible(flight_with_faults, monkeypatch):
+    """push_imu keeps up to IMU_BATCH samples before processing them; every accessor and every other push
+    processes them first: states read along the way and events are those of one-sample processing."""
+    from uwbimu.estimation import streaming
+
+    ds, imu, rng_, kinds, idx = flight_with_faults
+
+    def run():
+        f = Eskf.for_dataset(ds, EskfOptions(), record=True)
+        t, a, r = rng_
+        seen = []
+        for n, (k, i) in enumerate(zip(kinds.tolist(), idx.tolist())):
+            if k == 0:
+                f.push_imu(imu[i, 0], imu[i, 1:4], imu[i, 4:7])
+            else:
+                f.push_range(t[i], a[i], r[i])
+            if n % 137 == 0:  # a caller looking now and then
+                s = f.state()
+                seen.append(None if s is None else (s.t_imu, s.position.tolist(), s.covariance.tobytes()))
+        f.finish()
+        return f, seen
+
+    batched, seen_b = run()
+    assert streaming.IMU_BATCH > 1
+    monkeypatch.setattr(streaming, "IMU_BATCH", 1)
+    single, seen_1 = run()
+    assert seen_b == seen_1 and any(x is not None for x in seen_1)
+    assert batched.events() == single.events()
+    np.testing.assert_array_equal(batched.passes()[-1].states, single.passes()[-1].states)

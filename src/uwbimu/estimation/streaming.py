@@ -55,6 +55,14 @@ from uwbimu.models.quaternion import quat_multiply
 
 #: rotation of 180 deg about x (its own inverse): anchors' z-down frame <-> the filter's z-up world
 _FLIP = np.array([1.0, -1.0, -1.0])
+
+#: :meth:`Eskf.push_imu` keeps up to this many accepted samples and processes them as one chunk: the Python
+#: bookkeeping of a call into the filter (buffers, mid-interval inputs, gap and rotation statistics, the
+#: compiled loop's arguments) costs tens of microseconds whatever the number of samples, the checks of one
+#: sample a few.  Every other push and every accessor (``state``, ``events``, ``initialised``, ...)
+#: processes the kept samples first, so what a caller can observe is what one-sample processing gives, bit
+#: for bit (``tests/test_streaming_chunks.py``).  64 samples are 64 ms at 1 kHz.
+IMU_BATCH = 64
 _Q_FLIP = np.array([0.0, 1.0, 0.0, 0.0])
 
 
@@ -316,6 +324,8 @@ class Eskf:
         self._dropped = {"imu_not_increasing": 0, "imu_not_finite": 0, "unknown_anchor": 0,
                          "other_tag": 0, "not_finite": 0}
         self._rej = Rejections(self._events, self._dropped)
+        # IMU samples push_imu accepted and not yet processed: (t, ax, ay, az, wx, wy, wz), see IMU_BATCH
+        self._pend: list[tuple[float, ...]] = []
         # geometric bounds of a measurement: the supervisor's box (the anchors' bounding box grown by its
         # margin) holds every position it accepts, so no range is longer than its diagonal
         p_ = self._prob
@@ -376,6 +386,7 @@ class Eskf:
              meas_b: np.ndarray, meas_z: np.ndarray, meas_tag: Optional[np.ndarray] = None) -> None:
         """Push IMU samples ``(n,)``, ``(n, 6)`` and measurements by anchor index (``meas_b >= 0``: TDoA
         to anchor ``meas_b``, else a range) in one go (arrays as in a :class:`Problem`)."""
+        self._flush()
         if len(meas_t):
             self._add(np.asarray(meas_t, float), np.asarray(meas_a, np.int64), np.asarray(meas_b, np.int64),
                       np.asarray(meas_z, float), None,
@@ -399,28 +410,42 @@ class Eskf:
                                    field="acc, gyro", reason="bad_shape") from None
         isf = math.isfinite
         if not (isf(t) and isf(ax) and isf(ay) and isf(az) and isf(wx) and isf(wy) and isf(wz)):
+            self._flush()
             self._rej.add("imu", "imu_not_finite", t)
             return
         if ax * ax + ay * ay + az * az > self._acc2 or wx * wx + wy * wy + wz * wz > self._gyro2:
+            self._flush()
             self._rej.add("imu", "imu_implausible", t)
             return
-        n = self._t.n
-        if n:
-            last = float(self._t.a[n - 1])
+        pend = self._pend
+        if pend or self._t.n:
+            last = pend[-1][0] if pend else float(self._t.a[self._t.n - 1])
             if t <= last:
+                self._flush()
                 if t >= last - self.clock_restart_s:
                     self._rej.add("imu", "imu_not_increasing", t)
                     return
                 t = self._imu_clock_restart(t, last)
             elif t - last > self.max_gap_s:
+                self._flush()
                 self._imu_gap(last, t)
-        u = np.empty((1, 6))
-        u[0] = (ax, ay, az, wx, wy, wz)
-        self._append_imu(np.array([t]), u)
+        pend.append((t, ax, ay, az, wx, wy, wz))
+        if len(pend) >= IMU_BATCH:
+            self._flush()
+
+    def _flush(self) -> None:
+        """Process the IMU samples :meth:`push_imu` kept (one chunk: the same kernels on the same numbers in
+        the same order as one sample at a time, ``tests/test_streaming_chunks.py``)."""
+        pend = self._pend
+        if pend:
+            a = np.array(pend, dtype=float)
+            pend.clear()
+            self._append_imu(np.ascontiguousarray(a[:, 0]), np.ascontiguousarray(a[:, 1:]))
 
     def push_imu_chunk(self, t: np.ndarray, acc: np.ndarray, gyro: np.ndarray) -> None:
         """Several IMU samples at once (arrays ``(n,)``, ``(n, 3)``, ``(n, 3)``); faster than a loop.
         The samples are checked as :meth:`push_imu` checks one."""
+        self._flush()
         t = as_floats("t", t)
         acc, gyro = as_floats("acc", acc, 3), as_floats("gyro", gyro, 3)
         same_length("push_imu_chunk", t=t, acc=acc, gyro=gyro)
@@ -511,6 +536,7 @@ class Eskf:
     def push_range(self, t: float, anchor: str, range: float, tag: Optional[str] = None) -> None:
         """One two-way range [m] to ``anchor``, stamped ``t`` [s, UWB clock]; checked as
         :meth:`push_ranges` checks (plain float comparisons)."""
+        self._flush()
         try:
             t, z = float(t), float(range)
         except (TypeError, ValueError):
@@ -527,6 +553,7 @@ class Eskf:
     def push_ranges(self, t: np.ndarray, anchors: Sequence[str], ranges: np.ndarray,
                     tags: Optional[Sequence[Optional[str]]] = None) -> None:
         """Several ranges at once, in time order."""
+        self._flush()
         t = as_floats("t", t)
         z = as_floats("ranges", ranges)
         ids = self._ids("anchors", anchors)
@@ -553,6 +580,7 @@ class Eskf:
     def push_tdoas(self, t: np.ndarray, anchors_a: Sequence[str], anchors_b: Sequence[str], tdoa: np.ndarray,
                    tags: Optional[Sequence[Optional[str]]] = None) -> None:
         """Several TDoA measurements at once, in time order."""
+        self._flush()
         t = as_floats("t", t)
         z = as_floats("tdoa", tdoa)
         ia, ib = self._ids("anchors_a", anchors_a), self._ids("anchors_b", anchors_b)
@@ -601,6 +629,7 @@ class Eskf:
         with the ranges, with the same gate (chi-square at the options' probability) and robust loss.
         The model works in the filter's world frame (z up; ``anchor_frame_up: -z`` turns y and z).
         A stamp on the IMU clock gets the clock shift of an IMU clock restart."""
+        self._flush()
         z = as_floats("z", z)
         dim = getattr(model, "dim", None)
         if not isinstance(dim, (int, np.integer)) or getattr(model, "clock", None) not in ("imu", "uwb"):
@@ -638,6 +667,7 @@ class Eskf:
         """End of the data: process everything still waiting (the last IMU intervals included).
 
         ``progress``: optional callback receiving the filter's IMU sample index as it goes."""
+        self._flush()
         self._final = True
         self._progress = progress
         n = self._t.n
@@ -660,6 +690,7 @@ class Eskf:
     # ------------------------------------------------------------------ output
     @property
     def initialised(self) -> bool:
+        self._flush()
         return self._st is not None
 
     def _t_imu(self, k: int) -> float:
@@ -685,6 +716,7 @@ class Eskf:
     def state(self) -> Optional[EskfState]:
         """The current estimate (``None`` before the first initialisation).  Between a divergence or an
         IMU gap and the re-initialisation it is the last estimate, with ``valid=False``."""
+        self._flush()
         if self._st is not None:
             x, P = self._st.x, self._st.P
             t_imu = self._t_imu(self._st.k)
@@ -720,25 +752,30 @@ class Eskf:
 
     def events(self) -> list[dict[str, Any]]:
         """Structured events so far (``{"t", "kind", ...}``: initialised, divergence, gate_reopened, ...)."""
+        self._flush()
         out = list(self._events)
         if self._st is not None:
             out += self._st.events
         return out
 
     def warnings(self) -> list[str]:
+        self._flush()
         return list(self._warnings)
 
     def passes(self) -> list[PassResult]:
         """The filter passes (one per (re-)initialisation) with their recorded outputs."""
+        self._flush()
         return list(self._passes) + ([self._st.result(self._rec.view(), self._st.P.shape[0])]
                                      if self._st is not None and self._mode == "run" else [])
 
     def problem(self) -> Problem:
         """The filter's data and settings as a :class:`Problem` (the buffers, as far as kept)."""
+        self._flush()
         return self._prob
 
     def records(self) -> np.ndarray:
         """Per-measurement records ``(m, 7)`` (see ``filterpass.REC_*``), in arrival order."""
+        self._flush()
         return self._rec.view()
 
     # ------------------------------------------------------------------ internals
