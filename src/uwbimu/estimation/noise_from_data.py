@@ -19,6 +19,14 @@ Three rules, each stated and tested (``tests/test_noise_from_data.py``):
    measurement kind (range, TDoA) is compared with 1; when it lies outside its 99 % sampling band the
    noise variance is corrected by ``R' = R + (k - 1) median(S)`` (``E[nu^2] = H P H^T + R``) and the
    pass is repeated once.
+   A second statistic, ``statistic="mean_square"``, is the mean square of the normalised innovations of
+   every processed measurement (accepted by the gate or not), each square capped at
+   :data:`WINSOR_SIGMAS` squared: the level of the whole error distribution, tails included, for a
+   pass whose sigma already fits the core (the robust step first). On real logs the errors are
+   heavy-tailed and correlated in time (multipath, NLOS); a sigma fitted to the core alone makes the
+   gate reject a fifth of the Crazyflie TDoA3 log and the filter follow the rest too closely.  From a
+   pass with a badly wrong sigma it would overshoot (the filter off track inflates every innovation),
+   hence robust first, then this.
 3. **The variance factor of the residuals** (:func:`residual_variance_factor`). The long-run
    variance of the normalised innovations, per measurement channel (anchor or TDoA pair), by batch
    means over blocks of ``ceil(sqrt(n))`` samples, pooled over the channels: for residuals that agree
@@ -34,6 +42,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from uwbimu.errors import UsageError
 from uwbimu.models.imu import ImuNoise
 
 #: band [Hz] of the spectrum the IMU white-noise density is read from (capped at 0.4 x the sample rate)
@@ -44,6 +53,9 @@ MIN_IMU_SECONDS = 8.0
 Z_99 = 2.326
 #: relative efficiency of the MAD-based variance against the sample variance (normal data)
 _MAD_VAR_EFFICIENCY = 0.37
+#: ``statistic="mean_square"``: each squared normalised innovation counts at most this many sigmas squared
+#: (a gross spike, e.g. a +100 m range, must not set the noise level alone)
+WINSOR_SIGMAS = 10.0
 
 
 def imu_noise_from_log(t: np.ndarray, u: np.ndarray, preset: ImuNoise) -> tuple[ImuNoise, dict[str, Any]]:
@@ -101,28 +113,40 @@ def _robust_var(e: np.ndarray) -> float:
     return float((1.4826 * np.median(np.abs(e - med))) ** 2)
 
 
-def measurement_noise_from_innovations(innov: np.ndarray, S: np.ndarray, sigma: float) -> dict[str, Any]:
+def measurement_noise_from_innovations(innov: np.ndarray, S: np.ndarray, sigma: float,
+                                       statistic: str = "robust") -> dict[str, Any]:
     """Covariance matching of one measurement kind (rule 2 of the module docstring).
 
     Parameters
     ----------
-    innov, S : innovations [m] and their predicted variances [m^2] of the accepted measurements.
+    innov, S : innovations [m] and their predicted variances [m^2]: of the accepted measurements for
+        ``statistic="robust"``, of every processed one for ``"mean_square"``.
     sigma : the noise sd [m] the pass used.
+    statistic : ``"robust"``: the MAD-based variance of the normalised innovations (the core of the
+        distribution); ``"mean_square"``: their mean square, each capped at :data:`WINSOR_SIGMAS`
+        squared (the whole distribution, tails included).
 
     Returns
     -------
-    ``{n, k, band: [lo, hi], sigma, sigma_new, changed}``: ``k`` the robust variance of the normalised
-    innovations, ``sigma_new`` the corrected sd (``sigma`` when ``k`` lies in its 99 % band).
+    ``{n, k, band: [lo, hi], sigma, sigma_new, changed, statistic}``: ``k`` the chosen variance of the
+    normalised innovations, ``sigma_new`` the corrected sd (``sigma`` when ``k`` lies in its 99 % band).
     """
+    if statistic not in ("robust", "mean_square"):
+        raise UsageError(f"statistic must be 'robust' or 'mean_square', got {statistic!r}")
     ok = np.isfinite(innov) & np.isfinite(S) & (S > 0)
     e = innov[ok] / np.sqrt(S[ok])
     n = int(e.size)
-    out: dict[str, Any] = {"n": n, "sigma": float(sigma), "sigma_new": float(sigma), "changed": False}
+    out: dict[str, Any] = {"n": n, "sigma": float(sigma), "sigma_new": float(sigma), "changed": False,
+                           "statistic": statistic}
     if n < 30:
         out.update({"k": float("nan"), "band": [float("nan")] * 2})
         return out
-    k = _robust_var(e)
-    half = 2.576 * math.sqrt(2.0 / (_MAD_VAR_EFFICIENCY * n))
+    if statistic == "robust":
+        k = _robust_var(e)
+        half = 2.576 * math.sqrt(2.0 / (_MAD_VAR_EFFICIENCY * n))
+    else:
+        k = float(np.mean(np.minimum(e * e, WINSOR_SIGMAS**2)))
+        half = 2.576 * math.sqrt(2.0 / n)  # sd of the mean of n chi2(1) / n
     out.update({"k": k, "band": [1.0 - half, 1.0 + half]})
     if abs(k - 1.0) > half:
         r2 = sigma**2 + (k - 1.0) * float(np.median(S[ok]))

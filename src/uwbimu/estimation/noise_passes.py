@@ -34,23 +34,29 @@ def accepted_records(prob: Problem, passes: list[PassResult]) -> tuple[np.ndarra
 
 
 def match_measurement_noise(prob: Problem, passes: list[PassResult], info: dict[str, Any],
-                             opts: EskfOptions) -> dict[str, Any]:
-    """Rule 2 of :mod:`.noise_from_data` per measurement kind (a kind whose sd the options give is kept)."""
+                             opts: EskfOptions, statistic: str = "robust") -> dict[str, Any]:
+    """Rule 2 of :mod:`.noise_from_data` per measurement kind (a kind whose sd the options give is kept).
+
+    ``statistic="robust"`` matches the accepted measurements' core; ``"mean_square"`` every processed
+    measurement, accepted by the gate or not (the tails included: a sigma fitted to the accepted ones
+    would confirm itself), for a pass whose sigma already came from the robust step."""
     rec, acc = accepted_records(prob, passes)
+    processed = np.isfinite(rec[:, REC_INNOV]) & np.isfinite(rec[:, REC_S]) & (rec[:, REC_STATUS] == K.UPD_OK)
+    use = acc if statistic == "robust" else processed
     is_td = (prob.uwb_b >= 0) if prob.uwb_b is not None else np.zeros(len(prob.uwb_t), bool)
     rsig = float(info["range_sigma"])
     tsig = float(info.get("tdoa_sigma") or math.sqrt(2.0) * rsig)
     out: dict[str, Any] = {}
     for kind, mask, sig, given in (("range", ~is_td, rsig, opts.range_sigma is not None),
                                    ("tdoa", is_td, tsig, opts.tdoa_sigma is not None)):
-        sel = mask & acc
+        sel = mask & use
         if not mask.any():
             continue
         if given:
             out[kind] = {"n": int(sel.sum()), "sigma": sig, "sigma_new": sig, "changed": False, "given": True}
             continue
-        r = measurement_noise_from_innovations(rec[sel, REC_INNOV], rec[sel, REC_S], sig)
-        r["rejected_fraction"] = float(1.0 - sel.sum() / max(int((mask & np.isfinite(rec[:, REC_INNOV])).sum()), 1))
+        r = measurement_noise_from_innovations(rec[sel, REC_INNOV], rec[sel, REC_S], sig, statistic=statistic)
+        r["rejected_fraction"] = float(1.0 - (mask & acc).sum() / max(int((mask & np.isfinite(rec[:, REC_INNOV])).sum()), 1))
         out[kind] = r
     return out
 
