@@ -22,7 +22,7 @@ from uwbimu.models import kernels as _physics
 from uwbimu.models.state import E_BG, E_L, N_BG, N_DYN, N_L, N_TD, NOM_SHIFT
 from uwbimu.models.kernels import (  # noqa: F401  (re-exported)
     GRAVITY, rotmat, _deriv, _rk4_core, _rk4_s, _rk4, rk4_step_mid, rk4_step, propagate_interval, _mm3,
-    _skew3, _phi_blocks, phi_blocks, _phi_vec, _cov_step, _cov_step_rows, cov_step, cov_step_blocks, decay_biases,
+    _skew3, _phi_blocks, phi_blocks, _phi_vec, _cov_step, _cov_step_rows, _cov_step_sym, cov_step, cov_step_blocks, decay_biases,
     base_process_noise, range_jacobian,
     inject, quat_mul, quat_exp, error_transition, tdoa_jacobian, refresh_stale_cache,
 )
@@ -112,7 +112,7 @@ def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, pn, dt_max, cov_every
             if cnt > 0:
                 for i in range(6):
                     ub[i] = usum[i] / cnt
-                _cov_step_rows(P, xb, ub, dts, pn, B, W, A, T, U)
+                _cov_step_sym(P, xb, ub, dts, pn, B, A)
                 cnt = 0
                 dts = 0.0
                 for i in range(6):
@@ -124,7 +124,7 @@ def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, pn, dt_max, cov_every
                     ua[i] = imu_u[k, i] + (s / m) * (imu_u[k + 1, i] - imu_u[k, i])
                     ue[i] = imu_u[k, i] + ((s + 1) / m) * (imu_u[k + 1, i] - imu_u[k, i])
                     ub[i] = 0.5 * (ua[i] + ue[i])
-                _cov_step_rows(P, x, ub, h, pn, B, W, A, T, U)
+                _cov_step_sym(P, x, ub, h, pn, B, A)
                 _rk4(x, ua, ue, h, x, wk)
                 decay_biases(x, h, pn)
             k += 1
@@ -145,7 +145,7 @@ def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, pn, dt_max, cov_every
         if cnt >= cov_every:
             for i in range(6):
                 ub[i] = usum[i] / cnt
-            _cov_step_rows(P, xb, ub, dts, pn, B, W, A, T, U)
+            _cov_step_sym(P, xb, ub, dts, pn, B, A)
             cnt = 0
             dts = 0.0
             for i in range(6):
@@ -153,7 +153,7 @@ def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, pn, dt_max, cov_every
     if cnt > 0:
         for i in range(6):
             ub[i] = usum[i] / cnt
-        _cov_step_rows(P, xb, ub, dts, pn, B, W, A, T, U)
+        _cov_step_sym(P, xb, ub, dts, pn, B, A)
     return k
 
 
