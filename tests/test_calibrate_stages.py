@@ -8,6 +8,12 @@ relative.  The graph starts from the ESKF, so an intended change of the ESKF can
 whose ESKF bootstraps on anchor guesses, moved by 8e-4 with 15d18a7 and back by 9e-5 when the anchor bootstrap stopped holding the lever arm, 15d18a7's
 successor in this round): then re-record them with the old
 calibrator files on the new ESKF, never with the code under test alone.
+
+One deliberate calibrator change re-recorded the self-survey case (issue 27 item 6): the graph's IMU noise is now the
+initialising ESKF's when that run measured it on the log (calibration/graph.py ``imu_noise_sources``); that case's
+bootstrap ESKF measures densities 1.02x the preset (accel 1.756e-3, gyro 2.485e-4), which moved its values by 2e-3
+relative (lever arm by 0.2 mm).  The other two cases' ESKFs measure below the preset and use it unchanged: still
+bit for bit.
 """
 
 from __future__ import annotations
@@ -116,17 +122,17 @@ def test_anchor_self_survey_is_unchanged():
     r = calibrate(dataclasses.replace(ds, anchors=an), CalibrationOptions.model_validate(
         {"td_profile": {"enabled": False}, "estimate_anchor_bias": False}))
     c = r.calibration
-    _close(c["lever_arm"], [0.10804898390158063, -0.07894484792219023, 0.1318686897021054], rtol=REL)
-    _close(c["lever_arm_sd"], [0.022659055249388403, 0.021220960334932103, 0.007665162423289136], rtol=REL)
-    _close(c["time_offset"]["value"], 0.03042293367881442, rtol=REL)
-    _close(c["time_offset"]["sd"], 0.00507082248317824, rtol=REL)
-    _close(c["solver"]["final_cost"], 437.16940056766606, rtol=REL)
+    _close(c["lever_arm"], [0.1082439325640227, -0.0787942872075524, 0.13188944357147928], rtol=REL)
+    _close(c["lever_arm_sd"], [0.02268801890355961, 0.021234376685898705, 0.007667300492090967], rtol=REL)
+    _close(c["time_offset"]["value"], 0.030460650575408893, rtol=REL)
+    _close(c["time_offset"]["sd"], 0.005090567098199828, rtol=REL)
+    _close(c["solver"]["final_cost"], 437.13326897717866, rtol=REL)
     _close(r.anchors[["x", "y", "z"]].to_numpy(float),
            [[0.2, 0.3, 0.35],
-            [9.732526002832254, 0.4285074843761089, 0.21774168001488275],
+            [9.732523987845497, 0.42854332466870815, 0.217686910589485],
             [9.8, 7.7, 0.4],
-            [0.29076978986718466, 7.765382003198446, 0.22600892825161906],
-            [5.103113735885266, 0.14191889692768767, 2.715177491947894],
+            [0.29077812336912257, 7.76536405966134, 0.2260151512410108],
+            [5.103122854354974, 0.14197100373259933, 2.7153365899823507],
             [9.85, 4.2, 2.65],
-            [4.9052758964083525, 7.830315285319706, 2.7024029768278557],
-            [0.1452878871468542, 3.787198367247883, 2.761389096422024]], rtol=REL)
+            [4.905252076127971, 7.83027622122673, 2.7024279967918408],
+            [0.1453237159087518, 3.787205440066711, 2.7614724543080467]], rtol=REL)

@@ -112,6 +112,7 @@ class Problem:
     options: CalibrationOptions
     range_sigma: float
     imu_noise: dict = field(default_factory=dict)
+    imu_noise_source: dict = field(default_factory=dict)  # per value: options / eskf / dataset / default
     anchors: Optional[AnchorSetup] = None
     # TDoA rows (``tdoa.csv``) merged with the ranges in time order: anchor_b[m] >= 0 makes row m the TDoA
     # rho[m] = |p_U - p_b| - |p_U - p_a| with a = anchor_j[m], b = anchor_b[m]; None: ranges only
@@ -220,6 +221,46 @@ def _anchor_rotations(dataset, ids: list[str], needed, anchors: Optional[AnchorS
     return out
 
 
+def imu_noise_sources(dataset, eskf, options: CalibrationOptions) -> tuple[dict, dict]:
+    """The IMU noise model of the graph's preintegration factors and where each value came from.
+
+    Per value (densities [m/s^2/sqrt(Hz)], [rad/s/sqrt(Hz)] and bias random walks): the option when given
+    (``source`` ``options``), else the initialising ESKF's when it measured them on this log
+    (``calibration["imu_noise"]["source"] == "log"``, :mod:`uwbimu.estimation.noise_from_data`: the larger of
+    the preset and the in-flight spectrum; ``eskf``), else dataset.yaml's (``dataset``), else
+    :data:`DEFAULT_IMU_NOISE` (``default``).  Why the ESKF's: a multirotor's vibration is about 100 times the
+    datasheet density (the Crazyflie logs: accel 107x / 61x); preintegration factors that trust the IMU that much
+    leave the near-null direction "every position + c, lever arm - c" (little rotation) to absorb the
+    disagreement (the Crazyflie lever arm went to metres and the trajectory with it), which the IMU noise scale
+    (:mod:`uwbimu.calibration.noise_scale`), estimated only after that solve, cannot undo.
+
+    Returns
+    -------
+    (noise, source): ``{name: value}`` for the four names of :data:`DEFAULT_IMU_NOISE` and ``{name: source}``.
+    """
+    meta_noise = dataset.meta.imu_noise
+    cal = (getattr(eskf, "calibration", None) or {}).get("imu_noise") or {}
+    measured = cal.get("source") == "log"
+    noise, source = {}, {}
+    for name, default in DEFAULT_IMU_NOISE.items():
+        v, src = getattr(options, name), "options"
+        if v is None and measured and cal.get(name) is not None:
+            v, src = cal[name], "eskf"
+        if v is None and meta_noise is not None:
+            v, src = getattr(meta_noise, name, None), "dataset"
+        if v is None:
+            v, src = default, "default"
+        noise[name], source[name] = float(v), src
+    return noise, source
+
+
+def _eskf_measured_sigma(eskf, kind: str) -> Optional[float]:
+    """The initialising ESKF's ``kind`` (``range`` / ``tdoa``) noise sd [m] when it measured it on this log
+    (covariance matching, ``calibration["measurement_noise"][kind]["source"] == "log"``), else None."""
+    m = ((getattr(eskf, "calibration", None) or {}).get("measurement_noise") or {}).get(kind) or {}
+    return float(m["sigma"]) if m.get("source") == "log" and m.get("sigma") else None
+
+
 def build_problem(dataset, eskf, options: CalibrationOptions, anchors: Optional[AnchorSetup] = None) -> Problem:
     """Keyframes, ranges, noise and the ESKF initial guess of a log with one tag or several.
 
@@ -266,13 +307,7 @@ def build_problem(dataset, eskf, options: CalibrationOptions, anchors: Optional[
     near = np.clip(np.searchsorted(t_e, tk), 0, len(t_e) - 1)
     init[:, 6:10] = st[near, 6:10]
     init[:, 10:16] = st[near, 10:16]
-    meta_noise = dataset.meta.imu_noise
-    noise = {}
-    for name, default in DEFAULT_IMU_NOISE.items():
-        v = getattr(options, name)
-        if v is None and meta_noise is not None:
-            v = getattr(meta_noise, name, None)
-        noise[name] = float(v if v is not None else default)
+    noise, noise_src = imu_noise_sources(dataset, eskf, options)
     sigma = options.range_sigma or dataset.meta.range_sigma or 0.1
     t_r = uwb["t"].to_numpy(float)
     rho = uwb["range"].to_numpy(float)
@@ -302,7 +337,8 @@ def build_problem(dataset, eskf, options: CalibrationOptions, anchors: Optional[
         order = np.argsort(t_r, kind="stable")
         t_r, rho, aj, bj, ti = t_r[order], rho[order], aj[order], bj[order], ti[order]
         base = options.range_sigma or dataset.meta.range_sigma or 0.1
-        tsig = float(options.tdoa_sigma or (dataset.meta.extra or {}).get("tdoa_sigma") or np.sqrt(2.0) * base)
+        tsig = float(options.tdoa_sigma or _eskf_measured_sigma(eskf, "tdoa")
+                     or (dataset.meta.extra or {}).get("tdoa_sigma") or np.sqrt(2.0) * base)
     knot, n_knots = None, 0
     dr = options.range_bias_drift
     if dr is not None:
@@ -332,7 +368,7 @@ def build_problem(dataset, eskf, options: CalibrationOptions, anchors: Optional[
                    anchor_ids=ids, anchor_pos=np.array([pos[a] for a in ids]), init_states=init,
                    lever0=levers0[0].copy(),
                    td0=float(eskf.calibration["time_offset"]), options=options, range_sigma=float(sigma),
-                   imu_noise=noise, anchors=anchors, tag_i=ti if len(names) > 1 else None, tag_names=list(names),
+                   imu_noise=noise, imu_noise_source=noise_src, anchors=anchors, tag_i=ti if len(names) > 1 else None, tag_names=list(names),
                    levers0=levers0, lever_prior=lprior, tag_column=bool(tag_column), anchor_rot=rot)
 
 

@@ -70,3 +70,55 @@ def identifiability(cal: dict, options) -> tuple[dict, list[dict]]:
                        "message": f"{name}: " + "; ".join(parts) + "; more "
                                   + " and ".join(_ROTATIONS[c] for c in weak) + " while ranging would pin it"})
     return section, events
+
+
+
+#: prior sd [m] of the lever arm while it is held (the re-solve's tight prior at the prior mean)
+HOLD_SD = 1e-4
+#: honest / model sigma of a lever-arm axis above which its residuals refute the white-noise model
+REFUTED_RATIO = 1.1
+
+
+def hold_rule(cal: dict, section: dict, events: list, options) -> dict:
+    """The blocks the batch holds at their priors: the ESKF's rule (``hold_unidentified``), per block.
+
+    A block (the lever arm of every tag; the constant anchor biases) is held when both: (1) none of its
+    elements is ``identified`` by the information-gain verdict of ``section`` (:func:`identifiability`, with
+    the honest sigma); (2) the residuals refute the noise model: the IMU noise scale was raised significantly
+    (event ``imu_noise_scaled`` with ``scale`` > 1) or the honest (sandwich) sigma of a lever-arm axis exceeds
+    its model sigma by more than :data:`REFUTED_RATIO`.  Then unmodelled errors are there to be absorbed, and a
+    block the log does not determine absorbs them and takes the trajectory with it: on the Crazyflie logs
+    (TDoA, little rotation) "every position + c, lever arm - c" is nearly free and the lever arm moved 33 cm
+    and the trajectory with it; the anchor biases of top and bottom anchors trade against the height
+    (trajectory 0.45 m too high).  A clean log keeps its estimates; so does a block with one identified element.
+
+    Parameters
+    ----------
+    cal : the calibration dict (``lever_arm_sd``, ``lever_arm_sd_model``).
+    section : the ``identifiability`` section of that dict.
+    events : the calibration's events so far.
+    options : the :class:`~uwbimu.calibration.options.CalibrationOptions` (whether anchor biases are estimated).
+
+    Returns
+    -------
+    ``{block: {verdicts}}`` for the blocks to hold (``lever_arm``, ``anchor_bias``), ``{}`` for none; with a
+    block held, the key ``refuted`` says why: ``{imu_noise_scale, sd_ratio}``.
+    """
+    scale = next((float(e["scale"]) for e in events if e.get("kind") == "imu_noise_scaled"), None)
+    sd = [float(x) for x in cal["lever_arm_sd"]]
+    sdm = [float(x) for x in cal.get("lever_arm_sd_model") or sd]
+    ratio = max((a / b for a, b in zip(sd, sdm) if b > 0), default=1.0)
+    if not ((scale is not None and scale > 1.0) or ratio > REFUTED_RATIO):
+        return {}
+    out: dict = {}
+    lever = section["lever_arm"]
+    per_tag = {"": lever} if "x" in lever else lever
+    verdicts = {tag: {c: e["verdict"] for c, e in axes.items()} for tag, axes in per_tag.items()}
+    if not any(v == "identified" for axes in verdicts.values() for v in axes.values()):
+        out["lever_arm"] = verdicts[""] if "" in verdicts else verdicts
+    bias = section.get("anchor_bias") or {}
+    if options.estimate_anchor_bias is True and bias and not any(e["verdict"] == "identified" for e in bias.values()):
+        out["anchor_bias"] = {a: e["verdict"] for a, e in bias.items()}
+    if out:
+        out["refuted"] = {"imu_noise_scale": scale, "sd_ratio": ratio}
+    return out

@@ -2,7 +2,8 @@
 
 :func:`uwbimu.calibration.calibrate` runs, in order::
 
-    Start      the part of the log calibrated, in the graph frame, and the ESKF that seeds the graph
+    Start      the part of the log calibrated, in the graph frame, and the ESKF that seeds the graph (or, when
+               that run fails the health check, a robust multilateration: calibration/start_check.py)
     Built      the problem (everything that does not depend on t_d) and its IMU factors
     Solved     a solve: factor graph, solution, range association, iterations (free solve, second start,
                adaptive Huber, IMU noise scale: each stage returns a new Solved)
@@ -65,6 +66,9 @@ class Start:
     setup : :class:`uwbimu.calibration.anchors.AnchorSetup` (which anchors are estimated, gauge).
     frame : what :func:`uwbimu.calibration.frames.from_graph_frame` undoes on the result.
     given_eskf : the caller passed ``eskf`` (the second start is then not tried).
+    eskf_run : the ESKF result that was run (or given); ``eskf`` is it when healthy, else the multilateration
+        seed (:mod:`uwbimu.calibration.start_check`).  None: the same as ``eskf``.
+    source : what ``eskf`` is: ``eskf`` or ``multilateration`` (the ``calibration_start`` event).
     """
 
     dataset: Any
@@ -73,6 +77,8 @@ class Start:
     setup: Any
     frame: Any
     given_eskf: bool
+    eskf_run: Any = None
+    source: str = "eskf"
 
 
 @dataclass(frozen=True)

@@ -216,6 +216,9 @@ def register(app: typer.Typer) -> None:
                    else format_number(sc["scale"]))
             console.print(escape(f"IMU noise model scaled by {fig} (estimated from the log; imu_noise_scale: fixed "
                                  "to keep the stated one)"), highlight=False)
+        st = cal.get("start") or {}
+        if st.get("source") == "eskf":  # the fallback is a warning event, printed with the others below
+            console.print(escape(f"batch started from the ESKF (health check: {st.get('reason')})"), highlight=False)
         print_agreement(console, cal.get("estimators"))
         # every warning and event the report lists (run_warning_items), each once; the disagreement is printed above
         print_run_warnings(console, SimpleNamespace(

@@ -531,12 +531,39 @@ def _batch_estimators_part(inp: ReportInputs) -> Markup:
                  disagreeing=" ".join(str(n) for n in ev.get("disagreeing") or []))
 
 
+def _batch_start_part(inp: ReportInputs) -> Markup:
+    """Where the batch started (calibration.yaml ``start``, event ``calibration_start``) and which blocks it held
+    at their priors (``held_at_prior``, event ``calibration_held``): attributes ``source`` (``eskf``,
+    ``multilateration`` or ``unknown`` for an older file), ``reason`` and ``held`` (space-separated blocks)."""
+    title = "Start and held blocks"
+    cal = inp.calibration or {}
+    st = cal.get("start") if isinstance(cal.get("start"), dict) else None
+    held = cal.get("held_at_prior") if isinstance(cal.get("held_at_prior"), dict) else None
+    blocks = [str(b) for b in (held or {}).get("blocks") or []]
+    if st is None:
+        return _part("start", title, _missing(Markup("<code>calibration.yaml</code> has no <code>start</code> "
+                                                     "(older output).")), source="unknown", reason="",
+                     held=" ".join(blocks))
+    if st.get("source") == "multilateration":
+        body = _block("warn", f"The initialising ESKF failed the health check ({st.get('reason')}): the batch "
+                              "started from a robust multilateration of the log.")
+    else:
+        body = Markup("<p>The batch started from the initialising ESKF (health check: {}).</p>").format(
+            str(st.get("reason")))
+    if blocks:
+        body += _block("warn", "Held at the prior (no element identified, residuals refute the noise model): "
+                       + ", ".join(blocks) + ".")
+    return _part("start", title, body, source=str(st.get("source")), reason=str(st.get("reason")),
+                 held=" ".join(blocks))
+
+
 def _batch_section(inp: ReportInputs) -> Optional[Markup]:
     """The ``uwbimu calibrate`` section, or None when the folder holds no batch-calibration output."""
     if not is_batch_output(inp):
         return None
     parts = []
-    for key, title, fn in (("estimators", "ESKF and batch", _batch_estimators_part),
+    for key, title, fn in (("start", "Start and held blocks", _batch_start_part),
+                           ("estimators", "ESKF and batch", _batch_estimators_part),
                            ("td-profile", "Time-offset profile", _batch_profile_part),
                            ("residual-angle", "Residual vs line-of-sight angle", _batch_angle_part),
                            ("anchor-ellipses", "Anchor error ellipses", _batch_ellipse_part),
