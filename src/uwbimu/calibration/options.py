@@ -224,6 +224,13 @@ class RangeModelOptions(BaseModel):
     anchor_direction: Optional[AnchorDirectionBias] = Field(
         None, description="direction-dependent bias in each anchor's antenna frame (anchors.csv qw..qz); none: "
                           "no anchor-side term")
+    select: Literal["cv", "given"] = Field(
+        "given", description="'cv': the range model (white, direction, drift, direction+drift) and the Huber "
+                             "threshold are chosen on the log by held-out likelihood over time blocks "
+                             "(uwbimu.calibration.range_model_select; `direction` gives the direction candidate's "
+                             "form, the chosen drift's sd and correlation time are fitted), replacing direction, "
+                             "range_bias_drift and huber_k; 'given': the model as configured")
+    select_folds: int = Field(5, ge=3, le=20, description="time blocks of the cross-validation with select: cv")
 
 
 #: Huber threshold of the first solves when ``huber_k: adaptive`` (Huber's 95 %-efficiency value, robust enough that

@@ -1,0 +1,120 @@
+"""The range model chosen on the log by blocked cross-validation (issue 27, item 7).
+
+Seeded simulations with a known range-error model: white noise, a direction-dependent bias in the
+tag's body frame (order-2 Fourier terms, added to the simulated ranges from the true trajectory),
+and per-anchor AR(1) errors (the benchmark's coloured-noise model).  The selection must name the true
+family; assertions on the structured record.
+"""
+
+from __future__ import annotations
+
+import copy
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from uwbimu.calibration.options import CalibrationOptions
+from uwbimu.calibration.range_factor import direction_features
+from uwbimu.calibration.range_model_select import (FAMILIES, HUBER_GRID, apply_selection, range_residuals,
+                                                   select_range_model)
+from uwbimu.errors import InputError
+from uwbimu.estimation import EskfOptions, run_eskf
+from uwbimu.sim import builtin_scenario, simulate
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from check_clock_false_alarms import ar1_ranges  # noqa: E402  (one copy of the coloured-noise model)
+
+#: true direction coefficients (cos1, sin1, cos2, sin2) [m]: order 2 only (order 1 is the lever arm's)
+COEF = np.array([0.0, 0.0, 0.08, 0.05])
+
+
+def with_direction_bias(ds, coef=COEF):
+    """``ds`` with ``F(w_b) . coef`` added to every range, ``w_b`` the true body-frame line of sight."""
+    g, u = ds.groundtruth, ds.uwb.copy()
+    t = u["t"].to_numpy(float)
+    p = np.column_stack([np.interp(t, g["t"], g[c]) for c in ("px", "py", "pz")])
+    q = np.column_stack([np.interp(t, g["t"], g[c]) for c in ("qx", "qy", "qz", "qw")])
+    R = Rotation.from_quat(q / np.linalg.norm(q, axis=1)[:, None])
+    a = ds.anchors.set_index("anchor").loc[u["anchor"].astype(str), ["x", "y", "z"]].to_numpy(float)
+    wb = R.inv().apply(a - (p + R.apply(np.asarray(ds.meta.truth.lever_arm))))
+    F, _ = direction_features(wb, (1, 2), False)
+    u["range"] = u["range"].to_numpy(float) + F @ coef
+    out = copy.copy(ds)
+    out.uwb = u
+    return out
+
+
+@pytest.fixture(scope="module")
+def flight():
+    return simulate(builtin_scenario("calibration-flight").updated(duration=60.0, seeds={"noise": 1}))
+
+
+def _select(ds):
+    return select_range_model(ds, run_eskf(ds, EskfOptions()))
+
+
+def test_white_noise_log_chooses_the_white_model(flight):
+    sel = _select(flight)
+    assert sel.chosen == "white"
+    assert sel.candidates == list(FAMILIES) and sel.folds == 5 and len(sel.block_edges) == 6
+    assert np.all(np.diff(sel.block_edges) > 0)
+    for f in FAMILIES:
+        assert set(sel.scores[f]) == {str(k) for k in HUBER_GRID}
+        assert all(len(v) == sel.folds and np.all(np.isfinite(v)) for v in sel.scores[f].values())
+        assert sel.family_k[f] in HUBER_GRID
+    assert sel.huber_k in HUBER_GRID and sel.reason
+    # the white sd recovered about the simulated 5 cm
+    assert 0.035 < sel.params["sigma"] < 0.07 and "drift_sd" not in sel.params and "direction" not in sel.params
+
+
+def test_direction_bias_log_chooses_the_direction_model(flight):
+    sel = _select(with_direction_bias(flight))
+    assert sel.chosen == "direction"
+    # it beats white and drift on every fold
+    for other in ("white", "drift"):
+        assert np.all(np.asarray(sel.family_scores["direction"]) > np.asarray(sel.family_scores[other]))
+    c = sel.params["direction"]
+    assert abs(c["cos2"] - COEF[2]) < 0.02 and abs(c["sin2"] - COEF[3]) < 0.02
+
+
+def test_coloured_noise_log_chooses_the_drift_model(flight):
+    sel = _select(ar1_ranges(flight, sigma=0.10, tau=3.0, seed=1001))
+    assert sel.chosen == "drift"
+    assert 0.05 < sel.params["drift_sd"] < 0.2 and 0.5 < sel.params["correlation_time"] < 10.0
+
+
+def test_apply_selection_sets_the_options(flight):
+    sel = _select(with_direction_bias(flight))
+    o = apply_selection(CalibrationOptions(range_bias_drift={"sd": 0.1}), sel)
+    assert o.range_model.direction is not None and o.range_bias_drift is None and o.huber_k == sel.huber_k
+    sel.chosen = "drift"
+    sel.params.update({"drift_sd": 0.08, "correlation_time": 3.0})
+    o = apply_selection(CalibrationOptions(), sel)
+    assert o.range_model.direction is None and o.range_bias_drift.sd == 0.08
+    assert o.range_bias_drift.knot_spacing <= o.range_bias_drift.correlation_time / 2
+
+
+def test_residuals_about_the_true_trajectory_are_the_noise(flight):
+    """Sign and geometry: about the ESKF trajectory the residuals are about the simulated noise (5 cm, zero mean)."""
+    res = run_eskf(flight, EskfOptions())
+    d = range_residuals(flight, res)
+    assert len(d["r"]) > 0.8 * len(flight.uwb)
+    assert abs(np.median(d["r"])) < 0.02 and 0.03 < 1.4826 * np.median(np.abs(d["r"])) < 0.1
+    assert np.allclose(np.linalg.norm(d["u"], axis=1), 1.0)
+
+
+def test_bad_input_is_refused(flight):
+    res = run_eskf(flight, EskfOptions())
+    with pytest.raises(InputError):
+        select_range_model(flight, res, folds=2)
+    with pytest.raises(InputError):
+        select_range_model(flight, res, families=["white", "nonsense"])
+    with pytest.raises(InputError):
+        select_range_model(flight, res, folds=20 * 5)  # blocks of ~30 ranges, fewer than MIN_BLOCK_ROWS
+    empty = copy.copy(flight)
+    empty.uwb = flight.uwb.iloc[0:0]
+    with pytest.raises(InputError):
+        select_range_model(empty, res)
