@@ -14,20 +14,40 @@ family was chosen.  Real logs (imported dataset folders, ESKF defaults as the tr
 from __future__ import annotations
 
 import argparse
+import copy
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
+from uwbimu.calibration.range_factor import direction_features
 from uwbimu.calibration.range_model_select import select_range_model
 from uwbimu.estimation import EskfOptions, run_eskf
 from uwbimu.sim import builtin_scenario, simulate
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from check_clock_false_alarms import ar1_ranges  # noqa: E402
-from test_range_model_select import with_direction_bias  # noqa: E402
+
+#: true direction coefficients (cos1, sin1, cos2, sin2) [m]: order 2 only (order 1 is the lever arm's)
+COEF = np.array([0.0, 0.0, 0.08, 0.05])
+
+
+def with_direction_bias(ds, coef=COEF):
+    """``ds`` with ``F(w_b) . coef`` added to every range, ``w_b`` the true body-frame line of sight."""
+    g, u = ds.groundtruth, ds.uwb.copy()
+    t = u["t"].to_numpy(float)
+    p = np.column_stack([np.interp(t, g["t"], g[c]) for c in ("px", "py", "pz")])
+    q = np.column_stack([np.interp(t, g["t"], g[c]) for c in ("qx", "qy", "qz", "qw")])
+    R = Rotation.from_quat(q / np.linalg.norm(q, axis=1)[:, None])
+    a = ds.anchors.set_index("anchor").loc[u["anchor"].astype(str), ["x", "y", "z"]].to_numpy(float)
+    wb = R.inv().apply(a - (p + R.apply(np.asarray(ds.meta.truth.lever_arm))))
+    F, _ = direction_features(wb, (1, 2), False)
+    u["range"] = u["range"].to_numpy(float) + F @ coef
+    out = copy.copy(ds)
+    out.uwb = u
+    return out
 
 
 def row(name: str, ds) -> str:
