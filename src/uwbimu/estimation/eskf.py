@@ -29,7 +29,8 @@ from uwbimu.estimation.init import InitialisationError, InitialState
 from uwbimu.estimation.noise_from_data import imu_noise_from_log
 from uwbimu.estimation.noise_passes import (
     apply_variance_factor, match_measurement_noise, noise_events, noise_used, unidentified_blocks)
-from uwbimu.estimation.timeoffset import information_verdict, time_offset_prior_sd, time_offset_verdict
+from uwbimu.estimation.timeoffset import (information_verdict, single_clock_time_offset, time_offset_prior_sd,
+                                          time_offset_verdict)
 from uwbimu.models import state as S
 from uwbimu.estimation.options import EskfOptions
 from uwbimu.estimation.outputs import block_calibration, fixed_components
@@ -270,9 +271,12 @@ def run_eskf(
     cpu0 = time.process_time()
     cpu_filter = 0.0
     dataset, ev_segment = select_segment(dataset, opts.segment, opts.start, opts.end)
+    opts, ev_clock = single_clock_time_offset(dataset, opts)
     prob, info = build_problem(dataset, opts)
     warnings: list[str] = list(info["warnings"])
-    events: list[dict[str, Any]] = [ev_segment] + list(info["events"])
+    for ev in ev_clock:
+        ev["t"] = float(prob.uwb_t[0]) if len(prob.uwb_t) else None
+    events: list[dict[str, Any]] = [ev_segment] + ev_clock + list(info["events"])
     if ev_segment["cropped"]:
         warnings.append(ev_segment["message"])
     priors = info["priors"]

@@ -170,3 +170,22 @@ def time_offset_verdict(sd_post: float, sd_prior: float, fixed: bool = False,
     if not np.isfinite(gain):
         return verdict, "no finite posterior/prior sd"
     return verdict, f"sd {sd_post * 1e3:.3g} ms from prior {sd_prior * 1e3:.3g} ms (information gain {gain:.3g}x the prior)"
+
+
+def single_clock_time_offset(dataset, opts):
+    """The time-offset options for a log whose streams share one clock.
+
+    With ``dataset.yaml`` ``single_clock: true`` (a Crazyflie uSD log: the IMU, the UWB and the ground
+    truth were stamped by one clock) there is no second clock to be offset from: estimating t_d there
+    only lets it trade with the other states (on the two shared Crazyflie logs it wandered between
+    -0.5 and +0.8 s across settings).  Unless the user configured ``time_offset`` (any field), t_d is
+    held fixed at 0 and an event ``time_offset_single_clock`` says so.  Returns ``(options, events)``.
+    """
+    meta = getattr(dataset, "meta", None)
+    if getattr(meta, "single_clock", None) is not True or "time_offset" in opts.model_fields_set:
+        return opts, []
+    t_d = opts.time_offset.model_copy(update={"mode": "fixed", "prior": 0.0})
+    event = {"t": None, "kind": "time_offset_single_clock", "mode": "fixed", "t_d": 0.0,
+             "message": "every stream of this log was stamped by one clock (dataset.yaml single_clock: true): "
+                        "t_d held at 0; set time_offset.mode: estimate to estimate a latency"}
+    return opts.model_copy(update={"time_offset": t_d}), [event]
