@@ -26,6 +26,7 @@ from uwbimu.estimation.timeoffset import search_time_offset
 from uwbimu.estimation.filterpass import REC_NIS, REC_S, REC_STATUS, Problem, run_pass
 from uwbimu.errors import EstimationError
 from uwbimu.estimation.options import EskfOptions
+from uwbimu.estimation.problem import block_prior_covariance
 from uwbimu.models import state as S
 from uwbimu.models.quaternion import quat_from_euler, quat_to_rotmat
 
@@ -220,10 +221,8 @@ def assemble(prob: Problem, pr: Prior, yaw: float, yaw_sd: float, td: float, td_
     P[S.ETD, S.ETD] = td_sd**2
     ab = L.err("anchor_bias")
     P[ab, ab] = np.eye(L.n_anchor_bias) * pr.sd_bias**2
-    hb = L.err("height_bias")
-    P[hb, hb] = np.eye(L.n_height_bias) * prob.height_sd0**2
-    pb = L.err("pair_bias")
-    P[pb, pb] = np.eye(L.n_pair_bias) * prob.pair_sd0**2
+    if prob.priors is not None:  # every further declared block from its declared prior sd
+        block_prior_covariance(P, L, prob.priors)
     return x, P
 
 
