@@ -28,7 +28,7 @@ with one factor per row (``group_range_factors: false``, the baseline): CPU of e
 difference of the results (final cost, lever arm, t_d).
 ``workers`` (issue 31): in one run, ``calibrate`` (t_d profile on) with ``workers=1`` and ``workers=2`` (the
 profile's walks on a process pool, the caller walking too) on the same ESKF, and ``--windows`` repeatability
-windows (ESKF) with ``workers=1`` and ``2``, both through :func:`uwbimu.eval.repeatability.repeatability` as it
+windows (ESKF; of a ``--windows-duration`` log, 600 s by default) with ``workers=1`` and ``2``, both through :func:`uwbimu.eval.repeatability.repeatability` as it
 is and through ``execute(..., caller=True)``; wall seconds, the best of ``--repeat`` runs each (the 2-core
 machine is shared: the minimum is the figure), the ratio 1 worker / 2 workers, and whether the results are
 identical.  DATASET: an imported folder (default: the built-in ``calibration-flight`` of ``--duration`` s).
@@ -224,7 +224,7 @@ def _window_tasks(ds, k: int):
     return [(i, w, "eskf", opts) for i, w in enumerate(split_windows(ds, k))]
 
 
-def workers_bench(path, duration: float, imu_rate: float, repeat: int, k: int) -> None:
+def workers_bench(path, duration: float, imu_rate: float, repeat: int, k: int, win_duration: float) -> None:
     from uwbimu.calibration import CalibrationOptions
     from uwbimu.estimation import EskfOptions, run_eskf
     from uwbimu.eval.repeatability import _window_task, repeatability
@@ -258,6 +258,11 @@ def workers_bench(path, duration: float, imu_rate: float, repeat: int, k: int) -
           f"{best[2]:.1f} s wall (best of {repeat}); RATIO 1 worker / 2 workers {best[1] / best[2]:.2f}x; "
           f"profile and calibration identical: {same}")
 
+    if not path:  # the windows on a longer log: a window's ESKF run must not be small against a worker's start
+        sc = builtin_scenario("calibration-flight")
+        ds = simulate(sc.model_copy(update={"duration": win_duration,
+                                            "imu": sc.imu.model_copy(update={"rate_hz": imu_rate})}))
+        print(f"windows log: {ds.duration:.0f} s, {len(ds.imu)} IMU samples")
     tasks = _window_tasks(ds, k)
     wins: dict = {}
     outs: dict = {}
@@ -299,6 +304,8 @@ def main(argv=None) -> int:
     ap.add_argument("--imu-rate", type=float, default=None, help="long / workers: IMU rate [Hz] (1000 / 200)")
     ap.add_argument("--repeat", type=int, default=2, help="workers: runs of each variant (the best is reported)")
     ap.add_argument("--windows", type=int, default=4, help="workers: repeatability windows")
+    ap.add_argument("--windows-duration", type=float, default=600.0,
+                    help="workers: simulated log [s] the windows split (without DATASET)")
     a = ap.parse_args(argv)
     if a.what == "cost":
         cost()
@@ -307,7 +314,7 @@ def main(argv=None) -> int:
     elif a.what == "long":
         long(a.duration or 600.0, a.imu_rate or 1000.0, a.workers, a.baseline)
     elif a.what == "workers":
-        workers_bench(a.dataset, a.duration or 120.0, a.imu_rate or 200.0, a.repeat, a.windows)
+        workers_bench(a.dataset, a.duration or 120.0, a.imu_rate or 200.0, a.repeat, a.windows, a.windows_duration)
     elif a.dataset is None:
         ap.error("shift, full and profile need DATASET")
     elif a.what == "profile":

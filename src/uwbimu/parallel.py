@@ -61,7 +61,8 @@ def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], No
     tasks from the back of the list at once; feeder threads hand tasks from the front to the pool only
     after a probe task came back (the pool is up), so no task waits for a pool that is still starting, and a
     short job ends as fast as serially.  Each task is pickled and unpickled before the caller runs it (the
-    copy a worker gets), so a task's result does not depend on where it ran.
+    copy a worker gets), so a task's result does not depend on where it ran.  The pool is started in a
+    thread too: a forkserver's first process start blocks until the server has imported the preload.
     """
     import pickle
     import queue as _queue
@@ -70,17 +71,32 @@ def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], No
 
     failures: list[str] = []
     own = pool is None or pool.executor is None
-    ex = _new_executor(max(1, workers - 1), preload) if own else pool.executor
+    box = [None if own else pool.executor]  # the executor, created by the starter thread when own
     todo = deque(tasks)
     results: _queue.Queue = _queue.Queue()
-    stop = threading.Event()
-    probe = ex.submit(os.getpid)
+    stop, up, dead = threading.Event(), threading.Event(), threading.Event()
+    lock = threading.Lock()
+
+    def starter() -> None:
+        # in a thread: a forkserver's first process start blocks until the server has imported the preload
+        try:
+            if box[0] is None:
+                box[0] = _new_executor(max(1, workers - 1), preload)
+            box[0].submit(os.getpid).result()  # the probe: the pool is up
+            ok = True
+        except Exception:  # noqa: BLE001 - a pool that cannot start: the caller runs everything
+            ok = False
+        with lock:
+            (up if ok else dead).set()
+            if stop.is_set() and own and box[0] is not None:  # the caller finished first
+                box[0].shutdown(wait=False, cancel_futures=True)
 
     def feeder() -> None:
-        try:
-            probe.result()  # the pool is up
-        except Exception:  # noqa: BLE001 - a pool that cannot start: the caller runs everything
+        while not (up.is_set() or dead.is_set() or stop.is_set()):
+            up.wait(0.05)
+        if not up.is_set():
             return
+        ex = box[0]
         while not stop.is_set():
             try:
                 t = todo.popleft()
@@ -96,10 +112,19 @@ def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], No
             if isinstance(f.exception(), BrokenProcessPool):
                 return
 
-    feeders = [threading.Thread(target=feeder, daemon=True, name=f"uwbimu-feeder-{i}")
-               for i in range(max(1, workers - 1))]
-    for th in feeders:
+    threads = [threading.Thread(target=starter, daemon=True, name="uwbimu-pool-start")]
+    threads += [threading.Thread(target=feeder, daemon=True, name=f"uwbimu-feeder-{i}")
+                for i in range(max(1, workers - 1))]
+    for th in threads:
         th.start()
+
+    def finish(cancel: bool) -> None:
+        with lock:
+            stop.set()
+            started = up.is_set() or dead.is_set()
+        if own and started and box[0] is not None:
+            # not waited for after an exception; otherwise the pool is idle by now (every task handled)
+            box[0].shutdown(wait=not cancel, cancel_futures=True)
 
     def handle(f, t) -> None:
         try:
@@ -137,14 +162,9 @@ def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], No
                 on_chunk(chunk)
             handled += 1
     except BaseException:
-        stop.set()
-        if own:
-            ex.shutdown(wait=False, cancel_futures=True)
+        finish(cancel=True)
         raise
-    stop.set()
-    if own:
-        # a pool that never came up is not waited for (its start may still be running)
-        ex.shutdown(wait=probe.done(), cancel_futures=True)
+    finish(cancel=False)  # a pool still starting is shut down by its starter, not waited for
     return failures
 
 
