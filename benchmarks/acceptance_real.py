@@ -8,7 +8,9 @@ both with default options) it prints: the lever arm ± sigma against the documen
 the distance in sigma per axis (or "not identified"), t_d ± sigma with its verdict, the NIS summary
 (mean, median of the accepted updates), the noise used (IMU densities and range/TDoA sd, from the log or
 the preset), the position RMSE against the ground truth where its frame is the anchors' (ISAS-Walk: not
-comparable unaligned, n/a), the ESKF/batch agreement on t_d, and whether a clock event was raised.
+comparable unaligned, n/a), the ESKF/batch agreement on t_d, and whether a clock event was raised; for the batch
+also where it started (``calibration_start``: the ESKF or, when that run fails the health check, a robust
+multilateration) and the blocks it held at their priors (``calibration_held``).
 
 The documented antenna offset comes from the dataset (``truth.lever_arm``, else the tag's nominal lever
 arm); a Crazyflie microSD import has none, so the UTIL dataset's manually measured vehicle-centre-to-tag
@@ -118,6 +120,11 @@ def main() -> int:
         tds_txt = "not estimated" if tds is None or not math.isfinite(float(tds)) else f"{1e3 * float(tds):.1f} ms"
         print(f"  t_d {1e3 * float(tdv):+.1f} ± {tds_txt}, {tdverd}; "
               f"IMU noise scale {((bc.get('imu_noise') or {}).get('inflation'))}")
+        brmse = position_rmse(ds, b.trajectory["t"].to_numpy(), b.trajectory[["px", "py", "pz"]].to_numpy())
+        st = bc.get("start") or {}
+        held = (bc.get("held_at_prior") or {}).get("blocks") or []
+        print(f"  position RMSE {'n/a (ground truth in another frame)' if brmse is None else f'{brmse:.3f} m'}; "
+              f"start {st.get('source')} ({st.get('reason')}); held at prior: {', '.join(held) or 'none'}")
         ag = estimator_agreement(cal, bc, r.config["resolved"].get("modes"))
         print(f"  agreement: {ag['kind']} {ag['disagreeing']}")
         clock += [e for e in (b.events or []) if str(e.get("kind", "")).startswith("clock")]

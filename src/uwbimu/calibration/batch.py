@@ -133,9 +133,9 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
         cal["held_at_prior"] = {"blocks": sorted(k for k in hold if k != "refuted"), "first_pass": first,
                                 "refuted": hold["refuted"]}
         events.append({"kind": "calibration_held", "severity": "warning", "blocks": cal["held_at_prior"]["blocks"],
-                       "verdicts": {k: v for k, v in hold.items() if k != "refuted"}, "refuted": hold["refuted"],
-                       "first_pass": first,
-                       "message": "no element of " + " / ".join(cal["held_at_prior"]["blocks"]) + " identified and "
+                       "information_gain": {k: v for k, v in hold.items() if k != "refuted"},
+                       "refuted": hold["refuted"], "first_pass": first,
+                       "message": "the log does not determine " + " / ".join(cal["held_at_prior"]["blocks"]) + " and "
                                   "the residuals refute the noise model: held at the prior and solved again "
                                   "(docs/calibrate.md 'What to trust'); the first solve's values in first_pass"})
         cal["identifiability"], id_events = identifiability(cal, o)

@@ -80,17 +80,21 @@ REFUTED_RATIO = 1.1
 
 
 def hold_rule(cal: dict, section: dict, events: list, options) -> dict:
-    """The blocks the batch holds at their priors: the ESKF's rule (``hold_unidentified``), per block.
+    """The blocks the batch holds at their priors: the ESKF's rule (``hold_unidentified``) on the batch's
+    information gains, per block.
 
-    A block (the lever arm of every tag; the constant anchor biases) is held when both: (1) none of its
-    elements is ``identified`` by the information-gain verdict of ``section`` (:func:`identifiability`, with
-    the honest sigma); (2) the residuals refute the noise model: the IMU noise scale was raised significantly
-    (event ``imu_noise_scaled`` with ``scale`` > 1) or the honest (sandwich) sigma of a lever-arm axis exceeds
-    its model sigma by more than :data:`REFUTED_RATIO`.  Then unmodelled errors are there to be absorbed, and a
-    block the log does not determine absorbs them and takes the trajectory with it: on the Crazyflie logs
-    (TDoA, little rotation) "every position + c, lever arm - c" is nearly free and the lever arm moved 33 cm
-    and the trajectory with it; the anchor biases of top and bottom anchors trade against the height
-    (trajectory 0.45 m too high).  A clean log keeps its estimates; so does a block with one identified element.
+    A block (the lever arm of every tag; the constant anchor biases) is held when both: (1) the log does not
+    determine any of its elements: each element's information gain over its prior (:func:`identifiability`, with
+    the honest sigma) is below :data:`HOLD_GAIN`, i.e. the prior still carries at least 10 % of every element's
+    information (sd above prior_sd / sqrt(10)); (2) the residuals refute the noise model: the IMU noise scale was
+    raised significantly (event ``imu_noise_scaled`` with ``scale`` > 1) or the honest (sandwich) sigma of a
+    lever-arm axis exceeds its model sigma by more than :data:`REFUTED_RATIO`.  Then unmodelled errors are there
+    to be absorbed, and a block the log does not determine absorbs them and takes the trajectory with it: on the
+    Crazyflie logs (TDoA, little rotation; lever-arm gains 1.1-6.5, anchor-bias gains at most 4.3)
+    "every position + c, lever arm - c" is nearly free and the lever arm moved 33 cm and the trajectory with it,
+    and the biases of the upper and lower anchors traded against the height (trajectory 0.45 m too high).  A
+    block with one element the log determines keeps its estimates (INRoL: identified; ISAS-Walk: lever-arm
+    gains 45-74, one anchor bias 55).
 
     Parameters
     ----------
@@ -101,8 +105,9 @@ def hold_rule(cal: dict, section: dict, events: list, options) -> dict:
 
     Returns
     -------
-    ``{block: {verdicts}}`` for the blocks to hold (``lever_arm``, ``anchor_bias``), ``{}`` for none; with a
-    block held, the key ``refuted`` says why: ``{imu_noise_scale, sd_ratio}``.
+    ``{block: {element: information gain}}`` for the blocks to hold (``lever_arm``: ``{x, y, z}``, per tag
+    with several; ``anchor_bias``: per anchor), ``{}`` for none; with a block held, the key ``refuted`` says why:
+    ``{imu_noise_scale, sd_ratio}``.
     """
     scale = next((float(e["scale"]) for e in events if e.get("kind") == "imu_noise_scaled"), None)
     sd = [float(x) for x in cal["lever_arm_sd"]]
@@ -110,15 +115,24 @@ def hold_rule(cal: dict, section: dict, events: list, options) -> dict:
     ratio = max((a / b for a, b in zip(sd, sdm) if b > 0), default=1.0)
     if not ((scale is not None and scale > 1.0) or ratio > REFUTED_RATIO):
         return {}
+
+    def undetermined(entries) -> bool:
+        gains = [e["information_gain"] for e in entries]
+        return bool(gains) and all(not g >= HOLD_GAIN for g in gains)  # NaN gain: nothing determined
+
     out: dict = {}
     lever = section["lever_arm"]
     per_tag = {"": lever} if "x" in lever else lever
-    verdicts = {tag: {c: e["verdict"] for c, e in axes.items()} for tag, axes in per_tag.items()}
-    if not any(v == "identified" for axes in verdicts.values() for v in axes.values()):
-        out["lever_arm"] = verdicts[""] if "" in verdicts else verdicts
+    if undetermined([e for axes in per_tag.values() for e in axes.values()]):
+        gains = {tag: {c: e["information_gain"] for c, e in axes.items()} for tag, axes in per_tag.items()}
+        out["lever_arm"] = gains[""] if "" in gains else gains
     bias = section.get("anchor_bias") or {}
-    if options.estimate_anchor_bias is True and bias and not any(e["verdict"] == "identified" for e in bias.values()):
-        out["anchor_bias"] = {a: e["verdict"] for a, e in bias.items()}
+    if options.estimate_anchor_bias is True and undetermined(bias.values()):
+        out["anchor_bias"] = {a: e["information_gain"] for a, e in bias.items()}
     if out:
         out["refuted"] = {"imu_noise_scale": scale, "sd_ratio": ratio}
     return out
+
+
+#: information gain below which the log does not determine an element (the prior carries >= 10 % of it)
+HOLD_GAIN = 9.0
