@@ -88,7 +88,7 @@ def test_held_resolve_puts_the_lever_arm_at_its_prior(monkeypatch):
     assert c["lever_arm"] == pytest.approx([0.0, 0.0, 0.0], abs=1e-3)
     assert c["lever_arm_sd"] == [o.lever_arm_prior_sd] * 3 and c["lever_arm_held"] is True
     assert {v["verdict"] for v in c["identifiability"]["lever_arm"].values()} == {"not identified"}
-    assert all(v == 0.0 for v in c["anchor_bias"].values())
+    assert max(abs(v) for v in c["anchor_bias"].values()) < 1e-5  # at 0 under a 1e-6 m prior
     ev = [e for e in r.events if e["kind"] == "calibration_held"]
     assert len(ev) == 1 and ev[0]["blocks"] == ["anchor_bias", "lever_arm"]
     first = np.asarray(ev[0]["first_pass"]["lever_arm"])

@@ -135,6 +135,7 @@ def test_seed_from_multilateration_is_near_the_truth(sim):
     assert np.all(np.isfinite(seed.states))
 
 
+@pytest.mark.slow
 def test_unhealthy_eskf_starts_the_batch_from_multilateration(sim):
     from uwbimu.calibration import CalibrationOptions, calibrate
     from uwbimu.estimation import EskfOptions, run_eskf
