@@ -1,5 +1,7 @@
-"""``calibrate(dataset)``: the batch calibrator as stages (:mod:`uwbimu.calibration.stages`): ESKF seed, factor
-graph, free solve (second start, adaptive Huber, IMU noise scale), t_d profile and final solve, marginals and report
+"""``calibrate(dataset)``: the batch calibrator as stages (:mod:`uwbimu.calibration.stages`): ESKF seed (or, when
+that run fails the health check, a robust multilateration: :mod:`uwbimu.calibration.start_check`), factor graph,
+free solve (second start, adaptive Huber, IMU noise scale), t_d profile and final solve, the blocks the log does
+not determine held at their priors (:func:`uwbimu.calibration.identifiability.hold_rule`), marginals and report
 (the solves and the profile walk: :mod:`uwbimu.calibration.profile_walk`)."""
 
 from __future__ import annotations
@@ -14,8 +16,8 @@ import numpy as np
 import pandas as pd
 
 from uwbimu.formatting import finite_or_none
-from uwbimu.calibration import anchor_loo, anchors, graph, keys, noise_scale, robust_loss
-from uwbimu.calibration.identifiability import HOLD_SD, hold_rule, identifiability
+from uwbimu.calibration import anchor_loo, anchors, graph, held, keys, noise_scale, robust_loss, start_check
+from uwbimu.calibration.identifiability import hold_rule, identifiability
 from uwbimu.calibration.uncertainty import (SparseMarginals, _block_event, _calibration_covariance,  # noqa: F401
                                            _marginals, _profile_chi2_scale)
 from uwbimu.calibration.options import CalibrationOptions
@@ -65,6 +67,9 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
         ``residuals`` have the documented biases removed.
     options : graph settings; defaults when None.
     eskf : an ESKF result (anchors' frame) to initialise from; ``run_eskf(dataset, eskf_options)`` when None.
+        Either way the graph starts from it only when it passes the health check
+        (:func:`uwbimu.calibration.start_check.eskf_health`), else from a robust multilateration of the log;
+        event ``calibration_start`` (``source``, ``reason``) and calibration.yaml ``start`` say which.
     eskf_options : options of that ESKF; ``options.init_eskf`` when None, else the ESKF defaults.
     progress : called with a fraction in [0, 1].
     workers : processes for the t_d profile's walks (:func:`run_profile`, :func:`uwbimu.parallel.execute`); 1
@@ -92,7 +97,7 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
     report.started("free solve")
     solved = _free_solve(built, engine)
     report.done("free solve")
-    if o.second_start and not start.given_eskf and not start.setup.any_estimated and start.source == "eskf":
+    if o.second_start and not start.given_eskf and not start.setup.any_estimated:
         report.started("second start")
         start, built, solved = _second_start(start, o, built, solved, engine, events)
         report.done("second start")
@@ -124,12 +129,12 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
     cal["identifiability"], id_events = identifiability(cal, o)
     hold = hold_rule(cal, cal["identifiability"], events, o)
     if hold:
-        first = _first_pass(cal, hold)
-        built, profiled = _hold_blocks(built, profiled, hold, engine)
+        first = held.first_pass(cal, hold)
+        built, profiled = held.hold_blocks(built, profiled, hold, engine)
         cal, traj, res, anchor_table = _report(built.problem, profiled, start.dataset)
         cal["imu_noise"] = _imu_noise_report(built.problem, imu_scale)
         cal["range_model"]["huber"] = huber
-        _consider_sd(cal, built.problem, hold, o)
+        held.consider_sd(cal, hold, o)
         cal["held_at_prior"] = {"blocks": sorted(k for k in hold if k != "refuted"), "first_pass": first,
                                 "refuted": hold["refuted"]}
         events.append({"kind": "calibration_held", "severity": "warning", "blocks": cal["held_at_prior"]["blocks"],
@@ -157,67 +162,6 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
     report.done("marginals and report", 1.0)
     out.runtime_s = time.perf_counter() - t_start
     return out
-
-
-def _first_pass(cal: dict, hold: dict) -> dict:
-    """The held blocks' values and sd [m] from the solve before the hold (the ``calibration_held`` event)."""
-    out = {}
-    if "lever_arm" in hold:
-        out["lever_arm"] = list(cal["lever_arm"])
-        out["lever_arm_sd"] = list(cal["lever_arm_sd"])
-        if cal.get("tags"):
-            out["tags"] = {t: {"lever_arm": v["lever_arm"], "lever_arm_sd": v["lever_arm_sd"]}
-                           for t, v in cal["tags"].items()}
-    if "anchor_bias" in hold:
-        out["anchor_bias"] = dict(cal["anchor_bias"])
-        out["anchor_bias_sd"] = dict(cal["anchor_bias_sd"])
-    return out
-
-
-def _hold_blocks(built: Built, profiled: Profiled, hold: dict, engine: str) -> tuple[Built, Profiled]:
-    """The final solve again with the blocks of ``hold`` at their prior means (:func:`hold_rule`): the lever arm
-    under a :data:`HOLD_SD` prior, the anchor biases at 0 (``estimate_anchor_bias: false``); t_d as the
-    profile's verdict had it (free from its value, or at its prior)."""
-    import dataclasses
-
-    import gtsam
-
-    pb = built.problem
-    upd = {}
-    if "lever_arm" in hold:
-        upd["lever_arm_prior_sd"] = HOLD_SD
-    if "anchor_bias" in hold:
-        upd["estimate_anchor_bias"] = False
-    pb2 = dataclasses.replace(pb, options=pb.options.model_copy(update=upd))
-    s = profiled.solved
-    values = gtsam.Values(s.values)
-    if "lever_arm" in hold:
-        for i in range(pb.n_tags):
-            prior = pb.lever_prior[i] if pb.lever_prior is not None else pb.options.lever_arm_prior
-            values.update(keys.lever_arm(i), np.asarray(prior, float))
-    if "anchor_bias" in hold:
-        for j in range(len(pb.anchor_ids)):
-            values.update(keys.anchor_bias(j), np.zeros(1))
-    if profiled.td_free:
-        new = solve(pb2, built.imu_factors, values, s.time_offset(), None, engine=engine)
-    else:
-        td = pb.options.time_offset_prior
-        new = solve(pb2, built.imu_factors, values, td, td, engine=engine)
-    return Built(problem=pb2, imu_factors=built.imu_factors), dataclasses.replace(profiled, solved=new)
-
-
-def _consider_sd(cal: dict, pb, hold: dict, o: CalibrationOptions) -> None:
-    """A held lever arm is reported with its prior's sd (consider mode: the data did not determine it, so its
-    uncertainty is the prior's), so that its verdict reads ``not identified``; the anchor biases held at 0 are
-    listed in ``anchors.bias_held_at_zero`` by the report itself."""
-    if "lever_arm" not in hold:
-        return
-    sd = [float(o.lever_arm_prior_sd)] * 3
-    cal["lever_arm_sd"] = list(sd)
-    cal["lever_arm_sd_model"] = list(sd)
-    cal["lever_arm_held"] = True
-    for t in (cal.get("tags") or {}).values():
-        t["lever_arm_sd"] = list(sd)
 
 
 def _plain_number(v):
@@ -314,7 +258,7 @@ def _start(dataset, o: CalibrationOptions, eskf, eskf_options, events: list) -> 
     events += [ev_segment] + list(setup.events)
     if not setup.any_estimated:
         eskf = eskf if eskf is not None else run_eskf(dataset, eskf_options)
-        seed, ev_start = _checked_seed(dataset, o, eskf)
+        seed, ev_start = start_check.choose_start(dataset, o, eskf)
     else:
         # self-survey: the ESKF bootstraps on anchor guesses (its disagreement with a multilateration on those
         # same guesses says nothing), and a multilateration needs the positions being estimated
@@ -324,38 +268,6 @@ def _start(dataset, o: CalibrationOptions, eskf, eskf_options, events: list) -> 
     events.append(ev_start)
     return Start(dataset=dataset, eskf=seed, eskf_options=eskf_options, setup=setup, frame=frame,
                  given_eskf=given_eskf, eskf_run=eskf, source=ev_start["source"])
-
-
-def _checked_seed(dataset, o: CalibrationOptions, eskf) -> tuple[Any, dict]:
-    """The graph's start: the ESKF when healthy (:func:`uwbimu.calibration.start_check.eskf_health`), else the
-    robust multilateration seed (:func:`~uwbimu.calibration.start_check.multilateration_seed`); and the
-    ``calibration_start`` event (``source`` ``eskf`` | ``multilateration``, ``reason``: ``healthy`` or the failed
-    checks joined by ``+``, ``health``: the checks' values)."""
-    from uwbimu.calibration import start_check
-
-    track = start_check.multilaterate_track(dataset)
-    health = start_check.eskf_health(eskf, track)
-    ev = {"kind": "calibration_start", "severity": "info", "source": "eskf", "reason": "healthy",
-          "health": health}
-    if health["healthy"]:
-        return eskf, ev
-    reason = "+".join(health["failed"])
-    if len(track) < start_check.MIN_FIXES:
-        # nothing better to start from: the ESKF it is, said as a warning
-        ev.update(severity="warning", reason=reason + "+too_few_fixes",
-                  message=f"the initialising ESKF failed the health check ({reason}) and the log gives only "
-                          f"{len(track)} multilateration fixes: the batch starts from the ESKF anyway")
-        return eskf, ev
-    imu_noise = (getattr(eskf, "calibration", None) or {}).get("imu_noise")
-    seed = start_check.multilateration_seed(dataset, track, np.asarray(o.lever_arm_prior, float),
-                                            float(o.time_offset_prior),
-                                            imu_noise if (imu_noise or {}).get("source") == "log" else None)
-    ev.update(source="multilateration", reason=reason, severity="warning", yaw_from=seed.extra["yaw_from"],
-              fixes=seed.extra["fixes"],
-              message=f"the initialising ESKF failed the health check ({reason}): the batch starts from a robust "
-                      "multilateration of the log (attitude from gravity and the gyro); docs/calibrate.md "
-                      "'What to trust'")
-    return seed, ev
 
 
 def _build(start: Start, o: CalibrationOptions) -> Built:
@@ -432,7 +344,8 @@ def _second_start(start: Start, o: CalibrationOptions, built: Built, solved: Sol
     independent) and hand the graph a trajectory and lever arm from which it does not return: ISAS-Walk's last
     15 s window with the default ESKF, filter lever arm (-78, 10, 43) cm, graph (-72, 13, 75) cm at chi2 +38
     above the solve from the robust filter's start, (4, 7, -34) cm.  The robust filter keeps the user's
-    options otherwise (tags, frames, IMU noise); skipped when they already match it.  Event
+    options otherwise (tags, frames, IMU noise); skipped when they already match it.  Tried after a multilateration
+    start too (:mod:`uwbimu.calibration.start_check`: the first ESKF failed its health check).  Event
     ``second_start_won`` when its start gives the lower cost (costs compared as the graphs'; the range
     factors linearise the IMU deltas about each filter's bias, so near-equal costs may pick either).
 
@@ -449,7 +362,7 @@ def _second_start(start: Start, o: CalibrationOptions, built: Built, solved: Sol
     if all(getattr(eo, k) == v for k, v in upd.items()):
         return start, built, solved
     eskf2 = run_eskf(start.dataset, eo.model_copy(update=upd))
-    start2 = dataclasses.replace(start, eskf=eskf2, eskf_run=eskf2)
+    start2 = dataclasses.replace(start, eskf=eskf2, eskf_run=eskf2, source="eskf")
     built2 = _build(start2, o)
     solved2 = _free_solve(built2, engine)
     cost1, cost2 = solved.cost(), solved2.cost()

@@ -333,3 +333,32 @@ def multilateration_seed(dataset, track: pd.DataFrame, lever: np.ndarray, td: fl
         cal["imu_noise"] = dict(imu_noise)
     return SeedResult(t=tg - td, t_imu=tg, states=states, calibration=cal,
                       extra={"yaw_from": yaw_from, "yaw": yaw, "fixes": int(len(track)), "quiet_start": quiet})
+
+
+def choose_start(dataset, o, eskf) -> tuple[Any, dict]:
+    """The graph's start: the ESKF when healthy (:func:`eskf_health`), else the robust multilateration seed
+    (:func:`multilateration_seed`, lever arm and t_d at the priors of the calibration options ``o``); and the
+    ``calibration_start`` event (``source`` ``eskf`` | ``multilateration``, ``reason``: ``healthy`` or the failed
+    checks joined by ``+``, ``health``: the checks' values)."""
+    track = multilaterate_track(dataset)
+    health = eskf_health(eskf, track)
+    ev = {"kind": "calibration_start", "severity": "info", "source": "eskf", "reason": "healthy",
+          "health": health}
+    if health["healthy"]:
+        return eskf, ev
+    reason = "+".join(health["failed"])
+    if len(track) < MIN_FIXES:
+        # nothing better to start from: the ESKF it is, said as a warning
+        ev.update(severity="warning", reason=reason + "+too_few_fixes",
+                  message=f"the initialising ESKF failed the health check ({reason}) and the log gives only "
+                          f"{len(track)} multilateration fixes: the batch starts from the ESKF anyway")
+        return eskf, ev
+    imu_noise = (getattr(eskf, "calibration", None) or {}).get("imu_noise")
+    seed = multilateration_seed(dataset, track, np.asarray(o.lever_arm_prior, float), float(o.time_offset_prior),
+                                imu_noise if (imu_noise or {}).get("source") == "log" else None)
+    ev.update(source="multilateration", reason=reason, severity="warning", yaw_from=seed.extra["yaw_from"],
+              fixes=seed.extra["fixes"],
+              message=f"the initialising ESKF failed the health check ({reason}): the batch starts from a robust "
+                      "multilateration of the log (attitude from gravity and the gyro); docs/calibrate.md "
+                      "'What to trust'")
+    return seed, ev
