@@ -169,9 +169,15 @@ def state_at(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau):
     earlier update is accounted for.  Fills ``xt`` and the input ``u_tau``;
     returns an UPD_* code.
     """
+    return _state_at_um(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau, np.empty(6))
+
+
+@njit(cache=True)
+def _state_at_um(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau, um):
+    """:func:`state_at` with the work array ``um`` (6,) passed in (no allocation: the compiled filter loop
+    calls it for every measurement)."""
     for i in range(x.shape[0]):
         xt[i] = x[i]
-    j = k
     if tau >= imu_t[k]:
         for i in range(6):
             u_tau[i] = imu_u[k, i]
@@ -181,13 +187,20 @@ def state_at(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau):
         return UPD_OK
     if tau < imu_t[0]:
         return UPD_BEFORE_IMU
-    wk = np.empty((6, max(10, x.shape[0])))
+    return _state_at_back(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau, um)
+
+
+@njit(cache=True)
+def _state_at_back(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau, um):
+    """The backward integration of :func:`state_at` (``imu_t[0] <= tau < imu_t[k]``, ``xt`` = ``x``); the
+    RK4 steps take their inputs as tuples (:func:`_rk4_s`, the arithmetic of ``_rk4_core``)."""
+    j = k
     while j > 0 and imu_t[j - 1] >= tau:
         dt = imu_t[j - 1] - imu_t[j]
         if dt_max > 0 and -dt > dt_max:
             propagate_interval(xt, imu_u[j], imu_u[j - 1], dt, dt_max, xt)
         else:
-            _rk4_core(xt, imu_u[j], imu_um[j - 1], imu_u[j - 1], dt, xt, wk)
+            _rk4_s(xt, _row6(imu_u, j), _row6(imu_um, j - 1), _row6(imu_u, j - 1), dt, xt)
         j -= 1
     if tau < imu_t[j]:
         t0 = imu_t[j - 1]
@@ -198,10 +211,10 @@ def state_at(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau):
                 u_tau[i] = imu_u[j - 1, i] + al * (imu_u[j, i] - imu_u[j - 1, i])
             propagate_interval(xt, imu_u[j], u_tau, tau - t1, dt_max, xt)
         else:
-            um = np.empty(6)
             cubic_at(imu_t, imu_u, j - 1, tau, u_tau)
             cubic_at(imu_t, imu_u, j - 1, 0.5 * (tau + t1), um)
-            _rk4_core(xt, imu_u[j], um, u_tau, tau - t1, xt, wk)
+            _rk4_s(xt, _row6(imu_u, j), (um[0], um[1], um[2], um[3], um[4], um[5]),
+                   (u_tau[0], u_tau[1], u_tau[2], u_tau[3], u_tau[4], u_tau[5]), tau - t1, xt)
     else:
         for i in range(6):
             u_tau[i] = imu_u[j, i]
@@ -254,15 +267,29 @@ def range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor, bias_idx, z, r_var,
     (``S`` the innovation variance before robust re-weighting).  ``lever_err``: error index of the
     measuring tag's lever-arm block (``E_L``: the first tag).
     """
-    N = P.shape[0]
-    xt = np.empty_like(x)
-    u_tau = np.empty(6)
-    st = state_at(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau)
+    _range_update_ws(x, P, imu_t, imu_u, imu_um, k, tau, anchor, bias_idx, z, r_var, gate, force, robust_kind,
+                     robust_c, gain_mask, dt_max, out, lever_err, update_work(x.shape[0], P.shape[0]))
+
+
+@njit(cache=True)
+def update_work(nx, N):
+    """Work arrays of one measurement update for a nominal state of ``nx`` and an error state of ``N``
+    numbers: ``(xt, u_tau, um, h, work, Ph, K, dx)`` (see :func:`_range_update_ws`)."""
+    return (np.empty(nx), np.empty(6), np.empty(6), np.empty(N), np.empty(N), np.empty(N), np.empty(N),
+            np.empty(N))
+
+
+@njit(cache=True)
+def _range_update_ws(x, P, imu_t, imu_u, imu_um, k, tau, anchor, bias_idx, z, r_var, gate, force,
+                     robust_kind, robust_c, gain_mask, dt_max, out, lever_err, ws):
+    """:func:`range_update` with its work arrays ``ws`` (:func:`update_work`) passed in: no allocation (the
+    compiled filter loop calls it for every range)."""
+    xt, u_tau, um, h, work, Ph, Kg, dx = ws
+    st = _state_at_um(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau, um)
     out[5] = st
     if st != UPD_OK:
         _not_processed(out)
         return
-    h = np.empty(N)
     delta = imu_t[k] - tau
     if delta < 0:
         delta = 0.0
@@ -271,7 +298,7 @@ def range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor, bias_idx, z, r_var,
         _move_lever_rows(h, lever_err)
     else:
         pred = range_jacobian(xt, u_tau, anchor, bias_idx, delta, h)
-    scalar_update(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, gain_mask, out)
+    _scalar_update_ws(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, gain_mask, out, Ph, Kg, dx)
 
 
 @njit(cache=True)
@@ -283,16 +310,21 @@ def tdoa_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor_a, anchor_b, bias_a, 
     ``r_var`` is the TDoA variance [m^2]; ``bias_a``, ``bias_b`` the error indices of the two anchors'
     range-bias states (or -1): the TDoA then carries ``b_b - b_a``.
     """
-    N = P.shape[0]
-    xt = np.empty_like(x)
-    u_tau = np.empty(6)
-    st = state_at(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau)
+    _tdoa_update_ws(x, P, imu_t, imu_u, imu_um, k, tau, anchor_a, anchor_b, bias_a, bias_b, z, r_var, gate,
+                    force, robust_kind, robust_c, gain_mask, dt_max, out, lever_err, pair_idx,
+                    update_work(x.shape[0], P.shape[0]))
+
+
+@njit(cache=True)
+def _tdoa_update_ws(x, P, imu_t, imu_u, imu_um, k, tau, anchor_a, anchor_b, bias_a, bias_b, z, r_var, gate,
+                    force, robust_kind, robust_c, gain_mask, dt_max, out, lever_err, pair_idx, ws):
+    """:func:`tdoa_update` with its work arrays ``ws`` (:func:`update_work`) passed in: no allocation."""
+    xt, u_tau, um, h, work, Ph, Kg, dx = ws
+    st = _state_at_um(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau, um)
     out[5] = st
     if st != UPD_OK:
         _not_processed(out)
         return
-    h = np.empty(N)
-    work = np.empty(N)
     delta = imu_t[k] - tau
     if delta < 0:
         delta = 0.0
@@ -311,7 +343,7 @@ def tdoa_update(x, P, imu_t, imu_u, imu_um, k, tau, anchor_a, anchor_b, bias_a, 
         # a constant bias of this anchor pair (error index pair_idx, nominal pair_idx + NOM_SHIFT)
         h[pair_idx] += 1.0
         pred += xt[pair_idx + NOM_SHIFT]
-    scalar_update(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, gain_mask, out)
+    _scalar_update_ws(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, gain_mask, out, Ph, Kg, dx)
 
 
 @njit(cache=True)
@@ -330,9 +362,35 @@ def scalar_update(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, g
     ``z`` with prediction ``pred`` and Jacobian ``h`` (N,); fills ``out[0:5]`` and ``out[6]`` (see
     :func:`range_update`)."""
     N = P.shape[0]
+    _scalar_update_ws(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, gain_mask, out, np.empty(N),
+                      np.empty(N), np.empty(N))
+
+
+@njit(cache=True)
+def _scalar_update_ws(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, gain_mask, out, Ph, K, dx):
+    """:func:`scalar_update` with its work arrays ``Ph``, ``K``, ``dx`` (N,) passed in (no allocation)."""
+    N = P.shape[0]
     r = z - pred
-    Ph = np.zeros(N)
-    for i in range(N):
+    # Ph = P h, four rows at a time: four independent sums (each in the order j = 0, 1, ...) keep the
+    # pipeline busy where one running sum waits for every addition
+    i = 0
+    while i + 4 <= N:
+        a0 = 0.0
+        a1 = 0.0
+        a2 = 0.0
+        a3 = 0.0
+        for j in range(N):
+            hj = h[j]
+            a0 += P[i, j] * hj
+            a1 += P[i + 1, j] * hj
+            a2 += P[i + 2, j] * hj
+            a3 += P[i + 3, j] * hj
+        Ph[i] = a0
+        Ph[i + 1] = a1
+        Ph[i + 2] = a2
+        Ph[i + 3] = a3
+        i += 4
+    for i in range(i, N):
         acc = 0.0
         for j in range(N):
             acc += P[i, j] * h[j]
@@ -355,7 +413,6 @@ def scalar_update(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, g
     if w < 1e-6:
         w = 1e-6
     S = hPh + r_var / w
-    K = np.empty(N)
     for i in range(N):
         K[i] = Ph[i] / S * gain_mask[i]
     # Joseph form for a scalar measurement and any gain K:
@@ -365,7 +422,6 @@ def scalar_update(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, g
             v = P[i, j] - K[i] * Ph[j] - Ph[i] * K[j] + K[i] * K[j] * S
             P[i, j] = v
             P[j, i] = v
-    dx = np.empty(N)
     for i in range(N):
         dx[i] = K[i] * r
     inject(x, dx)
@@ -599,6 +655,7 @@ def filter_loop(x, P, imu_t, imu_u, imu_um, uwb_t, uwb_a, uwb_b, uwb_r, uwb_tag,
     A = np.empty((N_DYN, N))
     T = np.empty((N_DYN, N))
     U = np.empty((N_DYN, N))
+    uws = update_work(nx, N)  # of the measurement updates
 
     k = ist[IS_K]
     j = ist[IS_J]
@@ -690,12 +747,12 @@ def filter_loop(x, P, imu_t, imu_u, imu_um, uwb_t, uwb_a, uwb_b, uwb_r, uwb_tag,
             lev = tag_lever_err[uwb_tag[j]] if multi else E_L
             o = rec[j]
             if b < 0:
-                range_update(x, P, imu_t, imu_u, imu_um, k, tau, anchors[a], bias_idx[a], uwb_r[j], r_var, gate,
-                             force, robust_kind, robust_c, mask, dt_max, o, lev)
+                _range_update_ws(x, P, imu_t, imu_u, imu_um, k, tau, anchors[a], bias_idx[a], uwb_r[j], r_var,
+                                 gate, force, robust_kind, robust_c, mask, dt_max, o, lev, uws)
             else:
-                tdoa_update(x, P, imu_t, imu_u, imu_um, k, tau, anchors[a], anchors[b], bias_idx[a], bias_idx[b],
-                            uwb_r[j], tdoa_var, gate, force, robust_kind, robust_c, mask, dt_max, o, lev,
-                            pair_mat[a, b])
+                _tdoa_update_ws(x, P, imu_t, imu_u, imu_um, k, tau, anchors[a], anchors[b], bias_idx[a],
+                                bias_idx[b], uwb_r[j], tdoa_var, gate, force, robust_kind, robust_c, mask, dt_max, o,
+                                lev, pair_mat[a, b], uws)
             if o[REC_ACC] > 0:
                 if frozen:
                     n_frozen += 1

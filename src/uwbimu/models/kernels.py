@@ -306,7 +306,7 @@ def _skew3(v0, v1, v2, S):
     S[2, 2] = 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _phi_blocks(x, u, dt, B, W):
     """:func:`phi_blocks`; ``W`` (6, 3, 3) is not used (kept for the callers' signature)."""
     r = _quat_R(x[N_Q], x[N_Q + 1], x[N_Q + 2], x[N_Q + 3])
@@ -323,7 +323,7 @@ def _phi_blocks_R(R, a0, a1, a2, w0, w1, w2, dt, B, W):
                   a0, a1, a2, w0, w1, w2, dt, B)
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _phi_blocks_s(r00, r01, r02, r10, r11, r12, r20, r21, r22, a0, a1, a2, w0, w1, w2, dt, B):
     """The blocks of :func:`phi_blocks` from the attitude matrix ``r..`` and the bias-corrected ``a``, ``w``,
     all in scalars (no array views, no work arrays: ``RA = R [a]x``, ``RAW = RA [w]x``, ``W2 = [w]x^2``
@@ -476,7 +476,7 @@ def _cov_step(P, x, u, dt, pn, B, W, col):
     _add_process_noise(P, dt, pn)
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _add_process_noise(P, dt, pn):
     """The process-noise part of :func:`cov_step`: ``P <- P + Q`` over ``dt``, read from the tables ``pn``
     (:class:`~uwbimu.models.blocks.ProcessNoise`): the IMU densities drive p, v, theta, b_a, b_g (Van Loan
@@ -486,14 +486,22 @@ def _add_process_noise(P, dt, pn):
     N = P.shape[0]
     adt = abs(dt)
     imu = pn.imu
+    # each increment evaluated once (the same expressions, so the same bits): a store into P could alias
+    # pn.imu, so the compiler would otherwise reload and recompute them for every i
+    qpp = imu[0] * adt**3 / 3.0
+    qpv = imu[0] * adt**2 / 2.0
+    qvv = imu[0] * adt
+    qth = imu[1] * adt
+    qba = imu[2] * adt
+    qbg = imu[3] * adt
     for i in range(3):
-        P[E_P + i, E_P + i] += imu[0] * adt**3 / 3.0
-        P[E_P + i, E_V + i] += imu[0] * adt**2 / 2.0
-        P[E_V + i, E_P + i] += imu[0] * adt**2 / 2.0
-        P[E_V + i, E_V + i] += imu[0] * adt
-        P[E_TH + i, E_TH + i] += imu[1] * adt
-        P[E_BA + i, E_BA + i] += imu[2] * adt
-        P[E_BG + i, E_BG + i] += imu[3] * adt
+        P[E_P + i, E_P + i] += qpp
+        P[E_P + i, E_V + i] += qpv
+        P[E_V + i, E_P + i] += qpv
+        P[E_V + i, E_V + i] += qvv
+        P[E_TH + i, E_TH + i] += qth
+        P[E_BA + i, E_BA + i] += qba
+        P[E_BG + i, E_BG + i] += qbg
     for blk in range(pn.kind.shape[0]):
         kind = pn.kind[blk]
         r0 = pn.err0[blk]
@@ -593,7 +601,7 @@ def _cov_step_rows(P, x, u, dt, pn, B, W, A, T, U):
     _add_process_noise(P, dt, pn)
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _cov_step_sym(P, x, u, dt, pn, B, A):
     """:func:`cov_step_blocks` for a covariance ``P`` that is symmetric outside its top-left 9x9 block (the
     rows and columns of ``dp, dv, dtheta``), as the filter's always is: bit-identical to :func:`_cov_step`
@@ -647,13 +655,36 @@ def _cov_step_sym(P, x, u, dt, pn, B, A):
             A[i, c] = P[i, c] + (dt * P[3 + i, c] + sp)
             A[6 + i, c] = st
             A[3 + i, c] = P[3 + i, c] + sv
-    # rows / columns 0:9 beyond column 9: (Phi P)[0:9, c] (the identity rows of Phi leave them as they are)
-    for r in range(9):
-        for c in range(9, N):
-            P[r, c] = A[r, c]
+    # rows / columns 0:9 beyond column 9: (Phi P)[0:9, c] (the identity rows of Phi leave them as they are);
+    # written out per column (as loops the compiler turns the transposed stores into slow scatters)
     for c in range(9, N):
-        for r in range(9):
-            P[c, r] = A[r, c]
+        v0 = A[0, c]
+        v1 = A[1, c]
+        v2 = A[2, c]
+        v3 = A[3, c]
+        v4 = A[4, c]
+        v5 = A[5, c]
+        v6 = A[6, c]
+        v7 = A[7, c]
+        v8 = A[8, c]
+        P[0, c] = v0
+        P[1, c] = v1
+        P[2, c] = v2
+        P[3, c] = v3
+        P[4, c] = v4
+        P[5, c] = v5
+        P[6, c] = v6
+        P[7, c] = v7
+        P[8, c] = v8
+        P[c, 0] = v0
+        P[c, 1] = v1
+        P[c, 2] = v2
+        P[c, 3] = v3
+        P[c, 4] = v4
+        P[c, 5] = v5
+        P[c, 6] = v6
+        P[c, 7] = v7
+        P[c, 8] = v8
     # the 9x9 block: row r of (Phi P) Phi^T is Phi applied to A[r, 0:15] (as _phi_vec does); the
     # coefficients in locals (a store into P could alias B, so the compiler would reload them per row)
     for i in range(3):
@@ -757,44 +788,52 @@ def range_jacobian(xt, u_tau, anchor, bias_idx, delta, h):
     ``H_v = -delta H_p``, ``H_th += delta H_th [w]x`` and ``H_bg = delta H_th``.
     Returns the predicted range [m].
     """
-    R = np.empty((3, 3))
-    rotmat(xt[N_Q:N_Q + 4], R)
+    # scalars only (no work arrays: the filter calls this for every range), the same operations as with
+    # the matrix R
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = _quat_R(xt[N_Q], xt[N_Q + 1], xt[N_Q + 2], xt[N_Q + 3])
     l0, l1, l2 = xt[N_L], xt[N_L + 1], xt[N_L + 2]
     w0 = u_tau[3] - xt[N_BG]
     w1 = u_tau[4] - xt[N_BG + 1]
     w2 = u_tau[5] - xt[N_BG + 2]
-    pu = np.empty(3)
     # w x l (body)
     c0 = w1 * l2 - w2 * l1
     c1 = w2 * l0 - w0 * l2
     c2 = w0 * l1 - w1 * l0
-    vel = np.empty(3)
-    for i in range(3):
-        pu[i] = xt[N_P + i] + R[i, 0] * l0 + R[i, 1] * l1 + R[i, 2] * l2
-        vel[i] = xt[N_V + i] + R[i, 0] * c0 + R[i, 1] * c1 + R[i, 2] * c2
-    d0 = anchor[0] - pu[0]
-    d1 = anchor[1] - pu[1]
-    d2 = anchor[2] - pu[2]
+    pu0 = xt[N_P] + r00 * l0 + r01 * l1 + r02 * l2
+    pu1 = xt[N_P + 1] + r10 * l0 + r11 * l1 + r12 * l2
+    pu2 = xt[N_P + 2] + r20 * l0 + r21 * l1 + r22 * l2
+    vel0 = xt[N_V] + r00 * c0 + r01 * c1 + r02 * c2
+    vel1 = xt[N_V + 1] + r10 * c0 + r11 * c1 + r12 * c2
+    vel2 = xt[N_V + 2] + r20 * c0 + r21 * c1 + r22 * c2
+    d0 = anchor[0] - pu0
+    d1 = anchor[1] - pu1
+    d2 = anchor[2] - pu2
     rho = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
     if rho < 1e-9:
         rho = 1e-9
-    un = np.array([d0 / rho, d1 / rho, d2 / rho])
+    un0 = d0 / rho
+    un1 = d1 / rho
+    un2 = d2 / rho
     for i in range(h.shape[0]):
         h[i] = 0.0
-    uR = np.empty(3)
-    for j in range(3):
-        uR[j] = un[0] * R[0, j] + un[1] * R[1, j] + un[2] * R[2, j]
+    uR0 = un0 * r00 + un1 * r10 + un2 * r20
+    uR1 = un0 * r01 + un1 * r11 + un2 * r21
+    uR2 = un0 * r02 + un1 * r12 + un2 * r22
     # u^T R [l]x
-    hth0 = uR[1] * l2 - uR[2] * l1
-    hth1 = uR[2] * l0 - uR[0] * l2
-    hth2 = uR[0] * l1 - uR[1] * l0
-    for i in range(3):
-        h[E_P + i] = -un[i]
-        h[E_L + i] = -uR[i]
-    h[E_TD] = -(un[0] * vel[0] + un[1] * vel[1] + un[2] * vel[2])
+    hth0 = uR1 * l2 - uR2 * l1
+    hth1 = uR2 * l0 - uR0 * l2
+    hth2 = uR0 * l1 - uR1 * l0
+    h[E_P] = -un0
+    h[E_P + 1] = -un1
+    h[E_P + 2] = -un2
+    h[E_L] = -uR0
+    h[E_L + 1] = -uR1
+    h[E_L + 2] = -uR2
+    h[E_TD] = -(un0 * vel0 + un1 * vel1 + un2 * vel2)
     # time mapping tau -> filter time
-    for i in range(3):
-        h[E_V + i] = delta * un[i]
+    h[E_V] = delta * un0
+    h[E_V + 1] = delta * un1
+    h[E_V + 2] = delta * un2
     # (H_th [w]x)_j = sum_i hth_i Wx[i, j];  row vector times skew = -(w x hth)^T ... computed explicitly
     g0 = hth1 * w2 - hth2 * w1
     g1 = hth2 * w0 - hth0 * w2
