@@ -165,3 +165,18 @@ def test_healthy_eskf_starts_the_batch_from_itself(sim):
     ev = [e for e in r.events if e["kind"] == "calibration_start"]
     assert len(ev) == 1 and ev[0]["source"] == "eskf" and ev[0]["reason"] == "healthy"
     assert ev[0]["health"]["checks"]["multilateration"]["ok"]
+
+
+def test_multilateration_locates_one_tag_of_several(sim):
+    """With a tag column, only the named tag's rows enter the fixes (two antennas mixed would blur them)."""
+    import dataclasses
+
+    u = sim.uwb.copy()
+    other = u.copy()
+    other["range"] = other["range"] + 2.0  # a second tag whose ranges would pull the fixes 2 m off
+    u["tag"], other["tag"] = "t0", "t1"
+    two = dataclasses.replace(sim, uwb=pd.concat([u, other]).sort_values("t", kind="stable").reset_index(drop=True))
+    one = S.multilaterate_track(sim)
+    only = S.multilaterate_track(two, tag="t0")
+    assert len(only) == len(one)
+    np.testing.assert_allclose(only[["px", "py", "pz"]].to_numpy(), one[["px", "py", "pz"]].to_numpy(), atol=1e-6)

@@ -49,13 +49,20 @@ QUIET_GYRO_SD = 0.02
 DIVERGENCE_EVENTS = ("divergence", "reinitialised")
 
 
-def _rows(dataset):
-    """Every range / TDoA row as ``(t, anchor b position, anchor a position or NaN, measured, anchor pair)``."""
+def _rows(dataset, tag: Optional[str] = None):
+    """Every range / TDoA row (of ``tag`` when given and the table names its tags) as ``(t, anchor b position,
+    anchor a position or NaN, measured, anchor pair)``."""
     pos = dataset.anchor_positions()
     ts, pb, pa, z, ids = [], [], [], [], []
+
+    def of_tag(tab):
+        if tag is None or "tag" not in tab.columns:
+            return np.ones(len(tab), bool)
+        return (tab["tag"].astype(str) == str(tag)).to_numpy()
+
     u = dataset.uwb
     if u is not None and len(u):
-        ok = u["anchor"].astype(str).isin(pos.keys()).to_numpy()
+        ok = u["anchor"].astype(str).isin(pos.keys()).to_numpy() & of_tag(u)
         u = u[ok]
         ts.append(u["t"].to_numpy(float))
         pb.append(np.array([pos[a] for a in u["anchor"].astype(str)], float).reshape(-1, 3))
@@ -65,7 +72,7 @@ def _rows(dataset):
     td = getattr(dataset, "tdoa", None)
     if td is not None and len(td):
         ok = (td["anchor_a"].astype(str).isin(pos.keys()) & td["anchor_b"].astype(str).isin(pos.keys())).to_numpy()
-        td = td[ok]
+        td = td[ok & of_tag(td)]
         ts.append(td["t"].to_numpy(float))
         pb.append(np.array([pos[b] for b in td["anchor_b"].astype(str)], float).reshape(-1, 3))
         pa.append(np.array([pos[a] for a in td["anchor_a"].astype(str)], float).reshape(-1, 3))
@@ -105,7 +112,7 @@ def _fit(x0, B, A, Z):
     return sol.x, sd, int(len(Z))
 
 
-def multilaterate_track(dataset, window_s: float = WINDOW_S) -> pd.DataFrame:
+def multilaterate_track(dataset, window_s: float = WINDOW_S, tag: Optional[str] = None) -> pd.DataFrame:
     """Robust, outlier-rejecting multilateration of the tag antenna in consecutive windows.
 
     Parameters
@@ -113,6 +120,7 @@ def multilaterate_track(dataset, window_s: float = WINDOW_S) -> pd.DataFrame:
     dataset : ranges (``uwb``) and / or TDoA (``tdoa``) with the anchors (world frame, z up, known biases
         removed: the graph frame of :func:`uwbimu.calibration.frames.to_graph_frame`).
     window_s : window length [s].
+    tag : with several tags, the one to locate (the rows of the others are left out); None: every row.
 
     Returns
     -------
@@ -122,7 +130,7 @@ def multilaterate_track(dataset, window_s: float = WINDOW_S) -> pd.DataFrame:
     than 3 robust sd (and 3 own sd) from the median of its 5 neighbours is dropped afterwards (Hampel filter).
     """
     cols = ["t", "px", "py", "pz", "sd", "n"]
-    rows = _rows(dataset)
+    rows = _rows(dataset, tag)
     if rows is None or len(rows[0]) < 6:
         return pd.DataFrame(columns=cols)
     t, B, A, Z, ids, anchors = rows
@@ -340,7 +348,11 @@ def choose_start(dataset, o, eskf) -> tuple[Any, dict]:
     (:func:`multilateration_seed`, lever arm and t_d at the priors of the calibration options ``o``); and the
     ``calibration_start`` event (``source`` ``eskf`` | ``multilateration``, ``reason``: ``healthy`` or the failed
     checks joined by ``+``, ``health``: the checks' values)."""
-    track = multilaterate_track(dataset)
+    from uwbimu.calibration.graph import tag_names
+
+    names, tagged = tag_names(dataset, eskf)
+    # the ESKF's top-level lever arm is its first tag's: locate that antenna alone
+    track = multilaterate_track(dataset, tag=names[0] if tagged else None)
     health = eskf_health(eskf, track)
     ev = {"kind": "calibration_start", "severity": "info", "source": "eskf", "reason": "healthy",
           "health": health}
