@@ -1,5 +1,5 @@
-"""The batch holds a block at its prior by the ESKF's rule (issue 27 item 6): the log determines none of its
-elements (information gain below ``HOLD_GAIN``) and the residuals refute the noise model.
+"""The batch holds a block at its prior by the ESKF's rule (issue 27 item 6): none of its elements is identified
+(information gain below ``HOLD_GAIN`` = the verdicts' 99) and the residuals refute the noise model.
 
 Unit tests of :func:`uwbimu.calibration.identifiability.hold_rule` on constructed calibration dicts, and of the
 held re-solve on a simulated log with the rule forced (the lever arm then sits at its prior with its prior's sd
@@ -55,13 +55,22 @@ def test_a_sandwich_sigma_above_the_model_refutes_it():
     assert _rule(cal, []) == {}
 
 
-def test_one_determined_element_keeps_the_block():
-    # ISAS-Walk-like: lever-arm gains 45-74 (weakly identified, the data carry 98 %); one bias above HOLD_GAIN
-    cal = _cal([LEVER(74.0), LEVER(61.0), LEVER(45.0)], [BIAS(23.0), BIAS(7.9), BIAS(55.0)])
+def test_one_identified_element_keeps_the_block():
+    # INRoL-like: every element identified (gains 176-383)
+    cal = _cal([LEVER(326.0), LEVER(383.0), LEVER(176.0)], [BIAS(782.0), BIAS(176.0)])
     assert _rule(cal, SCALED) == {}
-    cal = _cal([LEVER(1.0), LEVER(2.0), LEVER(HOLD_GAIN * 1.1)], [BIAS(1.0), BIAS(2.0)])
+    # one identified lever-arm axis keeps the lever arm; biases all below the threshold are held
+    cal = _cal([LEVER(1.0), LEVER(2.0), LEVER(HOLD_GAIN * 1.01)], [BIAS(1.0), BIAS(HOLD_GAIN * 0.99)])
     h = _rule(cal, SCALED)
     assert "lever_arm" not in h and "anchor_bias" in h
+
+
+def test_weakly_identified_blocks_are_held_like_the_eskfs():
+    # ISAS-Walk-like: lever-arm gains 45-74 (weakly identified), biases 8-55: the ESKF's rule holds both
+    cal = _cal([LEVER(74.0), LEVER(61.0), LEVER(45.0)], [BIAS(23.0), BIAS(7.9), BIAS(55.0)])
+    h = _rule(cal, SCALED)
+    assert set(h) == {"lever_arm", "anchor_bias", "refuted"}
+    assert HOLD_GAIN == 99.0  # the verdicts' "identified" threshold, not a separate one
 
 
 def test_biases_not_estimated_are_not_held_again():

@@ -13,7 +13,7 @@ roll and pitch, i.e. tilt).  An axis that is not identified is named in an event
 
 from __future__ import annotations
 
-from uwbimu.estimation.timeoffset import information_verdict
+from uwbimu.estimation.timeoffset import GAIN_IDENTIFIED, information_verdict
 
 #: The rotations that reveal each lever-arm component (body axes).
 _ROTATIONS = {"x": "pitch and yaw (rotation about body y and z)", "y": "roll and yaw (rotation about body x and z)",
@@ -80,21 +80,19 @@ REFUTED_RATIO = 1.1
 
 
 def hold_rule(cal: dict, section: dict, events: list, options) -> dict:
-    """The blocks the batch holds at their priors: the ESKF's rule (``hold_unidentified``) on the batch's
-    information gains, per block.
+    """The blocks the batch holds at their priors: the ESKF's rule (``hold_unidentified``), per block.
 
-    A block (the lever arm of every tag; the constant anchor biases) is held when both: (1) the log does not
-    determine any of its elements: each element's information gain over its prior (:func:`identifiability`, with
-    the honest sigma) is below :data:`HOLD_GAIN`, i.e. the prior still carries at least 10 % of every element's
-    information (sd above prior_sd / sqrt(10)); (2) the residuals refute the noise model: the IMU noise scale was
-    raised significantly (event ``imu_noise_scaled`` with ``scale`` > 1) or the honest (sandwich) sigma of a
-    lever-arm axis exceeds its model sigma by more than :data:`REFUTED_RATIO`.  Then unmodelled errors are there
-    to be absorbed, and a block the log does not determine absorbs them and takes the trajectory with it: on the
-    Crazyflie logs (TDoA, little rotation; lever-arm gains 1.1-6.5, anchor-bias gains at most 4.3)
-    "every position + c, lever arm - c" is nearly free and the lever arm moved 33 cm and the trajectory with it,
-    and the biases of the upper and lower anchors traded against the height (trajectory 0.45 m too high).  A
-    block with one element the log determines keeps its estimates (INRoL: identified; ISAS-Walk: lever-arm
-    gains 45-74, one anchor bias 55).
+    A block (the lever arm of every tag; the constant anchor biases) is held when both: (1) none of its elements
+    is ``identified`` by the information-gain verdict of ``section`` (:func:`identifiability`, with the honest
+    sigma: gain below :data:`HOLD_GAIN`, the verdicts' own threshold); (2) the residuals refute the noise model:
+    the IMU noise scale was raised significantly (event ``imu_noise_scaled`` with ``scale`` > 1) or the honest
+    (sandwich) sigma of a lever-arm axis exceeds its model sigma by more than :data:`REFUTED_RATIO`.  Then
+    unmodelled errors are there to be absorbed, and a block the log does not identify absorbs them and takes
+    the trajectory with it: on the Crazyflie logs (TDoA, little rotation) "every position + c, lever arm - c"
+    is nearly free and the lever arm moved 33 cm and the trajectory with it (cf16: z -36 +/- 10 cm, weakly
+    identified 4.5 sigma from the nominal antenna offset, RMSE 0.66 m), and the biases of the upper and lower
+    anchors traded against the height (trajectory 0.45 m too high).  A block with one identified element keeps
+    its estimates (INRoL); a weakly identified one is held like the ESKF's (ISAS-Walk: lever-arm gains 45-74).
 
     Parameters
     ----------
@@ -118,7 +116,7 @@ def hold_rule(cal: dict, section: dict, events: list, options) -> dict:
 
     def undetermined(entries) -> bool:
         gains = [e["information_gain"] for e in entries]
-        return bool(gains) and all(not g >= HOLD_GAIN for g in gains)  # NaN gain: nothing determined
+        return bool(gains) and all(not g >= HOLD_GAIN for g in gains)  # NaN gain: not identified
 
     out: dict = {}
     lever = section["lever_arm"]
@@ -134,5 +132,6 @@ def hold_rule(cal: dict, section: dict, events: list, options) -> dict:
     return out
 
 
-#: information gain below which the log does not determine an element (the prior carries >= 10 % of it)
-HOLD_GAIN = 9.0
+#: information gain from which an element is identified (the verdicts' threshold): a block none of whose
+#: elements reaches it is held when the residuals refute the noise model
+HOLD_GAIN = GAIN_IDENTIFIED
