@@ -344,8 +344,8 @@ def select_range_model(dataset, trajectory, options=None, folds: Optional[int] =
     dataset : the log (two-way ranges, anchors), in the trajectory's frame.
     trajectory : a fitted trajectory (:func:`range_residuals`), e.g. the initialising ESKF's run.
     options : :class:`~uwbimu.calibration.options.CalibrationOptions` whose priors and direction model
-        (``range_model.direction``; the default :class:`~uwbimu.calibration.options.DirectionBias` when
-        none) the candidates use; defaults when None.
+        (``range_model.direction``; when none, :class:`~uwbimu.calibration.options.DirectionBias` with
+        ``lowest_order: 2``, order 1 being the lever arm's) the candidates use; defaults when None.
     folds : time blocks (at least 3, each with :data:`MIN_BLOCK_ROWS` ranges); default the options'
         ``range_model.select_folds`` (:data:`N_FOLDS`).
     huber_grid : Huber thresholds tried [sigmas].
@@ -368,7 +368,10 @@ def select_range_model(dataset, trajectory, options=None, folds: Optional[int] =
         raise InputError(f"range model selection: families must be among {FAMILIES}, got {list(families)}")
     if folds < 3:
         raise InputError(f"range model selection: at least 3 folds, got {folds}")
-    dir_opts = o.range_model.direction or DirectionBias()
+    # order 1 of a shared body-frame term is, to first order, the lever arm (DirectionBias); the trajectory's
+    # lever arm is held here, so order-1 terms would score its error as a direction bias: by default the
+    # candidate starts at order 2
+    dir_opts = o.range_model.direction or DirectionBias(lowest_order=2)
     d = range_residuals(dataset, trajectory)
     edges = np.linspace(d["t"].min(), d["t"].max(), folds + 1)
     d["block"] = np.clip(np.searchsorted(edges, d["t"], side="right") - 1, 0, folds - 1).astype(np.int64)
