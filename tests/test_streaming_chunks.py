@@ -137,3 +137,27 @@ def test_push_imu_batching_is_invisible(flight_with_faults, monkeypatch):
     assert seen_b == seen_1 and any(x is not None for x in seen_1)
     assert batched.events() == single.events()
     np.testing.assert_array_equal(batched.passes()[-1].states, single.passes()[-1].states)
+
+
+
+def test_state_carries_every_declared_block_as_the_batch_writes_it():
+    """EskfState.blocks is block_calibration of the current state: the keys a batch run writes."""
+    from uwbimu.estimation.eskf import run_eskf
+    from uwbimu.estimation.options import AnchorBiasOptions
+
+    ds = simulate(builtin_scenario("calibration-flight").model_copy(update={"duration": 20.0}))
+    opts = EskfOptions(noise="preset", hold_unidentified=False, sigma_from_residuals=False,
+                       anchor_bias=AnchorBiasOptions(mode="estimate"))
+    f = Eskf.for_dataset(ds, opts, record=False)
+    imu = ds.imu[["t", "ax", "ay", "az", "wx", "wy", "wz"]].to_numpy(float)
+    f.push_imu_chunk(imu[:, 0], imu[:, 1:4], imu[:, 4:7])
+    f.push_ranges(ds.uwb["t"].to_numpy(float), list(ds.uwb["anchor"].astype(str)), ds.uwb["range"].to_numpy(float))
+    f.finish()
+    st = f.state()
+    batch = run_eskf(ds, opts).calibration
+    assert {"lever_arm", "lever_arm_sd", "time_offset", "time_offset_sd", "anchor_bias"} <= set(st.blocks)
+    assert {k for k in st.blocks if not k.endswith("_mode")} <= set(batch)
+    assert st.blocks["anchor_bias"].keys() == st.anchor_bias.keys()
+    np.testing.assert_array_equal(np.asarray(st.blocks["lever_arm"], float), st.lever_arm)
+    np.testing.assert_array_equal(np.asarray(st.blocks["lever_arm_sd"], float), st.lever_arm_sd)
+    assert st.blocks["time_offset"] == st.time_offset

@@ -42,7 +42,9 @@ from uwbimu.estimation.filterpass import (
 )
 from uwbimu.estimation.init import InitialisationError, InitialState, data_needed, hold_time_offset, initialise
 from uwbimu.estimation.options import EskfOptions
-from uwbimu.estimation.problem import NOMINAL_PERIOD_SAMPLES, make_settings, nominal_period, set_imu_timing
+from uwbimu.estimation.outputs import block_calibration
+from uwbimu.estimation.problem import (NOMINAL_PERIOD_SAMPLES, BlockPriors, make_settings, nominal_period,
+                                       set_imu_timing)
 from uwbimu.estimation.stream_guards import (
     GEOMETRY_SLACK_M, MAX_ACC, MAX_GYRO, NisMonitor, Rejections, as_floats, check_imu_noise, check_options,
     finite_number, positive, push_sigma, same_length,
@@ -141,6 +143,9 @@ class EskfState:
     invalid_reason: Optional[str] = None
     #: added to the pushed IMU stamps since an IMU clock restart (``t_imu`` is on the shifted clock) [s]
     imu_clock_shift: float = 0.0
+    #: every declared block's output, as the batch run writes it to calibration.yaml
+    #: (:func:`uwbimu.estimation.outputs.block_calibration`: ``<key>``, ``<key>_sd``, ``<key>_mode`` ...)
+    blocks: dict = None
 
     def cov(self, a: str, b: Optional[str] = None) -> np.ndarray:
         """Covariance block by name (``"p"``, ``"theta"``, ``"lever"``, ``"t_d"``, ``"anchor_bias"``, ...)."""
@@ -362,7 +367,7 @@ class Eskf:
         return cls(opts, anchors, tags, **args)
 
     @classmethod
-    def from_problem(cls, prob: Problem, priors: dict[str, Any], options: EskfOptions, *, record: bool = True,
+    def from_problem(cls, prob: Problem, priors: BlockPriors, options: EskfOptions, *, record: bool = True,
                      initial: Optional[InitialState] = None) -> "Eskf":
         """A filter with the settings of a batch :class:`Problem` (``eskf.build_problem``: anchors already
         in the filter's z-up frame, known biases already removed) and no data yet; feed it with
@@ -500,7 +505,7 @@ class Eskf:
     def _td_hat(self) -> float:
         """The current time-offset estimate (the prior before the first initialisation)."""
         x = self._st.x if self._st is not None else (self._last[0] if self._last is not None else None)
-        td = float(x[S.TD]) if x is not None else float(self.priors.get("td", 0.0) or 0.0)
+        td = float(x[S.TD]) if x is not None else float(self.priors.t_d or 0.0)
         return td if math.isfinite(td) else 0.0
 
     def _imu_clock_restart(self, t: float, last: float) -> float:
@@ -748,6 +753,7 @@ class Eskf:
             height_bias=float(x[L.nom("height_bias")][0]) if L.n_height_bias else None,
             height_bias_sd=float(sd[L.err("height_bias")][0]) if L.n_height_bias else None,
             valid=reason is None, invalid_reason=reason, imu_clock_shift=self._imu_shift,
+            blocks=block_calibration(L, x, sd, self.options, self.anchor_ids, self._prob.pair_index),
         )
 
     def events(self) -> list[dict[str, Any]]:
