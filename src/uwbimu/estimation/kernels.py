@@ -172,7 +172,7 @@ def state_at(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau):
     return _state_at_um(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau, np.empty(6))
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _state_at_um(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau, um):
     """:func:`state_at` with the work array ``um`` (6,) passed in (no allocation: the compiled filter loop
     calls it for every measurement)."""
@@ -190,7 +190,7 @@ def _state_at_um(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau, um):
     return _state_at_back(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau, um)
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _state_at_back(x, imu_t, imu_u, imu_um, k, tau, dt_max, xt, u_tau, um):
     """The backward integration of :func:`state_at` (``imu_t[0] <= tau < imu_t[k]``, ``xt`` = ``x``); the
     RK4 steps take their inputs as tuples (:func:`_rk4_s`, the arithmetic of ``_rk4_core``)."""
@@ -366,7 +366,7 @@ def scalar_update(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, g
                       np.empty(N), np.empty(N))
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _scalar_update_ws(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_c, gain_mask, out, Ph, K, dx):
     """:func:`scalar_update` with its work arrays ``Ph``, ``K``, ``dx`` (N,) passed in (no allocation)."""
     N = P.shape[0]
