@@ -97,8 +97,8 @@ def _row6(A, k):
 def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, pn, dt_max, cov_every,
                   xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U):
     """:func:`propagate_until` with its work arrays passed in (no allocation: :func:`filter_loop` calls it for
-    every output and measurement); the covariance step is the SIMD form ``_cov_step_rows`` (bit-identical
-    to ``cov_step``)."""
+    every output and measurement); the covariance step is the block-sparse ``_cov_step_sym`` (bit-identical
+    to ``cov_step_blocks`` for the filter's covariance, symmetric outside its 9x9 dynamic block)."""
     n = imu_t.shape[0]
     nx = x.shape[0]
     for i in range(6):

@@ -29,9 +29,12 @@ Public API (all ``@njit``; arrays are float64, outputs written in place)
 Hot-loop forms (no array views, no work arrays: each view or allocation costs numba a reference count
 or a ``malloc``): ``_quat_R`` (rotation as a 9-tuple), ``_deriv_s`` / ``_rk4_s`` (dynamics and RK4 step on
 scalars and tuples), ``_phi_blocks_s`` (transition blocks from scalars) and ``_cov_step_rows`` (the
-covariance step with ``Phi`` applied 15 rows at a time, columns in SIMD lanes).  They perform the same
-floating-point operations in the same order as the plain forms, so the results are bit-identical
-(``tests/test_filter_loop.py``).
+covariance step with ``Phi`` applied 15 rows at a time, columns in SIMD lanes), ``_cov_step_sym`` (the
+filter's covariance step: only the rows and columns of ``dp, dv, dtheta`` change, the rest is copied by
+symmetry; about half the work of ``_cov_step_rows``).  They perform the same floating-point operations in the
+same order as the plain forms, so the results are bit-identical (``tests/test_filter_loop.py``,
+``tests/test_cov_step_sparse.py``: ``_cov_step_sym`` for a covariance symmetric outside its 9x9 dynamic
+block, as the filter's always is).
 
 Layout: nominal ``x`` = ``p v q b_a b_g p_IU t_d`` (20) followed by extra
 states; error ``dp dv dtheta db_a db_g dp_IU dt_d`` (19) then extras
