@@ -538,7 +538,7 @@ PHASE_ROWS, PHASE_TAIL, PHASE_DONE = range(3)
 
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, t_target, pn, dt_max, cov_every, gap_idx,
                     xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U):
     """``filterpass._propagate`` up to the first IMU gap that needs an inflation of ``P``.
