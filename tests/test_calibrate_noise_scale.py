@@ -12,6 +12,7 @@ from uwbimu.calibration import batch as BT  # noqa: E402
 from uwbimu.calibration import covariance as CV  # noqa: E402
 from uwbimu.calibration import graph as G  # noqa: E402
 from uwbimu.calibration import noise_scale as NS  # noqa: E402
+from uwbimu.estimation import EskfOptions  # noqa: E402
 from uwbimu.models.imu import imu_preset  # noqa: E402
 from uwbimu.sim import builtin_scenario, simulate  # noqa: E402
 
@@ -73,7 +74,10 @@ def test_scale_recovers_understated_imu_densities():
     # solve lands at chi2 ~1e10, from which no noise scale is meaningful; see docs/calibrate.md)
     for seed in (1, 3):
         ds = _flight(seed, 30.0, density_factor=8.0)
-        res = calibrate(ds, CalibrationOptions.model_validate(NO_PROFILE | {"imu_noise_prior_dof": 0}))
+        # the ESKF on the stated densities: by default it measures them on the log and the graph starts from
+        # those (graph.imu_noise_sources); this test is about the scale recovering a model stated 8x too small
+        res = calibrate(ds, CalibrationOptions.model_validate(NO_PROFILE | {"imu_noise_prior_dof": 0}),
+                        eskf_options=EskfOptions(noise="preset"))
         imu = res.calibration["imu_noise"]
         sc = imu["scale"]
         assert sc["method"] == "variance_component" and sc["converged"]
@@ -133,14 +137,12 @@ def test_second_start_rescues_a_wandering_filter(tmp_path):
     # holds it at its prior on such a log, which is a good start by itself: checked at the end)
     res = calibrate(w, CalibrationOptions.model_validate(NO_PROFILE), eskf_options=EskfOptions(hold_unidentified=False))
     cal = res.calibration
-    ev = [e for e in cal["events"] if e["kind"] == "second_start_won"]
-    assert len(ev) == 1 and ev[0]["chi2_gain"] > 9.0, cal["events"]
+    # since issue 27 item 4 the wandering filter fails the start's health check (its antenna track against the
+    # robust multilateration) and the graph starts from the multilateration; the robust second start is still
+    # tried and costs more there
+    assert cal["start"]["source"] == "multilateration", cal["start"]
     doc = np.array([0.10, -0.025, 0.0])
     assert np.all(np.abs(np.subtract(cal["lever_arm"], doc)) < 3.0 * np.asarray(cal["lever_arm_sd"])), cal["lever_arm"]
-    off = calibrate(w, CalibrationOptions.model_validate(NO_PROFILE | {"second_start": False}),
-                    eskf_options=EskfOptions(hold_unidentified=False)).calibration
-    assert not any(e["kind"] == "second_start_won" for e in off["events"])
-    assert np.max(np.abs(np.subtract(off["lever_arm"], doc)) / np.asarray(off["lever_arm_sd"])) > 3.0, off["lever_arm"]
     # defaults: the start holds the lever arm, and the graph lands within 3 sigma of the documented one
     dflt = calibrate(w, CalibrationOptions.model_validate(NO_PROFILE)).calibration
     assert np.all(np.abs(np.subtract(dflt["lever_arm"], doc)) < 3.0 * np.asarray(dflt["lever_arm_sd"])), dflt["lever_arm"]
