@@ -98,3 +98,20 @@ def test_bad_input_is_refused(flight):
     empty.uwb = flight.uwb.iloc[0:0]
     with pytest.raises(InputError):
         select_range_model(empty, res)
+
+
+def test_calibrate_with_select_cv_records_and_applies_the_choice():
+    """``range_model.select: cv`` in ``calibrate``: the choice is an event and calibration.yaml's
+    ``range_model.selection``, and the chosen Huber threshold is the one the graph used."""
+    from uwbimu.calibration import CalibrationOptions, calibrate
+
+    ds = simulate(builtin_scenario("calibration-flight").updated(duration=30.0, seeds={"noise": 2}))
+    opts = CalibrationOptions.model_validate({"td_profile": {"enabled": False}, "range_model": {"select": "cv"}})
+    cal = calibrate(ds, opts).calibration
+    (ev,) = [e for e in cal["events"] if e["kind"] == "range_model_selected"]
+    sel = cal["range_model"]["selection"]
+    assert sel["chosen"] == ev["chosen"]
+    assert cal["range_model"]["huber"]["k"] == pytest.approx(sel["huber_k"])
+    given = calibrate(ds, CalibrationOptions.model_validate({"td_profile": {"enabled": False}})).calibration
+    assert given["range_model"]["selection"] == {"select": "given"}
+    assert not any(e["kind"] == "range_model_selected" for e in given["events"])

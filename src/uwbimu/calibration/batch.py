@@ -21,6 +21,7 @@ from uwbimu.calibration.identifiability import hold_rule, identifiability
 from uwbimu.calibration.uncertainty import (SparseMarginals, _block_event, _calibration_covariance,  # noqa: F401
                                            _marginals, _profile_chi2_scale)
 from uwbimu.calibration.options import CalibrationOptions
+from uwbimu.calibration.range_model_select import apply_selection, select_range_model
 from uwbimu.calibration.profile import TdProfile, confidence_interval, motion_advice
 from uwbimu.calibration.stages import STAGES, Built, Profiled, Solved, StageProgress, Start
 # the solves and the profile walk (re-exported: tests and benchmarks address them here)
@@ -91,6 +92,14 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
     report.started("initialising ESKF", 0.0)
     start = _start(dataset, o, eskf, eskf_options, events)
     report.done("initialising ESKF", 0.1)
+    selection = None
+    if o.range_model.select == "cv" and len(start.dataset.uwb):
+        # the range model and Huber threshold chosen on this log by blocked cross-validation of the
+        # residuals about the initialising ESKF's trajectory (uwbimu.calibration.range_model_select)
+        selection = select_range_model(start.dataset, start.eskf_run or start.eskf, o)
+        o = apply_selection(o, selection)
+        o.check_log(start.dataset)
+        events.append({"kind": "range_model_selected", "severity": "info", **selection.as_dict()})
     report.started("factor graph")
     built = _build(start, o)
     report.done("factor graph")
@@ -123,6 +132,7 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
     cal, traj, res, anchor_table = _report(built.problem, profiled, start.dataset)
     cal["imu_noise"] = _imu_noise_report(built.problem, imu_scale)
     cal["range_model"]["huber"] = huber
+    cal["range_model"]["selection"] = selection.as_dict() if selection else {"select": "given"}
     ev = _block_event(cal["covariance"].get("block_check"), drift_on=o.range_bias_drift is not None)
     if ev is not None:
         events.append(ev)
@@ -134,6 +144,7 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
         cal, traj, res, anchor_table = _report(built.problem, profiled, start.dataset)
         cal["imu_noise"] = _imu_noise_report(built.problem, imu_scale)
         cal["range_model"]["huber"] = huber
+        cal["range_model"]["selection"] = selection.as_dict() if selection else {"select": "given"}
         held.consider_sd(cal, hold, o)
         cal["held_at_prior"] = {"blocks": sorted(k for k in hold if k != "refuted"), "first_pass": first,
                                 "refuted": hold["refuted"]}
