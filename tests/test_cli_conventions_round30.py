@@ -307,6 +307,8 @@ NOT_SCANNED = {"studies/executors.py", "studies/worker.py"}
 #: ``raise ValueError`` kept on purpose, with the reason.
 ALLOWED = {
     ("models/state.py", "__init__"): "StateLayout's internal contract: only code builds a layout; a violation is a bug",
+    ("models/state.py", "process_noise"): "internal contract: make_settings gives every declared block's noise; a bug",
+    ("models/blocks.py", "__post_init__"): "a block declaration is code, not input: a malformed one is a bug",
     ("design/placement.py", "info6_from_sums"): "internal array contract between two kernels: a violation is a bug",
 }
 #: pydantic turns a ValueError raised in a validator into a ValidationError, which the one
