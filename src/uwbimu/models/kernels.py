@@ -524,14 +524,11 @@ def _add_process_noise(P, dt, pn):
                 P[r, r] += q * (1.0 - f * f)
 
 
-@njit(cache=True)
-def _phi_rows(M, O, B, dt):
-    """``O[0:15] <- Phi M[0:15]`` for every column of ``M`` (block-sparse ``Phi``, blocks ``B``); ``O`` is
-    another array of the same shape.
-
-    Element for element the same arithmetic, in the same order, as :func:`_phi_vec` applied to each
-    column (so the results are bit-identical), arranged row by row so that the compiler runs the
-    columns in SIMD lanes."""
+@njit(cache=True, inline="always")
+def _phi_dyn_rows(M, O, B, dt):
+    """``O[0:9] <- (Phi M)[0:9]`` for every column of ``M``: the rows of ``Phi`` that differ from the
+    identity (``p, v, theta``), blocks ``B``, columns in SIMD lanes.  The one copy of this arithmetic
+    (:func:`_phi_rows`, :func:`_cov_step_sym`)."""
     nc = M.shape[1]
     for i in range(3):
         a0 = B[0, i, 0]
@@ -572,6 +569,18 @@ def _phi_rows(M, O, B, dt):
             O[i, c] = M[i, c] + (dt * M[3 + i, c] + sp)
             O[6 + i, c] = st
             O[3 + i, c] = M[3 + i, c] + sv
+
+
+@njit(cache=True)
+def _phi_rows(M, O, B, dt):
+    """``O[0:15] <- Phi M[0:15]`` for every column of ``M`` (block-sparse ``Phi``, blocks ``B``); ``O`` is
+    another array of the same shape.
+
+    Element for element the same arithmetic, in the same order, as :func:`_phi_vec` applied to each
+    column (so the results are bit-identical), arranged row by row so that the compiler runs the
+    columns in SIMD lanes."""
+    _phi_dyn_rows(M, O, B, dt)
+    nc = M.shape[1]
     for r in range(E_BA, N_DYN):
         for c in range(nc):
             O[r, c] = M[r, c]
@@ -619,45 +628,7 @@ def _cov_step_sym(P, x, u, dt, pn, B, A):
     ``A`` pass.  Work arrays: ``B`` (7, 3, 3), ``A`` (>= 9, N).  No allocation."""
     N = P.shape[0]
     _phi_blocks(x, u, dt, B, B)
-    for i in range(3):
-        a0 = B[0, i, 0]
-        a1 = B[0, i, 1]
-        a2 = B[0, i, 2]
-        a3 = B[1, i, 0]
-        a4 = B[1, i, 1]
-        a5 = B[1, i, 2]
-        v0 = B[2, i, 0]
-        v1 = B[2, i, 1]
-        v2 = B[2, i, 2]
-        v3 = B[3, i, 0]
-        v4 = B[3, i, 1]
-        v5 = B[3, i, 2]
-        v6 = B[4, i, 0]
-        v7 = B[4, i, 1]
-        v8 = B[4, i, 2]
-        s0 = B[5, i, 0]
-        s1 = B[5, i, 1]
-        s2 = B[5, i, 2]
-        s3 = B[6, i, 0]
-        s4 = B[6, i, 1]
-        s5 = B[6, i, 2]
-        for c in range(N):
-            xt0 = P[6, c]
-            xt1 = P[7, c]
-            xt2 = P[8, c]
-            xa0 = P[9, c]
-            xa1 = P[10, c]
-            xa2 = P[11, c]
-            xg0 = P[12, c]
-            xg1 = P[13, c]
-            xg2 = P[14, c]
-            sp = a0 * xt0 + a1 * xt1 + a2 * xt2 + a3 * xa0 + a4 * xa1 + a5 * xa2
-            sv = (v0 * xt0 + v1 * xt1 + v2 * xt2 + v3 * xa0 + v4 * xa1 + v5 * xa2
-                  + v6 * xg0 + v7 * xg1 + v8 * xg2)
-            st = s0 * xt0 + s1 * xt1 + s2 * xt2 + s3 * xg0 + s4 * xg1 + s5 * xg2
-            A[i, c] = P[i, c] + (dt * P[3 + i, c] + sp)
-            A[6 + i, c] = st
-            A[3 + i, c] = P[3 + i, c] + sv
+    _phi_dyn_rows(P, A, B, dt)
     # rows / columns 0:9 beyond column 9: (Phi P)[0:9, c] (the identity rows of Phi leave them as they are);
     # written out per column (as loops the compiler turns the transposed stores into slow scatters)
     for c in range(9, N):
