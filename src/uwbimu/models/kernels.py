@@ -659,47 +659,9 @@ def _cov_step_sym(P, x, u, dt, pn, B, A):
         P[c, 6] = v6
         P[c, 7] = v7
         P[c, 8] = v8
-    # the 9x9 block: row r of (Phi P) Phi^T is Phi applied to A[r, 0:15] (as _phi_vec does); the
-    # coefficients in locals (a store into P could alias B, so the compiler would reload them per row)
-    for i in range(3):
-        a0 = B[0, i, 0]
-        a1 = B[0, i, 1]
-        a2 = B[0, i, 2]
-        a3 = B[1, i, 0]
-        a4 = B[1, i, 1]
-        a5 = B[1, i, 2]
-        v0 = B[2, i, 0]
-        v1 = B[2, i, 1]
-        v2 = B[2, i, 2]
-        v3 = B[3, i, 0]
-        v4 = B[3, i, 1]
-        v5 = B[3, i, 2]
-        v6 = B[4, i, 0]
-        v7 = B[4, i, 1]
-        v8 = B[4, i, 2]
-        s0 = B[5, i, 0]
-        s1 = B[5, i, 1]
-        s2 = B[5, i, 2]
-        s3 = B[6, i, 0]
-        s4 = B[6, i, 1]
-        s5 = B[6, i, 2]
-        for r in range(9):
-            xt0 = A[r, 6]
-            xt1 = A[r, 7]
-            xt2 = A[r, 8]
-            xa0 = A[r, 9]
-            xa1 = A[r, 10]
-            xa2 = A[r, 11]
-            xg0 = A[r, 12]
-            xg1 = A[r, 13]
-            xg2 = A[r, 14]
-            sp = a0 * xt0 + a1 * xt1 + a2 * xt2 + a3 * xa0 + a4 * xa1 + a5 * xa2
-            sv = (v0 * xt0 + v1 * xt1 + v2 * xt2 + v3 * xa0 + v4 * xa1 + v5 * xa2
-                  + v6 * xg0 + v7 * xg1 + v8 * xg2)
-            st = s0 * xt0 + s1 * xt1 + s2 * xt2 + s3 * xg0 + s4 * xg1 + s5 * xg2
-            P[r, i] = A[r, i] + (dt * A[r, 3 + i] + sp)
-            P[r, 6 + i] = st
-            P[r, 3 + i] = A[r, 3 + i] + sv
+    # the 9x9 block: row r of (Phi P) Phi^T is Phi applied to A[r, 0:15] (as _phi_vec does): the same
+    # arithmetic on the transposed views
+    _phi_dyn_rows(A[0:9, 0:N_DYN].T, P[0:9, 0:9].T, B, dt)
     _add_process_noise(P, dt, pn)
 
 
