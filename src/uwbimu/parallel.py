@@ -52,6 +52,16 @@ def _new_executor(workers: int, preload) -> ProcessPoolExecutor:
     return ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=initializer)
 
 
+def _take(f, t, on_chunk, describe, failures: list[str]) -> None:
+    """Hand a finished future's chunk to ``on_chunk``, or record why task ``t`` failed."""
+    try:
+        chunk = f.result()
+    except Exception as exc:  # e.g. BrokenProcessPool: a worker died
+        failures.append(f"{describe(t)}: {type(exc).__name__}: {exc}")
+        return
+    on_chunk(chunk)
+
+
 def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], None], describe, preload,
                      pool: Optional["ProcessPool"] = None) -> list[str]:
     """:func:`execute` with the caller as one of the ``workers``: ``workers - 1`` pool processes and this one.
@@ -126,14 +136,6 @@ def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], No
             # not waited for after an exception; otherwise the pool is idle by now (every task handled)
             box[0].shutdown(wait=not cancel, cancel_futures=True)
 
-    def handle(f, t) -> None:
-        try:
-            chunk = f.result()
-        except Exception as exc:  # e.g. BrokenProcessPool: a worker died
-            failures.append(f"{describe(t)}: {type(exc).__name__}: {exc}")
-            return
-        on_chunk(chunk)
-
     handled = 0
     try:
         while handled < len(tasks):
@@ -142,7 +144,7 @@ def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], No
                     f, t = results.get_nowait()
                 except _queue.Empty:
                     break
-                handle(f, t)
+                _take(f, t, on_chunk, describe, failures)
                 handled += 1
             try:
                 t = todo.pop()
@@ -151,7 +153,7 @@ def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], No
                     f, t = results.get(timeout=0.05)
                 except _queue.Empty:
                     continue
-                handle(f, t)
+                _take(f, t, on_chunk, describe, failures)
                 handled += 1
                 continue
             try:
@@ -210,13 +212,7 @@ def _run_pool(fn, tasks: list, workers: int, on_chunk: Callable[[Any], None], de
         while pending:
             done, _ = wait(pending, return_when=FIRST_COMPLETED)
             for f in done:
-                t = pending.pop(f)
-                try:
-                    chunk = f.result()
-                except Exception as exc:  # e.g. BrokenProcessPool: a worker died
-                    failures.append(f"{describe(t)}: {type(exc).__name__}: {exc}")
-                    continue
-                on_chunk(chunk)
+                _take(f, pending.pop(f), on_chunk, describe, failures)
     except BaseException:
         # Ctrl-C or a failed write: do not wait for the queued tasks (finished ones are on disk).
         if own:
