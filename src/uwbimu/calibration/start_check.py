@@ -31,6 +31,8 @@ from typing import Any, Optional
 import numpy as np
 import pandas as pd
 
+from uwbimu.estimation.segments import measurement_rows
+
 #: smallest fraction of the ESKF's range / TDoA updates that must pass its gate
 MIN_ACCEPTED = 0.5
 #: median of distance / fix sd above which the ESKF disagrees with the multilateration
@@ -50,40 +52,16 @@ DIVERGENCE_EVENTS = ("divergence", "reinitialised")
 
 
 def _rows(dataset, tag: Optional[str] = None):
-    """Every range / TDoA row (of ``tag`` when given and the table names its tags) as ``(t, anchor b position,
-    anchor a position or NaN, measured, anchor pair)``."""
-    pos = dataset.anchor_positions()
-    ts, pb, pa, z, ids = [], [], [], [], []
-
-    def of_tag(tab):
-        if tag is None or "tag" not in tab.columns:
-            return np.ones(len(tab), bool)
-        return (tab["tag"].astype(str) == str(tag)).to_numpy()
-
-    u = dataset.uwb
-    if u is not None and len(u):
-        ok = u["anchor"].astype(str).isin(pos.keys()).to_numpy() & of_tag(u)
-        u = u[ok]
-        ts.append(u["t"].to_numpy(float))
-        pb.append(np.array([pos[a] for a in u["anchor"].astype(str)], float).reshape(-1, 3))
-        pa.append(np.full((len(u), 3), np.nan))
-        z.append(u["range"].to_numpy(float))
-        ids.append(u["anchor"].astype(str).to_numpy())
-    td = getattr(dataset, "tdoa", None)
-    if td is not None and len(td):
-        ok = (td["anchor_a"].astype(str).isin(pos.keys()) & td["anchor_b"].astype(str).isin(pos.keys())).to_numpy()
-        td = td[ok & of_tag(td)]
-        ts.append(td["t"].to_numpy(float))
-        pb.append(np.array([pos[b] for b in td["anchor_b"].astype(str)], float).reshape(-1, 3))
-        pa.append(np.array([pos[a] for a in td["anchor_a"].astype(str)], float).reshape(-1, 3))
-        z.append(td["tdoa"].to_numpy(float))
-        ids.append((td["anchor_a"].astype(str) + "-" + td["anchor_b"].astype(str)).to_numpy())
-    if not ts:
+    """Every range / TDoA row (of ``tag`` when given and the table names its tags) in time order as ``(t,
+    anchor b position, anchor a position or NaN, measured, anchor pair, every anchor's position)``."""
+    rows = measurement_rows(dataset, tag=tag)
+    if rows is None:
         return None
-    t, B, A, Z, I = (np.concatenate(x) for x in (ts, pb, pa, z, ids))
+    t, B, A, Z, I = rows
     fin = np.isfinite(Z) & np.isfinite(t)
     order = np.argsort(t[fin], kind="stable")
-    return t[fin][order], B[fin][order], A[fin][order], Z[fin][order], I[fin][order], np.array(list(pos.values()))
+    return t[fin][order], B[fin][order], A[fin][order], Z[fin][order], I[fin][order], \
+        np.array(list(dataset.anchor_positions().values()))
 
 
 def _fit(x0, B, A, Z):

@@ -200,6 +200,43 @@ def detect_flight(imu_t: np.ndarray, imu_u: np.ndarray, *, min_rest_s: float = 0
                          rest_s=float(t[n_rest - 1] - t[0]), climb_speed=climb_speed, airborne_height=airborne_height)
 
 
+def measurement_rows(ds, t0: float = -np.inf, t1: float = np.inf, tag: Optional[str] = None):
+    """The range and TDoA rows over ``[t0, t1]`` (UWB clock) whose anchors are surveyed, of ``tag`` when given
+    and the table names its tags: ``(t, p_b, p_a, z, ids)`` with ``p_b`` the (second) anchor's position,
+    ``p_a`` the first anchor's for a TDoA row (``z = |x - p_b| - |x - p_a|``) and NaN for a range
+    (``z = |x - p_b|``), ``ids`` the anchor or ``"a-b"`` pair; ranges first, then TDoA, in table order.
+    None without rows.  The one reader of rows for the model-free fixes (this module, the batch's start check)."""
+    pos = ds.anchor_positions()
+
+    def rows_of(tab):
+        sel = (tab["t"] >= t0) & (tab["t"] <= t1)
+        if tag is not None and "tag" in tab.columns:
+            sel &= tab["tag"].astype(str) == str(tag)
+        return tab[sel.to_numpy()]
+
+    ts, rows_p, rows_a, rows_z, ids = [], [], [], [], []
+    if ds.uwb is not None and len(ds.uwb):
+        u = rows_of(ds.uwb)
+        u = u[u["anchor"].astype(str).isin(pos.keys()).to_numpy()]
+        ts.append(u["t"].to_numpy(float))
+        rows_p.append(np.array([pos[a] for a in u["anchor"].astype(str)], float).reshape(-1, 3))
+        rows_a.append(np.full((len(u), 3), np.nan))
+        rows_z.append(u["range"].to_numpy(float))
+        ids.append(u["anchor"].astype(str).to_numpy())
+    td = getattr(ds, "tdoa", None)
+    if td is not None and len(td):
+        d = rows_of(td)
+        d = d[(d["anchor_a"].astype(str).isin(pos.keys()) & d["anchor_b"].astype(str).isin(pos.keys())).to_numpy()]
+        ts.append(d["t"].to_numpy(float))
+        rows_p.append(np.array([pos[b] for b in d["anchor_b"].astype(str)], float).reshape(-1, 3))
+        rows_a.append(np.array([pos[a] for a in d["anchor_a"].astype(str)], float).reshape(-1, 3))
+        rows_z.append(d["tdoa"].to_numpy(float))
+        ids.append((d["anchor_a"].astype(str) + "-" + d["anchor_b"].astype(str)).to_numpy())
+    if not rows_z:
+        return None
+    return tuple(np.concatenate(x) for x in (ts, rows_p, rows_a, rows_z, ids))
+
+
 def _fix(ds, t0: float, t1: float) -> Optional[tuple[np.ndarray, float]]:
     """Robust (soft-L1) multilateration of the tag over ``[t0, t1]`` (UWB clock) from the ranges and
     TDoA; returns ``(position, sd)`` with ``sd`` the fix's position sd (robust residual scale times the
@@ -207,25 +244,10 @@ def _fix(ds, t0: float, t1: float) -> Optional[tuple[np.ndarray, float]]:
     from scipy.optimize import least_squares
 
     pos = ds.anchor_positions()
-    rows_p, rows_a, rows_z = [], [], []
-    if ds.uwb is not None and len(ds.uwb):
-        u = ds.uwb[(ds.uwb["t"] >= t0) & (ds.uwb["t"] <= t1)]
-        ok = u["anchor"].astype(str).isin(pos.keys()).to_numpy()
-        u = u[ok]
-        rows_p.append(np.array([pos[a] for a in u["anchor"].astype(str)]).reshape(-1, 3))
-        rows_a.append(np.full((len(u), 3), np.nan))
-        rows_z.append(u["range"].to_numpy(float))
-    td = getattr(ds, "tdoa", None)
-    if td is not None and len(td):
-        d = td[(td["t"] >= t0) & (td["t"] <= t1)]
-        ok = (d["anchor_a"].astype(str).isin(pos.keys()) & d["anchor_b"].astype(str).isin(pos.keys())).to_numpy()
-        d = d[ok]
-        rows_p.append(np.array([pos[b] for b in d["anchor_b"].astype(str)]).reshape(-1, 3))
-        rows_a.append(np.array([pos[a] for a in d["anchor_a"].astype(str)]).reshape(-1, 3))
-        rows_z.append(d["tdoa"].to_numpy(float))
-    if not rows_z:
+    rows = measurement_rows(ds, t0, t1)
+    if rows is None:
         return None
-    pb, pa, z = np.concatenate(rows_p), np.concatenate(rows_a), np.concatenate(rows_z)
+    _, pb, pa, z, _ = rows
     fin = np.isfinite(z)
     pb, pa, z = pb[fin], pa[fin], z[fin]
     if len(z) < 6:
