@@ -305,6 +305,30 @@ def _imu_noise_scale(built: Built, solved: Solved, engine: str, events: list) ->
     return Built(problem=pb, imu_factors=imf), Solved(graph=fg, values=values, assoc=assoc, iterations=iters), scale
 
 
+#: calibration options whose setting asks for t_d on a single-clock log (the user expects a latency)
+_TD_FIELDS = ("time_offset_prior", "time_offset_prior_sd", "td_profile")
+
+
+def single_clock_hold(dataset, o: CalibrationOptions) -> Optional[dict]:
+    """The ``time_offset_single_clock`` event when t_d is held at its prior because every stream shares one
+    clock, else None.
+
+    The ESKF's rule (:func:`uwbimu.estimation.timeoffset.single_clock_time_offset`) for the batch, so that
+    both estimators give one answer: with ``dataset.yaml`` ``single_clock: true`` and none of
+    ``time_offset_prior``, ``time_offset_prior_sd`` or ``td_profile`` configured, there is no second clock
+    to be offset from and t_d is held at ``time_offset_prior`` (0) in the final solve (no profile; the other
+    sigmas are conditional on it, calibration.yaml ``conditional_on_time_offset``).
+    """
+    meta = getattr(dataset, "meta", None)
+    if getattr(meta, "single_clock", None) is not True or any(f in o.model_fields_set for f in _TD_FIELDS):
+        return None
+    return {"t": None, "kind": "time_offset_single_clock", "severity": "info", "mode": "fixed",
+            "t_d": float(o.time_offset_prior),
+            "message": "every stream of this log was stamped by one clock (dataset.yaml single_clock: true): "
+                       "t_d held at its prior in the final solve; set time_offset_prior_sd or td_profile to "
+                       "estimate a latency"}
+
+
 def _profile_and_final_solve(start: Start, o: CalibrationOptions, built: Built, solved: Solved, engine: str,
                              workers: int, executor: Optional[dict], reference_solver: bool, events: list,
                              report: _StageReporter) -> Profiled:
@@ -312,6 +336,16 @@ def _profile_and_final_solve(start: Start, o: CalibrationOptions, built: Built, 
     verdict asks for (refined at the vertex, or t_d held at its prior); the free solve itself when disabled."""
     pb, imf = built.problem, built.imu_factors
     free_td = solved.time_offset()
+    single = single_clock_hold(start.dataset, o)
+    if single is not None:
+        # one clock for every stream: no offset to estimate (the ESKF's rule, timeoffset.single_clock_time_offset)
+        report.skipped("t_d profile")
+        report.started("final solve")
+        events.append(single)
+        solved = solve(pb, imf, graph.without_td(solved.values), o.time_offset_prior, o.time_offset_prior,
+                       engine=engine)
+        report.done("final solve")
+        return Profiled(solved=solved, profile=None, td_free=False, chi2_scale=1.0, verdict="fixed")
     if not o.td_profile.enabled:
         report.skipped("t_d profile")
         report.skipped("final solve")
@@ -574,7 +608,7 @@ def _report(pb, profiled: Profiled, dataset):
                         "profile_chi2_scale": float(chi2_scale),
                         "sd_curvature": (float(prof.sigma_curvature) if prof is not None and prof.identified
                                          else None),
-                        "verdict": (prof.verdict if prof is not None else "not_profiled"),
+                        "verdict": (prof.verdict if prof is not None else (profiled.verdict or "not_profiled")),
                         "held_at_prior": not td_free,
                         "profile_confidence_interval": (
                             [float(v) for v in confidence_interval(prof.grid, prof.chi2, prof.confidence_chi2,

@@ -136,9 +136,12 @@ class Profiled:
     profile : the :class:`uwbimu.calibration.profile.TdProfile`, or None when disabled.
     td_free : t_d is a variable of the final solve (False: held at ``time_offset_prior``).
     chi2_scale : the profile's honesty correction (model / sandwich variance of t_d; 1 when not profiled).
+    verdict : the t_d verdict when no profile gave one (``fixed``: held at its prior because every
+        stream shares one clock); None otherwise.
     """
 
     solved: Solved
     profile: Any
     td_free: bool
     chi2_scale: float
+    verdict: Optional[str] = None
