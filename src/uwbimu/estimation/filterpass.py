@@ -142,7 +142,7 @@ class Problem:
         return self.process_noise
 
     def state_layout(self) -> StateLayout:
-        return self.layout if self.layout is not None else StateLayout.for_dims(self.gain_mask.shape[0])
+        return self.layout  # set by estimation.problem.make_settings (never inferred from an array length)
 
     @property
     def n_err(self) -> int:
