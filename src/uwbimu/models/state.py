@@ -233,12 +233,6 @@ class StateLayout:
         s0 = self._nom["extra_levers"].start + 3 * (tag - 1)
         return slice(s0, s0 + 3)
 
-    @classmethod
-    def for_dims(cls, n_err: int, n_anchor_bias: Optional[int] = None) -> "StateLayout":
-        """The layout of a one-tag error state of size ``n_err`` (extras are anchor biases unless told)."""
-        nb = n_err - ERROR_DIM if n_anchor_bias is None else n_anchor_bias
-        return cls(nb, n_err - ERROR_DIM - nb)
-
     def err(self, name: str) -> slice:
         """Slice of block ``name`` in the error state (and covariance)."""
         return self._err[name]
