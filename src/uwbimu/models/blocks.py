@@ -35,6 +35,19 @@ What a declaration says
                    calibration.yaml; ``<key>_sd`` its sd, ``<key>_mode`` its mode when it can be other than
                    ``estimate``): the options section's name where the block has one.  Per-anchor blocks are
                    keyed by anchor id, per-pair blocks by ``"<a>-<b>"``; None: not a calibration output.
+``label``, ``frame`` the quantity in words ("lever arm") and the frame of its components: warnings, event
+                   payloads (``parameter``), the observability directions' names.
+``calibration``    the calibration proper (lever arm, time offset; :data:`CALIBRATION_BLOCKS`): the excitation
+                   monitor, the observability windows' ``<output_key>_excited`` flags, the reports'
+                   calibration / convergence / repeatability tables loop over these blocks.
+``table_unit``, ``plot_unit`` ``(scale, unit)`` of tables / warnings and of plots (None: SI).
+``excitation``     the motion measure that excites the block (``"rotation"``: RMS body rate,
+                   ``"acceleration"``: RMS world acceleration) and ``excitation_advice`` the motion to add.
+``search_option``  the option of the grid the initialiser searches the block on (its prior sd is then at
+                   least the grid's uniform sd: ``estimation.problem.block_prior_sd``).
+``verdict``        the batch calibration's identifiability verdict: ``"information_gain"`` per component,
+                   ``"profile"`` (the time offset's profile verdict).
+``obs_scale``, ``obs_prior_sd`` typical magnitude and window-start prior sd of the observability analysis.
 
 Adding a block
 --------------
@@ -83,6 +96,17 @@ class BlockSpec:
     prior_sd_option: Optional[str] = None  # option path of the prior sd of an additive extra block
     prior: str = ""
     doc: str = ""
+    label: str = ""  # the quantity in words ("lever arm"): warnings, event payloads, direction names
+    frame: str = ""  # frame of a vector block's components ("world", "body"; "" for a scalar)
+    calibration: bool = False  # the calibration proper (see CALIBRATION_BLOCKS)
+    table_unit: Optional[tuple[float, str]] = None  # (scale from SI, unit) of tables and warnings; None: SI
+    plot_unit: Optional[tuple[float, str]] = None  # (scale from SI, unit) of the reports' plots; None: SI
+    excitation: Optional[str] = None  # the motion measure that excites it: "rotation" or "acceleration"
+    excitation_advice: str = ""  # what motion would determine it (the not-determined warning's advice)
+    search_option: Optional[str] = None  # option path of the grid the initialiser searches it on
+    verdict: str = ""  # identifiability verdict of the batch calibration: "information_gain" or "profile"
+    obs_scale: float = 1.0  # typical magnitude [unit] making the observability information dimensionless
+    obs_prior_sd: float = 0.0  # prior sd [unit] at an observability window's start (the ESKF's default)
 
     def __post_init__(self):
         if self.multiplicity not in MULTIPLICITIES or self.process_noise not in PN_CODES:
@@ -90,6 +114,8 @@ class BlockSpec:
                              f"{tuple(PN_CODES)}")
         if len(self.output_names) != self.size or len(self.nom_names) != self.n_nom:
             raise ValueError(f"BlockSpec {self.name!r}: one output name per component")
+        if any(not n.startswith(self.symbol) for n in self.output_names) or len(set(self.axes)) != self.size:
+            raise ValueError(f"BlockSpec {self.name!r}: output names are one prefix and one suffix per component")
 
     @property
     def n_nom(self) -> int:
@@ -105,6 +131,29 @@ class BlockSpec:
         """Process-noise kind code (``PN_*``)."""
         return PN_CODES[self.process_noise]
 
+    @property
+    def symbol(self) -> str:
+        """The components' common name prefix (``"l"`` of ``lx, ly, lz``; a scalar's own name): the key of
+        the per-block observability scales and the direction names."""
+        if self.size == 1:
+            return self.output_names[0]
+        return self.output_names[0][:-1]
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        """The components' suffixes after :attr:`symbol` (``("x", "y", "z")``; ``("",)`` for a scalar)."""
+        return tuple(n[len(self.symbol):] for n in self.output_names)
+
+    @property
+    def table(self) -> tuple[float, str]:
+        """``(scale, unit)`` of the block in tables and warnings (``value * scale`` in ``unit``)."""
+        return self.table_unit or (1.0, self.unit)
+
+    @property
+    def plot(self) -> tuple[float, str]:
+        """``(scale, unit)`` of the block in the reports' plots."""
+        return self.plot_unit or (1.0, self.unit)
+
 
 def _xyz(prefix: str) -> tuple[str, str, str]:
     return (prefix + "x", prefix + "y", prefix + "z")
@@ -114,41 +163,53 @@ def _xyz(prefix: str) -> tuple[str, str, str]:
 #: present; the rest are additive extras whose counts come from the run (``StateLayout`` arguments).
 BLOCKS: tuple[BlockSpec, ...] = (
     BlockSpec("p", 3, "one", "imu", _xyz("p"), "m", prior="initialiser (multilateration)",
-              doc="IMU position, world frame"),
-    BlockSpec("v", 3, "one", "imu", _xyz("v"), "m/s", prior="initialiser", doc="IMU velocity, world frame"),
+              doc="IMU position, world frame", label="position", frame="world", obs_scale=1.0, obs_prior_sd=0.3),
+    BlockSpec("v", 3, "one", "imu", _xyz("v"), "m/s", prior="initialiser", doc="IMU velocity, world frame",
+              label="velocity", frame="world", obs_scale=1.0, obs_prior_sd=0.5),
     BlockSpec("theta", 3, "one", "imu", _xyz("th"), "rad", nominal_size=4, nominal_names=("qw", "qx", "qy", "qz"),
               prior="initialiser (gravity, yaw search)",
-              doc="attitude: nominal Hamilton q [qw, qx, qy, qz] body->world, error q = q_hat ⊗ Exp(theta)"),
+              doc="attitude: nominal Hamilton q [qw, qx, qy, qz] body->world, error q = q_hat ⊗ Exp(theta)",
+              label="attitude", frame="body", obs_scale=1.0, obs_prior_sd=0.1),
     BlockSpec("b_a", 3, "one", "imu", _xyz("ba"), "m/s^2", output_key="accel_bias", prior="zero, sd accel_bias_sd (or the IMU's)",
-              doc="accelerometer bias, IMU frame"),
+              doc="accelerometer bias, IMU frame", label="accelerometer bias", frame="body", obs_scale=0.1,
+              obs_prior_sd=0.1),
     BlockSpec("b_g", 3, "one", "imu", _xyz("bg"), "rad/s", output_key="gyro_bias", prior="still-phase mean, sd gyro_bias_sd",
-              doc="gyroscope bias, IMU frame"),
+              doc="gyroscope bias, IMU frame", label="gyro bias", frame="body", obs_scale=0.01, obs_prior_sd=0.01),
     BlockSpec("lever", 3, "one", "random_walk", _xyz("l"), "m", noise_option=("lever_arm.random_walk",),
               output_key="lever_arm",
               mode_option="lever_arm", prior="lever_arm.prior (dataset), sd lever_arm.prior_sd",
-              doc="lever arm p_IU of the first tag: UWB antenna in the IMU frame"),
+              doc="lever arm p_IU of the first tag: UWB antenna in the IMU frame",
+              label="lever arm", frame="body", calibration=True, table_unit=(100.0, "cm"), excitation="rotation",
+              excitation_advice="excite rotations about all axes", verdict="information_gain",
+              obs_scale=0.1, obs_prior_sd=0.3),
     BlockSpec("t_d", 1, "one", "random_walk", ("td",), "s", noise_option=("time_offset.random_walk",),
               output_key="time_offset",
               mode_option="time_offset",
               prior="time_offset.prior, sd time_offset.prior_sd; searched on init.td_grid when no prior",
-              doc="time offset: an IMU sample stamped s describes the motion at UWB time s - t_d"),
+              doc="time offset: an IMU sample stamped s describes the motion at UWB time s - t_d",
+              label="time offset", calibration=True, table_unit=(1000.0, "ms"), plot_unit=(1000.0, "ms"),
+              excitation="acceleration", excitation_advice="move with changing velocity", search_option="init.td_grid",
+              verdict="profile", obs_scale=0.01, obs_prior_sd=0.1),
     BlockSpec("anchor_bias", 1, "per_anchor", "gauss_markov", ("b",), "m",
               noise_option=("anchor_bias.prior_sd", "anchor_bias.correlation_time"), mode_option="anchor_bias",
               output_key="anchor_bias",
               enabled_by=("anchor_bias.mode", ("estimate", "consider")), prior_sd_option="anchor_bias.prior_sd",
               prior="zero, sd anchor_bias.prior_sd",
-              doc="per-anchor range bias (Gauss-Markov when anchor_bias.correlation_time is set, else constant)"),
+              doc="per-anchor range bias (Gauss-Markov when anchor_bias.correlation_time is set, else constant)",
+              label="anchor bias", verdict="information_gain"),
     BlockSpec("pair_bias", 1, "per_pair", "constant", ("b",), "m", mode_option="tdoa_pair_bias",
               output_key="tdoa_pair_bias",
               enabled_by=("tdoa_pair_bias.mode", ("estimate",)), prior_sd_option="tdoa_pair_bias.prior_sd",
-              prior="zero, sd tdoa_pair_bias.prior_sd", doc="TDoA bias of one anchor pair"),
+              prior="zero, sd tdoa_pair_bias.prior_sd", doc="TDoA bias of one anchor pair", label="TDoA pair bias"),
     BlockSpec("extra_levers", 3, "per_extra_tag", "random_walk", _xyz("l"), "m",
               noise_option=("lever_arm.random_walk",), mode_option="lever_arm",
-              prior="the tag's lever arm, sd lever_arm.prior_sd", doc="lever arms of tags 2..T, IMU frame"),
+              prior="the tag's lever arm, sd lever_arm.prior_sd", doc="lever arms of tags 2..T, IMU frame",
+              label="lever arm", frame="body"),
     BlockSpec("height_bias", 1, "optional", "random_walk", ("hb",), "m", noise_option=("height.bias_random_walk",),
               enabled_by=("height.bias", ("estimate",)), prior_sd_option="height.bias_prior_sd",
               output_key="height_bias",
-              prior="zero, sd height.bias_prior_sd", doc="altimeter (barometer) bias, added to the measured height"),
+              prior="zero, sd height.bias_prior_sd", doc="altimeter (barometer) bias, added to the measured height",
+              label="altimeter bias"),
 )
 
 BLOCK = {b.name: b for b in BLOCKS}
@@ -156,6 +217,15 @@ BLOCK = {b.name: b for b in BLOCKS}
 #: the order of the blocks' estimates in the calibration outputs (calibration.yaml reads top-down: the
 #: calibration first, the IMU biases, then the per-anchor / per-pair extras)
 OUTPUT_ORDER = ("lever", "t_d", "b_a", "b_g", "anchor_bias", "pair_bias", "height_bias")
+
+#: The calibration proper (``calibration=True``: the lever arm and the time offset), in output order: the
+#: excitation monitor, the observability windows' flags and the reports' calibration tables loop over these
+CALIBRATION_BLOCKS: tuple[BlockSpec, ...] = tuple(BLOCK[n] for n in OUTPUT_ORDER if BLOCK[n].calibration)
+
+
+def calibration_components() -> dict[str, tuple[BlockSpec, int]]:
+    """Output name of every component of the calibration blocks (``lx, ly, lz, td``) -> (block, component)."""
+    return {n: (b, i) for b in CALIBRATION_BLOCKS for i, n in enumerate(b.output_names)}
 
 
 class ProcessNoise(NamedTuple):
