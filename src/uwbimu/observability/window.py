@@ -46,18 +46,29 @@ from uwbimu.models.imu import BMI088, ImuNoise
 from uwbimu.models.kernels import phi_left_R, refresh_stale_cache
 from uwbimu.models import kernels as _physics
 from uwbimu.models.quaternion import quat_normalize, quat_slerp, quat_to_rotmat, rotmat_to_quat
-from uwbimu.models.state import (BA, BG, E_L, E_TD, EBA, EBG, EPIU, ERROR_DIM, ERROR_STATE_NAMES, ETD, ETH,
-                                 EV, P as NP_, PIU, Q, TD, V as NV_)
+from uwbimu.models.state import (BA, BG, E_L, E_TD, EBA, EBG, ERROR_DIM, ERROR_STATE_NAMES, ETD, ETH,
+                                 EV, P as NP_, PIU, Q, TD, V as NV_, StateLayout)
+from uwbimu.models.blocks import BLOCKS, CALIBRATION_BLOCKS
 from uwbimu.observability.directions import candidates_for, name_directions
 
-#: Typical magnitudes used to make the information dimensionless (per block).
-DEFAULT_SCALES = {"p": 1.0, "v": 1.0, "th": 1.0, "ba": 0.1, "bg": 0.01, "l": 0.1, "td": 0.01}
+#: the blocks of the 19-dim error state the analysis runs on, in state order (models.blocks declarations)
+_BASE_BLOCKS = tuple(b for b in BLOCKS if b.multiplicity == "one")
 
-#: Prior sd per block at each window's start [m, m/s, rad, m/s^2, rad/s, m, s]:
-#: the ESKF's defaults (``EskfOptions``: position 0.3 m, velocity 0.5 m/s,
+#: Typical magnitudes used to make the information dimensionless, per block symbol (``BlockSpec.obs_scale``:
+#: 1 m, 1 m/s, 1 rad, 0.1 m/s^2, 0.01 rad/s, 0.1 m, 0.01 s).
+DEFAULT_SCALES = {b.symbol: b.obs_scale for b in _BASE_BLOCKS}
+
+#: Prior sd per block symbol at each window's start [m, m/s, rad, m/s^2, rad/s, m, s]
+#: (``BlockSpec.obs_prior_sd``): the ESKF's defaults (``EskfOptions``: position 0.3 m, velocity 0.5 m/s,
 #: lever arm 0.3 m, t_d 0.1 s; attitude 0.1 rad ~ 6 deg roll/pitch after
 #: levelling; biases of a consumer IMU).
-DEFAULT_PRIOR_SD = {"p": 0.3, "v": 0.5, "th": 0.1, "ba": 0.1, "bg": 0.01, "l": 0.3, "td": 0.1}
+DEFAULT_PRIOR_SD = {b.symbol: b.obs_prior_sd for b in _BASE_BLOCKS}
+
+#: the WindowOptions field of each calibration block's optional absolute sd threshold (by output key)
+_SD_THRESHOLD_OPTION = {"lever_arm": "lever_sd_threshold", "time_offset": "td_sd_threshold"}
+
+#: the calibration blocks and their error-state slices (flags ``<output_key>_excited``, ``_info_gain``)
+_CAL = tuple((b, StateLayout().err(b.name)) for b in CALIBRATION_BLOCKS)
 
 
 @dataclass
@@ -395,8 +406,8 @@ def _inv_psd(P: np.ndarray) -> np.ndarray:
 
 
 def _scale_vector(scales: dict) -> np.ndarray:
-    keys = ["p"] * 3 + ["v"] * 3 + ["th"] * 3 + ["ba"] * 3 + ["bg"] * 3 + ["l"] * 3 + ["td"]
-    return np.array([scales[k] for k in keys], float)
+    """Per-component vector (error-state order) of a per-block-symbol dict (``DEFAULT_SCALES`` keys)."""
+    return np.array([scales[b.symbol] for b in _BASE_BLOCKS for _ in range(b.size)], float)
 
 
 def analyse_information(info: np.ndarray, scales: dict, x_ref=None, anchors=None) -> dict:
@@ -589,8 +600,9 @@ def window_observability(ds, trajectory: Optional[Trajectory] = None, options: O
             P_chain = P_end
             # marginal precision the window's ranges add, in units of the prior precision
             prec = lambda P, i: 1.0 / max(P[i, i], 1e-300)  # noqa: E731
-            row["lever_arm_info_gain"] = float(min((prec(P_end, i) - prec(P_prior, i)) * prior_sd[i] ** 2 for i in range(EPIU.start, EPIU.stop)))
-            row["time_offset_info_gain"] = float((prec(P_end, ETD) - prec(P_prior, ETD)) * prior_sd[ETD] ** 2)
+            for b, sl in _CAL:  # the weakest component's gain
+                row[f"{b.output_key}_info_gain"] = float(min((prec(P_end, i) - prec(P_prior, i)) * prior_sd[i] ** 2
+                                                             for i in range(sl.start, sl.stop)))
         if nr < opts.min_ranges or k1 - k0 < 2:
             row.update({"min_eigenvalue": 0.0, "condition_number": float("inf"), "weakest_direction": "no data"})
             if opts.bound == "pcrb":
@@ -616,26 +628,26 @@ def window_observability(ds, trajectory: Optional[Trajectory] = None, options: O
             res = analyse_information(info, opts.scales, x_ref, np.unique(pre["anchors"][sel], axis=0))
             row.update({k: res[k] for k in ("min_eigenvalue", "condition_number", "weakest_direction")})
             row.update({f"sd_{n}": float(s) for n, s in zip(ERROR_STATE_NAMES, res["sd"])})
-        sd_l = max(row["sd_lx"], row["sd_ly"], row["sd_lz"])
-        if opts.bound == "pcrb":
-            need = 1.0 / opts.excited_sd_ratio**2 - 1.0  # gain that takes the prior sd to ratio x prior
-            row["lever_arm_excited"] = bool(row.get("lever_arm_info_gain", 0.0) >= need)
-            row["time_offset_excited"] = bool(row.get("time_offset_info_gain", 0.0) >= need)
-        else:
-            row["lever_arm_excited"] = bool(np.isfinite(sd_l))
-            row["time_offset_excited"] = bool(np.isfinite(row["sd_td"]))
-        if opts.lever_sd_threshold is not None:
-            row["lever_arm_excited"] &= bool(sd_l < opts.lever_sd_threshold)
-        if opts.td_sd_threshold is not None:
-            row["time_offset_excited"] &= bool(row["sd_td"] < opts.td_sd_threshold)
+        for b, _ in _CAL:
+            key = f"{b.output_key}_excited"
+            sd_b = max(row[f"sd_{n}"] for n in b.output_names)  # the weakest component's bound
+            if opts.bound == "pcrb":
+                need = 1.0 / opts.excited_sd_ratio**2 - 1.0  # gain that takes the prior sd to ratio x prior
+                row[key] = bool(row.get(f"{b.output_key}_info_gain", 0.0) >= need)
+            else:
+                row[key] = bool(np.isfinite(sd_b))
+            threshold = getattr(opts, _SD_THRESHOLD_OPTION[b.output_key])
+            if threshold is not None:
+                row[key] &= bool(sd_b < threshold)
         rows.append(row)
     cols = ["t_start", "t_end", "min_eigenvalue", "condition_number", "weakest_direction"]
-    cols += [f"sd_{n}" for n in ERROR_STATE_NAMES] + ["n_ranges", "gyro_rms", "lever_arm_excited", "time_offset_excited"]
-    if opts.bound == "pcrb":
-        cols += ["lever_arm_info_gain", "time_offset_info_gain"]
+    cols += [f"sd_{n}" for n in ERROR_STATE_NAMES] + ["n_ranges", "gyro_rms"]
+    cols += [f"{b.output_key}_excited" for b, _ in _CAL]
+    gains = [f"{b.output_key}_info_gain" for b, _ in _CAL] if opts.bound == "pcrb" else []
+    cols += gains
     table = pd.DataFrame(rows)
-    for c in ("lever_arm_info_gain", "time_offset_info_gain"):
-        if c in cols and c not in table.columns:
+    for c in gains:
+        if c not in table.columns:
             table[c] = 0.0
     table = table[cols]
     meta = {
@@ -665,25 +677,23 @@ def plot_timeline(table: pd.DataFrame, path, lever_sd_threshold: Optional[float]
 
     tc = 0.5 * (table["t_start"] + table["t_end"])
     fig = Figure(figsize=(9, 7))
-    ax = fig.subplots(3, 1, sharex=True)
+    ax = fig.subplots(1 + len(_CAL), 1, sharex=True)
     ax[0].semilogy(tc, np.maximum(table["min_eigenvalue"], 1e-20), "o-")
     ax[0].set_ylabel("min eigenvalue\n(scaled information)")
-    for n in ("lx", "ly", "lz"):
-        ax[1].semilogy(tc, table[f"sd_{n}"].replace(np.inf, np.nan), "o-", label=f"sd {n}")
-    if lever_sd_threshold:
-        ax[1].axhline(lever_sd_threshold, ls="--", color="k", lw=0.8)
-    if td_sd_threshold:
-        ax[2].axhline(td_sd_threshold, ls="--", color="k", lw=0.8)
-    ax[1].set_ylabel("CRLB lever arm [m]")
-    ax[1].legend(fontsize=8)
-    ax[2].semilogy(tc, table["sd_td"].replace(np.inf, np.nan), "o-", color="C3")
-    ax[2].set_ylabel("CRLB t_d [s]")
-    ax[2].set_xlabel("window centre, IMU clock [s]")
-    for i, r in table.iterrows():
-        if not r["lever_arm_excited"]:
-            ax[1].axvspan(r["t_start"], r["t_end"], color="orange", alpha=0.15)
-        if not r["time_offset_excited"]:
-            ax[2].axvspan(r["t_start"], r["t_end"], color="orange", alpha=0.15)
+    thresholds = {"lever_arm": lever_sd_threshold, "time_offset": td_sd_threshold}
+    for a, (b, _) in zip(ax[1:], _CAL):  # one panel per calibration block
+        for n in b.output_names:
+            a.semilogy(tc, table[f"sd_{n}"].replace(np.inf, np.nan), "o-", label=f"sd {n}",
+                       **({} if b.size > 1 else {"color": "C3"}))
+        if thresholds.get(b.output_key):
+            a.axhline(thresholds[b.output_key], ls="--", color="k", lw=0.8)
+        a.set_ylabel(f"CRLB {b.label} [{b.unit}]")
+        if b.size > 1:
+            a.legend(fontsize=8)
+        for i, r in table.iterrows():
+            if not r[f"{b.output_key}_excited"]:
+                a.axvspan(r["t_start"], r["t_end"], color="orange", alpha=0.15)
+    ax[-1].set_xlabel("window centre, IMU clock [s]")
     fig.suptitle("Per-window observability (shaded: not excited)")
     save_figure(path, fig)
 
