@@ -28,19 +28,18 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 
 from uwbimu.models import state as ST
+from uwbimu.models.blocks import BLOCK, BLOCKS
 from uwbimu.models.quaternion import quat_to_rotmat
 
 _COS_TOL = 1e-6  # 1 - cos(principal angle) below which a direction is shared
 
-BLOCK_LABELS = {
-    "p": ("position", "world"),
-    "v": ("velocity", "world"),
-    "th": ("attitude", "body"),
-    "ba": ("accelerometer bias", "body"),
-    "bg": ("gyro bias", "body"),
-    "l": ("lever arm", "body"),
-    "td": ("time offset", ""),
-}
+#: label and frame of each block of the ESKF state by its component-name prefix (``p``, ``th``, ``l``, ``td``),
+#: from the declarations of :mod:`uwbimu.models.blocks` (other models' prefixes are named by themselves)
+_BASE_BLOCKS = tuple(b for b in BLOCKS if b.multiplicity == "one")
+BLOCK_LABELS = {b.symbol: (b.label, b.frame) for b in _BASE_BLOCKS}
+#: the scalar blocks' names (a coordinate that is a block of its own: ``td``)
+_LEVER = BLOCK["lever"].symbol
+_SCALARS = frozenset(b.symbol for b in _BASE_BLOCKS if b.size == 1)
 
 
 @dataclass
@@ -72,10 +71,10 @@ def dominant_components(vec: np.ndarray, names: Sequence[str], k: int = 4) -> st
 
 
 def _blocks(names: Sequence[str]) -> dict[str, list[int]]:
-    """Group tangent coordinates by prefix (px,py,pz -> p; td -> td)."""
+    """Group tangent coordinates by prefix (px,py,pz -> p; a declared scalar block: itself, td -> td)."""
     out: dict[str, list[int]] = {}
     for i, n in enumerate(names):
-        key = n if n == "td" else n[:-1]
+        key = n if n in _SCALARS else n[:-1]
         out.setdefault(key, []).append(i)
     return out
 
@@ -242,7 +241,7 @@ def candidates_for(
         L = np.zeros((len(names), 3))
         for j in range(3):
             L[blocks["p"], j] = R[:, j]
-            L[blocks["l"][j], j] = -1.0
+            L[blocks[_LEVER][j], j] = -1.0
 
         def name_lever(c, vec):
             return f"position / lever-arm trade-off along body {_axis_name(c)} (antenna fixed, IMU moves)"
@@ -256,8 +255,8 @@ def candidates_for(
                 e = np.eye(3)[j]
                 C[blocks["p"], j] = -R @ e
                 C[blocks["v"], j] = -R @ (W @ e)
-                C[blocks["ba"], j] = W @ (W @ e)
-                C[blocks["l"][j], j] = 1.0
+                C[blocks[BLOCK["b_a"].symbol], j] = W @ (W @ e)
+                C[blocks[_LEVER][j], j] = 1.0
 
             def name_rot_lever(c, vec):
                 return (
