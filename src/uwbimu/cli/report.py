@@ -90,6 +90,7 @@ def register(app: typer.Typer) -> None:
         from uwbimu.cli.dataset_options import apply_dataset_properties, estimator_options, load, print_load_warnings
         from uwbimu.eval.repeatability import repeatability
         from uwbimu.io.atomic import check_output_target, output_folder, write_json
+        from uwbimu.models.blocks import calibration_components
 
         from uwbimu.errors import UsageError
 
@@ -135,15 +136,17 @@ def register(app: typer.Typer) -> None:
         t = Table(title=f"Repeatability over {windows} windows of {rep['window_s']:.1f} s")
         for c in ("parameter", "mean", "spread sd", "predicted sigma", "ratio", "chi2/dof", "p", "verdict"):
             t.add_column(c, justify="right")
+        comp = calibration_components()  # lx, ly, lz, td -> (block, component)
         for name, p in rep["parameters"].items():
-            sc, u = (1000.0, "ms") if name == "td" else (100.0, "cm")
+            sc, u = comp[name][0].table if name in comp else (100.0, "cm")
             t.add_row(escape(f"{name} [{u}]"), f"{p['mean'] * sc:.2f}", f"{p['std'] * sc:.2f}", f"{p['rms_sd'] * sc:.2f}",
                       f"{p['ratio']:.2f}", f"{p['chi2']:.1f}/{p['dof']}", f"{p['p_value']:.3f}", p["verdict"])
         console.print(fit_table(console, t))
         for w in rep["windows"]:
             if "error" in w:
                 console.print(f"[yellow]window {w['i'] + 1} failed:[/yellow] {escape(str(w['error']))}")
-        pname = {"lx": "lever_arm_x", "ly": "lever_arm_y", "lz": "lever_arm_z", "td": "time_offset"}
+        # the names the batch's block check gives the parameters: <output_key>[_<axis>]
+        pname = {n: "_".join(filter(None, (b.output_key, b.axes[i]))) for n, (b, i) in comp.items()}
         wid = {k: sum(pname[k] in (w.get("sigma_widened_by_blocks") or []) for w in rep["windows"])
                for k in rep["parameters"] if k in pname}
         if any("sigma_widened_by_blocks" in w for w in rep["windows"]):  # batch: each window's block check

@@ -13,11 +13,31 @@ import pandas as pd
 from markupsafe import Markup
 
 from uwbimu.eval.files import EvalInputError
-from uwbimu.models.state import NOMINAL_STATE_NAMES
+from uwbimu.io.calibration_file import sd_or_none
+from uwbimu.models.blocks import BlockSpec, calibration_components
 
-#: Columns of the calibration history: the lever-arm and time-offset states as ``uwbimu estimate``
-#: writes them into ``states.csv`` (with ``sd_<name>``), named once in :mod:`uwbimu.models.state`.
-CAL_COLUMNS = NOMINAL_STATE_NAMES[16:20]  # lx, ly, lz, td
+#: Columns of the calibration history: the calibration blocks' components (lever arm, time offset: ``lx, ly, lz,
+#: td``) as ``uwbimu estimate`` writes them into ``states.csv`` (with ``sd_<name>``), declared once in
+#: :mod:`uwbimu.models.blocks`.
+CAL_COLUMNS = tuple(calibration_components())
+
+
+def calibration_estimate(cal: Optional[dict], b: BlockSpec) -> tuple[Optional[list[float]], list[Optional[float]]]:
+    """``(values, sds)`` of calibration block ``b`` in a calibration mapping [SI, one per component].
+
+    The estimate is under the block's ``output_key`` (a value, a list, or schema 2's ``{value, sd}`` mapping),
+    its sd under ``<output_key>_sd`` (or the mapping's ``sd``); values None when absent, an sd None when not
+    estimated (:func:`~uwbimu.io.calibration_file.sd_or_none`).
+    """
+    cal = cal or {}
+    v, sd = cal.get(b.output_key), cal.get(f"{b.output_key}_sd")
+    if isinstance(v, dict):
+        v, sd = v.get("value"), v.get("sd")
+    values = None if v is None else [float(x) for x in np.atleast_1d(np.asarray(v, dtype=float))]
+    sds = [None] * b.size if sd is None else [sd_or_none(x) for x in np.atleast_1d(np.asarray(sd, dtype=object))]
+    return values, (sds + [None] * b.size)[:b.size]
+
+
 SECTION_TITLES = {
     "calibration": "Calibration",
     "batch": "Batch calibration",

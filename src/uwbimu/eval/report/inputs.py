@@ -255,6 +255,17 @@ class ReportInputs:
                 return list(ds.meta.tags[0].lever_arm), "nominal"
         return None, ""
 
+    def reference(self, b) -> Optional[list[float]]:
+        """Documented or true value of calibration block ``b`` (one per component, SI), or None: dataset.yaml
+        ``truth.<output_key>``, else the first tag's ``<output_key>`` (the nominal lever arm)."""
+        ds = self.dataset
+        if ds is None:
+            return None
+        v = getattr(ds.meta.truth, b.output_key, None) if ds.meta.truth is not None else None
+        if v is None and ds.meta.tags:
+            v = getattr(ds.meta.tags[0], b.output_key, None)
+        return None if v is None else [float(x) for x in np.atleast_1d(np.asarray(v, dtype=float))]
+
     def reference_time_offset(self) -> Optional[float]:
         ds = self.dataset
         if ds is not None and ds.meta.truth is not None:

@@ -9,10 +9,12 @@ import pandas as pd
 from markupsafe import Markup
 
 from uwbimu.eval.report.common import (CAL_COLUMNS, _as_bool, _block, _fig, _fmt, _join, _missing, _sd_col, _span,
-                                       _table)
+                                       _table, calibration_estimate)
 from uwbimu.eval.report.inputs import CHI2_1_95, CHI2_1_MEDIAN, ReportInputs
 from uwbimu.formatting import format_number, format_value_sigma, natural_key
-from uwbimu.io.calibration_file import sd_or_none, time_offset_sd
+from uwbimu.io.calibration_file import sd_or_none
+from uwbimu.models.blocks import CALIBRATION_BLOCKS, calibration_components
+from uwbimu.models.state import ERROR_STATE_NAMES
 
 
 # --------------------------------------------------------------------------- sections
@@ -24,12 +26,9 @@ def _calibration_section(inp: ReportInputs):
     c = inp.calibration
     if c is None:
         return _missing(Markup("<code>calibration.yaml</code> not found in the output folder."))
-    ref_l, ref_label = inp.reference_lever_arm()
-    ref_td = inp.reference_time_offset()
+    _, ref_label = inp.reference_lever_arm()
     td = inp.time_offset()
     rows, classes = [], []
-    la = c.get("lever_arm")
-    las = c.get("lever_arm_sd") or [None] * 3
     header = ["parameter", "estimate ± 1σ", f"{ref_label or 'reference'}", "error", "z = error/σ"]
 
     def add(name, v, s, ref, unit, scale=1.0):
@@ -45,12 +44,12 @@ def _calibration_section(inp: ReportInputs):
         ])
         classes.append("flag" if flag else "")
 
-    if la is not None:
-        for i, ax in enumerate("xyz"):
-            add(f"lever arm {ax}", float(la[i]), las[i] if i < len(las) else None,
-                None if ref_l is None else float(ref_l[i]), "cm", scale=100.0)
-    if td.get("value") is not None:
-        add("time offset", float(td["value"]), td.get("sd"), ref_td, "ms", scale=1000.0)
+    for b in CALIBRATION_BLOCKS:  # one row per component of each calibration block
+        values, sds = calibration_estimate(c, b)
+        ref = inp.reference(b)
+        scale, unit = b.table
+        for i, ax in enumerate(b.axes if values is not None else ()):
+            add(f"{b.label} {ax}".strip(), values[i], sds[i], None if ref is None else ref[i], unit, scale=scale)
     parts = [_table(header, rows, classes)]
     # the modes and the verdict, from the one source (ReportInputs.time_offset: calibration.yaml + the run's events)
     bits = []
@@ -160,20 +159,22 @@ def _convergence_section(inp: ReportInputs) -> Markup:
                                "has lever-arm / time-offset columns (<code>lx, ly, lz, td</code> with <code>sd_lx</code>, "
                                "...)."))
     t = df["t"].to_numpy(float)
-    ref_l, ref_label = inp.reference_lever_arm()
-    ref_td = inp.reference_time_offset()
+    _, ref_label = inp.reference_lever_arm()
+    comp = calibration_components()
+    refs = {b.name: inp.reference(b) for b in CALIBRATION_BLOCKS}
     fig = Figure(figsize=(9.0, 7.0))
-    keys = [k for k in ("lx", "ly", "lz", "td") if cols.get(k)]
+    keys = [k for k in CAL_COLUMNS if cols.get(k)]
     for n, k in enumerate(keys):
         ax = fig.add_subplot(len(keys), 1, n + 1)
-        scale, unit = (1000.0, "ms") if k == "td" else (1.0, "m")
+        b, i = comp[k]
+        scale, unit = b.plot
         v = df[cols[k]].to_numpy(float) * scale
         ax.plot(t, v, "C0-", lw=1.0, label="estimate")
         sdc = _sd_col(df, cols[k])
         if sdc is not None:
             s = df[sdc].to_numpy(float) * scale
             ax.fill_between(t, v - 3 * s, v + 3 * s, color="C0", alpha=0.2, lw=0, label="±3σ")
-        ref = (ref_td if k == "td" else (None if ref_l is None else ref_l["xyz".index(k[1])]))
+        ref = None if refs[b.name] is None else refs[b.name][i]
         if ref is not None:
             ax.axhline(ref * scale, color="k", ls="--", lw=0.9, label=ref_label or "reference")
         # zoom on the converged part: the prior's wide band would flatten everything else
@@ -429,7 +430,8 @@ def _trajectory_section(inp: ReportInputs) -> Markup:
     return _join(parts)
 
 
-_REP_INDEX = {"lx": 15, "ly": 16, "lz": 17, "td": 18}
+#: error-state index of each calibration component (the repeatability parameters ``lx, ly, lz, td``)
+_REP_INDEX = {n: ERROR_STATE_NAMES.index(n) for n in calibration_components()}
 
 
 def _repeatability_bounds(inp: ReportInputs, wins: list) -> dict:
@@ -464,16 +466,15 @@ def _repeatability_section(inp: ReportInputs) -> Markup:
     truth_src = {}
     if inp.dataset is not None and inp.dataset.meta.truth is not None:
         tr = inp.dataset.meta.truth
-        if tr.lever_arm is not None:
-            truth_src.update(dict(zip(("lx", "ly", "lz"), map(float, tr.lever_arm))))
-        if tr.time_offset is not None:
-            truth_src["td"] = float(tr.time_offset)
+        for b in CALIBRATION_BLOCKS:
+            if getattr(tr, b.output_key, None) is not None:
+                truth_src.update(zip(b.output_names, map(float, np.atleast_1d(getattr(tr, b.output_key)))))
+    comp = calibration_components()
     rows, classes = [], []
     n_truth = 0
     for name in sorted(params, key=list(_REP_INDEX).index if set(params) <= set(_REP_INDEX) else str):
         p = params[name]
-        scale = 1000.0 if name == "td" else 100.0
-        unit = "ms" if name == "td" else "cm"
+        scale, unit = comp[name][0].table if name in comp else (100.0, "cm")
         verdict = p.get("verdict", "")
         truth = p.get("truth", truth_src.get(name))
         mean, mean_sd = p.get("mean", np.nan), sd_or_none(p.get("mean_sd"))
@@ -514,7 +515,7 @@ def _repeatability_section(inp: ReportInputs) -> Markup:
         names = list(params)
         for n, name in enumerate(names):
             ax = fig.add_subplot(len(names), 1, n + 1)
-            scale = 1000.0 if name == "td" else 1.0
+            scale, unit = comp[name][0].plot if name in comp else (1.0, "m")
             xs = [w["t_mid"] for w in wins if name in w.get("values", {})]
             vs = np.array([w["values"][name] for w in wins if name in w.get("values", {})], float) * scale
             ss = np.array([w["sd"][name] for w in wins if name in w.get("values", {})], float) * scale
@@ -523,7 +524,7 @@ def _repeatability_section(inp: ReportInputs) -> Markup:
             tv = params[name].get("truth", truth_src.get(name))
             if tv is not None:
                 ax.axhline(float(tv) * scale, color="C3", ls="--", lw=0.9)
-            ax.set_ylabel(f"{name} [{'ms' if name == 'td' else 'm'}]")
+            ax.set_ylabel(f"{name} [{unit}]")
             ax.grid(True, alpha=0.3)
         fig.axes[-1].set_xlabel("window centre [s]")
         parts.append(_fig("repeatability", fig, "Per-window estimates with ±3σ error bars; the line is the mean"
@@ -536,10 +537,8 @@ def _bound_vs_sigma(df: pd.DataFrame, cal: Optional[dict]) -> Markup:
     if not cal or len(df) == 0:
         return Markup("")
     pairs = []
-    sd_l = cal.get("lever_arm_sd") or [None] * 3
-    for n, s_f in zip(("lx", "ly", "lz"), sd_l):
-        pairs.append((n, s_f, 100.0, "cm"))
-    pairs.append(("td", time_offset_sd(cal), 1000.0, "ms"))
+    for b in CALIBRATION_BLOCKS:
+        pairs += [(n, s_f, *b.table) for n, s_f in zip(b.output_names, calibration_estimate(cal, b)[1])]
     cells, names = [], []
     for n, s_f, k, unit in pairs:
         col = f"sd_{n}"
@@ -574,11 +573,10 @@ def _observability_windows(df: pd.DataFrame, cal: Optional[dict] = None) -> Mark
     panels = []
     if "min_eigenvalue" in df.columns:
         panels.append(("min eigenvalue\n(scaled info)", [("min_eigenvalue", col("min_eigenvalue"))], None))
-    lev = [(f"sd {n}", col(f"sd_{n}")) for n in ("lx", "ly", "lz") if f"sd_{n}" in df.columns]
-    if lev:
-        panels.append(("CRLB lever arm [m]", lev, "lever_arm_excited"))
-    if "sd_td" in df.columns:
-        panels.append(("CRLB t_d [s]", [("sd td", col("sd_td"))], "time_offset_excited"))
+    for b in CALIBRATION_BLOCKS:  # one panel per calibration block
+        series = [(f"sd {n}", col(f"sd_{n}")) for n in b.output_names if f"sd_{n}" in df.columns]
+        if series:
+            panels.append((f"CRLB {b.label} [{b.unit}]", series, f"{b.output_key}_excited"))
     if "gyro_rms" in df.columns:
         panels.append(("gyro RMS [rad/s]", [("gyro rms", col("gyro_rms"))], None))
     fig = Figure(figsize=(9.0, 1.9 * len(panels) + 1.0))
