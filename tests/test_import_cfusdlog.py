@@ -118,3 +118,30 @@ def test_bad_type_code_in_header(tmp_path, sim):
     bad = imp.encode([("estTDOA", [("idA", "Z")])], [])
     err = _refused(tmp_path, sim, bad)
     assert "type code" in str(err) and err.column == "estTDOA"
+
+
+def test_nominal_lever_arm_is_the_util_platforms_or_given_or_none(tmp_path, sim):
+    """dataset.yaml carries the UTIL platform's documented tag offset by default (the prior mean of
+    ``lever_arm.prior: dataset``); another vehicle's, or none, when asked."""
+    from uwbimu.errors import UsageError
+    from uwbimu.estimation.eskf import dataset_lever_prior
+    from uwbimu.estimation.options import EskfOptions
+
+    log, anchors = write_case(tmp_path, sim)
+    imp.import_dataset(log, tmp_path / "util", anchors)
+    back = load_dataset(tmp_path / "util")
+    assert back.meta.tags[0].lever_arm == pytest.approx(list(imp.UTIL_T_UV))
+    assert "nominal_lever_arm_source" in back.meta.extra
+    # the ESKF's default prior is the dataset's nominal lever arm
+    assert dataset_lever_prior(back, EskfOptions(), "tag0") == pytest.approx(list(imp.UTIL_T_UV))
+    assert dataset_lever_prior(back, EskfOptions(lever_arm={"prior": None}), "tag0") == [0.0, 0.0, 0.0]
+
+    other = imp.convert(log, anchors, lever_arm=[0.0, 0.0, 0.02]).dataset
+    assert other.meta.tags[0].lever_arm == pytest.approx([0.0, 0.0, 0.02])
+    assert other.meta.extra["nominal_lever_arm_source"] == "given"
+    none = imp.convert(log, anchors, lever_arm=None).dataset
+    assert none.meta.tags[0].lever_arm is None and "nominal_lever_arm_source" not in none.meta.extra
+    assert dataset_lever_prior(none, EskfOptions(), "tag0") == [0.0, 0.0, 0.0]
+    for bad in ([0.0, 0.1], [0.0, float("nan"), 0.1]):
+        with pytest.raises(UsageError):
+            imp.convert(log, anchors, lever_arm=bad)

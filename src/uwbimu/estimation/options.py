@@ -41,9 +41,11 @@ class LeverArmOptions(_Strict):
         return v
 
     prior: Optional[Union[list[float], Literal["dataset"]]] = Field(
-        default=None,
-        description="prior lever arm [m] (IMU frame) as [x, y, z]; 'dataset': the tag's nominal lever arm "
-        "from dataset.yaml (zero when absent); None: zero",
+        default="dataset",
+        description="prior lever arm [m] (IMU frame) as [x, y, z]; 'dataset' (default): the tag's nominal lever "
+        "arm from dataset.yaml (an importer's documented mounting, e.g. the UTIL Crazyflie's 9 cm antenna mast; "
+        "zero when absent); None: zero. A log that does not identify the lever arm keeps this value (held in "
+        "consider mode), so a documented offset is better than zero there",
     )
     prior_sd: float = Field(default=0.3, gt=0, description="prior sd per axis [m]")
     random_walk: float = Field(default=0.0, ge=0, description="process noise density [m/sqrt(s)]")

@@ -37,6 +37,17 @@ The accelerometer is linearly interpolated to the gyro stamps (the two
 streams are logged separately), and gyro samples outside the accelerometer's
 span are dropped; both are recorded in ``extra.import_changes``.
 
+Nominal lever arm: the importer reads the UTIL set-up's logs (its uSD configuration and
+``estPose``/``locSrv`` ground truth), so the tag's nominal lever arm in ``dataset.yaml`` is the
+UTIL platform's documented vehicle-centre -> UWB-tag offset, :data:`UTIL_T_UV` (the dataset page:
+"the manually measured translation vectors from the center of the vehicle to onboard sensors
+(UWB tag and flow deck) in the dataset paper and the data parsing scripts"; the devkit's
+``t_uv = [-0.01245, 0.00127, 0.0908]`` m, "external calibration: translation vector from the
+quadcopter to UWB tag", in its ESKF and plotting scripts).  It is a prior mean for the estimators
+(``lever_arm.prior: dataset``), never a measured truth; ``lever_arm=None`` writes none (another
+vehicle), a 3-vector writes that one.  The choice is recorded in ``extra.import_changes`` and
+``extra.nominal_lever_arm_source``.
+
 TDoA rows whose ``|tdoa|`` exceeds the two anchors' separation plus
 ``tdoa_margin`` (``--tdoa-margin``, 1 m) are dropped and counted per anchor
 pair (:mod:`uwbimu.io.importers.tdoa`); ``dataset.yaml`` says
@@ -57,7 +68,7 @@ import os
 import struct
 import zlib
 from pathlib import Path
-from typing import Optional, Union
+from typing import Optional, Sequence, Union
 
 import numpy as np
 import pandas as pd
@@ -66,11 +77,18 @@ from uwbimu.io.dataset import GT_COLUMNS, IMU_COLUMNS, UWB_COLUMNS, Dataset, Dat
 from uwbimu.io.importers import ImportResult, write_import
 from uwbimu.io.importers.anchors import QuatOrder, read_anchors, read_anchors_csv
 from uwbimu.io.importers.tdoa import TDOA_MARGIN_M, drop_tdoa_outliers, tdoa_load_options, tdoa_table
+from uwbimu.errors import UsageError
 from uwbimu.io.loader import DatasetError
 from uwbimu.models.imu import imu_preset
 
 __all__ = ["decode", "convert", "import_dataset", "combine_imu", "read_anchors_csv", "tdoa_table", "G_CRAZYFLIE",
-           "encode", "EVENT_TYPES"]
+           "encode", "EVENT_TYPES", "UTIL_T_UV"]
+
+#: The UTIL platform's vehicle-centre -> UWB-tag offset [m] in the body (IMU) frame: the devkit's ``t_uv``
+#: (utiasDSL/util-uwb-dataset, scripts/estimation/eskf_class.py and the visualisation scripts).
+UTIL_T_UV = (-0.01245, 0.00127, 0.0908)
+_UTIL_SOURCE = ("UTIL devkit t_uv (utiasDSL/util-uwb-dataset scripts: 'translation vector from the quadcopter to "
+                "UWB tag'), the offset the dataset page says is manually measured")
 
 #: The events and variables this importer reads, with the struct type codes the firmware logs them
 #: with (``encode(EVENT_TYPES, ...)`` builds a log like the UTIL set-up's for tests and fixtures).
@@ -222,7 +240,8 @@ def _need(events: dict, name: str, variables: list[str], path: Path) -> dict:
 
 def convert(log: Union[str, os.PathLike], anchors: Union[str, os.PathLike], ignore_crc: bool = False,
             name: Optional[str] = None, tdoa_margin: float = TDOA_MARGIN_M,
-            quat_order: QuatOrder = "auto") -> ImportResult:
+            quat_order: QuatOrder = "auto",
+            lever_arm: Optional[Sequence[float]] = UTIL_T_UV) -> ImportResult:
     """Convert a uSD event log plus an anchors file into a :class:`Dataset` (not written).
 
     Parameters
@@ -235,8 +254,15 @@ def convert(log: Union[str, os.PathLike], anchors: Union[str, os.PathLike], igno
     tdoa_margin : TDoA rows with ``|tdoa|`` beyond the anchors' separation plus
         this (m) are dropped and counted (:func:`~uwbimu.io.importers.tdoa.drop_tdoa_outliers`).
     quat_order : ``an_quat`` order of a survey file (``auto``: by the file's version).
+    lever_arm : (3,) nominal lever arm of the tag [m], IMU (body) frame, written to ``dataset.yaml``
+        (default: the UTIL platform's documented offset :data:`UTIL_T_UV`); None: none written.
     """
     log = Path(log)
+    if lever_arm is not None:
+        lever = np.asarray(lever_arm, dtype=float).reshape(-1)
+        if lever.shape != (3,) or not np.all(np.isfinite(lever)):
+            raise UsageError(f"lever_arm must be 3 finite numbers [m] (x, y, z in the IMU frame); got {lever.size} "
+                             "value(s)" + ("" if lever.shape != (3,) else ", not all finite"))
     if not log.is_file():
         raise DatasetError(f"{log}: log file not found", file=log.name)
     changes: list[str] = []
@@ -263,6 +289,10 @@ def convert(log: Union[str, os.PathLike], anchors: Union[str, os.PathLike], igno
                                           ("locSrv.x", "locSrv.y", "locSrv.z", "locSrv.qw", "locSrv.qx",
                                            "locSrv.qy", "locSrv.qz")]), columns=GT_COLUMNS)
         changes.append(f"{log.name}: estPose locSrv.* (external pose sent to the Crazyflie) -> groundtruth.csv")
+    if lever_arm is not None:
+        source = _UTIL_SOURCE if tuple(lever) == UTIL_T_UV else "given (lever_arm)"
+        changes.append(f"{log.name}: nominal lever arm of tag0 = ({', '.join(f'{v:g}' for v in lever)}) m, IMU frame: "
+                       f"{source}; a prior mean for the estimators, not a measured truth")
     dt = float(np.median(np.diff(imu["t"].to_numpy()))) if len(imu) > 1 else math.nan
     meta = DatasetMeta(
         name=name or f"cf-usdlog:{log.name}",
@@ -270,12 +300,14 @@ def convert(log: Union[str, os.PathLike], anchors: Union[str, os.PathLike], igno
                     "stamped by the Crazyflie's clock",
         imu_noise=imu_preset("bmi088"),
         imu_rate_hz=1.0 / dt if dt > 0 else None,
-        tags=[TagMeta(name="tag0")],
+        tags=[TagMeta(name="tag0", lever_arm=None if lever_arm is None else [float(v) for v in lever])],
         source=f"Crazyflie uSD event log {log.name} (format version {info['version']})",
         single_clock=True,
         extra={"import_changes": list(changes), "uwb_mode": "tdoa", "usd_events": sorted(events),
                "tdoa_outliers": outliers},
     )
+    if lever_arm is not None:
+        meta.extra["nominal_lever_arm_source"] = _UTIL_SOURCE if tuple(lever) == UTIL_T_UV else "given"
     uwb = pd.DataFrame({"t": np.zeros(0), "anchor": np.zeros(0, dtype=str), "range": np.zeros(0)},
                        columns=UWB_COLUMNS)
     ds = Dataset(imu=imu, uwb=uwb, anchors=anchors_df, groundtruth=gt, meta=meta, tdoa=tdoa)
@@ -284,8 +316,9 @@ def convert(log: Union[str, os.PathLike], anchors: Union[str, os.PathLike], igno
 
 def import_dataset(log, dst, anchors, force: bool = False, ignore_crc: bool = False,
                    name: Optional[str] = None, tdoa_margin: float = TDOA_MARGIN_M,
-                   quat_order: QuatOrder = "auto") -> ImportResult:
+                   quat_order: QuatOrder = "auto", lever_arm: Optional[Sequence[float]] = UTIL_T_UV) -> ImportResult:
     """Convert ``log`` and write it to ``dst`` (refuses a non-empty ``dst`` unless ``force``)."""
-    res = convert(log, anchors, ignore_crc=ignore_crc, name=name, tdoa_margin=tdoa_margin, quat_order=quat_order)
+    res = convert(log, anchors, ignore_crc=ignore_crc, name=name, tdoa_margin=tdoa_margin, quat_order=quat_order,
+                  lever_arm=lever_arm)
     write_import(res, dst, force=force, src=log, load_options=tdoa_load_options(tdoa_margin))
     return res

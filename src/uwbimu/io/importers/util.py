@@ -54,7 +54,7 @@ import pandas as pd
 from uwbimu.io.dataset import GT_COLUMNS, UWB_COLUMNS, Dataset, DatasetMeta, TagMeta
 from uwbimu.io.importers import ImportResult, read_csv_source, write_import
 from uwbimu.io.importers.anchors import QuatOrder, read_survey
-from uwbimu.io.importers.cf_usdlog import combine_imu
+from uwbimu.io.importers.cf_usdlog import UTIL_T_UV, combine_imu
 from uwbimu.io.importers.tdoa import TDOA_MARGIN_M, drop_tdoa_outliers, tdoa_load_options, tdoa_table
 from uwbimu.io.loader import DatasetError
 from uwbimu.models.imu import imu_preset
@@ -62,7 +62,7 @@ from uwbimu.models.imu import imu_preset
 __all__ = ["convert", "import_dataset", "read_survey", "find_survey", "GROUPS", "T_UV"]
 
 #: Devkit antenna offset: UWB tag in the quadrotor body frame [m] (visual_tdoa*_csv.py, main.py).
-T_UV = [-0.01245, 0.00127, 0.0908]
+T_UV = list(UTIL_T_UV)
 
 #: Column groups of a flight CSV; each group is one stream (same length within a group).
 GROUPS: dict[str, list[str]] = {
