@@ -16,8 +16,9 @@ from typing import Any
 
 import numpy as np
 
-from uwbimu.estimation.timeoffset import time_offset_prior_sd
 from uwbimu.estimation.filterpass import REC_ACC, Problem
+from uwbimu.estimation.problem import block_mode, block_prior_sd
+from uwbimu.models.blocks import CALIBRATION_BLOCKS
 from uwbimu.models.quaternion import quat_to_rotmat
 from uwbimu.models.reference import G_WORLD
 from uwbimu.models import state as S
@@ -79,47 +80,52 @@ def excitation_profile(prob: Problem, t_imu_out: np.ndarray, X: np.ndarray, wind
 
 
 def excitation_warnings(prob: Problem, t_imu_out, X, sd, priors, opts) -> tuple[list[str], list[dict[str, Any]]]:
-    """Warnings when the motion does not excite the lever arm or the time offset."""
+    """Warnings when the motion does not excite a calibration block (lever arm, time offset).
+
+    Loops over the estimated :data:`~uwbimu.models.blocks.CALIBRATION_BLOCKS`: the block's declared
+    ``excitation`` measure (RMS body rate or world acceleration) against its threshold (events
+    ``low_excitation`` with ``parameter`` the block's label), then its final sd against its prior
+    (:func:`~uwbimu.estimation.problem.block_prior_sd`) in the block's table unit.
+    """
     ex = opts.excitation
     warnings: list[str] = []
     events: list[dict[str, Any]] = []
     if len(X) == 0:
         return warnings, events
     t, rot, acc = excitation_profile(prob, t_imu_out, X, ex.window_s)
-    checks = []
-    if opts.lever_arm.mode == "estimate":
-        checks.append(("lever arm", "rotation", rot, ex.min_rotation_rate, "rad/s"))
-    if opts.time_offset.mode == "estimate":
-        checks.append(("time offset", "acceleration", acc, ex.min_acceleration, "m/s^2"))
-    for name, what, sig, thr, unit in checks:
+    # the motion measures a calibration block can need (BlockSpec.excitation): signal, threshold, unit
+    measures = {"rotation": (rot, ex.min_rotation_rate, "rad/s"), "acceleration": (acc, ex.min_acceleration, "m/s^2")}
+    estimated = [b for b in CALIBRATION_BLOCKS if block_mode(opts, b) == "estimate"]
+    for b in estimated:
+        if b.excitation is None:
+            continue
+        name, what, (sig, thr, unit) = b.label, b.excitation, measures[b.excitation]
         low = sig < thr
         frac = float(np.mean(~low)) if len(sig) else 0.0
-        for a, b in _intervals(t, low, ex.window_s):
-            events.append({"t": a, "kind": "low_excitation", "parameter": name, "t_end": b,
+        for a, e in _intervals(t, low, ex.window_s):
+            events.append({"t": a, "kind": "low_excitation", "parameter": name, "t_end": e,
                            "measure": f"RMS {what}", "threshold": thr})
         if frac < 0.1:
             warnings.append(
                 f"{name}: weak excitation, RMS {what} >= {thr} {unit} in only {100 * frac:.0f}% of the log "
                 f"(max {float(sig.max()):.3g} {unit}); the {name} is poorly observable from this motion"
             )
-    # the honest test: did the uncertainty actually shrink?
+    # the honest test: did the uncertainty actually shrink below the prior (the grid's when t_d was searched)?
     sd_end = sd[-1]
-    if opts.lever_arm.mode == "estimate":
-        prior = priors.lever_sd
-        ratio = sd_end[S.EPIU] / np.where(prior > 0, prior, np.nan)
+    layout = prob.state_layout()
+    for b in estimated:
+        s_b, prior = sd_end[layout.err(b.name)], block_prior_sd(priors, opts, b.name)
+        ratio = s_b / np.where(prior > 0, prior, np.nan)
         if np.any(ratio > ex.sd_ratio_warn):
-            warnings.append(
-                f"lever arm not well determined: final sd {np.round(100 * sd_end[S.EPIU], 1).tolist()} cm "
-                f"vs prior {np.round(100 * prior, 1).tolist()} cm; excite rotations about all axes"
-            )
-    if opts.time_offset.mode == "estimate" and priors.t_d_sd > 0:
-        t_d_prior_sd = time_offset_prior_sd(priors, opts)
-        if sd_end[S.ETD] > ex.sd_ratio_warn * t_d_prior_sd:
-            warnings.append(
-                f"time offset not well determined: final sd {1000 * sd_end[S.ETD]:.1f} ms vs prior "
-                f"{1000 * t_d_prior_sd:.1f} ms; move with changing velocity"
-            )
+            scale, unit = b.table
+            warnings.append(f"{b.label} not well determined: final sd {_fmt(scale * s_b)} {unit} vs prior "
+                            f"{_fmt(scale * prior)} {unit}; {b.excitation_advice}")
     return warnings, events
+
+
+def _fmt(v: np.ndarray) -> str:
+    """A block's values in a warning: ``1.5`` for a scalar, ``[1.5, 0.2, 3.0]`` for a vector (0.1 resolution)."""
+    return f"{float(v[0]):.1f}" if len(v) == 1 else str(np.round(v, 1).tolist())
 
 
 def outage_warnings(prob: Problem, rec: np.ndarray, opts) -> tuple[list[str], list[dict[str, Any]]]:

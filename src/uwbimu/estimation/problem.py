@@ -25,7 +25,7 @@ from uwbimu.estimation.filterpass import Problem
 from uwbimu.estimation.options import EskfOptions
 from uwbimu.models.imu import ImuNoise
 from uwbimu.models import state as S
-from uwbimu.models.blocks import BLOCKS, BlockSpec
+from uwbimu.models.blocks import BLOCK, BLOCKS, BlockSpec
 
 #: IMU periods whose median is the nominal period (the first ones: known early by a streaming filter)
 NOMINAL_PERIOD_SAMPLES = 1000
@@ -130,6 +130,28 @@ def gain_mask(opts: EskfOptions, layout: S.StateLayout) -> np.ndarray:
         if b.mode_option is not None and _option(opts, b.mode_option).mode != "estimate":
             mask[layout.err(b.name)] = 0.0
     return mask
+
+
+def block_mode(opts: EskfOptions, b: BlockSpec) -> str:
+    """``estimate`` / ``consider`` / ``fixed``: the ``mode`` of the block's declared ``mode_option`` section
+    (``estimate`` for a block without one)."""
+    return "estimate" if b.mode_option is None else str(_option(opts, b.mode_option).mode)
+
+
+def block_prior_sd(priors: BlockPriors, opts: EskfOptions, name: str) -> np.ndarray:
+    """Prior sd of base block ``name`` per component [block unit]: what is known of it before the data.
+
+    ``priors.<name>_sd``; for a block the initialiser searches (declared ``search_option``, ``priors.search_<name>``)
+    at least the sd of a uniform over the searched grid's span (the prior is then the grid, not the configured sd);
+    0 where the block is fixed.  The time offset's is :func:`uwbimu.estimation.timeoffset.time_offset_prior_sd`.
+    """
+    b = BLOCK[name]
+    sd = np.broadcast_to(np.asarray(getattr(priors, f"{name}_sd"), dtype=float), (b.size,)).copy()
+    if b.search_option is not None and getattr(priors, f"search_{name}", False):
+        grid = np.asarray(_option(opts, b.search_option), dtype=float)
+        if len(grid) > 1:
+            sd = np.where(sd > 0, np.maximum(sd, float(grid.max() - grid.min()) / math.sqrt(12.0)), sd)
+    return np.where(sd > 0, sd, 0.0)
 
 
 def block_prior_covariance(P: np.ndarray, layout: S.StateLayout, priors: BlockPriors) -> None:
