@@ -14,10 +14,13 @@ roll and pitch, i.e. tilt).  An axis that is not identified is named in an event
 from __future__ import annotations
 
 from uwbimu.estimation.timeoffset import GAIN_IDENTIFIED, information_verdict
+from uwbimu.models.blocks import BLOCK, OUTPUT_ORDER, BlockSpec
 
 #: The rotations that reveal each lever-arm component (body axes).
 _ROTATIONS = {"x": "pitch and yaw (rotation about body y and z)", "y": "roll and yaw (rotation about body x and z)",
               "z": "roll and pitch (tilt about body x and y)"}
+#: the motion that would pin each axis of a base block with an information-gain verdict (by block name)
+_ADVICE = {"lever": _ROTATIONS}
 
 
 def _prior_share(gain: float) -> str:
@@ -30,8 +33,32 @@ def _entry(sd: float, prior_sd: float) -> dict:
     return {"verdict": verdict, "information_gain": round(gain, 4), "sd": float(sd), "prior_sd": float(prior_sd)}
 
 
+def _verdict_blocks() -> tuple[BlockSpec, ...]:
+    """The blocks with a batch identifiability verdict (``BlockSpec.verdict``), in output order: the lever arm
+    (information gain per axis and tag), the time offset (profile), the anchor biases (information gain per
+    anchor)."""
+    return tuple(BLOCK[n] for n in OUTPUT_ORDER if BLOCK[n].verdict)
+
+
+def _gain_entries(cal: dict, b: BlockSpec, options) -> dict:
+    """Information-gain entries of block ``b``: ``{tag: {axis: entry}}`` (``""`` the tag of a one-tag
+    calibration) for a base block, ``{anchor: entry}`` for a per-anchor one (those held at zero and those not
+    estimated left out); the prior sd is the options' ``<output_key>_prior_sd``."""
+    key = b.output_key
+    prior_sd = getattr(options, f"{key}_prior_sd")
+    if b.multiplicity == "per_anchor":
+        if getattr(options, f"estimate_{key}", True) is False:
+            return {}
+        held = set((cal.get("anchors") or {}).get("bias_held_at_zero") or [])
+        return {a: _entry(s, prior_sd) for a, s in cal[f"{key}_sd"].items() if str(a) not in held and s > 0}
+    tags = cal.get("tags") or {"": {f"{key}_sd": cal[f"{key}_sd"]}}
+    return {tag: {c: _entry(s, prior_sd) for c, s in zip(b.axes, t[f"{key}_sd"])} for tag, t in tags.items()}
+
+
 def identifiability(cal: dict, options) -> tuple[dict, list[dict]]:
     """The ``identifiability`` section of calibration.yaml and the events of the axes not identified.
+
+    Loops over the declared blocks with a verdict (:func:`_verdict_blocks`), keyed by their ``output_key``.
 
     Parameters
     ----------
@@ -44,33 +71,33 @@ def identifiability(cal: dict, options) -> tuple[dict, list[dict]]:
     (section, events) with section ``{lever_arm: {TAG: {x|y|z: {verdict, information_gain, sd, prior_sd}}},
     time_offset: {verdict}, anchor_bias: {ID: {...}}}`` (anchor biases held at zero are left out).
     """
-    tags = cal.get("tags") or {"": {"lever_arm_sd": cal["lever_arm_sd"]}}
-    lever = {tag: {c: _entry(s, options.lever_arm_prior_sd) for c, s in zip("xyz", t["lever_arm_sd"])}
-             for tag, t in tags.items()}
-    held = set((cal.get("anchors") or {}).get("bias_held_at_zero") or [])
-    bias = {}
-    if options.estimate_anchor_bias is not False:
-        bias = {a: _entry(s, options.anchor_bias_prior_sd) for a, s in cal["anchor_bias_sd"].items()
-                if str(a) not in held and s > 0}
-    section = {"rule": "information gain (prior_sd / sd)^2 - 1 of the data over the prior: identified >= 99, "
-                       "weakly identified >= 1, else not identified",
-               "lever_arm": lever if cal.get("tags") else lever[""],
-               "time_offset": {"verdict": cal["time_offset"]["verdict"]},
-               "anchor_bias": bias}
+    section: dict = {"rule": "information gain (prior_sd / sd)^2 - 1 of the data over the prior: identified >= 99, "
+                             "weakly identified >= 1, else not identified"}
     events = []
-    for tag, axes in lever.items():
-        weak = {c: e for c, e in axes.items() if e["verdict"] != "identified"}
-        if not weak:
+    for b in _verdict_blocks():
+        key = b.output_key
+        if b.verdict == "profile":
+            section[key] = {"verdict": cal[key]["verdict"]}
             continue
-        name = f"tag {tag}'s lever arm" if tag else "lever arm"
-        parts = [f"{c} {e['verdict']} (sd {100 * e['sd']:.1f} cm against the prior's {100 * e['prior_sd']:.0f} cm: "
-                 f"the prior carries {_prior_share(e['information_gain'])} of its information)" for c, e in weak.items()]
-        events.append({"kind": "lever_arm_not_identified", "severity": "warning", "tag": tag or None,
-                       "axes": {c: e["verdict"] for c, e in weak.items()},
-                       "message": f"{name}: " + "; ".join(parts) + "; more "
-                                  + " and ".join(_ROTATIONS[c] for c in weak) + " while ranging would pin it"})
+        entries = _gain_entries(cal, b, options)
+        if b.multiplicity != "one":
+            section[key] = entries
+            continue
+        section[key] = entries if cal.get("tags") else entries[""]
+        scale, unit = b.table
+        for tag, axes in entries.items():  # a base block's axes not identified: an event with the motion advice
+            weak = {c: e for c, e in axes.items() if e["verdict"] != "identified"}
+            if not weak:
+                continue
+            name = f"tag {tag}'s {b.label}" if tag else b.label
+            parts = [f"{c} {e['verdict']} (sd {scale * e['sd']:.1f} {unit} against the prior's "
+                     f"{scale * e['prior_sd']:.0f} {unit}: the prior carries {_prior_share(e['information_gain'])} "
+                     "of its information)" for c, e in weak.items()]
+            events.append({"kind": f"{key}_not_identified", "severity": "warning", "tag": tag or None,
+                           "axes": {c: e["verdict"] for c, e in weak.items()},
+                           "message": f"{name}: " + "; ".join(parts) + "; more "
+                                      + " and ".join(_ADVICE[b.name][c] for c in weak) + " while ranging would pin it"})
     return section, events
-
 
 
 #: prior sd [m] of the lever arm while it is held (the re-solve's tight prior at the prior mean)
@@ -107,10 +134,15 @@ def hold_rule(cal: dict, section: dict, events: list, options) -> dict:
     with several; ``anchor_bias``: per anchor), ``{}`` for none; with a block held, the key ``refuted`` says why:
     ``{imu_noise_scale, sd_ratio}``.
     """
+    gain_blocks = [b for b in _verdict_blocks() if b.verdict == "information_gain"]
     scale = next((float(e["scale"]) for e in events if e.get("kind") == "imu_noise_scaled"), None)
-    sd = [float(x) for x in cal["lever_arm_sd"]]
-    sdm = [float(x) for x in cal.get("lever_arm_sd_model") or sd]
-    ratio = max((a / b for a, b in zip(sd, sdm) if b > 0), default=1.0)
+    ratios = []  # honest / model sigma of every axis of a base block (the lever arm's)
+    for b in gain_blocks:
+        if b.multiplicity == "one":
+            sd = [float(x) for x in cal[f"{b.output_key}_sd"]]
+            sdm = [float(x) for x in cal.get(f"{b.output_key}_sd_model") or sd]
+            ratios += [a / m for a, m in zip(sd, sdm) if m > 0]
+    ratio = max(ratios, default=1.0)
     if not ((scale is not None and scale > 1.0) or ratio > REFUTED_RATIO):
         return {}
 
@@ -119,14 +151,16 @@ def hold_rule(cal: dict, section: dict, events: list, options) -> dict:
         return bool(gains) and all(not g >= HOLD_GAIN for g in gains)  # NaN gain: not identified
 
     out: dict = {}
-    lever = section["lever_arm"]
-    per_tag = {"": lever} if "x" in lever else lever
-    if undetermined([e for axes in per_tag.values() for e in axes.values()]):
-        gains = {tag: {c: e["information_gain"] for c, e in axes.items()} for tag, axes in per_tag.items()}
-        out["lever_arm"] = gains[""] if "" in gains else gains
-    bias = section.get("anchor_bias") or {}
-    if options.estimate_anchor_bias is True and undetermined(bias.values()):
-        out["anchor_bias"] = {a: e["information_gain"] for a, e in bias.items()}
+    for b in gain_blocks:
+        key = b.output_key
+        entries = section.get(key) or {}
+        if b.multiplicity == "one":  # per tag (one tag: the axes themselves)
+            per_tag = {"": entries} if set(b.axes) & set(entries) else entries
+            if undetermined([e for axes in per_tag.values() for e in axes.values()]):
+                gains = {tag: {c: e["information_gain"] for c, e in axes.items()} for tag, axes in per_tag.items()}
+                out[key] = gains[""] if "" in gains else gains
+        elif getattr(options, f"estimate_{key}", True) is True and undetermined(entries.values()):
+            out[key] = {a: e["information_gain"] for a, e in entries.items()}
     if out:
         out["refuted"] = {"imu_noise_scale": scale, "sd_ratio": ratio}
     return out
