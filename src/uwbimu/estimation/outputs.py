@@ -37,7 +37,7 @@ from uwbimu.io import calibration_file as CF
 from uwbimu.io.dataset import Dataset
 from uwbimu.models.state import ERROR_STATE_NAMES, NOMINAL_STATE_NAMES
 from uwbimu.models import state as S
-from uwbimu.models.blocks import OUTPUT_ORDER
+from uwbimu.models.blocks import CALIBRATION_BLOCKS, OUTPUT_ORDER
 
 def fixed_components(layout: S.StateLayout, opts) -> np.ndarray:
     """(N,) True for the error components of blocks whose declared ``mode_option`` is ``fixed``."""
@@ -308,26 +308,24 @@ def _plots(result, dataset: Dataset, out: Path) -> list[Path]:
     ax.set_xlabel("t [s]")
     files.append(atomic.save_figure(out / "position_error.png", fig))
 
-    fig = Figure(figsize=(10, 8))
-    lever_true = truth.lever_arm if truth is not None else None
-    for i, c in enumerate("xyz"):
-        ax = fig.add_subplot(4, 1, i + 1)
-        li, le = S.PIU.start + i, S.EPIU.start + i
-        ax.plot(t, X[:, li], "C0-", lw=0.8, label="estimate")
-        ax.fill_between(t, X[:, li] - 3 * sd[:, le], X[:, li] + 3 * sd[:, le], color="C0", alpha=0.2,
-                        label="±3σ")
-        if lever_true is not None:
-            ax.axhline(lever_true[i], color="k", ls="--", lw=1, label="truth")
-        ax.set_ylabel(f"p_IU {c} [m]")
-        if i == 0:
+    # one panel per component of each calibration block (lever arm x, y, z; time offset), truth dashed
+    panels = [(b, i) for b in CALIBRATION_BLOCKS for i in range(b.size)]
+    fig = Figure(figsize=(10, 2 * len(panels)))
+    L = S.StateLayout()
+    for n, (b, i) in enumerate(panels):
+        ax = fig.add_subplot(len(panels), 1, n + 1)
+        scale, unit = b.plot
+        xi, si = X[:, L.nom(b.name).start + i] * scale, sd[:, L.err(b.name).start + i] * scale
+        ax.plot(t, xi, "C0-", lw=0.8, label="estimate")
+        ax.fill_between(t, xi - 3 * si, xi + 3 * si, color="C0", alpha=0.2, label="±3σ")
+        true = getattr(truth, b.output_key, None) if truth is not None else None
+        if true is not None:
+            ax.axhline(scale * float(np.atleast_1d(true)[i]), color="k", ls="--", lw=1, label="truth")
+        ax.set_ylabel(f"{b.output_names[i]} [{unit}]")
+        if n == 0:
             ax.legend(loc="upper right")
-            ax.set_title("lever arm and time offset")
-    ax = fig.add_subplot(4, 1, 4)
-    ax.plot(t, 1000 * X[:, S.TD], "C0-", lw=0.8)
-    ax.fill_between(t, 1000 * (X[:, S.TD] - 3 * sd[:, S.ETD]), 1000 * (X[:, S.TD] + 3 * sd[:, S.ETD]), color="C0", alpha=0.2)
-    if t_d_true is not None:
-        ax.axhline(1000 * t_d_true, color="k", ls="--", lw=1)
-    ax.set_ylabel("t_d [ms]"); ax.set_xlabel("t [s]")
+            ax.set_title(" and ".join(b.label for b in CALIBRATION_BLOCKS))
+    ax.set_xlabel("t [s]")
     files.append(atomic.save_figure(out / "calibration.png", fig))
 
     fig = Figure(figsize=(6, 4))

@@ -1004,11 +1004,11 @@ class Eskf:
             pr = self.priors
             self._warnings.append(
                 f"time offset not identified by the initial search ({td_init.get('reason')}): held at its prior "
-                f"{pr['td']:g} s (sd {pr['td_sd']:g} s, consider mode); set time_offset.prior or record more "
+                f"{pr.t_d:g} s (sd {pr.t_d_sd:g} s, consider mode); set time_offset.prior or record more "
                 f"excited motion")
             self._events.append({"t": float(self._prob.uwb_t[st.j]), "kind": "time_offset_held",
-                                 "reason": td_init.get("reason"), "prior": float(pr["td"]),
-                                 "prior_sd": float(pr["td_sd"])})
+                                 "reason": td_init.get("reason"), "prior": float(pr.t_d),
+                                 "prior_sd": float(pr.t_d_sd)})
         self._st = PassState.start(self._prob, st.x, st.P, st.k, st.j)
         self._mode = "run"
         self._invalid = None

@@ -41,14 +41,14 @@ def run_eskf_from_fix(ds, options: dict, p0: np.ndarray, position_sd: float):
     prob, info = build_problem(ds, opts)
     pf = info["priors"]
     t0 = float(prob.uwb_t[0])
-    td, td_sd = float(pf["td"]), float(pf["td_sd"])
+    td, td_sd = float(pf.t_d), float(pf.t_d_sd)
     k0 = start_index(prob, t0, td)
     roll, pitch = level_attitude(prob, k0, opts.init.window_s)
     pr = Prior(
-        p=np.asarray(p0, float), v=np.zeros(3), roll=roll, pitch=pitch, lever=pf["lever"], ba=pf["ba"],
-        bg=pf["bg"], anchor_bias=pf["anchor_bias"], sd_p=float(position_sd), sd_v=opts.init.velocity_sd,
-        sd_rp=math.radians(opts.init.roll_pitch_sd_deg), sd_ba=pf["sd_ba"], sd_bg=pf["sd_bg"],
-        sd_lever=pf["sd_lever"], sd_bias=pf["sd_bias"],
+        p=np.asarray(p0, float), v=np.zeros(3), roll=roll, pitch=pitch, lever=pf.lever, ba=pf.b_a,
+        bg=pf.b_g, anchor_bias=pf.anchor_bias, sd_p=float(position_sd), sd_v=opts.init.velocity_sd,
+        sd_rp=math.radians(opts.init.roll_pitch_sd_deg), sd_ba=pf.b_a_sd, sd_bg=pf.b_g_sd,
+        sd_lever=pf.lever_sd, sd_bias=pf.anchor_bias_sd,
     )
     x0, P0 = assemble(prob, pr, float(opts.init.yaw), math.radians(opts.init.yaw_sd_deg), td, td_sd, k0, t0,
                       np.zeros(3))
