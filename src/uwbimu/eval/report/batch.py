@@ -12,6 +12,7 @@ from uwbimu.eval.files import EvalInputError
 from uwbimu.eval.report.common import _as_bool, _block, _fig, _fmt, _join, _missing, _span, _table
 from uwbimu.eval.report.inputs import ReportInputs
 from uwbimu.formatting import format_number, format_value_sigma, natural_key
+from uwbimu.models.blocks import CALIBRATION_BLOCKS
 
 
 # --------------------------------------------------------------------------- batch calibration (uwbimu calibrate)
@@ -458,22 +459,25 @@ def _batch_sigma_part(inp: ReportInputs) -> Markup:
     bc = cov.get("block_check") or {}
     per = bc.get("parameters") or {}
     names = (cal.get("correlations") or {}).get("names") or []
-    sd_lever, sd_lever_m = cal.get("lever_arm_sd") or [], cal.get("lever_arm_sd_model") or []
-    td = _batch_td(cal)
-    sd, sd_m = {}, {}
-    for i, c in enumerate("xyz"):
-        if i < len(sd_lever):
-            sd[f"lever_arm_{c}"] = (sd_lever[i], 100.0, "cm")
-        if i < len(sd_lever_m):
-            sd_m[f"lever_arm_{c}"] = sd_lever_m[i]
-    if td.get("sd") is not None:
-        sd["time_offset"] = (td["sd"], 1000.0, "ms")
-        sd_m["time_offset"] = td.get("sd_model")
     idf = cal.get("identifiability") or {}
-    lever_v = idf.get("lever_arm") or {}
-    lever_v = lever_v if set(lever_v) <= {"x", "y", "z"} else next(iter(lever_v.values()), {})  # several tags: the first's
-    verdict = {f"lever_arm_{c}": (lever_v.get(c) or {}).get("verdict", "–") for c in "xyz"}
-    verdict["time_offset"] = str(td.get("verdict", "–"))
+    sd, sd_m, verdict = {}, {}, {}
+    for blk in CALIBRATION_BLOCKS:  # named as the block check names them: <output_key>[_<axis>]
+        key, (scale, unit) = blk.output_key, blk.table
+        if blk.verdict == "profile":  # the time offset: schema 2's {value, sd, sd_model, verdict}
+            entry = cal.get(key) if isinstance(cal.get(key), dict) else {}
+            sds, sdms, verdicts = [entry.get("sd")], [entry.get("sd_model")], [str(entry.get("verdict", "–"))]
+        else:
+            sds, sdms = cal.get(f"{key}_sd") or [], cal.get(f"{key}_sd_model") or []
+            axes = idf.get(key) or {}
+            axes = axes if set(axes) <= set(blk.axes) else next(iter(axes.values()), {})  # several tags: the first's
+            verdicts = [(axes.get(c) or {}).get("verdict", "–") for c in blk.axes]
+        for i, c in enumerate(blk.axes):
+            n = "_".join(filter(None, (key, c)))
+            verdict[n] = verdicts[i]
+            if i < len(sds) and sds[i] is not None:
+                sd[n] = (sds[i], scale, unit)
+                if i < len(sdms):
+                    sd_m[n] = sdms[i]
     rows = []
     for n in [n for n in names if n in sd]:
         v, k, unit = sd[n]
