@@ -417,11 +417,16 @@ def _scalar_update_ws(x, P, h, pred, z, r_var, gate, force, robust_kind, robust_
         K[i] = Ph[i] / S * gain_mask[i]
     # Joseph form for a scalar measurement and any gain K:
     # (I-Kh)P(I-Kh)^T + K r K^T = P - K Ph^T - Ph K^T + K K^T (hPh + r)
+    # the upper triangle row by row (contiguous: the compiler runs j in SIMD lanes), then mirrored; the
+    # same expression for every element as the former one-pass form that stored both (i, j) and (j, i)
     for i in range(N):
+        ki = K[i]
+        pi = Ph[i]
         for j in range(i, N):
-            v = P[i, j] - K[i] * Ph[j] - Ph[i] * K[j] + K[i] * K[j] * S
-            P[i, j] = v
-            P[j, i] = v
+            P[i, j] = P[i, j] - ki * Ph[j] - pi * K[j] + ki * K[j] * S
+    for i in range(1, N):
+        for j in range(i):
+            P[i, j] = P[j, i]
     for i in range(N):
         dx[i] = K[i] * r
     inject(x, dx)
