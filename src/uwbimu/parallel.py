@@ -28,6 +28,35 @@ _WORKER_ENV = "uwbimu._worker_env"
 # imported by the server after the preload when the tasks run the ESKF: loads its machine code once
 _WARM_ESKF = "uwbimu.studies.warm_eskf"
 
+#: seconds a fresh local pool takes to be up (the forkserver imports the preload and loads numba's machine
+#: code, then forks a worker): 4.7 s wall measured for the ESKF preload on the 2-core development machine
+#: (``_new_executor(1, ("uwbimu.sim", "uwbimu.estimation", "uwbimu.estimators"))`` to its first result),
+#: 3 s on an idle one; an upper-side figure, so a pool is started only where it clearly pays
+POOL_START_S = 4.0
+#: the same once this process's forkserver runs (a later pool only forks workers from it)
+POOL_RESTART_S = 0.3
+
+
+def pool_start_estimate() -> float:
+    """Seconds [s] until a new local pool would run its first task: :data:`POOL_START_S`, or
+    :data:`POOL_RESTART_S` when this process's forkserver already runs (an earlier pool started it)."""
+    try:
+        from multiprocessing import forkserver
+
+        alive = getattr(forkserver._forkserver, "_forkserver_pid", None) is not None
+    except Exception:  # noqa: BLE001 - no forkserver on this platform: every pool starts cold
+        alive = False
+    return POOL_RESTART_S if alive else POOL_START_S
+
+
+def pool_pays(remaining_s: float, start_s: Optional[float] = None) -> bool:
+    """The rule of ``execute(..., caller=True, measure_first=True)``: start a pool only when the serial work
+    left, ``remaining_s`` [s], is longer than the pool's start ``start_s`` (default
+    :func:`pool_start_estimate`).  Why: while the pool starts, the caller runs tasks alone (no gain), and
+    the start's imports take a core from it; the pool shortens the job only by the work left once it is up
+    (half of it with 2 workers), which is less than nothing for a job shorter than the start."""
+    return remaining_s > (pool_start_estimate() if start_s is None else start_s)
+
 
 def _one_blas_thread() -> None:
     """Pool initializer where there is no forkserver (runs in the worker, not in the caller)."""
@@ -63,7 +92,7 @@ def _take(f, t, on_chunk, describe, failures: list[str]) -> None:
 
 
 def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], None], describe, preload,
-                     pool: Optional["ProcessPool"] = None) -> list[str]:
+                     pool: Optional["ProcessPool"] = None, measure_first: bool = False) -> list[str]:
     """:func:`execute` with the caller as one of the ``workers``: ``workers - 1`` pool processes and this one.
 
     Why: a pool's processes start cold (the forkserver imports the preload, each worker loads numba's
@@ -73,6 +102,11 @@ def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], No
     short job ends as fast as serially.  Each task is pickled and unpickled before the caller runs it (the
     copy a worker gets), so a task's result does not depend on where it ran.  The pool is started in a
     thread too: a forkserver's first process start blocks until the server has imported the preload.
+
+    ``measure_first``: the caller runs the last task before any pool starts and times it; when the tasks
+    left would take no longer serially than the pool's start (:func:`pool_pays` with that task's duration
+    times their number), it runs them too and no pool starts (a job of short windows ends as fast as
+    serially, with no core lost to a start that cannot pay).  An open ``pool`` is used as it is.
     """
     import pickle
     import queue as _queue
@@ -83,6 +117,23 @@ def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], No
     own = pool is None or pool.executor is None
     box = [None if own else pool.executor]  # the executor, created by the starter thread when own
     todo = deque(tasks)
+
+    def run_here(t) -> None:
+        try:
+            chunk = fn(pickle.loads(pickle.dumps(t)))
+        except Exception as exc:  # noqa: BLE001 - reported like a worker's failure
+            failures.append(f"{describe(t)}: {type(exc).__name__}: {exc}")
+        else:
+            on_chunk(chunk)
+
+    if measure_first and own and todo:
+        w0 = time.perf_counter()
+        run_here(todo.pop())
+        if not pool_pays(len(todo) * (time.perf_counter() - w0)):
+            while todo:
+                run_here(todo.pop())
+            return failures
+        tasks = list(todo)
     results: _queue.Queue = _queue.Queue()
     stop, up, dead = threading.Event(), threading.Event(), threading.Event()
     lock = threading.Lock()
@@ -156,12 +207,7 @@ def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], No
                 _take(f, t, on_chunk, describe, failures)
                 handled += 1
                 continue
-            try:
-                chunk = fn(pickle.loads(pickle.dumps(t)))
-            except Exception as exc:  # noqa: BLE001 - reported like a worker's failure
-                failures.append(f"{describe(t)}: {type(exc).__name__}: {exc}")
-            else:
-                on_chunk(chunk)
+            run_here(t)
             handled += 1
     except BaseException:
         finish(cancel=True)
@@ -283,6 +329,7 @@ def execute(
     preload: tuple[str, ...] = ("uwbimu.sim", "uwbimu.estimation"),
     pool: Optional[ProcessPool] = None,
     caller: bool = False,
+    measure_first: bool = False,
 ) -> list[str]:
     """Run ``fn(task)`` for every task and pass each result to ``on_result`` as it arrives.
 
@@ -305,6 +352,9 @@ def execute(
         per-worker cache) is not small against a task: the t_d profile's two walks, short windows.  A
         task that raises in the caller is reported like a worker's failure; ``on_result`` still runs in
         the caller's thread only.
+    measure_first : (with ``caller``) time one task in the caller first and start a pool only when the tasks
+        left would take longer serially than the pool's start (:func:`pool_pays`): for jobs whose size is
+        not known in advance, such as the repeatability windows (a few tenths of a second each).
 
     Returns
     -------
@@ -320,5 +370,5 @@ def execute(
             on_result(fn(t))
         return []
     if caller:
-        return _run_with_caller(fn, tasks, workers, on_result, describe, preload, pool)
+        return _run_with_caller(fn, tasks, workers, on_result, describe, preload, pool, measure_first)
     return _run_pool(fn, tasks, workers, on_result, describe, preload, pool)

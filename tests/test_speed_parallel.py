@@ -1,0 +1,63 @@
+"""``execute(..., caller=True, measure_first=True)``: the caller times one task and starts a pool only when the
+work left is longer than the pool's start (``parallel.pool_pays``); the results are the serial ones either way."""
+
+from __future__ import annotations
+
+import os
+import time
+
+from uwbimu import parallel
+from uwbimu.parallel import execute, pool_pays
+
+
+def _quick(x):
+    return x, x * x, os.getpid()
+
+
+def _slow(x):
+    time.sleep(0.25)
+    return x, x * x, os.getpid()
+
+
+def _fails(x):
+    if x == 3:
+        raise ValueError("bad task")
+    return x, x * x, os.getpid()
+
+
+def test_the_rule_compares_the_work_left_with_the_start():
+    assert pool_pays(5.0, start_s=4.0)
+    assert not pool_pays(3.9, start_s=4.0)
+    assert not pool_pays(0.0, start_s=0.0)
+
+
+def test_short_tasks_run_in_the_caller_and_no_pool_starts(monkeypatch):
+    started = []
+    monkeypatch.setattr(parallel, "_new_executor", lambda *a, **k: started.append(a) or None)
+    got = []
+    assert execute(_quick, list(range(20)), got.append, workers=2, preload=(), caller=True,
+                   measure_first=True) == []
+    assert sorted((x, y) for x, y, _ in got) == [(x, x * x) for x in range(20)]
+    assert {pid for *_, pid in got} == {os.getpid()}
+    assert started == []
+
+
+def test_long_tasks_start_the_pool_and_both_processes_work(monkeypatch):
+    # a start of 0.1 s against 11 tasks of 0.25 s left: the pool pays
+    monkeypatch.setattr(parallel, "POOL_START_S", 0.1)
+    monkeypatch.setattr(parallel, "POOL_RESTART_S", 0.1)
+    got = []
+    assert execute(_slow, list(range(12)), got.append, workers=2, preload=(), caller=True,
+                   measure_first=True) == []
+    assert sorted((x, y) for x, y, _ in got) == [(x, x * x) for x in range(12)]
+    pids = {pid for *_, pid in got}
+    assert os.getpid() in pids and len(pids) == 2
+
+
+def test_a_failing_task_is_a_line_when_measured_first_too(monkeypatch):
+    monkeypatch.setattr(parallel, "_new_executor", lambda *a, **k: None)
+    got = []
+    failed = execute(_fails, [1, 2, 3, 4], got.append, workers=2, preload=(), caller=True, measure_first=True,
+                     describe=lambda t: f"task {t}")
+    assert len(failed) == 1 and failed[0].startswith("task 3: ValueError")
+    assert sorted(x for x, *_ in got) == [1, 2, 4]
