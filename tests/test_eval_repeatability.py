@@ -117,3 +117,31 @@ def test_windows_on_the_executors_match_the_serial_run():
     assert pooled["parameters"].keys() == serial["parameters"].keys()
     with pytest.raises(ValueError):
         repeatability(ds, 2, lambda w: None, workers=2)
+
+
+@pytest.mark.parametrize("with_truth", [True, False])
+def test_report_table_shows_the_truth_when_the_dataset_has_it(tmp_path, with_truth):
+    """The demo's repeatability table (report section) carries the truth, mean - truth and z columns
+    exactly when the dataset has a truth (issue 27): from repeatability.json's ``truth`` per parameter."""
+    import json
+
+    from uwbimu.eval.report.inputs import ReportInputs
+    from uwbimu.eval.report.sections import _repeatability_section
+
+    ds = _dataset()
+    if not with_truth:
+        ds.meta.truth = None
+    stub = StubEstimator(0.01, 0.01, seed=5)
+    truth = TruthMeta(lever_arm=[0.1, 0.0, 0.05], time_offset=0.02)
+    # the stub needs a truth to draw from: give it one on the windows only
+    rep = repeatability(ds, 4, lambda w: stub(Dataset(imu=w.imu, uwb=w.uwb, anchors=w.anchors, groundtruth=None,
+                                                      meta=w.meta.model_copy(update={"truth": truth}))))
+    (tmp_path / "repeatability.json").write_text(json.dumps(rep))
+    for p, v in zip(("lx", "ly", "lz", "td"), (0.1, 0.0, 0.05, 0.02)):
+        if with_truth:
+            assert rep["parameters"][p]["truth"] == v
+            assert rep["parameters"][p]["mean_error"] == pytest.approx(rep["parameters"][p]["mean"] - v)
+        else:
+            assert "truth" not in rep["parameters"][p]
+    _, attrs = _repeatability_section(ReportInputs(tmp_path, None))
+    assert attrs == {"truth-shown": "yes" if with_truth else "no", "parameters": 4}
