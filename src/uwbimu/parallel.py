@@ -103,10 +103,12 @@ def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], No
     copy a worker gets), so a task's result does not depend on where it ran.  The pool is started in a
     thread too: a forkserver's first process start blocks until the server has imported the preload.
 
-    ``measure_first``: the caller runs the last task before any pool starts and times it; when the tasks
-    left would take no longer serially than the pool's start (:func:`pool_pays` with that task's duration
-    times their number), it runs them too and no pool starts (a job of short windows ends as fast as
-    serially, with no core lost to a start that cannot pay).  An open ``pool`` is used as it is.
+    ``measure_first``: before any pool starts, the caller runs tasks (from the back) and times each; the pool
+    starts once the tasks left would take longer serially than its start (:func:`pool_pays` with the latest
+    task's duration times their number; the first task's only when one task is left, as it carries the
+    process's one-time warm-up), else the caller runs them all and no pool starts (a job of short windows
+    ends as fast as serially, with no core lost to a start that cannot pay).  An open ``pool`` is used as
+    it is.
     """
     import pickle
     import queue as _queue
@@ -126,12 +128,17 @@ def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], No
         else:
             on_chunk(chunk)
 
-    if measure_first and own and todo:
-        w0 = time.perf_counter()
-        run_here(todo.pop())
-        if not pool_pays(len(todo) * (time.perf_counter() - w0)):
-            while todo:
-                run_here(todo.pop())
+    if measure_first and own:
+        n_done = 0
+        while todo:
+            w0 = time.perf_counter()
+            run_here(todo.pop())
+            n_done += 1
+            # the first task carries this process's one-time warm-up (numba's machine code, caches): its
+            # duration decides only when it was the last but one
+            if (n_done > 1 or len(todo) <= 1) and pool_pays(len(todo) * (time.perf_counter() - w0)):
+                break
+        if not todo:
             return failures
         tasks = list(todo)
     results: _queue.Queue = _queue.Queue()
