@@ -72,9 +72,9 @@ def excitation_profile(prob: Problem, t_imu_out: np.ndarray, X: np.ndarray, wind
         return t, np.zeros(len(t)), np.zeros(len(t))
     i = np.clip(np.searchsorted(t_imu_out, t), 0, len(t_imu_out) - 1)
     xs = X[i]
-    w = u[:, 3:6] - xs[:, 13:16]
+    w = u[:, 3:6] - xs[:, S.BG]
     R = quat_to_rotmat(xs[:, S.Q])
-    acc = np.einsum("nij,nj->ni", R, u[:, :3] - xs[:, 10:13]) - G_WORLD
+    acc = np.einsum("nij,nj->ni", R, u[:, :3] - xs[:, S.BA]) - G_WORLD
     n = max(1, int(round(window_s / (prob.dt_nom * step))))
     return t, _sliding_rms(np.linalg.norm(w, axis=1), n), _sliding_rms(np.linalg.norm(acc, axis=1), n)
 
