@@ -33,6 +33,7 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
+from uwbimu.errors import InputError
 from uwbimu.estimation import kernels as K
 from uwbimu.estimation.kernels import (  # noqa: F401  (re-exported)
     REC_ACC, REC_INNOV, REC_NIS, REC_PRED, REC_S, REC_STATUS, REC_W, STATUS_IN_GAP, STATUS_STALE,
@@ -166,6 +167,24 @@ class PassResult:
     diverged: Optional[str] = None
     events: list[dict[str, Any]] = field(default_factory=list)
     n_lever_frozen: int = 0  # accepted ranges that did not update the lever arm (rotation gate)
+
+
+def cubic_midpoints(imu_t: np.ndarray, imu_u: np.ndarray) -> np.ndarray:
+    """The cubic mid-interval IMU inputs ``(n-1, 6)`` of :func:`uwbimu.models.reference.midpoint_inputs`
+    (Lagrange cubic through the four samples around each interval) by the compiled
+    :func:`kernels.midpoints_into`: the same values (``tests/test_speed_midpoints.py``: bit-identical), a
+    tenth of the time (no ``(n, 4, 6)`` temporaries: 0.35 s of a 10-minute 1 kHz log's set-up otherwise).
+
+    ``imu_t`` (n,) IMU clock [s], strictly increasing; ``imu_u`` (n, 6) ``[a (m/s^2), w (rad/s)]``.
+    """
+    t = np.ascontiguousarray(imu_t, dtype=float)
+    u = np.ascontiguousarray(imu_u, dtype=float)
+    if t.ndim != 1 or u.ndim != 2 or u.shape != (len(t), 6):
+        raise InputError(f"cubic_midpoints needs times (n,) and inputs (n, 6); got {t.shape} and {u.shape}")
+    out = np.empty((max(len(t) - 1, 0), 6))
+    if len(t) >= 2:
+        K.midpoints_into(t, u, 0, len(t) - 1, out)
+    return out
 
 
 def rotation_window_stats(imu_u: np.ndarray, win: int) -> tuple[np.ndarray, np.ndarray]:
@@ -717,6 +736,7 @@ def _model_update(prob: Problem, x: np.ndarray, P: np.ndarray, k: int, tau: floa
 
 def _gate_probability(gate_nis_1dof: float) -> float:
     """The acceptance probability behind a one-degree-of-freedom NIS threshold (same for any dim)."""
-    from scipy.stats import chi2
+    # scipy.special, not scipy.stats (whose import costs about a second): chi2.cdf(x, k) is chdtr(k, x)
+    from scipy.special import chdtr
 
-    return float(chi2.cdf(gate_nis_1dof, 1))
+    return float(chdtr(1, gate_nis_1dof))
