@@ -156,8 +156,8 @@ def _convergence_section(inp: ReportInputs) -> Markup:
     df, cols = _calibration_history(inp)
     if df is None:
         return _missing(Markup("no calibration history: neither <code>states.csv</code> nor <code>trajectory.csv</code> "
-                               "has lever-arm / time-offset columns (<code>lx, ly, lz, td</code> with <code>sd_lx</code>, "
-                               "...)."))
+                               "has lever-arm / time-offset columns (<code>{}</code> with <code>sd_{}</code>, "
+                               "...).").format(", ".join(CAL_COLUMNS), CAL_COLUMNS[0]))
     t = df["t"].to_numpy(float)
     _, ref_label = inp.reference_lever_arm()
     comp = calibration_components()
