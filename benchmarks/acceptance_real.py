@@ -13,8 +13,8 @@ also where it started (``calibration_start``: the ESKF or, when that run fails t
 multilateration) and the blocks it held at their priors (``calibration_held``).
 
 The documented antenna offset comes from the dataset (``truth.lever_arm``, else the tag's nominal lever
-arm); a Crazyflie microSD import has none, so the UTIL dataset's manually measured vehicle-centre-to-tag
-translation (the dataset paper and parsing scripts, ``t_uv``: -1.245, 0.127, 9.08 cm) is used for it.
+arm; a Crazyflie microSD import writes the UTIL platform's documented offset there, ``t_uv``: -1.245, 0.127,
+9.08 cm); a TDoA dataset without either (an older import) is compared with that same UTIL offset.
 """
 
 from __future__ import annotations
@@ -25,8 +25,7 @@ import time
 
 import numpy as np
 
-#: UTIL (utiasDSL/util-uwb-dataset) vehicle-centre-to-UWB-tag translation [m] (IMU at the vehicle centre)
-UTIL_TAG_OFFSET = (-0.01245, 0.00127, 0.0908)
+from uwbimu.io.importers.cf_usdlog import UTIL_T_UV as UTIL_TAG_OFFSET  # noqa: E402  (one definition)
 
 
 def documented_lever(ds):

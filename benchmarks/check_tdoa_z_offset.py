@@ -16,7 +16,8 @@ Per log (a folder imported with ``uwbimu import cf-usdlog``), over the flight se
    oracle, from the truth: it shows how much of the z offset the pair biases make, never an estimator).
 
 The multilateration's z mean includes the antenna height above the body origin (lever z); the ESKF's
-includes it when its lever arm stays at zero (held when the log does not identify it).
+includes it only when its lever-arm prior is zero (an import without the nominal lever arm, or
+``lever_arm.prior: null``): the log does not identify the lever arm, so the ESKF holds it at its prior.
 """
 
 from __future__ import annotations
@@ -30,8 +31,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from compare_crazyflie import flight_segment, multilaterate_tdoa  # noqa: E402
 
-#: the UTIL platform's documented vehicle-centre -> UWB tag offset [m] (dataset paper and parsing scripts)
-UTIL_LEVER = (-0.012, 0.001, 0.091)
+#: the UTIL platform's documented vehicle-centre -> UWB tag offset [m] (the importer's nominal lever arm)
+from uwbimu.io.importers.cf_usdlog import UTIL_T_UV as UTIL_LEVER  # noqa: E402
 
 
 def _errors(ds, t, p, span):
