@@ -86,6 +86,24 @@ def test_residuals_about_the_true_trajectory_are_the_noise(flight):
     assert np.allclose(np.linalg.norm(d["u"], axis=1), 1.0)
 
 
+def test_repeated_stamps_in_the_trajectory_use_the_last_state(flight):
+    """A trajectory with several states at one stamp (a filter's updates at one instant) is read with the
+    last state of each stamp: the residuals equal those about the trajectory without the earlier copies."""
+    from types import SimpleNamespace
+
+    res = run_eskf(flight, EskfOptions())
+    t, X = np.asarray(res.t, float), np.asarray(res.states, float)
+    k = np.arange(5, len(t) - 5, 97)  # an earlier, different copy before every 97th state
+    early = X[k].copy()
+    early[:, :3] += 0.5
+    t2 = np.insert(t, k, t[k])
+    X2 = np.insert(X, k, early, axis=0)
+    dup = SimpleNamespace(t=t2, states=X2, calibration=res.calibration)
+    ref = range_residuals(flight, SimpleNamespace(t=t, states=X, calibration=res.calibration))
+    got = range_residuals(flight, dup)
+    np.testing.assert_array_equal(got["r"], ref["r"])
+
+
 def test_bad_input_is_refused(flight):
     res = run_eskf(flight, EskfOptions())
     with pytest.raises(InputError):

@@ -138,6 +138,11 @@ def range_residuals(dataset, trajectory) -> dict[str, np.ndarray]:
     X = np.asarray(trajectory.states, float)
     ok = np.isfinite(tt) & np.all(np.isfinite(X[:, P]), axis=1) & np.all(np.isfinite(X[:, Q]), axis=1)
     tt, X = tt[ok], X[ok]
+    # a filter writes several states at one stamp (updates at an IMU sample's time): the last one is the
+    # state after every update of that instant; the interpolation needs strictly increasing times
+    rev = np.unique(tt[::-1], return_index=True)[1]
+    last = len(tt) - 1 - rev
+    tt, X = tt[last], X[last]
     if len(tt) < 2:
         raise InputError("range model selection: the trajectory has fewer than two finite states")
     lever = np.asarray(trajectory.calibration["lever_arm"], float)
@@ -159,7 +164,7 @@ def range_residuals(dataset, trajectory) -> dict[str, np.ndarray]:
            "wb": rot.inv().apply(los_w), "u": los_w / np.maximum(dist, 1e-9)[:, None]}
     sd = getattr(trajectory, "sd", None)
     if sd is not None and np.asarray(sd).ndim == 2 and np.asarray(sd).shape[1] >= EP.stop:
-        psd = np.linalg.norm(np.asarray(sd, float)[ok][:, EP], axis=1)
+        psd = np.linalg.norm(np.asarray(sd, float)[ok][last][:, EP], axis=1)
         good = np.isfinite(psd)
         if good.sum() >= 2:
             # the filter's settling (position sd well above its typical value) is left out: there the
