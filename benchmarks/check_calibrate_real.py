@@ -274,7 +274,7 @@ def main(argv=None) -> int:
             if "error" in w:
                 print(f"  window {w['i'] + 1}: {w['error']}")
         for name, p in rep["parameters"].items():
-            sc = 1000.0 if name == "td" else 100.0
+            sc = 1000.0 if name in ("time_offset", "td") else 100.0
             print(f"  {name}: mean {sc * p['mean']:.1f}, spread sd {sc * p['std']:.1f}, rms sigma "
                   f"{sc * p['rms_sd']:.1f}, ratio {p['ratio']:.2f}, p {p['p_value']:.3g}, n {p['n']}: {p['verdict']}")
     report["load_after"] = os.getloadavg()

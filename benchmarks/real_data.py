@@ -220,8 +220,8 @@ def main(argv=None) -> int:
             for c in ("parameter", "mean", "spread sd", "predicted σ", "ratio", "p", "verdict"):
                 rt.add_column(c, justify="right")
             for p, v in r["repeatability"].items():
-                sc = 1000.0 if p == "td" else 100.0
-                rt.add_row(f"{p} [{'ms' if p == 'td' else 'cm'}]", f"{sc * v['mean']:+.2f}", f"{sc * v['std']:.2f}",
+                sc = 1000.0 if p in ("time_offset", "td") else 100.0
+                rt.add_row(f"{p} [{'ms' if p in ('time_offset', 'td') else 'cm'}]", f"{sc * v['mean']:+.2f}", f"{sc * v['std']:.2f}",
                            f"{sc * v['rms_sd']:.2f}", f"{v['ratio']:.2f}", f"{v['p_value']:.3g}", v["verdict"])
             con.print(rt)
         if "commands" in r:

@@ -7,8 +7,10 @@ from __future__ import annotations
 import ast
 import inspect
 import itertools
+import json
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from uwbimu.cli import report as cli_report
@@ -17,6 +19,7 @@ from uwbimu.estimation.options import EskfOptions
 from uwbimu.estimation.problem import block_mode, block_prior_sd, make_settings
 from uwbimu.estimation.timeoffset import time_offset_prior_sd
 from uwbimu.eval.report import common, sections
+from uwbimu.eval.report.inputs import ReportInputs
 from uwbimu.models import blocks as B
 from uwbimu.models import state as S
 from uwbimu.models.imu import ImuNoise
@@ -32,19 +35,19 @@ def _settings(opts):
 
 def test_calibration_blocks_are_the_lever_arm_and_the_time_offset_in_output_order():
     assert [b.name for b in B.CALIBRATION_BLOCKS] == ["lever", "t_d"]
-    assert common.CAL_COLUMNS == ("lx", "ly", "lz", "td")
+    assert common.CAL_COLUMNS == ("lx", "ly", "lz", "time_offset")
     # the report's repeatability bound reads these error-state indices (formerly a literal table)
-    assert sections._REP_INDEX == {"lx": S.E_L, "ly": S.E_L + 1, "lz": S.E_L + 2, "td": S.E_TD}
+    assert sections._REP_INDEX == {"lx": S.E_L, "ly": S.E_L + 1, "lz": S.E_L + 2, "time_offset": S.E_TD}
 
 
 def test_observability_scales_and_priors_are_the_former_per_block_values():
-    assert window.DEFAULT_SCALES == {"p": 1.0, "v": 1.0, "th": 1.0, "ba": 0.1, "bg": 0.01, "l": 0.1, "td": 0.01}
-    assert window.DEFAULT_PRIOR_SD == {"p": 0.3, "v": 0.5, "th": 0.1, "ba": 0.1, "bg": 0.01, "l": 0.3, "td": 0.1}
-    keys = ["p"] * 3 + ["v"] * 3 + ["th"] * 3 + ["ba"] * 3 + ["bg"] * 3 + ["l"] * 3 + ["td"]
+    assert window.DEFAULT_SCALES == {"p": 1.0, "v": 1.0, "th": 1.0, "ba": 0.1, "bg": 0.01, "l": 0.1, "time_offset": 0.01}
+    assert window.DEFAULT_PRIOR_SD == {"p": 0.3, "v": 0.5, "th": 0.1, "ba": 0.1, "bg": 0.01, "l": 0.3, "time_offset": 0.1}
+    keys = ["p"] * 3 + ["v"] * 3 + ["th"] * 3 + ["ba"] * 3 + ["bg"] * 3 + ["l"] * 3 + ["time_offset"]
     scales = {k: float(i + 2) for i, k in enumerate(window.DEFAULT_SCALES)}  # distinct per block
     assert window._scale_vector(scales).tolist() == [scales[k] for k in keys]
-    assert directions.BLOCK_LABELS["l"] == ("lever arm", "body") and directions.BLOCK_LABELS["td"] == ("time offset", "")
-    assert directions._blocks(S.ERROR_STATE_NAMES)["td"] == [S.E_TD]
+    assert directions.BLOCK_LABELS["l"] == ("lever arm", "body") and directions.BLOCK_LABELS["time_offset"] == ("time offset", "")
+    assert directions._blocks(S.ERROR_STATE_NAMES)["time_offset"] == [S.E_TD]
 
 
 @pytest.mark.parametrize("mode,prior,grid,search", list(itertools.product(
@@ -121,9 +124,48 @@ CONSUMERS = (diagnostics, window, sections, common, cli_report)
 
 @pytest.mark.parametrize("module", CONSUMERS, ids=lambda m: m.__name__)
 def test_consumers_name_no_calibration_component_by_a_literal(module):
-    """The calibration blocks' component names (``lx .. td``, ``sd_td``) come from the declarations."""
-    names = set(B.calibration_components())
-    names |= {f"sd_{n}" for n in names}
+    """The calibration blocks' component names (``lx .. time_offset``, ``sd_time_offset``) come from the declarations."""
+    names = set(B.calibration_components()) - {b.output_key for b in B.CALIBRATION_BLOCKS}  # time_offset: a key too
+    names |= {f"sd_{n}" for n in names} | set(B.legacy_name_map())
     literals = {node.value for node in ast.walk(ast.parse(inspect.getsource(module)))
                 if isinstance(node, ast.Constant) and isinstance(node.value, str)}
     assert not literals & names
+
+
+def _write_run(folder, names: dict) -> None:
+    """states.csv, observability.csv and repeatability.json of a run whose time offset is called names[...]."""
+    folder.mkdir()
+    td, sd_td = names["td"], names["sd_td"]
+    pd.DataFrame({"t": [0.0, 1.0], "lx": [0.1, 0.11], "ly": [0.0, 0.0], "lz": [0.0, 0.0], td: [0.01, 0.012],
+                  "sd_lx": [0.05, 0.01], "sd_ly": [0.05, 0.01], "sd_lz": [0.05, 0.01], sd_td: [0.05, 0.003]}).to_csv(
+        folder / "states.csv", index=False)
+    pd.DataFrame({"t_start": [0.0], "t_end": [1.0], "sd_lx": [0.01], sd_td: [0.002],
+                  "time_offset_excited": [True]}).to_csv(folder / "observability.csv", index=False)
+    (folder / "repeatability.json").write_text(json.dumps({
+        "k": 2, "parameters": {"lx": {"mean": 0.1}, td: {"mean": 0.011}},
+        "windows": [{"values": {"lx": 0.1, td: 0.011}, "sd": {"lx": 0.01, td: 0.001}}]}))
+
+
+def test_a_legacy_named_output_is_read_under_the_current_names(tmp_path):
+    """Files written before the time offset's columns took its one output name (``td``, ``sd_td``) read like
+    current ones (``time_offset``, ``sd_time_offset``) in the report."""
+    assert B.legacy_name_map() == {"td": "time_offset", "sd_td": "sd_time_offset"}
+    _write_run(tmp_path / "old", {"td": "td", "sd_td": "sd_td"})
+    _write_run(tmp_path / "new", {"td": "time_offset", "sd_td": "sd_time_offset"})
+    old, new = ReportInputs(tmp_path / "old"), ReportInputs(tmp_path / "new")
+    for attr in ("states", "observability"):
+        pd.testing.assert_frame_equal(getattr(old, attr), getattr(new, attr))
+    assert "sd_time_offset" in old.states.columns and "td" not in old.states.columns
+    assert old.repeatability == new.repeatability and set(old.repeatability["parameters"]) == {"lx", "time_offset"}
+    assert sections._calibration_history(old)[1] == {n: n for n in common.CAL_COLUMNS}
+
+
+def test_an_older_states_csv_linearises_the_observability_analysis(tmp_path):
+    """``uwbimu observability log --trajectory states.csv`` reads a file with the former ``td`` column."""
+    n = 5
+    cols = {"t": np.arange(n, dtype=float), **{c: np.zeros(n) for c in S.NOMINAL_STATE_NAMES}}
+    cols["qw"], cols["lx"], cols["time_offset"] = np.ones(n), np.full(n, 0.1), np.full(n, 0.02)
+    pd.DataFrame(cols).to_csv(tmp_path / "new.csv", index=False)
+    pd.DataFrame(cols).rename(columns={"time_offset": "td"}).to_csv(tmp_path / "old.csv", index=False)
+    new, old = window.trajectory_from_states_csv(tmp_path / "new.csv"), window.trajectory_from_states_csv(tmp_path / "old.csv")
+    assert old.t_d == new.t_d == 0.02 and np.array_equal(old.lever_arm, new.lever_arm)

@@ -86,7 +86,7 @@ def test_repeatability_with_the_batch_method(dataset_dir, tmp_path):
     assert rep["method"] == "batch" and rep["n_failed"] == 0
     n_lx = sum("lever_arm_x" in w["sigma_widened_by_blocks"] for w in rep["windows"])
     assert f"lx {n_lx}," in " ".join(r.output.split())  # the console line counts the windows per parameter
-    assert set(rep["parameters"]) == {"lx", "ly", "lz", "td"}
+    assert set(rep["parameters"]) == {"lx", "ly", "lz", "time_offset"}
     assert all(p["n"] == 2 for p in rep["parameters"].values())
     assert all(w["imu_noise_scale"] > 0 for w in rep["windows"])  # each window's estimated IMU noise scale
     # and which sigma its block check widened: names of calibration.yaml's parameters

@@ -35,7 +35,7 @@ def test_demo_writes_every_stage(demo_run):
     import json
 
     rep = json.loads((out / "estimate" / "repeatability.json").read_text())
-    assert rep["n_failed"] == 0 and set(figures["repeatability"]) == {"lx", "ly", "lz", "td"}
+    assert rep["n_failed"] == 0 and set(figures["repeatability"]) == {"lx", "ly", "lz", "time_offset"}
 
 
 def test_demo_reruns_into_its_own_folder(demo_run, tmp_path):

@@ -25,20 +25,20 @@ GRID = [round(-0.25 + 0.05 * i, 3) for i in range(11)]
 def test_interior_minimum_is_refined_with_curvature_sd():
     out = search_time_offset(_quadratic(0.037, 0.01), GRID)
     assert out["status"] == "found"
-    assert out["td"] == pytest.approx(0.037, abs=1e-9)
-    assert out["td_sd"] == pytest.approx(0.01, rel=1e-6)
+    assert out["time_offset"] == pytest.approx(0.037, abs=1e-9)
+    assert out["time_offset_sd"] == pytest.approx(0.01, rel=1e-6)
 
 
 def test_edge_minimum_widens_the_grid_instead_of_returning_the_edge():
     out = search_time_offset(_quadratic(0.502, 0.02), GRID, max_abs_s=1.0)
     assert out["status"] == "found"
     assert max(out["grid"]) > 0.55
-    assert out["td"] == pytest.approx(0.502, abs=1e-9)
+    assert out["time_offset"] == pytest.approx(0.502, abs=1e-9)
 
 
 def test_edge_beyond_the_widest_grid_is_not_identified():
     out = search_time_offset(_quadratic(2.0, 0.02), GRID, max_abs_s=0.5)
-    assert out["status"] == "not identified" and out["td"] is None
+    assert out["status"] == "not identified" and out["time_offset"] is None
     assert max(out["grid"]) == pytest.approx(0.5)
 
 

@@ -53,12 +53,12 @@ class StubEstimator:
 def test_honest_sigmas_are_consistent_and_overconfident_ones_are_flagged():
     ds = _dataset()
     good = repeatability(ds, 8, StubEstimator(0.01, 0.01, seed=1))
-    for p in ("lx", "ly", "lz", "td"):
+    for p in ("lx", "ly", "lz", "time_offset"):
         assert good["parameters"][p]["verdict"] == "consistent", good["parameters"][p]
         assert 0.4 < good["parameters"][p]["ratio"] < 1.8
     assert abs(good["parameters"]["lx"]["mean_error"]) < 0.02
     over = repeatability(ds, 8, StubEstimator(0.05, 0.005, seed=2))
-    for p in ("lx", "ly", "lz", "td"):
+    for p in ("lx", "ly", "lz", "time_offset"):
         assert over["parameters"][p]["verdict"] == "over-confident"
         assert over["parameters"][p]["ratio"] > 4
     under = repeatability(ds, 8, StubEstimator(0.001, 0.05, seed=3))
@@ -98,7 +98,7 @@ def test_repeatability_cli_with_stub_estimator(tmp_path, monkeypatch):
     r = CliRunner().invoke(app, ["repeatability", str(tmp_path / "ds"), "--out", str(tmp_path / "out"), "--windows", "3"])
     assert r.exit_code == 0, r.output
     rep = json.loads((tmp_path / "out" / "repeatability.json").read_text())
-    assert stub.calls == 3 and rep["k"] == 3 and set(rep["parameters"]) == {"lx", "ly", "lz", "td"}
+    assert stub.calls == 3 and rep["k"] == 3 and set(rep["parameters"]) == {"lx", "ly", "lz", "time_offset"}
     assert rep["parameters"]["lx"]["truth"] == 0.10  # ISAS documented lever arm
 
 
@@ -137,7 +137,7 @@ def test_report_table_shows_the_truth_when_the_dataset_has_it(tmp_path, with_tru
     rep = repeatability(ds, 4, lambda w: stub(Dataset(imu=w.imu, uwb=w.uwb, anchors=w.anchors, groundtruth=None,
                                                       meta=w.meta.model_copy(update={"truth": truth}))))
     (tmp_path / "repeatability.json").write_text(json.dumps(rep))
-    for p, v in zip(("lx", "ly", "lz", "td"), (0.1, 0.0, 0.05, 0.02)):
+    for p, v in zip(("lx", "ly", "lz", "time_offset"), (0.1, 0.0, 0.05, 0.02)):
         if with_truth:
             assert rep["parameters"][p]["truth"] == v
             assert rep["parameters"][p]["mean_error"] == pytest.approx(rep["parameters"][p]["mean"] - v)

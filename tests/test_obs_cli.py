@@ -184,7 +184,7 @@ def test_window_on_an_estimator_trajectory(tmp_path):
     opts = WindowOptions(window=20.0)
     a, _ = window_observability(ds, trajectory_from_result(res), opts)
     b, _ = window_observability(ds, trajectory_from_groundtruth(ds), opts)
-    assert np.allclose(a["sd_lx"], b["sd_lx"], rtol=1e-9) and np.allclose(a["sd_td"], b["sd_td"], rtol=1e-9)
+    assert np.allclose(a["sd_lx"], b["sd_lx"], rtol=1e-9) and np.allclose(a["sd_time_offset"], b["sd_time_offset"], rtol=1e-9)
     # the same through a states.csv file and the CLI's --trajectory
     from uwbimu.models.state import NOMINAL_STATE_NAMES
     from uwbimu.observability.window import trajectory_from_states_csv

@@ -178,7 +178,7 @@ def test_hover_does_not_excite_the_lever_arm(sim_logs):
     assert not table["lever_arm_excited"].any()
     lever_sd = table[["sd_lx", "sd_ly", "sd_lz"]].to_numpy().max(axis=1)
     assert (lever_sd > opts.excited_sd_ratio * opts.prior_sd["l"]).all()
-    ratio = table["sd_td"] / opts.prior_sd["td"]
+    ratio = table["sd_time_offset"] / opts.prior_sd["time_offset"]
     assert (table["time_offset_excited"] == (ratio <= opts.excited_sd_ratio)).all()
     # the calibration flight gains far more: its lever-arm bound is < 1/4 of the hover's
     cal, _ = window_observability(sim_logs["calibration-flight"], options=opts)
@@ -279,7 +279,7 @@ def test_chained_windows_end_at_the_filter_sigma_and_flag_excitation(matched_esk
     last = table.iloc[-1]
     for i, n in enumerate(("lx", "ly", "lz")):
         assert last[f"sd_{n}"] == pytest.approx(res.calibration["lever_arm_sd"][i], rel=0.1), n
-    assert last["sd_td"] == pytest.approx(res.calibration["time_offset_sd"], rel=0.1)
+    assert last["sd_time_offset"] == pytest.approx(res.calibration["time_offset_sd"], rel=0.1)
     assert table["lever_arm_excited"].all() and table["time_offset_excited"].all()
     assert (table["lever_arm_info_gain"] >= 3).all()
     # the bound only shrinks along the chain

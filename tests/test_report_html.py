@@ -272,7 +272,7 @@ def test_report_observability_window_table(tmp_path):
     assert "lever arm not excited" in text and "0.0–5.0" in text and "5.0–10.0" in text
     assert "time offset not excited" in text
     # the bound is compared with every sigma of calibration.yaml, the time offset's included (either schema)
-    assert 'data-bound-params="lx ly lz td"' in text
+    assert 'data-bound-params="lx ly lz time_offset"' in text
 
 
 def test_report_repeatability_shows_the_per_window_bound(tmp_path):

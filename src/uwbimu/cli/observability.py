@@ -246,7 +246,7 @@ def log(
         sdl = max(r.sd_lx, r.sd_ly, r.sd_lz)
         t.add_row(
             f"{r.t_start:.1f}", f"{r.t_end:.1f}", f"{r.min_eigenvalue:.3g}", f"{r.condition_number:.3g}",
-            escape(str(r.weakest_direction)[:40]), f"{sdl:.3g}", f"{r.sd_td:.3g}",
+            escape(str(r.weakest_direction)[:40]), f"{sdl:.3g}", f"{r.sd_time_offset:.3g}",
             "ok" if r.lever_arm_excited else "[yellow]weak[/yellow]", "ok" if r.time_offset_excited else "[yellow]weak[/yellow]",
         )  # fmt: skip
     console.print(fit_table(console, t, fold=("weakest",)))

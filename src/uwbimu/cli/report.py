@@ -136,7 +136,7 @@ def register(app: typer.Typer) -> None:
         t = Table(title=f"Repeatability over {windows} windows of {rep['window_s']:.1f} s")
         for c in ("parameter", "mean", "spread sd", "predicted sigma", "ratio", "chi2/dof", "p", "verdict"):
             t.add_column(c, justify="right")
-        comp = calibration_components()  # lx, ly, lz, td -> (block, component)
+        comp = calibration_components()  # lx, ly, lz, time_offset -> (block, component)
         for name, p in rep["parameters"].items():
             sc, u = comp[name][0].table if name in comp else (100.0, "cm")
             t.add_row(escape(f"{name} [{u}]"), f"{p['mean'] * sc:.2f}", f"{p['std'] * sc:.2f}", f"{p['rms_sd'] * sc:.2f}",

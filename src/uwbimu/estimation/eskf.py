@@ -407,18 +407,18 @@ def _add_time_offset_verdict(result: EstimationResult, prob: Problem, priors: di
     """
     cal = result.calibration
     sd_prior = time_offset_prior_sd(priors, opts)
-    init_status = (initial.info.get("td_init") or {}).get("status")
+    init_status = (initial.info.get("time_offset_init") or {}).get("status")
     verdict, reason = time_offset_verdict(cal["time_offset_sd"], sd_prior, fixed=opts.time_offset.mode == "fixed",
                                           init_status=init_status)
-    grid = initial.info.get("td_grid") or {}
+    grid = initial.info.get("time_offset_grid") or {}
     z_grid = None
     if verdict in ("identified", "weakly identified") and grid.get("status") == "found":
-        sd_c = math.hypot(cal["time_offset_sd"], float(grid["td_sd"]))
-        z_grid = abs(cal["time_offset"] - float(grid["td"])) / sd_c if sd_c > 0 else float("inf")
+        sd_c = math.hypot(cal["time_offset_sd"], float(grid["time_offset_sd"]))
+        z_grid = abs(cal["time_offset"] - float(grid["time_offset"])) / sd_c if sd_c > 0 else float("inf")
         if z_grid > 3.0:
             verdict = "not identified"
             reason = (f"the filter's t_d {cal['time_offset'] * 1e3:.0f} ms contradicts the initial search's "
-                      f"{float(grid['td']) * 1e3:.0f} ± {float(grid['td_sd']) * 1e3:.0f} ms ({z_grid:.1f} combined sd): "
+                      f"{float(grid['time_offset']) * 1e3:.0f} ± {float(grid['time_offset_sd']) * 1e3:.0f} ms ({z_grid:.1f} combined sd): "
                       f"the log does not agree on it")
     cal["time_offset_verdict"] = verdict
     cal["time_offset_verdict_reason"] = reason

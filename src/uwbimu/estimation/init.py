@@ -321,7 +321,7 @@ def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: i
     if search_td and not np.isfinite(t_move):
         # no motion, no time-offset information: scoring the grid on a standing vehicle would pick noise
         search_td = False
-        info["td_init"] = {"status": "not identified",
+        info["time_offset_init"] = {"status": "not identified",
                            "reason": f"no motion within {io.max_wait_s:g} s of the start (t_d not observable there)"}
     td = td_prior
     td_sd = pr_fixed["td_sd"]
@@ -350,14 +350,14 @@ def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: i
             return out, cnt
 
         found = search_time_offset(score_tds, list(io.td_grid), max_abs_s=io.td_max_abs_s)
-        info["td_grid"] = found
+        info["time_offset_grid"] = found
         if found["status"] == "found":
-            td = float(found["td"])
+            td = float(found["time_offset"])
             # the bank window's data are counted again by the main run: keep the prior loose
-            td_sd = max(io.td_sd_after_grid, float(found["td_sd"]))
+            td_sd = max(io.td_sd_after_grid, float(found["time_offset_sd"]))
         else:
             td, td_sd = td_prior, pr_fixed["td_sd"]
-        info["td_init"] = {"status": found["status"], "reason": found["reason"]}
+        info["time_offset_init"] = {"status": found["status"], "reason": found["reason"]}
         if io.yaw is None and io.yaw_hypotheses > 1 and abs(td - td_prior) > 1e-12:
             # refine the yaw choice with the chosen time offset
             yaws = np.arange(io.yaw_hypotheses) * 2 * np.pi / io.yaw_hypotheses
@@ -365,12 +365,12 @@ def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: i
             if np.any(np.isfinite(s2)):
                 yaw = float(yaws[int(np.argmin(s2))])
             info["yaw_bank_refined"] = {"yaws": yaws.tolist(), "scores": s2.tolist()}
-    info.update({"yaw": yaw, "td": td, "td_sd": td_sd})
+    info.update({"yaw": yaw, "time_offset": td, "time_offset_sd": td_sd})
     yaw_sd0 = yaw_sd_final if io.yaw_hypotheses > 1 or io.yaw is not None else math.pi
     k0 = start_index(prob, t0, td)
     x0, P0 = assemble(prob, pr, yaw, yaw_sd0, td, td_sd, k0, t0, v0)
     if io.refine_s > 0:
-        prob_r = hold_time_offset(prob) if info.get("td_init", {}).get("status") == "not identified" else prob
+        prob_r = hold_time_offset(prob) if info.get("time_offset_init", {}).get("status") == "not identified" else prob
         x0, P0, k0 = _refine(prob_r, pr, x0, P0, k0, j0, t0, v0, yaw_sd0, td_sd, t_to + io.refine_s, info)
     return InitialState(x=x0, P=P0, k=k0, j=j0, info=info)
 
@@ -448,5 +448,5 @@ def _refine(prob: Problem, pr: Prior, x0, P0, k0: int, j0: int, t0: float, v0, y
     pr2.roll = math.atan2(2 * (q[0] * q[1] + q[2] * q[3]), 1 - 2 * (q[1] ** 2 + q[2] ** 2))
     pr2.pitch = math.asin(max(-1.0, min(1.0, 2 * (q[0] * q[2] - q[3] * q[1]))))
     x1, P1 = assemble(prob, pr2, yaw, yaw_sd, td, td_sd, k_new, t0, v0)
-    info["refine"] = {"t_end": float(t_end), "yaw": yaw, "td": td, "lever": x[S.PIU].tolist()}
+    info["refine"] = {"t_end": float(t_end), "yaw": yaw, "time_offset": td, "lever": x[S.PIU].tolist()}
     return x1, P1, k_new

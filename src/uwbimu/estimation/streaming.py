@@ -995,7 +995,7 @@ class Eskf:
             self.initial = st
         kind = "initialised" if first else "reinitialised"
         self._events.append({"t": float(self._prob.uwb_t[st.j]), "kind": kind, **_plain(st.info)})
-        td_init = st.info.get("td_init") or {}
+        td_init = st.info.get("time_offset_init") or {}
         if first and td_init.get("status") == "not identified" and self.options.time_offset.mode == "estimate":
             # hold t_d at its prior (consider mode) for the whole run, as the initialiser did
             mask = hold_time_offset(self._prob).gain_mask

@@ -114,7 +114,7 @@ def search_time_offset(score: Callable[[list[float]], tuple[np.ndarray, np.ndarr
 
 
 def _out(status, td, sd, reason, tds, m, counts, delta=None) -> dict:
-    return {"status": status, "td": td, "td_sd": sd, "reason": reason, "grid": [float(v) for v in tds],
+    return {"status": status, "time_offset": td, "time_offset_sd": sd, "reason": reason, "grid": [float(v) for v in tds],
             "scores": [float(v) for v in np.asarray(m, dtype=float)], "n": [int(c) for c in counts],
             "delta_nats": None if delta is None else [float(v) for v in delta]}
 

@@ -27,8 +27,10 @@ import numpy as np
 from scipy.stats import chi2 as _chi2
 
 from uwbimu.io.dataset import Dataset
+from uwbimu.models.blocks import BLOCK, calibration_components
 
-PARAMS = ("lx", "ly", "lz", "td")
+#: the calibration blocks' components (``lx, ly, lz, time_offset``: models.blocks output names)
+PARAMS = tuple(calibration_components())
 
 
 def split_windows(ds: Dataset, k: int, t_range: Optional[tuple[float, float]] = None) -> list[Dataset]:
@@ -82,16 +84,17 @@ def _values(cal: dict) -> tuple[dict, dict]:
     las = cal.get("lever_arm_sd")
     vals, sds = {}, {}
     if la is not None:
-        for i, n in enumerate(("lx", "ly", "lz")):
+        for i, n in enumerate(BLOCK["lever"].output_names):
             vals[n] = float(la[i])
             sds[n] = float(las[i]) if las is not None and las[i] is not None else float("nan")
     if cal.get("time_offset") is not None:
         from uwbimu.io.calibration_file import time_offset_sd, time_offset_value
 
         # a number (the ESKF in memory) or the mapping of calibration.yaml's schema / the batch calibrator
-        vals["td"] = time_offset_value(cal)
+        (n,) = BLOCK["t_d"].output_names
+        vals[n] = time_offset_value(cal)
         s = time_offset_sd(cal)
-        sds["td"] = float(s) if s is not None else float("nan")
+        sds[n] = float(s) if s is not None else float("nan")
     return vals, sds
 
 
@@ -245,9 +248,9 @@ def repeatability(
     truth = {}
     if ds.meta.truth is not None:
         if ds.meta.truth.lever_arm is not None:
-            truth.update(dict(zip(("lx", "ly", "lz"), map(float, ds.meta.truth.lever_arm))))
+            truth.update(dict(zip(BLOCK["lever"].output_names, map(float, ds.meta.truth.lever_arm))))
         if ds.meta.truth.time_offset is not None:
-            truth["td"] = float(ds.meta.truth.time_offset)
+            truth[BLOCK["t_d"].output_names[0]] = float(ds.meta.truth.time_offset)
     params = {}
     for p in PARAMS:
         ok = [r for r in records if p in r.get("values", {})]

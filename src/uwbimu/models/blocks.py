@@ -48,6 +48,10 @@ What a declaration says
 ``verdict``        the batch calibration's identifiability verdict: ``"information_gain"`` per component,
                    ``"profile"`` (the time offset's profile verdict).
 ``obs_scale``, ``obs_prior_sd`` typical magnitude and window-start prior sd of the observability analysis.
+``legacy_names``   former output names of the components (one per component): readers of the CSV / JSON
+                   outputs accept them (:func:`legacy_name_map`); writers use ``output_names``.  The time
+                   offset's columns were ``td`` / ``sd_td`` before they took its one output name
+                   ``time_offset`` (the options' and calibration.yaml's).
 
 Adding a block
 --------------
@@ -107,6 +111,7 @@ class BlockSpec:
     verdict: str = ""  # identifiability verdict of the batch calibration: "information_gain" or "profile"
     obs_scale: float = 1.0  # typical magnitude [unit] making the observability information dimensionless
     obs_prior_sd: float = 0.0  # prior sd [unit] at an observability window's start (the ESKF's default)
+    legacy_names: tuple[str, ...] = ()  # former output names of the components, still accepted by readers
 
     def __post_init__(self):
         if self.multiplicity not in MULTIPLICITIES or self.process_noise not in PN_CODES:
@@ -114,6 +119,8 @@ class BlockSpec:
                              f"{tuple(PN_CODES)}")
         if len(self.output_names) != self.size or len(self.nom_names) != self.n_nom:
             raise ValueError(f"BlockSpec {self.name!r}: one output name per component")
+        if self.legacy_names and len(self.legacy_names) != self.size:
+            raise ValueError(f"BlockSpec {self.name!r}: one legacy name per component")
         if any(not n.startswith(self.symbol) for n in self.output_names) or len(set(self.axes)) != self.size:
             raise ValueError(f"BlockSpec {self.name!r}: output names are one prefix and one suffix per component")
 
@@ -182,7 +189,8 @@ BLOCKS: tuple[BlockSpec, ...] = (
               label="lever arm", frame="body", calibration=True, table_unit=(100.0, "cm"), excitation="rotation",
               excitation_advice="excite rotations about all axes", verdict="information_gain",
               obs_scale=0.1, obs_prior_sd=0.3),
-    BlockSpec("t_d", 1, "one", "random_walk", ("td",), "s", noise_option=("time_offset.random_walk",),
+    BlockSpec("t_d", 1, "one", "random_walk", ("time_offset",), "s", noise_option=("time_offset.random_walk",),
+              legacy_names=("td",),
               output_key="time_offset",
               mode_option="time_offset",
               prior="time_offset.prior, sd time_offset.prior_sd; searched on init.td_grid when no prior",
@@ -224,8 +232,19 @@ CALIBRATION_BLOCKS: tuple[BlockSpec, ...] = tuple(BLOCK[n] for n in OUTPUT_ORDER
 
 
 def calibration_components() -> dict[str, tuple[BlockSpec, int]]:
-    """Output name of every component of the calibration blocks (``lx, ly, lz, td``) -> (block, component)."""
+    """Output name of every component of the calibration blocks (``lx, ly, lz, time_offset``) -> (block,
+    component)."""
     return {n: (b, i) for b in CALIBRATION_BLOCKS for i, n in enumerate(b.output_names)}
+
+
+def legacy_name_map() -> dict[str, str]:
+    """Former output name -> output name of every declared component, with their ``sd_`` columns
+    (``td -> time_offset``, ``sd_td -> sd_time_offset``): what readers of older files rename."""
+    out = {}
+    for b in BLOCKS:
+        for old, new in zip(b.legacy_names, b.output_names):
+            out[old], out[f"sd_{old}"] = new, f"sd_{new}"
+    return out
 
 
 class ProcessNoise(NamedTuple):

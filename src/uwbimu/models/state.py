@@ -25,7 +25,7 @@ Every block is declared once in :mod:`uwbimu.models.blocks`; the slices and inde
 ``NOM_SHIFT``, ``N_DYN``) are computed from those declarations, and :class:`StateLayout` compiles
 them with a run's multiplicities.  The time offset is ``t_d`` everywhere in code (block ``t_d``;
 ``TD`` / ``ETD`` / ``N_TD`` / ``E_TD`` are its indices), ``time_offset`` in the options and the
-calibration outputs, ``td`` as its state-column name.
+calibration outputs and as its state-column name (``time_offset``, ``sd_time_offset``; formerly ``td``).
 """
 
 from __future__ import annotations

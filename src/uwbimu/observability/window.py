@@ -48,7 +48,7 @@ from uwbimu.models import kernels as _physics
 from uwbimu.models.quaternion import quat_normalize, quat_slerp, quat_to_rotmat, rotmat_to_quat
 from uwbimu.models.state import (BA, BG, E_L, E_TD, EBA, EBG, ERROR_DIM, ERROR_STATE_NAMES, ETD, ETH,
                                  EV, P as NP_, PIU, Q, TD, V as NV_, StateLayout)
-from uwbimu.models.blocks import BLOCKS, CALIBRATION_BLOCKS
+from uwbimu.models.blocks import BLOCKS, CALIBRATION_BLOCKS, legacy_name_map
 from uwbimu.observability.directions import candidates_for, name_directions
 
 #: the blocks of the 19-dim error state the analysis runs on, in state order (models.blocks declarations)
@@ -181,8 +181,8 @@ def trajectory_from_states_csv(path) -> Trajectory:
     """Trajectory from an estimator's ``states.csv`` (or the output folder holding it).
 
     Needs the columns ``t`` (UWB clock) and the 20 nominal-state names of
-    :mod:`uwbimu.models.state` (``px .. qz, bax .. bgz, lx, ly, lz, td``); the
-    lever arm and time offset are taken as their medians over the run.
+    :mod:`uwbimu.models.state` (``px .. qz, bax .. bgz, lx, ly, lz, time_offset``; ``td`` in older
+    files); the lever arm and time offset are taken as their medians over the run.
     """
     from pathlib import Path
 
@@ -194,6 +194,8 @@ def trajectory_from_states_csv(path) -> Trajectory:
     if not path.is_file():
         raise InputError(f"{path}: no such estimator states file")
     df = pd.read_csv(path)
+    # an older file's columns under their current names (td -> time_offset)
+    df = df.rename(columns={o: n for o, n in legacy_name_map().items() if o in df.columns and n not in df.columns})
     missing = [c for c in ("t", *NOMINAL_STATE_NAMES) if c not in df.columns]
     if missing:
         raise InputError(f"{path}: missing column(s) {', '.join(missing)}")
@@ -406,8 +408,13 @@ def _inv_psd(P: np.ndarray) -> np.ndarray:
 
 
 def _scale_vector(scales: dict) -> np.ndarray:
-    """Per-component vector (error-state order) of a per-block-symbol dict (``DEFAULT_SCALES`` keys)."""
-    return np.array([scales[b.symbol] for b in _BASE_BLOCKS for _ in range(b.size)], float)
+    """Per-component vector (error-state order) of a per-block-symbol dict (``DEFAULT_SCALES`` keys; a dict
+    keyed by a block's former name, ``td``, is read too)."""
+    def of(b):
+        old = [n for n in b.legacy_names if n in scales and b.symbol not in scales]
+        return scales[old[0] if old else b.symbol]
+
+    return np.array([of(b) for b in _BASE_BLOCKS for _ in range(b.size)], float)
 
 
 def analyse_information(info: np.ndarray, scales: dict, x_ref=None, anchors=None) -> dict:

@@ -14,7 +14,7 @@ Sections (``<section id=...>``; a section whose input is missing says so):
                    profile, residual vs body-frame line-of-sight azimuth per anchor, anchor
                    2-sigma error ellipses, residuals without / with the range bias
 ``convergence``    lever arm and time offset over time with ±3 sigma bands
-                   (``states.csv`` columns ``lx, ly, lz, td`` + ``sd_*``, as ``uwbimu estimate`` writes them)
+                   (``states.csv`` columns ``lx, ly, lz, time_offset`` + ``sd_*``, as ``uwbimu estimate`` writes them)
 ``residuals``      per-anchor innovation table: median, MAD, rejected %, flags
 ``nis``            histogram of the range NIS against the chi-square(1) density
 ``trajectory``     top view (and errors with ±3 sigma when ground truth exists)

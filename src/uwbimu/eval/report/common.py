@@ -14,10 +14,10 @@ from markupsafe import Markup
 
 from uwbimu.eval.files import EvalInputError
 from uwbimu.io.calibration_file import sd_or_none
-from uwbimu.models.blocks import BlockSpec, calibration_components
+from uwbimu.models.blocks import BlockSpec, calibration_components, legacy_name_map
 
 #: Columns of the calibration history: the calibration blocks' components (lever arm, time offset: ``lx, ly, lz,
-#: td``) as ``uwbimu estimate`` writes them into ``states.csv`` (with ``sd_<name>``), declared once in
+#: time_offset``) as ``uwbimu estimate`` writes them into ``states.csv`` (with ``sd_<name>``), declared once in
 #: :mod:`uwbimu.models.blocks`.
 CAL_COLUMNS = tuple(calibration_components())
 
@@ -119,9 +119,34 @@ def _read_csv(path: Path) -> Optional[pd.DataFrame]:
     if not path.is_file():
         return None
     try:
-        return pd.read_csv(path)
+        return current_names(pd.read_csv(path))
     except Exception as exc:  # malformed file: report, do not crash the report
         raise EvalInputError(f"cannot read {path}: {exc}") from exc
+
+
+def current_names(df: pd.DataFrame) -> pd.DataFrame:
+    """``df`` with the columns of an older output under their current names (``td`` -> ``time_offset``,
+    ``sd_td`` -> ``sd_time_offset``: :func:`~uwbimu.models.blocks.legacy_name_map`); a column whose current
+    name is also present is left alone."""
+    ren = {old: new for old, new in legacy_name_map().items() if old in df.columns and new not in df.columns}
+    return df.rename(columns=ren) if ren else df
+
+
+def current_parameter_names(rep: dict) -> dict:
+    """A ``repeatability.json`` mapping with the parameters of an older file (``td``) under their current names:
+    ``parameters`` and every window's ``values`` / ``sd`` (a new dict; the input is not changed)."""
+    if not isinstance(rep, dict):
+        return rep
+    ren = legacy_name_map()
+
+    def keys(d):
+        return {ren.get(k, k): v for k, v in d.items()} if isinstance(d, dict) else d
+
+    out = dict(rep, parameters=keys(rep.get("parameters", {})))
+    if isinstance(rep.get("windows"), list):
+        out["windows"] = [dict(w, **{k: keys(w[k]) for k in ("values", "sd") if k in w}) if isinstance(w, dict) else w
+                          for w in rep["windows"]]
+    return out
 
 
 def _as_bool(s: pd.Series) -> np.ndarray:

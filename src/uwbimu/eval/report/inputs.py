@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from uwbimu.eval.files import EvalInputError, load_yaml
-from uwbimu.eval.report.common import _as_bool, _read_csv
+from uwbimu.eval.report.common import _as_bool, _read_csv, current_parameter_names
 from uwbimu.formatting import format_number
 from uwbimu.io.calibration_file import effective_time_offset_mode, read_calibration, sd_or_none
 
@@ -167,7 +167,7 @@ class ReportInputs:
         self.metrics = load_yaml(out_dir / "metrics.yaml")
         self.trajectory = _read_csv(out_dir / "trajectory.csv")
         self.residuals = _read_csv(out_dir / "residuals.csv")
-        # calibration history: states.csv of `uwbimu estimate` (lx, ly, lz, td + sd_*)
+        # calibration history: states.csv of `uwbimu estimate` (lx, ly, lz, time_offset + sd_*; td in older files)
         self.states = _read_csv(out_dir / "states.csv")
         self.observability = _read_csv(out_dir / "observability.csv")
         # outputs of `uwbimu calibrate` (batch calibration section)
@@ -179,7 +179,8 @@ class ReportInputs:
             self.evaluation = json.loads((out_dir / "evaluation.json").read_text())
         self.repeatability = None
         if (out_dir / "repeatability.json").is_file():
-            self.repeatability = json.loads((out_dir / "repeatability.json").read_text())
+            # older files name the time offset td: read under the current names
+            self.repeatability = current_parameter_names(json.loads((out_dir / "repeatability.json").read_text()))
         #: structured events of the run that the console prints from: calibration.yaml ``events`` (batch; the
         #: ESKF's console prints its text ``warnings``, and its calibration.yaml carries the time-offset mode the
         #: events decided)

@@ -430,7 +430,7 @@ def _trajectory_section(inp: ReportInputs) -> Markup:
     return _join(parts)
 
 
-#: error-state index of each calibration component (the repeatability parameters ``lx, ly, lz, td``)
+#: error-state index of each calibration component (the repeatability parameters ``lx, ly, lz, time_offset``)
 _REP_INDEX = {n: ERROR_STATE_NAMES.index(n) for n in calibration_components()}
 
 
