@@ -176,16 +176,20 @@ def tag_names(dataset, eskf=None) -> tuple[list[str], bool]:
 def _tag_levers(dataset, eskf, options: CalibrationOptions, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
     """Initial lever arms (the ESKF's, per tag) and prior means (n_tags, 3) [m, IMU frame].
 
-    One tag: the ESKF's lever arm and ``options.lever_arm_prior``.  Several: each tag's ESKF lever arm
-    (``calibration["tags"]``) and, as prior mean, its nominal lever arm in dataset.yaml when documented,
-    else ``options.lever_arm_prior``.
+    One tag: the ESKF's lever arm and, as prior mean, ``options.lever_arm_prior`` when configured, else the
+    tag's nominal lever arm in dataset.yaml when documented (the ESKF's default ``lever_arm.prior:
+    dataset``), else zero.  Several: each tag's ESKF lever arm (``calibration["tags"]``) and, as prior mean,
+    its nominal lever arm in dataset.yaml when documented, else ``options.lever_arm_prior``.
     """
     cal = eskf.calibration
     prior = np.asarray(options.lever_arm_prior, float)
+    meta = {tm.name: tm.lever_arm for tm in dataset.meta.tags}
     if len(names) == 1:
+        nominal = meta.get(names[0]) if names[0] in meta else next(iter(meta.values()), None)
+        if nominal is not None and "lever_arm_prior" not in options.model_fields_set:
+            prior = np.asarray(nominal, float)
         return np.asarray(cal["lever_arm"], float)[None], prior[None]
     etag = cal.get("tags") or {}
-    meta = {tm.name: tm.lever_arm for tm in dataset.meta.tags}
     pri = np.array([meta[n] if meta.get(n) is not None else prior for n in names], float)
     init = np.array([etag[n]["lever_arm"] if n in etag else pri[i] for i, n in enumerate(names)], float)
     return init, pri
