@@ -198,7 +198,9 @@ def run_with_progress(dataset, options, console: Console):
     """Run the ESKF with a rich progress bar."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from uwbimu.estimators import get_estimator
+    # the estimation layer's registry holds eskf and pointmass; uwbimu.estimators would also import the batch
+    # calibrator's package (scipy.stats, scipy.optimize, ...: over a second of `uwbimu estimate`'s start)
+    from uwbimu.estimation.registry import get_estimator
 
     run_eskf = get_estimator("eskf").run
     with Progress(TextColumn("[bold]ESKF"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
@@ -339,7 +341,9 @@ def register(app: typer.Typer) -> None:
         from uwbimu.io.atomic import check_output_target, output_folder
 
         console = Console()
-        from uwbimu.estimators import get_estimator
+        # eskf and pointmass only (batch has its own verb): the estimation layer's registry, without the batch
+        # calibrator's imports
+        from uwbimu.estimation.registry import get_estimator
 
         if estimator not in ("eskf", "pointmass"):  # batch has its own verb (uwbimu calibrate)
             raise UsageError(f"--estimator must be eskf or pointmass, got '{estimator}'")
