@@ -139,7 +139,9 @@ def register(app: typer.Typer) -> None:
         comp = calibration_components()  # lx, ly, lz, time_offset -> (block, component)
         for name, p in rep["parameters"].items():
             sc, u = comp[name][0].table if name in comp else (100.0, "cm")
-            t.add_row(escape(f"{name} [{u}]"), f"{p['mean'] * sc:.2f}", f"{p['std'] * sc:.2f}", f"{p['rms_sd'] * sc:.2f}",
+            # a scalar block by its state name (t_d), a vector's component by its output name (lx)
+            shown = comp[name][0].name if name in comp and comp[name][0].size == 1 else name
+            t.add_row(escape(f"{shown} [{u}]"), f"{p['mean'] * sc:.2f}", f"{p['std'] * sc:.2f}", f"{p['rms_sd'] * sc:.2f}",
                       f"{p['ratio']:.2f}", f"{p['chi2']:.1f}/{p['dof']}", f"{p['p_value']:.3f}", p["verdict"])
         console.print(fit_table(console, t))
         for w in rep["windows"]:
