@@ -145,3 +145,22 @@ def test_nominal_lever_arm_is_the_util_platforms_or_given_or_none(tmp_path, sim)
     for bad in ([0.0, 0.1], [0.0, float("nan"), 0.1]):
         with pytest.raises(UsageError):
             imp.convert(log, anchors, lever_arm=bad)
+
+
+def test_cli_lever_arm_options(tmp_path, sim):
+    """`uwbimu import cf-usdlog --lever-arm X Y Z | --no-lever-arm`: the nominal lever arm written, or none;
+    both at once is a usage error (exit 2) that writes nothing."""
+    from typer.testing import CliRunner
+
+    from uwbimu.cli.main import app
+
+    log, anchors = write_case(tmp_path, sim)
+    base = ["import", "cf-usdlog", str(log), "--anchors", str(anchors)]
+    r = CliRunner().invoke(app, base + [str(tmp_path / "given"), "--lever-arm", "0.01", "0.02", "0.03"])
+    assert r.exit_code == 0, r.output
+    assert load_dataset(tmp_path / "given").meta.tags[0].lever_arm == pytest.approx([0.01, 0.02, 0.03])
+    r = CliRunner().invoke(app, base + [str(tmp_path / "none"), "--no-lever-arm"])
+    assert r.exit_code == 0, r.output
+    assert load_dataset(tmp_path / "none").meta.tags[0].lever_arm is None
+    r = CliRunner().invoke(app, base + [str(tmp_path / "both"), "--no-lever-arm", "--lever-arm", "0", "0", "0"])
+    assert r.exit_code == 2 and not (tmp_path / "both").exists()

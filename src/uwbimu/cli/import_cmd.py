@@ -194,14 +194,24 @@ def _register_cf_usdlog(app: typer.Typer) -> None:
         name: Optional[str] = typer.Option(None, "--name", help="Dataset name (default from LOG)."),
         tdoa_margin: float = typer.Option(1.0, "--tdoa-margin", help=_TDOA_MARGIN_HELP),
         quat_order: str = typer.Option("auto", "--survey-quat-order", help=_QUAT_ORDER_HELP),
+        lever_arm: Optional[tuple[float, float, float]] = typer.Option(
+            None, "--lever-arm", help="The tag's nominal lever arm X Y Z [m, IMU frame] written to dataset.yaml "
+                                      "(default: the UTIL platform's documented offset, -0.01245 0.00127 0.0908)."),
+        no_lever_arm: bool = typer.Option(False, "--no-lever-arm", help="Write no nominal lever arm (another "
+                                                                        "vehicle whose offset is not known)."),
     ) -> None:
         """Convert a Crazyflie uSD event log (estTDOA, estAcceleration in g, estGyroscope in deg/s) to a TDoA dataset."""
         dst = _destination(dst, out)
         order = _check_import_options(tdoa_margin, quat_order)
         from uwbimu.io.importers import cf_usdlog as imp
 
+        from uwbimu.errors import UsageError
+
+        if no_lever_arm and lever_arm is not None:
+            raise UsageError("give --lever-arm or --no-lever-arm, not both")
+        lever = None if no_lever_arm else (list(lever_arm) if lever_arm is not None else imp.UTIL_T_UV)
         run_import(lambda: imp.import_dataset(log, dst, anchors, force=force, ignore_crc=ignore_crc, name=name,
-                                              tdoa_margin=tdoa_margin, quat_order=order),
+                                              tdoa_margin=tdoa_margin, quat_order=order, lever_arm=lever),
                    dst=dst, src=log, force=force)
 
 
