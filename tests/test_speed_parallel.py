@@ -25,10 +25,11 @@ def _fails(x):
     return x, x * x, os.getpid()
 
 
-def test_the_rule_compares_the_work_left_with_the_start():
-    assert pool_pays(5.0, start_s=4.0)
-    assert not pool_pays(3.9, start_s=4.0)
-    assert not pool_pays(0.0, start_s=0.0)
+def test_the_rule_compares_the_work_left_with_the_start_and_two_tasks():
+    assert pool_pays(5.0, 0.4, start_s=4.0)
+    assert not pool_pays(4.7, 0.4, start_s=4.0)  # longer than the start, not by two tasks
+    assert not pool_pays(3.9, 0.0, start_s=4.0)
+    assert not pool_pays(0.0, 0.0, start_s=0.0)
 
 
 def test_short_tasks_run_in_the_caller_and_no_pool_starts(monkeypatch):
@@ -43,7 +44,7 @@ def test_short_tasks_run_in_the_caller_and_no_pool_starts(monkeypatch):
 
 
 def test_long_tasks_start_the_pool_and_both_processes_work(monkeypatch):
-    # a start of 0.1 s against 11 tasks of 0.25 s left: the pool pays
+    # a start of 0.1 s against 10 tasks of 0.25 s left (after two measured): the pool pays
     monkeypatch.setattr(parallel, "POOL_START_S", 0.1)
     monkeypatch.setattr(parallel, "POOL_RESTART_S", 0.1)
     got = []

@@ -49,13 +49,19 @@ def pool_start_estimate() -> float:
     return POOL_RESTART_S if alive else POOL_START_S
 
 
-def pool_pays(remaining_s: float, start_s: Optional[float] = None) -> bool:
+def pool_pays(remaining_s: float, task_s: float = 0.0, start_s: Optional[float] = None) -> bool:
     """The rule of ``execute(..., caller=True, measure_first=True)``: start a pool only when the serial work
-    left, ``remaining_s`` [s], is longer than the pool's start ``start_s`` (default
-    :func:`pool_start_estimate`).  Why: while the pool starts, the caller runs tasks alone (no gain), and
-    the start's imports take a core from it; the pool shortens the job only by the work left once it is up
-    (half of it with 2 workers), which is less than nothing for a job shorter than the start."""
-    return remaining_s > (pool_start_estimate() if start_s is None else start_s)
+    left, ``remaining_s`` [s], exceeds the pool's start ``start_s`` (default :func:`pool_start_estimate`)
+    plus two tasks of ``task_s`` [s].
+
+    Why: while the pool starts, the caller runs tasks alone (no gain) and the start's imports take a core
+    from it; once it is up the pool shortens the job by at most half the work left (2 workers), and the last
+    task a worker took may end up to a task after the caller's (the caller then waits for it).  Measured with the repeatability
+    windows on the 2-core development machine (``workers=2`` on a plain pool against serially): 4 INRoL
+    windows of ~1 s, 11.0 s wall against 4.7 s; 6 windows of a 10-minute 1 kHz log, 15.7 s against 11.7 s:
+    a start that cannot pay costs more than it saves."""
+    start = pool_start_estimate() if start_s is None else start_s
+    return remaining_s > start + 2.0 * task_s
 
 
 def _one_blas_thread() -> None:
@@ -104,8 +110,8 @@ def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], No
     thread too: a forkserver's first process start blocks until the server has imported the preload.
 
     ``measure_first``: before any pool starts, the caller runs tasks (from the back) and times each; the pool
-    starts once the tasks left would take longer serially than its start (:func:`pool_pays` with the latest
-    task's duration times their number; the first task's only when one task is left, as it carries the
+    starts once the tasks left would take longer serially than its start and two tasks (:func:`pool_pays`
+    with the latest task's duration; the first task's only when one task is left, as it carries the
     process's one-time warm-up), else the caller runs them all and no pool starts (a job of short windows
     ends as fast as serially, with no core lost to a start that cannot pay).  An open ``pool`` is used as
     it is.
@@ -136,7 +142,8 @@ def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], No
             n_done += 1
             # the first task carries this process's one-time warm-up (numba's machine code, caches): its
             # duration decides only when it was the last but one
-            if (n_done > 1 or len(todo) <= 1) and pool_pays(len(todo) * (time.perf_counter() - w0)):
+            d = time.perf_counter() - w0
+            if (n_done > 1 or len(todo) <= 1) and pool_pays(len(todo) * d, d):
                 break
         if not todo:
             return failures
