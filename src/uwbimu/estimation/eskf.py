@@ -23,7 +23,7 @@ from uwbimu.estimation import kernels as K
 from uwbimu.estimation.diagnostics import excitation_warnings, imu_gap_events, outage_warnings
 from uwbimu.estimation.filterpass import (
     REC_ACC, REC_INNOV, REC_NIS, REC_PRED, REC_STATUS, STATUS_IN_GAP, STATUS_NOT_PROCESSED, PassResult, Problem, gap_inputs,
-    rotation_window_stats,
+    cubic_midpoints, rotation_window_stats,
 )
 from uwbimu.estimation.init import InitialisationError, InitialState
 from uwbimu.estimation.noise_from_data import imu_noise_from_log
@@ -40,7 +40,6 @@ from uwbimu.estimation.result import EstimationResult
 from uwbimu.estimation.segments import select_segment
 from uwbimu.io.dataset import Dataset
 from uwbimu.models.quaternion import quat_multiply
-from uwbimu.models.reference import midpoint_inputs
 
 
 
@@ -180,7 +179,7 @@ def build_problem(ds: Dataset, opts: EskfOptions) -> tuple[Problem, dict[str, An
     gap_idx, gap_sd = gap_inputs(imu_t, imu_u, timing["dt_max"])
     rot_mean, rot_ms = (rotation_window_stats(imu_u, timing["lever_win"]) if timing["lever_min_rate"] > 0
                         else (None, None))
-    prob = replace(settings, imu_t=imu_t, imu_u=imu_u, imu_um=np.ascontiguousarray(midpoint_inputs(imu_t, imu_u)),
+    prob = replace(settings, imu_t=imu_t, imu_u=imu_u, imu_um=cubic_midpoints(imu_t, imu_u),
                    uwb_t=uwb_t, uwb_a=uwb_a, uwb_r=uwb_r,
                    uwb_b=np.ascontiguousarray(uwb_b) if (uwb_b >= 0).any() else None,
                    uwb_tag=np.ascontiguousarray(uwb_tag) if tag_names else None,

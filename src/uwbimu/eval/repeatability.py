@@ -232,8 +232,10 @@ def repeatability(
             if progress is not None:
                 progress(len(got), len(wins))
 
+        # the caller times the first window and starts a pool only when the rest outlasts its start
+        # (parallel.pool_pays): a short window is cheaper here than a process start
         failed = execute(_window_task, [(i, w, name, opts) for i, w in enumerate(wins)], keep, workers=workers,
-                         describe=lambda t: f"window {t[0]}",
+                         caller=True, measure_first=True, describe=lambda t: f"window {t[0]}",
                          preload=("uwbimu.sim", "uwbimu.estimation", "uwbimu.estimators"))
         for line in failed:  # a worker that died: the window is reported as failed, not lost
             i = int(line.split(":")[0].split()[-1])
