@@ -183,7 +183,8 @@ def test_make_settings_compiles_counts_noise_mask_and_priors_from_the_declaratio
     assert not mask[L.err("extra_levers")].any() and mask[L.err("pair_bias")].all() and mask[L.err("t_d")].all()
     assert pr.block_sd == {"anchor_bias": 0.2, "pair_bias": 0.07, "height_bias": 1.0}
     assert (prob.pair_sd0, prob.height_sd0) == (0.07, 1.0)
-    assert pr["sd_lever"] is pr.lever_sd and pr["td_sd"] == pr.t_d_sd  # legacy keys read the typed fields
+    with pytest.raises(TypeError):  # one name per quantity: the typed fields, no legacy mapping keys
+        pr["td_sd"]
     assert prob.bias_idx.tolist() == list(range(L.err("anchor_bias").start, L.err("anchor_bias").stop))
     pn = prob.process_noise
     row = {int(e): i for i, e in enumerate(pn.err0)}

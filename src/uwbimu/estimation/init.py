@@ -26,7 +26,7 @@ from uwbimu.estimation.timeoffset import search_time_offset
 from uwbimu.estimation.filterpass import REC_NIS, REC_S, REC_STATUS, Problem, run_pass
 from uwbimu.errors import EstimationError
 from uwbimu.estimation.options import EskfOptions
-from uwbimu.estimation.problem import block_prior_covariance
+from uwbimu.estimation.problem import BlockPriors, block_prior_covariance
 from uwbimu.models import state as S
 from uwbimu.models.quaternion import quat_from_euler, quat_to_rotmat
 
@@ -253,33 +253,32 @@ def score_hypothesis(prob: Problem, x0, P0, k0: int, j0: int, t_from: float, t_t
     return (score, int(ok.sum())) if return_count else score
 
 
-def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: int = 0,
+def initialise(prob: Problem, opts: EskfOptions, pr_fixed: BlockPriors, j0: int = 0,
                td_known: Optional[float] = None) -> InitialState:
     """Initial state at range index ``j0`` from the data only.
 
-    ``pr_fixed`` carries the calibration priors (``lever``, ``sd_lever``,
-    ``anchor_bias``, ``sd_bias``, ``ba``, ``bg``, ``sd_ba``, ``sd_bg``, ``td``,
-    ``td_sd``, ``search_td``).  ``td_known`` skips the time-offset grid.
+    ``pr_fixed`` carries the calibration priors (:class:`~uwbimu.estimation.problem.BlockPriors`).
+    ``td_known`` skips the time-offset grid.
     """
     io = opts.init
     t0 = float(prob.uwb_t[j0])
     p0, v0, rms, nfix = multilaterate(prob, j0, io.window_s)
-    td_prior = pr_fixed["td"] if td_known is None else td_known
+    td_prior = pr_fixed.t_d if td_known is None else td_known
     k_lvl = start_index(prob, t0, td_prior)
     roll, pitch = level_attitude(prob, k_lvl, io.window_s)
     pr = Prior(
-        p=p0, v=v0, roll=roll, pitch=pitch, lever=pr_fixed["lever"], ba=pr_fixed["ba"], bg=pr_fixed["bg"],
-        anchor_bias=pr_fixed["anchor_bias"], sd_p=max(io.position_sd, 2 * rms), sd_v=io.velocity_sd,
-        sd_rp=math.radians(io.roll_pitch_sd_deg), sd_ba=pr_fixed["sd_ba"], sd_bg=pr_fixed["sd_bg"],
-        sd_lever=pr_fixed["sd_lever"], sd_bias=pr_fixed["sd_bias"],
-        extra_levers=np.asarray(pr_fixed.get("tag_levers", np.zeros((1, 3))), dtype=float)[1:],
+        p=p0, v=v0, roll=roll, pitch=pitch, lever=pr_fixed.lever, ba=pr_fixed.b_a, bg=pr_fixed.b_g,
+        anchor_bias=pr_fixed.anchor_bias, sd_p=max(io.position_sd, 2 * rms), sd_v=io.velocity_sd,
+        sd_rp=math.radians(io.roll_pitch_sd_deg), sd_ba=pr_fixed.b_a_sd, sd_bg=pr_fixed.b_g_sd,
+        sd_lever=pr_fixed.lever_sd, sd_bias=pr_fixed.anchor_bias_sd,
+        extra_levers=np.asarray(pr_fixed.tag_levers, dtype=float)[1:],
     )
     info: dict[str, Any] = {"t0": t0, "fix_position": p0.tolist(), "fix_velocity": v0.tolist(),
                             "fix_rms": rms, "fix_ranges": nfix, "roll": roll, "pitch": pitch}
     # yaw and time offset are only observable once the vehicle moves: score the
     # hypotheses on a window that contains bank_window_s of motion
     t_move = motion_start(prob, k_lvl, io.max_wait_s)
-    pf = dict(pr_fixed)
+    bg, sd_bg = pr_fixed.b_g, pr_fixed.b_g_sd
     if np.isfinite(t_move):
         t_move_uwb = t_move - td_prior
         t_from = max(t0 + 0.25 * io.bank_window_s, t_move_uwb + 0.5)
@@ -291,17 +290,17 @@ def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: i
             k_m = int(np.searchsorted(prob.imu_t, t_move - 0.2))
             wmean = prob.imu_u[k_lvl:k_m, 3:6].mean(axis=0)
             sd_g = max(3.0 * math.sqrt(prob.noise[1] / max(still - 0.2, 0.1)), 1e-3)
-            if np.all(np.abs(wmean) < 3 * pr_fixed["sd_bg"] + 0.01):
-                pf["bg"] = wmean
-                pf["sd_bg"] = min(sd_g, pr_fixed["sd_bg"])
+            if np.all(np.abs(wmean) < 3 * pr_fixed.b_g_sd + 0.01):
+                bg = wmean
+                sd_bg = min(sd_g, pr_fixed.b_g_sd)
                 info["stationary_gyro_bias"] = wmean.tolist()
     else:
         t_from = t0 + 0.25 * io.bank_window_s
         t_to = t0 + io.bank_window_s
         info["motion_start"] = None
         info["note"] = f"no motion within {io.max_wait_s:g} s: yaw and time offset not observable at start"
-    pr.bg = pf["bg"]
-    pr.sd_bg = pf["sd_bg"]
+    pr.bg = bg
+    pr.sd_bg = sd_bg
     info["bank_window"] = [float(t_from), float(t_to)]
     yaw_sd_final = math.radians(io.yaw_sd_deg)
 
@@ -317,14 +316,14 @@ def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: i
                     scores[a, b] = np.inf
         return scores
 
-    search_td = pr_fixed["search_td"] and td_known is None
+    search_td = pr_fixed.search_t_d and td_known is None
     if search_td and not np.isfinite(t_move):
         # no motion, no time-offset information: scoring the grid on a standing vehicle would pick noise
         search_td = False
         info["time_offset_init"] = {"status": "not identified",
                            "reason": f"no motion within {io.max_wait_s:g} s of the start (t_d not observable there)"}
     td = td_prior
-    td_sd = pr_fixed["td_sd"]
+    td_sd = pr_fixed.t_d_sd
     if io.yaw is not None:
         yaw = float(io.yaw)
     elif io.yaw_hypotheses > 1:
@@ -356,7 +355,7 @@ def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: i
             # the bank window's data are counted again by the main run: keep the prior loose
             td_sd = max(io.td_sd_after_grid, float(found["time_offset_sd"]))
         else:
-            td, td_sd = td_prior, pr_fixed["td_sd"]
+            td, td_sd = td_prior, pr_fixed.t_d_sd
         info["time_offset_init"] = {"status": found["status"], "reason": found["reason"]}
         if io.yaw is None and io.yaw_hypotheses > 1 and abs(td - td_prior) > 1e-12:
             # refine the yaw choice with the chosen time offset
@@ -375,7 +374,7 @@ def initialise(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: i
     return InitialState(x=x0, P=P0, k=k0, j=j0, info=info)
 
 
-def data_needed(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: int) -> Optional[tuple[float, float]]:
+def data_needed(prob: Problem, opts: EskfOptions, pr_fixed: BlockPriors, j0: int) -> Optional[tuple[float, float]]:
     """How far the data must reach before :func:`initialise` at range ``j0`` gives its final answer.
 
     Returns ``(t_uwb, t_imu)``: every range stamped up to ``t_uwb`` (UWB clock) and the IMU up to
@@ -386,7 +385,7 @@ def data_needed(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: 
     """
     io = opts.init
     t0 = float(prob.uwb_t[j0])
-    td_prior = pr_fixed["td"]
+    td_prior = pr_fixed.t_d
     k_lvl = start_index(prob, t0, td_prior)
     t_move = motion_start(prob, k_lvl, io.max_wait_s, undecided_nan=True)
     if math.isnan(t_move):
@@ -397,7 +396,7 @@ def data_needed(prob: Problem, opts: EskfOptions, pr_fixed: dict[str, Any], j0: 
         t_to = t0 + io.bank_window_s
     t_end = t_to + io.refine_s
     t_uwb = max(t_end, t0 + 8.0 * io.window_s)
-    td_reach = max(io.td_max_abs_s, abs(td_prior)) if pr_fixed["search_td"] else abs(td_prior)
+    td_reach = max(io.td_max_abs_s, abs(td_prior)) if pr_fixed.search_t_d else abs(td_prior)
     t_imu = max(t_uwb + td_reach, float(prob.imu_t[k_lvl]) + io.max_wait_s if not np.isfinite(t_move) else 0.0)
     return t_uwb, t_imu + prob.max_lookback
 

@@ -13,9 +13,8 @@ Everything here is causal: the nominal IMU period is the median of the first
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Optional, Sequence
+from typing import Any, Optional, Sequence
 
 import numpy as np
 from scipy.stats import chi2
@@ -40,16 +39,12 @@ def nominal_period(imu_t: np.ndarray) -> float:
 
 
 @dataclass
-class BlockPriors(Mapping):
+class BlockPriors:
     """The prior of every declared block that is not fixed by the initialiser's fix (typed record).
 
     Fields are named after the blocks of :mod:`uwbimu.models.blocks` (``<block>`` the prior mean,
     ``<block>_sd`` its sd) in SI units; ``search_t_d`` says whether the initialiser searches the time
     offset over ``init.td_grid`` (no configured prior value).
-
-    Read-only mapping access with the keys that ``estimation/init.py`` and ``estimation/streaming.py``
-    still use (``priors["td_sd"]``, ...: :data:`LEGACY_KEYS`) keeps those modules working until they
-    read the fields.
     """
 
     lever: np.ndarray  # (3,) first tag's lever arm [m], IMU frame
@@ -67,21 +62,6 @@ class BlockPriors(Mapping):
     #: prior sd of every additive extra block with a declared ``prior_sd_option`` [block unit]; 0 when the
     #: run has no instance of it (prior mean zero)
     block_sd: dict[str, float] = field(default_factory=dict)
-
-    #: legacy mapping key -> field
-    LEGACY_KEYS: ClassVar[dict[str, str]] = {
-        "lever": "lever", "tag_levers": "tag_levers", "sd_lever": "lever_sd", "anchor_bias": "anchor_bias",
-        "sd_bias": "anchor_bias_sd", "ba": "b_a", "bg": "b_g", "sd_ba": "b_a_sd", "sd_bg": "b_g_sd",
-        "td": "t_d", "td_sd": "t_d_sd", "search_td": "search_t_d"}
-
-    def __getitem__(self, key: str):
-        return getattr(self, self.LEGACY_KEYS[key])
-
-    def __iter__(self):
-        return iter(self.LEGACY_KEYS)
-
-    def __len__(self) -> int:
-        return len(self.LEGACY_KEYS)
 
 
 def _option(opts: EskfOptions, path: str):
