@@ -319,8 +319,9 @@ def single_clock_hold(dataset, o: CalibrationOptions) -> Optional[dict]:
     to be offset from and t_d is held at ``time_offset_prior`` (0) in the final solve (no profile; the other
     sigmas are conditional on it, calibration.yaml ``conditional_on_time_offset``).
     """
-    meta = getattr(dataset, "meta", None)
-    if getattr(meta, "single_clock", None) is not True or any(f in o.model_fields_set for f in _TD_FIELDS):
+    from uwbimu.estimation.timeoffset import is_single_clock
+
+    if not is_single_clock(dataset) or any(f in o.model_fields_set for f in _TD_FIELDS):
         return None
     return {"t": None, "kind": "time_offset_single_clock", "severity": "info", "mode": "fixed",
             "t_d": float(o.time_offset_prior),

@@ -172,6 +172,12 @@ def time_offset_verdict(sd_post: float, sd_prior: float, fixed: bool = False,
     return verdict, f"sd {sd_post * 1e3:.3g} ms from prior {sd_prior * 1e3:.3g} ms (information gain {gain:.3g}x the prior)"
 
 
+def is_single_clock(dataset) -> bool:
+    """Whether ``dataset.yaml`` says every stream was stamped by one clock (``single_clock: true``): then
+    there is no second clock for t_d to be offset from (the rule of both estimators)."""
+    return getattr(getattr(dataset, "meta", None), "single_clock", None) is True
+
+
 def single_clock_time_offset(dataset, opts):
     """The time-offset options for a log whose streams share one clock.
 
@@ -181,8 +187,7 @@ def single_clock_time_offset(dataset, opts):
     -0.5 and +0.8 s across settings).  Unless the user configured ``time_offset`` (any field), t_d is
     held fixed at 0 and an event ``time_offset_single_clock`` says so.  Returns ``(options, events)``.
     """
-    meta = getattr(dataset, "meta", None)
-    if getattr(meta, "single_clock", None) is not True or "time_offset" in opts.model_fields_set:
+    if not is_single_clock(dataset) or "time_offset" in opts.model_fields_set:
         return opts, []
     t_d = opts.time_offset.model_copy(update={"mode": "fixed", "prior": 0.0})
     event = {"t": None, "kind": "time_offset_single_clock", "mode": "fixed", "t_d": 0.0,

@@ -426,7 +426,9 @@ def handle_clock_faults(result, dataset, rerun: Callable, console=None, alpha: f
     includes the uncertainty of the correction) and the dataset it ran on.  A clean log returns
     ``result`` unchanged without any re-run.
     """
-    if getattr(getattr(dataset, "meta", None), "single_clock", None) is True:
+    from uwbimu.estimation.timeoffset import is_single_clock
+
+    if is_single_clock(dataset):
         result.events.append({"kind": "check_skipped", "check": "clock_faults", "reason": "single_clock",
                               "detail": "every stream was stamped by one clock (dataset.yaml single_clock: true): "
                                         "no UWB-IMU clock to jump or drift; nothing tested, nothing corrected"})
