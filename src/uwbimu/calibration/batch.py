@@ -1,6 +1,7 @@
 """``calibrate(dataset)``: the batch calibrator as stages (:mod:`uwbimu.calibration.stages`): ESKF seed (or, when
 that run fails the health check, a robust multilateration: :mod:`uwbimu.calibration.start_check`), factor graph,
-free solve (second start, adaptive Huber, IMU noise scale), t_d profile and final solve, the blocks the log does
+free solve (second start, range model chosen on it: :mod:`uwbimu.calibration.range_model_stage`, adaptive Huber,
+IMU noise scale), t_d profile and final solve, the blocks the log does
 not determine held at their priors (:func:`uwbimu.calibration.identifiability.hold_rule`), marginals and report
 (the solves and the profile walk: :mod:`uwbimu.calibration.profile_walk`)."""
 
@@ -16,12 +17,12 @@ import numpy as np
 import pandas as pd
 
 from uwbimu.formatting import finite_or_none
-from uwbimu.calibration import anchor_loo, anchors, graph, held, keys, noise_scale, robust_loss, start_check
+from uwbimu.calibration import (anchor_loo, anchors, graph, held, keys, noise_scale, range_model_stage, robust_loss,
+                                start_check)
 from uwbimu.calibration.identifiability import hold_rule, identifiability
 from uwbimu.calibration.uncertainty import (SparseMarginals, _block_event, _calibration_covariance,  # noqa: F401
                                            _marginals, _profile_chi2_scale)
 from uwbimu.calibration.options import CalibrationOptions
-from uwbimu.calibration.range_model_select import apply_selection, select_range_model
 from uwbimu.calibration.profile import TdProfile, confidence_interval, motion_advice
 from uwbimu.calibration.stages import STAGES, Built, Profiled, Solved, StageProgress, Start
 # the solves and the profile walk (re-exported: tests and benchmarks address them here)
@@ -92,14 +93,6 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
     report.started("initialising ESKF", 0.0)
     start = _start(dataset, o, eskf, eskf_options, events)
     report.done("initialising ESKF", 0.1)
-    selection = None
-    if o.range_model.select == "cv" and len(start.dataset.uwb):
-        # the range model and Huber threshold chosen on this log by blocked cross-validation of the
-        # residuals about the initialising ESKF's trajectory (uwbimu.calibration.range_model_select)
-        selection = select_range_model(start.dataset, start.eskf_run or start.eskf, o)
-        o = apply_selection(o, selection)
-        o.check_log(start.dataset)
-        events.append({"kind": "range_model_selected", "severity": "info", **selection.as_dict()})
     report.started("factor graph")
     built = _build(start, o)
     report.done("factor graph")
@@ -112,6 +105,17 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
         report.done("second start")
     else:
         report.skipped("second start")
+    # the range model and Huber threshold chosen on this log, on the residuals about the batch's own free solve,
+    # and the graph solved again under it (uwbimu.calibration.range_model_stage; select: auto / cv)
+    mode, why = range_model_stage.selection_mode(o, start.dataset, built.problem)
+    if mode == "select":
+        report.started("range model")
+        o, built, solved, selection = range_model_stage.choose_and_resolve(start, o, built, solved,
+                                                                           _warm_solver(engine), events)
+        report.done("range model")
+    else:
+        report.skipped("range model")
+        selection = {"select": mode, **({"reason": why} if why else {})}
     huber = {"selection": "fixed", "k": float(built.problem.options.huber_k)}
     if o.huber_k == "adaptive":
         report.started("adaptive Huber")
@@ -132,7 +136,7 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
     cal, traj, res, anchor_table = _report(built.problem, profiled, start.dataset)
     cal["imu_noise"] = _imu_noise_report(built.problem, imu_scale)
     cal["range_model"]["huber"] = huber
-    cal["range_model"]["selection"] = selection.as_dict() if selection else {"select": "given"}
+    cal["range_model"]["selection"] = selection
     ev = _block_event(cal["covariance"].get("block_check"), drift_on=o.range_bias_drift is not None)
     if ev is not None:
         events.append(ev)
@@ -144,7 +148,7 @@ def calibrate(dataset, options: Optional[CalibrationOptions] = None, eskf=None, 
         cal, traj, res, anchor_table = _report(built.problem, profiled, start.dataset)
         cal["imu_noise"] = _imu_noise_report(built.problem, imu_scale)
         cal["range_model"]["huber"] = huber
-        cal["range_model"]["selection"] = selection.as_dict() if selection else {"select": "given"}
+        cal["range_model"]["selection"] = selection
         held.consider_sd(cal, hold, o)
         cal["held_at_prior"] = {"blocks": sorted(k for k in hold if k != "refuted"), "first_pass": first,
                                 "refuted": hold["refuted"]}

@@ -224,12 +224,15 @@ class RangeModelOptions(BaseModel):
     anchor_direction: Optional[AnchorDirectionBias] = Field(
         None, description="direction-dependent bias in each anchor's antenna frame (anchors.csv qw..qz); none: "
                           "no anchor-side term")
-    select: Literal["cv", "given"] = Field(
-        "given", description="'cv': the range model (white, direction, drift, direction+drift) and the Huber "
-                             "threshold are chosen on the log by held-out likelihood over time blocks "
-                             "(uwbimu.calibration.range_model_select; `direction` gives the direction candidate's "
-                             "form, the chosen drift's sd and correlation time are fitted), replacing direction, "
-                             "range_bias_drift and huber_k; 'given': the model as configured")
+    select: Literal["auto", "cv", "given"] = Field(
+        "auto", description="'auto' (default): the range model (white, direction, drift, direction+drift) and the "
+                            "Huber threshold are chosen on the log by held-out likelihood over time blocks of the "
+                            "residuals about the batch's free solve (uwbimu.calibration.range_model_stage), unless "
+                            "range_bias_drift, range_model.direction or range_model.anchor_direction is set (the "
+                            "configured model is kept) or the log is TDoA, several tags or a self-survey (kept as "
+                            "configured); 'cv': chosen whenever the log allows, replacing a configured model "
+                            "(`direction` gives the direction candidate's form); 'given': the model as configured. "
+                            "A numeric huber_k is kept (only the families are compared)")
     select_folds: int = Field(5, ge=3, le=20, description="time blocks of the cross-validation with select: cv")
 
 

@@ -90,6 +90,8 @@ class RangeModelSelection:
         ``correlation_time`` [s] (drift families), ``direction`` coefficients [m] (direction families),
         ``anchor_bias`` [m] per anchor.
     n_ranges : ranges used.
+    basis : what the residuals are about: ``trajectory`` (a given trajectory, e.g. the initialising ESKF's) or
+        ``free_solve`` (the batch's own first free solve, :mod:`uwbimu.calibration.range_model_stage`).
     """
 
     candidates: list[str]
@@ -104,6 +106,7 @@ class RangeModelSelection:
     reason: str
     params: dict[str, Any] = field(default_factory=dict)
     n_ranges: int = 0
+    basis: str = "trajectory"
 
     def as_dict(self) -> dict[str, Any]:
         """Plain dict (floats, lists, dicts) for calibration.yaml and events."""
@@ -364,6 +367,24 @@ def select_range_model(dataset, trajectory, options=None, folds: Optional[int] =
     ------
     InputError : no ranges, too few per block, or an unknown family / fewer than 3 folds.
     """
+    return select_on_residuals(range_residuals(dataset, trajectory), options, folds, huber_grid, families,
+                               basis="trajectory")
+
+
+def select_on_residuals(d: dict, options=None, folds: Optional[int] = None,
+                        huber_grid: Sequence[float] = HUBER_GRID, families: Sequence[str] = FAMILIES,
+                        basis: str = "trajectory") -> RangeModelSelection:
+    """:func:`select_range_model` on residuals already computed.
+
+    Parameters
+    ----------
+    d : dict of arrays as :func:`range_residuals` returns (``t`` [s, UWB clock], ``anchor`` index into
+        ``anchors``, ``r`` residual range - predicted distance [m], ``wb`` (n, 3) line of sight antenna ->
+        anchor in the body frame [m], ``u`` (n, 3) unit line of sight, world frame); not modified.
+    options, folds, huber_grid, families : as :func:`select_range_model`.
+    basis : what the residuals are about, recorded in :attr:`RangeModelSelection.basis` (``trajectory``: a
+        given trajectory, e.g. the ESKF's; ``free_solve``: the batch's own first solve).
+    """
     from uwbimu.calibration.options import CalibrationOptions, DirectionBias
 
     o = options or CalibrationOptions()
@@ -377,7 +398,7 @@ def select_range_model(dataset, trajectory, options=None, folds: Optional[int] =
     # lever arm is held here, so order-1 terms would score its error as a direction bias: by default the
     # candidate starts at order 2
     dir_opts = o.range_model.direction or DirectionBias(lowest_order=2)
-    d = range_residuals(dataset, trajectory)
+    d = dict(d)
     edges = np.linspace(d["t"].min(), d["t"].max(), folds + 1)
     d["block"] = np.clip(np.searchsorted(edges, d["t"], side="right") - 1, 0, folds - 1).astype(np.int64)
     wi = np.floor((d["t"] - d["t"].min()) / TRAJECTORY_WINDOW_S).astype(np.int64)
@@ -425,7 +446,7 @@ def select_range_model(dataset, trajectory, options=None, folds: Optional[int] =
         candidates=fam, huber_grid=[float(k) for k in huber_grid], folds=folds, block_edges=edges.tolist(),
         scores=scores, family_scores={f: v.tolist() for f, v in fam_scores.items()},
         family_k={f: float(k) for f, k in best_k.items()}, chosen=chosen, huber_k=float(k_chosen),
-        reason=f"family {why_f}; Huber k {why_k}", params=params, n_ranges=int(len(d["r"])))
+        reason=f"family {why_f}; Huber k {why_k}", params=params, n_ranges=int(len(d["r"])), basis=basis)
 
 
 def apply_selection(options, selection: RangeModelSelection):

@@ -6,7 +6,7 @@
                that run fails the health check, a robust multilateration: calibration/start_check.py)
     Built      the problem (everything that does not depend on t_d) and its IMU factors
     Solved     a solve: factor graph, solution, range association, iterations (free solve, second start,
-               adaptive Huber, IMU noise scale: each stage returns a new Solved)
+               range model chosen on that solve, adaptive Huber, IMU noise scale: each stage returns a new Solved)
     Profiled   the t_d profile and the solve that follows its verdict (free, refined, or held at the prior)
 
 and reports from the last :class:`Profiled` (:func:`uwbimu.calibration.batch._report`).  Each record is frozen:
@@ -24,8 +24,8 @@ from uwbimu.calibration import keys
 __all__ = ["Start", "Built", "Solved", "Profiled", "StageProgress", "STAGES"]
 
 #: The stages reported to the ``on_stage`` callback, in order (those that do not apply are reported skipped).
-STAGES = ("initialising ESKF", "factor graph", "free solve", "second start", "adaptive Huber", "IMU noise scale",
-          "t_d profile", "final solve", "marginals and report")
+STAGES = ("initialising ESKF", "factor graph", "free solve", "second start", "range model", "adaptive Huber",
+          "IMU noise scale", "t_d profile", "final solve", "marginals and report")
 
 
 @dataclass(frozen=True)
