@@ -12,7 +12,6 @@ import os
 import sys
 
 import typer
-import typer.rich_utils
 from typer.core import TyperOption
 
 
@@ -47,9 +46,49 @@ def _help_is_plain_text(make_rich_text):
     return wrapper
 
 
-# CLI-only presentation tweaks (the library never touches typer).
-TyperOption.display_type_rich = _flag_type_hidden(TyperOption.display_type_rich)
-typer.rich_utils._make_rich_text = _help_is_plain_text(typer.rich_utils._make_rich_text)
+def _patch_rich_utils(module) -> None:
+    module._make_rich_text = _help_is_plain_text(module._make_rich_text)
+
+
+class _OnRichUtilsImport:
+    """Meta-path finder that applies :func:`_help_is_plain_text` when typer first imports ``typer.rich_utils``.
+
+    typer imports its rich helpers only to print help or an error; importing them here costs about 0.2 s
+    of CPU (rich.markdown, markdown_it, pygments) on every command, ``uwbimu estimate`` included.  So the
+    patch waits for typer's own import of the module (the same patch, applied before any of its functions
+    runs).
+    """
+
+    name = "typer.rich_utils"
+
+    def find_spec(self, fullname, path=None, target=None):
+        if fullname != self.name:
+            return None
+        from importlib.machinery import PathFinder
+
+        spec = PathFinder.find_spec(fullname, path)
+        if spec is None or spec.loader is None or not hasattr(spec.loader, "exec_module"):
+            return None  # the usual finders import it; :func:`_patch_typer` saw no such module
+        inner = spec.loader.exec_module
+
+        def exec_module(module):
+            inner(module)
+            _patch_rich_utils(module)
+
+        spec.loader.exec_module = exec_module
+        return spec
+
+
+def _patch_typer() -> None:
+    """CLI-only presentation tweaks (the library never touches typer)."""
+    TyperOption.display_type_rich = _flag_type_hidden(TyperOption.display_type_rich)
+    if _OnRichUtilsImport.name in sys.modules:
+        _patch_rich_utils(sys.modules[_OnRichUtilsImport.name])
+    elif not any(isinstance(f, _OnRichUtilsImport) for f in sys.meta_path):
+        sys.meta_path.insert(0, _OnRichUtilsImport())
+
+
+_patch_typer()
 
 app = typer.Typer(
     name="uwbimu",
