@@ -8,30 +8,43 @@ Public API::
     write_outputs(res, dataset, "out/")     # trajectory.csv, calibration.yaml, residuals.csv, ...
     compute_metrics(res, dataset)           # needs ground truth
 
-See ``docs/estimator.md``.
+Names are resolved on first use (PEP 562): ``from uwbimu.estimation import write_outputs`` imports the
+output writer, not the point-mass EKF, the streaming filter's extras or the metrics as well (``uwbimu
+estimate`` pays at start for what it runs).  See ``docs/estimator.md``.
 """
 
-from uwbimu.estimation.options import EskfOptions  # noqa: F401
-from uwbimu.estimation.result import EstimationResult  # noqa: F401
-from uwbimu.estimation.init import InitialState, InitialisationError  # noqa: F401
-from uwbimu.estimation.eskf import run_eskf  # noqa: F401
-from uwbimu.estimation.streaming import Eskf, EskfState  # noqa: F401
-from uwbimu.estimation.metrics import compute_metrics, truth_at  # noqa: F401
-from uwbimu.estimation.outputs import write_outputs, residual_table  # noqa: F401
-from uwbimu.estimation.pointmass import PointMassOptions, run_pointmass  # noqa: F401
+from __future__ import annotations
 
-__all__ = [
-    "EskfOptions",
-    "EstimationResult",
-    "InitialState",
-    "InitialisationError",
-    "run_eskf",
-    "Eskf",
-    "EskfState",
-    "compute_metrics",
-    "truth_at",
-    "write_outputs",
-    "residual_table",
-    "PointMassOptions",
-    "run_pointmass",
-]
+from importlib import import_module
+
+#: public name -> defining module
+_EXPORTS = {
+    "EskfOptions": "uwbimu.estimation.options",
+    "EstimationResult": "uwbimu.estimation.result",
+    "InitialState": "uwbimu.estimation.init",
+    "InitialisationError": "uwbimu.estimation.init",
+    "run_eskf": "uwbimu.estimation.eskf",
+    "Eskf": "uwbimu.estimation.streaming",
+    "EskfState": "uwbimu.estimation.streaming",
+    "compute_metrics": "uwbimu.estimation.metrics",
+    "truth_at": "uwbimu.estimation.metrics",
+    "write_outputs": "uwbimu.estimation.outputs",
+    "residual_table": "uwbimu.estimation.outputs",
+    "PointMassOptions": "uwbimu.estimation.pointmass",
+    "run_pointmass": "uwbimu.estimation.pointmass",
+}
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'uwbimu.estimation' has no attribute {name!r}")
+    value = getattr(import_module(module), name)
+    globals()[name] = value  # cache: later look-ups skip __getattr__
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -85,26 +85,44 @@ _CSV_SPECIAL = (",", '"', "\n", "\r")
 
 
 def _csv_text(df, fmt: str, na_rep: str):
-    """The text ``df.to_csv(index=False, float_format=fmt, na_rep=na_rep)`` writes, built column-wise, or None
+    """The text ``df.to_csv(index=False, float_format=fmt, na_rep=na_rep)`` writes, built row-wise, or None
     for a frame this does not cover (then pandas writes it): columns of NumPy float, int or bool, or text
     (str cells, NaN / None read as ``na_rep``) that needs no CSV quoting, at least two columns (a
-    one-column row of an empty cell is quoted by the csv module), string column names needing no quoting."""
+    one-column row of an empty cell is quoted by the csv module), string column names needing no quoting.
+
+    Each row is one ``%`` of a row format (``fmt`` for a float column, ``%s`` for the others' text, the
+    literal ``na_rep`` for an all-NaN column): the same ``fmt % value`` per float cell as a cell-by-cell
+    build, with one Python operation per row instead of one per cell (a 10-minute run's outputs: 1 M cells).
+    A row holding a NaN in a column that is not all-NaN is built cell by cell (``na_rep`` for the NaN).
+    """
     import numpy as np
 
     if df.shape[1] < 2 or not all(isinstance(c, str) for c in df.columns):
         return None
     if any(any(ch in c for ch in _CSV_SPECIAL) for c in df.columns) or any(ch in na_rep for ch in _CSV_SPECIAL):
         return None
-    cols = []
+    n = len(df)
+    specs: list[str] = []  # per column: its part of the row format
+    args: list[list] = []  # per column with a conversion: its cells (floats, or text for %s)
+    float_arg: list[bool] = []  # per entry of args: a float column (fmt, NaN -> na_rep)
+    converts: list[bool] = []  # per column: takes a cell from args (False: the literal na_rep)
+    nan_rows = np.zeros(n, dtype=bool)
     for i, dtype in enumerate(df.dtypes):
         ser = df.iloc[:, i]
         if isinstance(dtype, np.dtype) and dtype.kind == "f":
             vals = ser.to_numpy()
-            text = [fmt % v for v in vals.tolist()]
-            nan = np.flatnonzero(np.isnan(vals))
-            for k in nan.tolist():
-                text[k] = na_rep
-        elif isinstance(dtype, np.dtype) and dtype.kind in "iub":
+            nan = np.isnan(vals)
+            if n and nan.all():
+                specs.append(na_rep.replace("%", "%%"))  # a column of empty cells: no conversion at all
+                converts.append(False)
+                continue
+            nan_rows |= nan
+            specs.append(fmt)
+            args.append(vals.tolist())
+            float_arg.append(True)
+            converts.append(True)
+            continue
+        if isinstance(dtype, np.dtype) and dtype.kind in "iub":
             text = list(map(str, ser.to_numpy().tolist()))
         elif dtype == object or str(dtype) in ("str", "string"):
             vals = ser.to_numpy(dtype=object, na_value=None) if dtype != object else ser.to_numpy()
@@ -120,9 +138,21 @@ def _csv_text(df, fmt: str, na_rep: str):
                 return None
         else:
             return None
-        cols.append(text)
-    lines = [",".join(df.columns)]
-    lines.extend(map(",".join, zip(*cols)))
+        specs.append("%s")
+        args.append(text)
+        float_arg.append(False)
+        converts.append(True)
+    row_fmt = ",".join(specs)
+    if args:
+        lines = [row_fmt % t for t in zip(*args)]
+    else:  # every column all-NaN: the same row n times
+        lines = [row_fmt % ()] * n
+    for k in np.flatnonzero(nan_rows).tolist():
+        # a NaN cell is na_rep (pandas), not fmt's "nan": this row cell by cell
+        cells = iter([na_rep if (is_f and v != v) else (fmt % v if is_f else v)
+                      for is_f, v in zip(float_arg, [a[k] for a in args])])
+        lines[k] = ",".join(next(cells) if conv else na_rep for conv in converts)
+    lines.insert(0, ",".join(df.columns))
     return os.linesep.join(lines) + os.linesep
 
 
