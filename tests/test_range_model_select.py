@@ -120,7 +120,8 @@ def test_bad_input_is_refused(flight):
 
 def test_calibrate_with_select_cv_records_and_applies_the_choice():
     """``range_model.select: cv`` in ``calibrate``: the choice is an event and calibration.yaml's
-    ``range_model.selection``, and the chosen Huber threshold is the one the graph used."""
+    ``range_model.selection`` (made on the batch's own free solve), and the chosen Huber threshold is the one the
+    graph used; ``select: given`` selects nothing."""
     from uwbimu.calibration import CalibrationOptions, calibrate
 
     ds = simulate(builtin_scenario("calibration-flight").updated(duration=30.0, seeds={"noise": 2}))
@@ -128,8 +129,107 @@ def test_calibrate_with_select_cv_records_and_applies_the_choice():
     cal = calibrate(ds, opts).calibration
     (ev,) = [e for e in cal["events"] if e["kind"] == "range_model_selected"]
     sel = cal["range_model"]["selection"]
-    assert sel["chosen"] == ev["chosen"]
+    assert sel["chosen"] == ev["chosen"] and sel["select"] == "cv" and sel["basis"] == "free_solve"
     assert cal["range_model"]["huber"]["k"] == pytest.approx(sel["huber_k"])
-    given = calibrate(ds, CalibrationOptions.model_validate({"td_profile": {"enabled": False}})).calibration
+    given = calibrate(ds, CalibrationOptions.model_validate({"td_profile": {"enabled": False},
+                                                             "range_model": {"select": "given"}})).calibration
     assert given["range_model"]["selection"] == {"select": "given"}
     assert not any(e["kind"] == "range_model_selected" for e in given["events"])
+
+
+# ------------------------------------------------------------------ the stage on the batch's own free solve
+def _free_solve(ds, options=None):
+    """The batch's first free solve of ``ds`` (graph frame = the simulation's) and its problem."""
+    from uwbimu.calibration import graph
+    from uwbimu.calibration.profile_walk import solve
+
+    o = options or CalibrationOptions()
+    pb = graph.build_problem(ds, run_eskf(ds, EskfOptions()), o)
+    imf = graph._imu_factors(pb)
+    return pb, imf, solve(pb, imf, graph.initial_values(pb), pb.td0, None)
+
+
+def test_solve_residuals_are_the_graphs_residuals_without_the_model(flight):
+    """About a white-model solve, ``range - |p_U - a|`` equals the graph's own residual (measured - predicted) plus
+    the anchor's constant bias: the stage scores the ranges as the graph places the antenna."""
+    from uwbimu.calibration import graph, keys
+    from uwbimu.calibration.range_model_stage import solve_residuals
+
+    pb, _, sv = _free_solve(flight)
+    d = solve_residuals(pb, sv)
+    e = graph.range_residuals(sv.graph, sv.assoc, sv.values, sv.time_offset())  # predicted - measured
+    bias = np.array([sv.values.atVector(keys.anchor_bias(j))[0] for j in pb.anchor_j[sv.assoc.used]])
+    order = np.argsort(pb.t_range[sv.assoc.used], kind="stable")
+    np.testing.assert_allclose(d["r"], (-e + bias)[order], atol=1e-9)
+    assert np.all(np.diff(d["t"]) >= 0) and len(d["r"]) == len(sv.assoc.used)
+    np.testing.assert_allclose(np.linalg.norm(d["u"], axis=1), 1.0)
+    # the body-frame line of sight has the world one's length (|a - p_U|)
+    np.testing.assert_allclose(np.linalg.norm(d["wb"], axis=1), (pb.rho[sv.assoc.used][order] - d["r"]), rtol=1e-9)
+    assert [str(a) for a in d["anchors"]] == sorted({pb.anchor_ids[j] for j in pb.anchor_j[sv.assoc.used]})
+
+
+def test_warm_values_add_and_drop_the_model_variables(flight):
+    """The re-solve under the chosen model starts at the free solve: shared variables copied, the drift knots
+    added at zero; going back to the white model drops them."""
+    from uwbimu.calibration import graph, keys
+    from uwbimu.calibration.range_model_stage import warm_values
+
+    pb, _, sv = _free_solve(flight)
+    o2 = CalibrationOptions.model_validate({"range_bias_drift": {"sd": 0.05, "correlation_time": 2.0}})
+    pb2 = graph.build_problem(flight, run_eskf(flight, EskfOptions()), o2)
+    v2 = warm_values(pb2, sv.values)
+    assert set(v2.keys()) == set(graph.initial_values(pb2).keys()) | {keys.time_offset()}
+    np.testing.assert_array_equal(v2.atVector(keys.lever_arm(0)), sv.values.atVector(keys.lever_arm(0)))
+    assert v2.atVector(keys.bias_drift(0, 0))[0] == 0.0
+    back = warm_values(pb, v2)
+    assert set(back.keys()) == set(sv.values.keys())
+
+
+def test_selection_mode_rule(flight):
+    """Default ``auto``: select unless a model is configured (kept, ``configured``) or the log is one the
+    candidates do not describe (TDoA: ``not_applicable``); ``cv`` refuses such a log; ``given`` never selects."""
+    from types import SimpleNamespace
+
+    from uwbimu.calibration import graph
+    from uwbimu.calibration.range_model_stage import selection_mode
+    from uwbimu.errors import UsageError
+
+    pb = graph.build_problem(flight, run_eskf(flight, EskfOptions()), CalibrationOptions())
+    assert CalibrationOptions().range_model.select == "auto"
+    assert selection_mode(CalibrationOptions(), flight, pb) == ("select", None)
+    for cfg in ({"range_bias_drift": {"sd": 0.05}}, {"range_bias_drift": None},
+                {"range_model": {"direction": {"harmonics": 2}}}):
+        mode, why = selection_mode(CalibrationOptions.model_validate(cfg), flight, pb)
+        assert mode == "configured" and why
+    # a configured model with select: cv is replaced (selected)
+    cv = CalibrationOptions.model_validate({"range_bias_drift": {"sd": 0.05}, "range_model": {"select": "cv"}})
+    assert selection_mode(cv, flight, pb)[0] == "select"
+    assert selection_mode(CalibrationOptions.model_validate({"range_model": {"select": "given"}}), flight, pb)[0] == "given"
+    tdoa = copy.copy(pb)
+    tdoa.anchor_b = np.zeros(len(pb.rho), np.int64)
+    ds_tdoa = SimpleNamespace(tdoa=flight.uwb.head(3))
+    assert selection_mode(CalibrationOptions(), ds_tdoa, tdoa)[0] == "not_applicable"
+    with pytest.raises(UsageError):
+        selection_mode(CalibrationOptions.model_validate({"range_model": {"select": "cv"}}), ds_tdoa, tdoa)
+
+
+def test_default_calibrate_chooses_drift_on_coloured_ranges_and_keeps_a_configured_model(flight):
+    """The default (``select: auto``) on a log with per-anchor AR(1) range errors (10 cm, 3 s): the stage chooses
+    the drift family on the batch's free solve, the graph is solved with a drift model (calibration.yaml
+    ``range_model.drift``), the lever arm lands within 3 sigma of the truth; with a model configured it is kept
+    (``select: configured``, no selection event)."""
+    from uwbimu.calibration import calibrate
+
+    ds = ar1_ranges(flight, sigma=0.10, tau=3.0, seed=1001)
+    cal = calibrate(ds, CalibrationOptions.model_validate({"td_profile": {"enabled": False}})).calibration
+    sel = cal["range_model"]["selection"]
+    assert sel["select"] == "cv" and sel["basis"] == "free_solve" and "drift" in sel["chosen"], sel["reason"]
+    assert cal["range_model"]["drift"] is not None
+    assert cal["range_model"]["drift"]["sd"] == pytest.approx(sel["params"]["drift_sd"])
+    err = np.abs(np.subtract(cal["lever_arm"], ds.meta.truth.lever_arm))
+    assert np.all(err < 3.0 * np.asarray(cal["lever_arm_sd"])), (cal["lever_arm"], cal["lever_arm_sd"])
+    kept = calibrate(ds, CalibrationOptions.model_validate({"td_profile": {"enabled": False},
+                                                            "range_bias_drift": None})).calibration
+    assert kept["range_model"]["selection"]["select"] == "configured"
+    assert kept["range_model"]["drift"] is None
+    assert not any(e["kind"] == "range_model_selected" for e in kept["events"])

@@ -2,8 +2,10 @@
 
 Which range model serves a log (white noise plus a constant bias per anchor; plus a direction-dependent
 bias in the tag's body frame; plus a slowly varying bias per anchor; both) and which Huber threshold
-is decided on that log, from the range residuals about a trajectory already fitted (the initialising
-ESKF's: nothing is re-solved, so the choice costs a fraction of a second to a few seconds).
+is decided on that log, from the range residuals about a trajectory already fitted: nothing is re-solved,
+so the choice costs a fraction of a second to a few seconds.  ``uwbimu calibrate`` uses the batch's own first
+free solve (:mod:`uwbimu.calibration.range_model_stage`, :func:`select_on_residuals`); :func:`select_range_model`
+takes any trajectory (e.g. an ESKF run).
 
 Rule (stated, tested in ``tests/test_range_model_select.py``):
 
