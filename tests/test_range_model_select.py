@@ -120,8 +120,8 @@ def test_bad_input_is_refused(flight):
 
 def test_calibrate_with_select_cv_records_and_applies_the_choice():
     """``range_model.select: cv`` in ``calibrate``: the choice is an event and calibration.yaml's
-    ``range_model.selection`` (made on the batch's own free solve), and the chosen Huber threshold is the one the
-    graph used; ``select: given`` selects nothing."""
+    ``range_model.selection`` (made on the batch's own free solve); the graph's Huber threshold stays huber_k's rule
+    (a number: kept; adaptive: chosen on the graph's residuals); ``select: given`` selects nothing."""
     from uwbimu.calibration import CalibrationOptions, calibrate
 
     ds = simulate(builtin_scenario("calibration-flight").updated(duration=30.0, seeds={"noise": 2}))
@@ -130,7 +130,11 @@ def test_calibrate_with_select_cv_records_and_applies_the_choice():
     (ev,) = [e for e in cal["events"] if e["kind"] == "range_model_selected"]
     sel = cal["range_model"]["selection"]
     assert sel["chosen"] == ev["chosen"] and sel["select"] == "cv" and sel["basis"] == "free_solve"
-    assert cal["range_model"]["huber"]["k"] == pytest.approx(sel["huber_k"])
+    # the default adaptive threshold is the graph's (the selection's k is in its own innovation-sd units)
+    assert cal["range_model"]["huber"]["selection"] == "adaptive"
+    fixed = calibrate(ds, CalibrationOptions.model_validate({"td_profile": {"enabled": False}, "huber_k": 2.0,
+                                                             "range_model": {"select": "cv"}})).calibration
+    assert fixed["range_model"]["selection"]["huber_grid"] == [2.0] and fixed["range_model"]["huber_k"] == 2.0
     given = calibrate(ds, CalibrationOptions.model_validate({"td_profile": {"enabled": False},
                                                              "range_model": {"select": "given"}})).calibration
     assert given["range_model"]["selection"] == {"select": "given"}

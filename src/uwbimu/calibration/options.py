@@ -232,7 +232,8 @@ class RangeModelOptions(BaseModel):
                             "configured model is kept) or the log is TDoA, several tags or a self-survey (kept as "
                             "configured); 'cv': chosen whenever the log allows, replacing a configured model "
                             "(`direction` gives the direction candidate's form); 'given': the model as configured. "
-                            "A numeric huber_k is kept (only the families are compared)")
+                            "The graph's Huber threshold stays huber_k's (adaptive, or a number: the families are "
+                            "then compared at it)")
     select_folds: int = Field(5, ge=3, le=20, description="time blocks of the cross-validation with select: cv")
 
 

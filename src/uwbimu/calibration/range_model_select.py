@@ -451,11 +451,11 @@ def select_on_residuals(d: dict, options=None, folds: Optional[int] = None,
         reason=f"family {why_f}; Huber k {why_k}", params=params, n_ranges=int(len(d["r"])), basis=basis)
 
 
-def apply_selection(options, selection: RangeModelSelection):
+def apply_selection(options, selection: RangeModelSelection, huber: bool = True):
     """A copy of ``options`` (:class:`~uwbimu.calibration.options.CalibrationOptions`) with the chosen range
     model: ``range_model.direction`` (the candidate's model) or none, ``range_bias_drift`` (the fitted sd and
     correlation time, knots at most a quarter of it and at most 0.5 s apart) or none, ``huber_k`` the chosen
-    threshold."""
+    threshold (``huber=False``: ``huber_k`` as in ``options``)."""
     from uwbimu.calibration.options import DirectionBias, RangeBiasDrift
 
     p = selection.params
@@ -465,4 +465,5 @@ def apply_selection(options, selection: RangeModelSelection):
     if "drift" in selection.chosen:
         tau = float(p["correlation_time"])
         drift = RangeBiasDrift(sd=float(p["drift_sd"]), correlation_time=tau, knot_spacing=max(0.01, min(0.5, tau / 4)))
-    return options.model_copy(update={"range_model": rm, "range_bias_drift": drift, "huber_k": selection.huber_k})
+    upd = {"range_model": rm, "range_bias_drift": drift} | ({"huber_k": selection.huber_k} if huber else {})
+    return options.model_copy(update=upd)

@@ -17,8 +17,11 @@ Which logs (:func:`selection_mode`): with ``auto``, only when the user configure
 is, recorded ``select: configured``), and only on logs the candidates describe: two-way ranges to fixed anchors,
 one tag, grouped range factors (no TDoA candidates exist: TDoA logs stay as they are, ``select:
 not_applicable``).  ``cv`` selects whenever the log allows (replacing a configured model) and refuses a log it
-cannot serve; ``given`` never selects.  A Huber threshold the user set (a number) is kept: only the families are
-compared, at that threshold.
+cannot serve; ``given`` never selects.  The stage chooses the family only: the graph's Huber threshold stays
+``huber_k``'s rule (``adaptive``, the default: chosen on the re-solve's residuals by
+:mod:`uwbimu.calibration.robust_loss`; a number: kept, and the only threshold the families are compared at).  The
+selection's own best threshold is recorded (``huber_k`` of the record) but is in units of its fitted innovation sd,
+not of the graph's ``range_sigma``, which the stage leaves as configured.
 """
 
 from __future__ import annotations
@@ -162,16 +165,18 @@ def choose_and_resolve(start, o, built, solved, solve, events: list):
     mode, why = selection_mode(o, start.dataset, built.problem)
     if mode != "select":
         return o, built, solved, {"select": mode, **({"reason": why} if why else {})}
-    k_user = o.huber_k if "huber_k" in o.model_fields_set and o.huber_k != "adaptive" else None
-    grid = (float(k_user),) if k_user is not None else HUBER_GRID
+    # the graph's threshold stays huber_k's rule (adaptive: chosen on the re-solve's residuals in the graph's own
+    # sigma units, robust_loss; a number: kept): the selection's k is in units of its fitted innovation sd, not of
+    # range_sigma.  A numeric huber_k is also the only threshold the families are compared at.
+    grid = HUBER_GRID if o.huber_k == "adaptive" else (float(o.huber_k),)
     sel: RangeModelSelection = select_on_residuals(solve_residuals(built.problem, solved), o, huber_grid=grid,
                                                    basis="free_solve")
-    o2 = apply_selection(o, sel)
+    o2 = apply_selection(o, sel, huber=False)
     o2.check_log(start.dataset)
     record = {"select": "cv", **sel.as_dict()}
     events.append({"kind": "range_model_selected", "severity": "info", **sel.as_dict(),
                    "message": f"range model chosen on the log (held-out likelihood over {sel.folds} time blocks, "
-                              f"residuals about the batch's free solve): {sel.chosen}, Huber k {sel.huber_k:g}"})
+                              f"residuals about the batch's free solve): {sel.chosen}"})
     pb2 = graph.build_problem(start.dataset, start.eskf, o2, start.setup)
     # the IMU factors depend on the keyframes, the seeding ESKF's biases and the IMU noise only: kept
     built2 = dataclasses.replace(built, problem=pb2)
