@@ -140,6 +140,84 @@ def test_push_imu_batching_is_invisible(flight_with_faults, monkeypatch):
 
 
 
+def test_measurement_batching_is_invisible(flight_with_faults, monkeypatch):
+    """push_range keeps up to MEAS_BATCH checked ranges (with the kept IMU samples) before handing them to
+    the filter; states read along the way and the event list (rejections included, in order) are those of
+    handing each range over at once (MEAS_BATCH = IMU_BATCH = 1), and so are the final states."""
+    from uwbimu.estimation import streaming
+
+    ds, imu, rng_, kinds, idx = flight_with_faults
+
+    def run():
+        f = Eskf.for_dataset(ds, EskfOptions(), record=True)
+        t, a, r = rng_
+        seen = []
+        for n, (k, i) in enumerate(zip(kinds.tolist(), idx.tolist())):
+            if k == 0:
+                f.push_imu(imu[i, 0], imu[i, 1:4], imu[i, 4:7])
+            else:
+                f.push_range(t[i], a[i], r[i])
+            if n % 211 == 0:
+                s = f.state()
+                seen.append(None if s is None else (s.t_imu, s.position.tolist(), s.covariance.tobytes()))
+        f.finish()
+        return f, seen
+
+    assert streaming.MEAS_BATCH > 1
+    batched, seen_b = run()
+    assert len(batched._pend_m) == 0
+    monkeypatch.setattr(streaming, "MEAS_BATCH", 1)
+    monkeypatch.setattr(streaming, "IMU_BATCH", 1)
+    single, seen_1 = run()
+    assert seen_b == seen_1 and any(x is not None for x in seen_1)
+    assert batched.events() == single.events()
+    assert any(e["kind"] == "input_rejected" and e["stream"] == "range" for e in single.events())
+    np.testing.assert_array_equal(batched.passes()[-1].states, single.passes()[-1].states)
+
+
+def test_tdoa_batching_is_invisible(monkeypatch):
+    """The same for push_tdoa on a TDoA flight with refused rows (same anchor, too large, unknown)."""
+    from uwbimu.estimation import streaming
+
+    ds = simulate(builtin_scenario("crazyflie-tdoa3").model_copy(update={"duration": 30.0}))
+    assert ds.tdoa is not None and len(ds.tdoa) > 1000
+    imu = ds.imu[["t", "ax", "ay", "az", "wx", "wy", "wz"]].to_numpy(float)
+    td_ = ds.tdoa
+    t = td_["t"].to_numpy(float)
+    aa = td_["anchor_a"].astype(str).to_numpy().astype(object)
+    bb = td_["anchor_b"].astype(str).to_numpy().astype(object)
+    z = td_["tdoa"].to_numpy(float).copy()
+    j = int(np.searchsorted(t, 20.0))
+    bb[j + 1] = aa[j + 1]   # same anchor
+    z[j + 4] = 1e3          # longer than the pair's baseline allows
+    aa[j + 6] = "nope"      # unknown anchor
+    z[j + 8] = np.nan       # not finite
+    at = np.concatenate([imu[:, 0], t + 0.01])
+    order = np.argsort(at, kind="stable")
+    n_imu = len(imu)
+
+    def run():
+        f = Eskf.for_dataset(ds, EskfOptions(), record=True)
+        for i in order.tolist():
+            if i < n_imu:
+                f.push_imu(imu[i, 0], imu[i, 1:4], imu[i, 4:7])
+            else:
+                k = i - n_imu
+                f.push_tdoa(t[k], aa[k], bb[k], z[k])
+        f.finish()
+        return f
+
+    batched = run()
+    monkeypatch.setattr(streaming, "MEAS_BATCH", 1)
+    monkeypatch.setattr(streaming, "IMU_BATCH", 1)
+    single = run()
+    reasons = {e["reason"] for e in single.events() if e["kind"] == "input_rejected"}
+    assert {"same_anchor", "tdoa_too_large", "unknown_anchor", "not_finite"} <= reasons
+    assert batched.events() == single.events()
+    assert batched.initialised and single.initialised
+    np.testing.assert_array_equal(batched.passes()[-1].states, single.passes()[-1].states)
+
+
 def test_state_carries_every_declared_block_as_the_batch_writes_it():
     """EskfState.blocks is block_calibration of the current state: the keys a batch run writes."""
     from uwbimu.estimation.eskf import run_eskf

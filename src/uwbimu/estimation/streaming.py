@@ -65,6 +65,12 @@ _FLIP = np.array([1.0, -1.0, -1.0])
 #: processes the kept samples first, so what a caller can observe is what one-sample processing gives, bit
 #: for bit (``tests/test_streaming_chunks.py``).  64 samples are 64 ms at 1 kHz.
 IMU_BATCH = 64
+#: :meth:`Eskf.push_range` and :meth:`Eskf.push_tdoa` keep up to this many checked measurements (in
+#: arrival order, with the IMU samples kept) and hand them to the filter with the next chunk: one call into
+#: the buffers and one filter step per chunk instead of one per measurement.  Every other push, every
+#: accessor and every rejection processes what is kept first, so the order of events and the estimates are
+#: those of one-at-a-time processing (``tests/test_streaming_chunks.py``).
+MEAS_BATCH = 64
 _Q_FLIP = np.array([0.0, 1.0, 0.0, 0.0])
 
 
@@ -331,6 +337,9 @@ class Eskf:
         self._rej = Rejections(self._events, self._dropped)
         # IMU samples push_imu accepted and not yet processed: (t, ax, ay, az, wx, wy, wz), see IMU_BATCH
         self._pend: list[tuple[float, ...]] = []
+        # ranges / TDoAs push_range and push_tdoa accepted and not yet handed to the filter: (t, a, b, z) with
+        # b = -1 for a range (the buffers' coding), see MEAS_BATCH
+        self._pend_m: list[tuple[float, int, int, float]] = []
         # geometric bounds of a measurement: the supervisor's box (the anchors' bounding box grown by its
         # margin) holds every position it accepts, so no range is longer than its diagonal
         p_ = self._prob
@@ -441,7 +450,15 @@ class Eskf:
     def _flush(self) -> None:
         """Process the IMU samples :meth:`push_imu` kept (one chunk: the same kernels on the same numbers in
         the same order as one sample at a time, ``tests/test_streaming_chunks.py``)."""
-        pend = self._pend
+        pm, pend = self._pend_m, self._pend
+        if pm:
+            m = np.array(pm, dtype=float)
+            pm.clear()
+            # measurements first, then the IMU samples, then one filter step: what push_ranges followed
+            # by push_imu_chunk does (the filter processes a measurement once the IMU covers it, in index
+            # order, so the estimates do not depend on when it was handed over)
+            self._add(np.ascontiguousarray(m[:, 0]), m[:, 1].astype(np.int64), m[:, 2].astype(np.int64),
+                      np.ascontiguousarray(m[:, 3]), None, step=not pend)
         if pend:
             a = np.array(pend, dtype=float)
             pend.clear()
@@ -540,18 +557,29 @@ class Eskf:
 
     def push_range(self, t: float, anchor: str, range: float, tag: Optional[str] = None) -> None:
         """One two-way range [m] to ``anchor``, stamped ``t`` [s, UWB clock]; checked as
-        :meth:`push_ranges` checks (plain float comparisons)."""
-        self._flush()
+        :meth:`push_ranges` checks (plain float comparisons).  A range that passes them is kept and handed
+        to the filter with the next chunk (:data:`MEAS_BATCH`); a refused one is counted at once."""
         try:
             t, z = float(t), float(range)
         except (TypeError, ValueError):
+            self._flush()
             raise StreamInputError("Eskf.push_range: t and range must be numbers", field="t, range",
                                    reason="not_numeric") from None
-        a = self._index.get(str(anchor), -1)
+        key = anchor if type(anchor) is str else str(anchor)
+        a = self._index.get(key, -1)
         if a >= 0 and math.isfinite(z) and not 0.0 < z <= self._r_max:
+            self._flush()
             self._rej.add("range", "range_not_positive" if z <= 0 else "range_too_long", t)
             return
-        z -= self._known_bias.get(str(anchor), 0.0)
+        z -= self._known_bias.get(key, 0.0)
+        if tag is None and a >= 0 and math.isfinite(t) and math.isfinite(z):
+            pm = self._pend_m
+            pm.append((t, a, -1, z))
+            if len(pm) >= MEAS_BATCH:
+                self._flush()
+            return
+        # another tag, an unknown anchor or a non-finite value: counted (or routed) by _add, in order
+        self._flush()
         self._add(np.array([t]), np.array([a], dtype=np.int64), np.full(1, -1, dtype=np.int64), np.array([z]),
                   None if tag is None else (tag,), stream="range")
 
@@ -579,7 +607,24 @@ class Eskf:
         self._add(t, a, np.full(len(t), -1, dtype=np.int64), z, tags, stream="range")
 
     def push_tdoa(self, t: float, anchor_a: str, anchor_b: str, tdoa: float, tag: Optional[str] = None) -> None:
-        """One TDoA ``|p_U - p_b| - |p_U - p_a|`` [m] stamped ``t`` [s, UWB clock]."""
+        """One TDoA ``|p_U - p_b| - |p_U - p_a|`` [m] stamped ``t`` [s, UWB clock]; checked as
+        :meth:`push_tdoas` checks.  Kept and handed over with the next chunk as :meth:`push_range`."""
+        if tag is None:
+            try:
+                tf, z = float(t), float(tdoa)
+            except (TypeError, ValueError):
+                tf = z = math.nan  # push_tdoas says what is wrong
+            ka = anchor_a if type(anchor_a) is str else str(anchor_a)
+            kb = anchor_b if type(anchor_b) is str else str(anchor_b)
+            a, b = self._index.get(ka, -1), self._index.get(kb, -1)
+            if a >= 0 and b >= 0 and a != b and math.isfinite(tf) and math.isfinite(z) \
+                    and abs(z) <= self._pair_dist[a, b]:
+                kb_ = self._known_bias
+                pm = self._pend_m
+                pm.append((tf, a, b, z - (kb_.get(kb, 0.0) - kb_.get(ka, 0.0))))
+                if len(pm) >= MEAS_BATCH:
+                    self._flush()
+                return
         self.push_tdoas((t,), (anchor_a,), (anchor_b,), (tdoa,), None if tag is None else (tag,))
 
     def push_tdoas(self, t: np.ndarray, anchors_a: Sequence[str], anchors_b: Sequence[str], tdoa: np.ndarray,
@@ -794,7 +839,7 @@ class Eskf:
         t = float(self._mt.a[self._mt.n - 1]) if self._mt.n else 0.0
         self._events.append({"t": t, "kind": kind, **fields})
 
-    def _add(self, t, a, b, z, tags, tag_idx=None, stream: str = "uwb") -> None:
+    def _add(self, t, a, b, z, tags, tag_idx=None, stream: str = "uwb", step: bool = True) -> None:
         ok = a >= 0
         rej = self._rej
 
@@ -830,7 +875,8 @@ class Eskf:
         rec[:, REC_ACC] = 0.0
         self._rec.extend(rec)
         self._watermark = max(self._watermark, float(t.max()))
-        self._step()
+        if step:
+            self._step()
 
     def _imu_appended(self) -> None:
         """Mid-interval inputs that became final, gaps and rotation-gate statistics of new samples."""
