@@ -19,12 +19,15 @@ supervisor, rotation gate, recording at 20 Hz) with the full 19x19 covariance at
 * the whole process: ``uwbimu estimate DS -o OUT --no-plots`` in a subprocess on the same log written
   as a dataset folder; its CPU (``resource.getrusage(RUSAGE_CHILDREN)``: user + system, imports,
   parsing, numba load, initialiser, outputs) divided by its own ``run.json`` ``filter_cpu_seconds`` and
-  by the in-process filter pass (target <= 3); ``--no-process`` skips it;
+  by the in-process filter pass (target <= 3); ``--no-process`` skips it; its CPU broken down (a second
+  child that times its own phases with ``time.process_time``: start-up imports, loading, the estimator's
+  imports, the filter passes, the rest of ``run_eskf``, writing the outputs, the rest);
+  ``--process-only`` measures only the filter pass and this (a minute instead of five);
 * a pure-Python baseline (reference RK4 of ``uwbimu.models.reference.propagate`` + a dense NumPy
   covariance step);
 * navlie's EKF per IMU sample (``benchmarks/bench_navlie.py``) when navlie is installed.
 
-Run: ``python benchmarks/bench_eskf.py [--minutes 10] [--baseline-ref REF] [--no-process]``
+Run: ``python benchmarks/bench_eskf.py [--minutes 10] [--baseline-ref REF] [--no-process | --process-only]``
 (``--minutes 1`` is a quick smoke run).  CPU seconds are
 ``time.process_time`` (the figure to compare on a shared machine), the best of ``--repeat`` runs each.
 Numba kernels are cached on disk (``cache=True``): the second run reports zero cache misses.
@@ -64,6 +67,8 @@ def main() -> None:
                     help="alternated runs of the filter pass and the dense loop for the ratio (best of each)")
     ap.add_argument("--no-process", action="store_true",
                     help="skip the whole-process measurement (uwbimu estimate --no-plots in a subprocess)")
+    ap.add_argument("--process-only", action="store_true",
+                    help="only the filter pass (cov_every=1) and the whole process with its breakdown")
     ap.add_argument("--navlie-seconds", type=float, default=10.0, help="log seconds navlie runs on (when installed)")
     ap.add_argument("--targets", action="store_true", help="measure the accuracy targets instead of speed")
     ap.add_argument("--seeds", type=int, default=8, help="noise seeds of the excited flight (--targets)")
@@ -216,12 +221,13 @@ def dense_reference(prob, x0, P0, repeat: int) -> tuple[float, int]:
     return best, len(t) - 1
 
 
-def whole_process(ds, repeat: int) -> tuple[float, float, float]:
+def whole_process(ds, repeat: int) -> tuple[float, float, float, dict]:
     """``uwbimu estimate DS -o OUT --no-plots`` on ``ds`` written as a dataset folder, in a subprocess.
 
     Returns (CPU seconds of the child: user + system, from ``RUSAGE_CHILDREN``; wall seconds; its
-    ``run.json`` ``filter_cpu_seconds``), the run of least CPU of ``repeat`` after one untimed run that
-    fills numba's disk cache for every kernel the command calls (a user's second run).
+    ``run.json`` ``filter_cpu_seconds``; the :func:`process_breakdown` of the run of least total of
+    ``repeat`` more), the run of least CPU of ``repeat`` after one untimed run that fills numba's disk cache
+    for every kernel the command calls (a user's second run).
     """
     import resource
 
@@ -244,7 +250,76 @@ def whole_process(ds, repeat: int) -> tuple[float, float, float]:
             run = json.loads((out / "run.json").read_text())
             if i and cpu < best[0]:
                 best = (cpu, wall, float(run["filter_cpu_seconds"]))
-    return best
+        parts = min((process_breakdown(folder, out) for _ in range(max(1, repeat))), key=lambda b: b["total"])
+    return (*best, parts)
+
+
+# the whole process's CPU by phase, timed by the child itself (argv: dataset, out); the phases are the CLI's own
+# functions, wrapped before the command runs
+_PHASES_SNIPPET = r"""
+import functools, json, sys, time
+from uwbimu.cli.main import app
+T = {"start": time.process_time()}
+def timed(mod, name, label):
+    f = getattr(mod, name)
+    @functools.wraps(f)
+    def w(*a, **k):
+        c = time.process_time()
+        try:
+            return f(*a, **k)
+        finally:
+            T[label] = T.get(label, 0.0) + time.process_time() - c
+    setattr(mod, name, w)
+    return w
+import uwbimu.cli.dataset_options as DO, uwbimu.cli.estimate as E, uwbimu.estimation as EST
+import uwbimu.estimation.outputs as O
+timed(DO, "load", "load")
+timed(E, "run_with_progress", "estimator")
+EST.write_outputs = timed(O, "write_outputs", "write")
+sys.argv = ["uwbimu", "estimate", sys.argv[1], "-o", sys.argv[2], "--no-plots", "--force"]
+try:
+    app()
+except SystemExit as exc:
+    if exc.code:
+        raise
+T["total"] = time.process_time()
+print(json.dumps(T))
+"""
+
+
+def process_breakdown(ds_folder: Path, out: Path) -> dict:
+    """CPU seconds of one ``uwbimu estimate DS -o OUT --no-plots`` by phase, timed in the child.
+
+    Returns ``start`` (interpreter start and ``uwbimu.cli.main``'s imports), ``load`` (the dataset),
+    ``estimator_imports`` (the estimator's modules and numba, imported when the command first runs it),
+    ``filter`` (the filter passes, run.json ``filter_cpu_seconds``), ``run_eskf_rest`` (the rest of
+    ``run_eskf``: problem set-up, noise from the log, initialiser, numba cache loads, assembly), ``write``
+    (the output files), ``rest`` (the total less these: the command's other imports and printing) and
+    ``total``.
+    """
+    env = dict(os.environ, NUMBA_NUM_THREADS="1")
+    res = subprocess.run([sys.executable, "-c", _PHASES_SNIPPET, str(ds_folder), str(out)], check=True,
+                         capture_output=True, text=True, env=env)
+    T = json.loads(res.stdout.strip().splitlines()[-1])
+    run = json.loads((out / "run.json").read_text())
+    filt, tot = float(run["filter_cpu_seconds"]), float(run["total_cpu_seconds"])
+    b = {"start": T["start"], "load": T["load"], "estimator_imports": T["estimator"] - tot, "filter": filt,
+         "run_eskf_rest": tot - filt, "write": T["write"]}
+    b["rest"] = T["total"] - sum(b.values())
+    b["total"] = T["total"]
+    return b
+
+
+def print_whole_process(ds, repeat: int, filter_cpu: float) -> None:
+    """Print the whole process's CPU, its ratios to its own and to the in-process filter pass
+    (``filter_cpu`` [s]), and its breakdown."""
+    cpu_p, wall_p, fc_p, parts = whole_process(ds, repeat)
+    print(f"whole process `uwbimu estimate DS -o OUT --no-plots` (subprocess, same log as a dataset folder): "
+          f"{cpu_p:.2f} s CPU ({wall_p:.2f} s wall); its run.json filter_cpu_seconds {fc_p:.3f} s")
+    print(f"RATIO whole process CPU / filter pass CPU: {cpu_p / fc_p:.2f}x its own run.json filter pass, "
+          f"{cpu_p / filter_cpu:.2f}x the in-process filter pass (target <= 3)")
+    print("  breakdown (s CPU, timed in the child, its run of least total): "
+          + ", ".join(f"{k.replace('_', ' ')} {v:.2f}" for k, v in parts.items()))
 
 
 def speed(args) -> None:
@@ -282,6 +357,17 @@ def speed(args) -> None:
     hits = sum(sum(f.stats.cache_hits.values()) for f in disp)
     print(f"import {t_import:.2f} s; initialiser + first pass (incl. JIT load) {t_first:.2f} s; "
           f"numba cache hits {hits}, misses {misses} ({'compiled now' if misses else 'no recompilation'})")
+    if args.process_only:
+        prob.cov_every = 1
+        best_pass = np.inf
+        for _ in range(max(1, args.repeat)):
+            c0 = time.process_time()
+            run_pass(prob, st.x, st.P, st.k, st.j)
+            best_pass = min(best_pass, time.process_time() - c0)
+        print(f"filter pass cov_every=1, compiled: {best_pass:.3f} s CPU -> {n_imu / best_pass:,.0f} IMU samples "
+              f"per CPU second")
+        print_whole_process(ds, args.repeat, best_pass)
+        return
 
     def timed(engine: str):
         best, best_wall, res = np.inf, np.inf, None
@@ -379,11 +465,7 @@ def speed(args) -> None:
           f"samples per CPU second")
 
     if not args.no_process:
-        cpu_p, wall_p, fc_p = whole_process(ds, args.repeat)
-        print(f"whole process `uwbimu estimate DS -o OUT --no-plots` (subprocess, same log as a dataset folder): "
-              f"{cpu_p:.2f} s CPU ({wall_p:.2f} s wall); its run.json filter_cpu_seconds {fc_p:.3f} s")
-        print(f"RATIO whole process CPU / filter pass CPU: {cpu_p / fc_p:.2f}x its own run.json filter pass, "
-              f"{cpu_p / rows[1, 'compiled'][0]:.2f}x the in-process filter pass (target <= 3)")
+        print_whole_process(ds, args.repeat, rows[1, "compiled"][0])
 
     nv = _navlie_cost(args.navlie_seconds)
     if nv is not None:
