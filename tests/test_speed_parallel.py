@@ -62,3 +62,31 @@ def test_a_failing_task_is_a_line_when_measured_first_too(monkeypatch):
                      describe=lambda t: f"task {t}")
     assert len(failed) == 1 and failed[0].startswith("task 3: ValueError")
     assert sorted(x for x, *_ in got) == [1, 2, 4]
+
+
+def test_the_fork_rule_compares_the_shared_work_with_the_caller_alone():
+    # two windows of 0.7 s left: forked start 0.3 s + one window each (1.0 s) < 1.4 s alone
+    assert parallel.fork_pays(2, 0.7, workers=2, start_s=0.3)
+    assert not parallel.fork_pays(2, 0.25, workers=2, start_s=0.3)  # 0.55 s shared, 0.5 s alone
+    assert not parallel.fork_pays(1, 10.0, workers=2, start_s=0.0)  # one task: nothing to share
+    assert parallel.fork_pays(3, 0.4, workers=2, start_s=0.3)      # 0.3 + 0.8 < 1.2
+    assert not parallel.fork_pays(3, 0.3, workers=2, start_s=0.3)  # 0.9, not less than 0.9
+
+
+def test_a_warm_single_threaded_caller_forks_its_pool(monkeypatch):
+    """Where the platform forks and the caller runs one thread, the pool is forked from it (its workers start
+    warm); the results are the serial ones and both processes work."""
+    if not parallel._can_fork():
+        import pytest
+
+        pytest.skip("no fork here, or this test process runs other threads")
+    forked = []
+    real = parallel._fork_executor
+    monkeypatch.setattr(parallel, "_fork_executor", lambda w: forked.append(w) or real(w))
+    monkeypatch.setattr(parallel, "_new_executor", lambda *a, **k: (_ for _ in ()).throw(AssertionError("forkserver")))
+    got = []
+    assert execute(_slow, list(range(8)), got.append, workers=2, preload=(), caller=True, measure_first=True) == []
+    assert forked == [1]
+    assert sorted((x, y) for x, y, _ in got) == [(x, x * x) for x in range(8)]
+    pids = {pid for *_, pid in got}
+    assert os.getpid() in pids and len(pids) == 2

@@ -11,6 +11,7 @@ not finish (a dead worker is reported, not fatal).  ``fn`` must be a module-leve
 
 from __future__ import annotations
 
+import math
 import os
 import time
 import uuid
@@ -35,6 +36,10 @@ _WARM_ESKF = "uwbimu.studies.warm_eskf"
 POOL_START_S = 4.0
 #: the same once this process's forkserver runs (a later pool only forks workers from it)
 POOL_RESTART_S = 0.3
+#: a pool forked from this (warm) process, :func:`_fork_executor`: the workers inherit its imports and
+#: numba's loaded machine code, so they start in a fraction of a second (0.02-0.06 s wall to the first
+#: result for one worker on the 2-core development machine, loaded; an upper-side figure)
+POOL_FORK_S = 0.3
 
 
 def pool_start_estimate() -> float:
@@ -62,6 +67,42 @@ def pool_pays(remaining_s: float, task_s: float = 0.0, start_s: Optional[float] 
     a start that cannot pay costs more than it saves."""
     start = pool_start_estimate() if start_s is None else start_s
     return remaining_s > start + 2.0 * task_s
+
+
+def fork_pays(n_left: int, task_s: float, workers: int = 2, start_s: Optional[float] = None) -> bool:
+    """The rule for a pool forked from the caller (:func:`_fork_executor`): its start, ``start_s`` [s]
+    (default :data:`POOL_FORK_S`), blocks the caller, then ``workers`` processes share the ``n_left`` tasks of
+    ``task_s`` [s] each; it pays when that ends before the caller alone would,
+    ``start_s + ceil(n_left / workers) * task_s < n_left * task_s``.  Unlike a forkserver's start
+    (:func:`pool_pays`) it is short against a task, so two tasks left of a few tenths of a second each
+    already pay (the repeatability windows)."""
+    start = POOL_FORK_S if start_s is None else start_s
+    n = int(n_left)
+    return n >= 2 and start + math.ceil(n / max(int(workers), 1)) * task_s < n * task_s
+
+
+def _can_fork() -> bool:
+    """Whether :func:`_fork_executor` may be used now: the platform has ``fork`` and this process runs one
+    thread (a fork copies only the calling thread: a lock another thread held would stay locked in the
+    child forever)."""
+    import multiprocessing as mp
+    import threading
+
+    return "fork" in mp.get_all_start_methods() and threading.active_count() == 1
+
+
+def _fork_executor(workers: int) -> ProcessPoolExecutor:
+    """A pool whose workers are forked from this process, now, from this thread (call only when
+    :func:`_can_fork`).  Why: the caller of ``execute(..., caller=True, measure_first=True)`` has just run
+    a task, so its imports are done and numba's machine code is loaded; forked workers start warm, where a
+    forkserver's would import and load it all again (:data:`POOL_START_S`).  A ``fork`` pool starts its
+    processes at the first submit, before its manager thread: the probe submitted here forks them while
+    this process still runs one thread."""
+    import multiprocessing as mp
+
+    ex = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("fork"), initializer=_one_blas_thread)
+    ex.submit(os.getpid).result()
+    return ex
 
 
 def _one_blas_thread() -> None:
@@ -134,6 +175,7 @@ def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], No
         else:
             on_chunk(chunk)
 
+    forked = False
     if measure_first and own:
         n_done = 0
         while todo:
@@ -143,14 +185,26 @@ def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], No
             # the first task carries this process's one-time warm-up (numba's machine code, caches): its
             # duration decides only when it was the last but one
             d = time.perf_counter() - w0
-            if (n_done > 1 or len(todo) <= 1) and pool_pays(len(todo) * d, d):
+            if _can_fork():
+                # a forked pool costs little: decide on the first task (its warm-up only makes it look longer)
+                if fork_pays(len(todo), d, workers):
+                    break
+            elif (n_done > 1 or len(todo) <= 1) and pool_pays(len(todo) * d, d):
                 break
         if not todo:
             return failures
         tasks = list(todo)
+        if _can_fork():
+            try:
+                box[0] = _fork_executor(max(1, workers - 1))
+                forked = True
+            except Exception:  # noqa: BLE001 - no fork pool: the forkserver's, started below
+                box[0] = None
     results: _queue.Queue = _queue.Queue()
     stop, up, dead = threading.Event(), threading.Event(), threading.Event()
     lock = threading.Lock()
+    if forked:
+        up.set()  # the probe came back in _fork_executor
 
     def starter() -> None:
         # in a thread: a forkserver's first process start blocks until the server has imported the preload
@@ -187,7 +241,7 @@ def _run_with_caller(fn, tasks: list, workers: int, on_chunk: Callable[[Any], No
             if isinstance(f.exception(), BrokenProcessPool):
                 return
 
-    threads = [threading.Thread(target=starter, daemon=True, name="uwbimu-pool-start")]
+    threads = [] if forked else [threading.Thread(target=starter, daemon=True, name="uwbimu-pool-start")]
     threads += [threading.Thread(target=feeder, daemon=True, name=f"uwbimu-feeder-{i}")
                 for i in range(max(1, workers - 1))]
     for th in threads:
@@ -368,7 +422,9 @@ def execute(
         the caller's thread only.
     measure_first : (with ``caller``) time one task in the caller first and start a pool only when the tasks
         left would take longer serially than the pool's start (:func:`pool_pays`): for jobs whose size is
-        not known in advance, such as the repeatability windows (a few tenths of a second each).
+        not known in advance, such as the repeatability windows (a few tenths of a second each).  Where
+        the platform forks and this process runs one thread, the pool's workers are forked from this warm
+        process (:func:`_fork_executor`, start :data:`POOL_FORK_S`), else started by the forkserver.
 
     Returns
     -------
