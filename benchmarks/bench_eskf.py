@@ -294,19 +294,26 @@ def process_breakdown(ds_folder: Path, out: Path) -> dict:
     ``estimator_imports`` (the estimator's modules and numba, imported when the command first runs it),
     ``filter`` (the filter passes, run.json ``filter_cpu_seconds``), ``run_eskf_rest`` (the rest of
     ``run_eskf``: problem set-up, noise from the log, initialiser, numba cache loads, assembly), ``write``
-    (the output files), ``rest`` (the total less these: the command's other imports and printing) and
-    ``total``.
+    (the output files), ``rest`` (the command's other work: the estimator registry's imports, numba among
+    them, the clock-fault test's, the options, the console tables), ``exit`` (the interpreter's
+    finalisation) and ``total`` (the child's user + system CPU, ``RUSAGE_CHILDREN``).
     """
+    import resource
+
     env = dict(os.environ, NUMBA_NUM_THREADS="1")
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     res = subprocess.run([sys.executable, "-c", _PHASES_SNIPPET, str(ds_folder), str(out)], check=True,
                          capture_output=True, text=True, env=env)
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     T = json.loads(res.stdout.strip().splitlines()[-1])
     run = json.loads((out / "run.json").read_text())
     filt, tot = float(run["filter_cpu_seconds"]), float(run["total_cpu_seconds"])
     b = {"start": T["start"], "load": T["load"], "estimator_imports": T["estimator"] - tot, "filter": filt,
          "run_eskf_rest": tot - filt, "write": T["write"]}
     b["rest"] = T["total"] - sum(b.values())
-    b["total"] = T["total"]
+    b["exit"] = cpu - T["total"]
+    b["total"] = cpu
     return b
 
 
