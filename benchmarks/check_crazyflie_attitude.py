@@ -15,13 +15,18 @@ Per log (a folder imported with ``uwbimu import cf-usdlog``):
    2 s block the position RMS error and the median yaw error against the Vicon attitude.
 4. **Oracles** (never estimators: they read the truth; ``--no-oracles`` skips them): the ESKF started
    at the Vicon yaw (sd 5 deg) with a tight gyro-bias prior (0.03 deg/s), and the ESKF with the TDoA
-   sd set to 0.25 / 0.30 / 0.40 m. They bound what a better start or another TDoA sigma can buy.
+   sd set to 0.25 / 0.30 / 0.40 m; and a perfect non-line-of-sight detector: per 0.5 s window, the rows of
+   every anchor whose TDoA residuals against the truth (tag = Vicon pose + rotated nominal lever arm) have a
+   median magnitude above 0.5 m are removed, then the ESKF runs with the default, 0.30 and 0.40 m TDoA sd.
+   They bound what a better start, another TDoA sigma or a burst detector can buy.
 
 Measured 2026-11-29 (traj16): the gyro implies |bias| < 0.06 deg/s over the flight (1.4 deg residual
 over 24 s) while the ESKF estimates 2.3 deg/s about z (the batch the same) and its yaw error ramps
 from +55 to -25 deg; the oracle start (true yaw, tight gyro bias; yaw then within 10 deg all flight)
 leaves the RMSE at 0.40 m (default 0.42); TDoA sd 0.25 / 0.30 / 0.40 m give 0.400 / 0.339 / 0.326 m, the
-multilateration's 0.327 at best, and the 0.25 m run ends at the same RMSE with a yaw 160 deg off for 10 s:
+multilateration's 0.327 at best; the NLOS-detector oracle removes 1,460 of 6,347 rows and gives 0.85-0.89 m
+(a hand-picked removal of anchors 1 and 2 over 18-19.6 s gave 0.300 / 0.289 m with sd 0.30 / 0.40 m and
+0.92 m with the default); the 0.25 m run ends at the same RMSE as the default with a yaw 160 deg off for 10 s:
 on this vibrating IMU (accel sd 1-2.4 m/s^2 per axis, body-x mean -2.4 to +0.04 m/s^2 from block to
 block) the position barely depends on the attitude, the filter follows the TDoA, and the error left
 is the TDoA's own (the 18-20 s burst of anchors 1 and 2, `check_tdoa_z_offset.py`).
@@ -80,6 +85,31 @@ def accel_blocks(ds, t0: float, t1: float) -> list[tuple[float, np.ndarray, np.n
     return out
 
 
+def without_nlos_rows(ds, window_s: float = 0.5, limit_m: float = 0.5):
+    """A copy of ``ds`` without the rows of anchors that the truth shows non-line-of-sight (an oracle)."""
+    import dataclasses
+
+    from uwbimu.io.importers.cf_usdlog import UTIL_T_UV
+    from uwbimu.metrics.filter import truth_at
+    td = ds.tdoa
+    t = td["t"].to_numpy(float)
+    p, q, _, ok = truth_at(ds, t)
+    tag = p + _rot(q).apply(np.asarray(UTIL_T_UV, float))
+    pos = {str(a): np.array([x, y, z]) for a, x, y, z in ds.anchors[["anchor", "x", "y", "z"]].itertuples(index=False)}
+    pa = np.array([pos[str(a)] for a in td["anchor_a"]])
+    pb = np.array([pos[str(b)] for b in td["anchor_b"]])
+    res = td["tdoa"].to_numpy(float) - (np.linalg.norm(tag - pb, axis=1) - np.linalg.norm(tag - pa, axis=1))
+    drop = np.zeros(len(td), bool)
+    win = np.floor(t / window_s).astype(int)
+    for w in np.unique(win[ok]):
+        m = (win == w) & ok
+        for anc in set(td["anchor_a"][m].astype(str)) | set(td["anchor_b"][m].astype(str)):
+            mine = m & ((td["anchor_a"].astype(str) == anc) | (td["anchor_b"].astype(str) == anc)).to_numpy()
+            if mine.any() and np.median(np.abs(res[mine])) > limit_m:
+                drop |= mine
+    return dataclasses.replace(ds, tdoa=td[~drop].reset_index(drop=True)), int(drop.sum())
+
+
 def eskf_report(ds, opts, label: str) -> None:
     from uwbimu.estimation import run_eskf
     from uwbimu.metrics.filter import truth_at
@@ -128,6 +158,11 @@ def main() -> int:
                         "oracle: Vicon yaw at the start, gyro-bias sd 0.03 deg/s")
             for s in (0.25, 0.30, 0.40):
                 eskf_report(ds, EskfOptions(tdoa_sigma=s), f"oracle-tuned: tdoa_sigma {s:.2f} m")
+            clean, removed = without_nlos_rows(ds)
+            print(f"  oracle NLOS detector: {removed} of {len(ds.tdoa)} TDoA rows removed")
+            for s in (None, 0.30, 0.40):
+                eskf_report(clean, EskfOptions(tdoa_sigma=s),
+                            f"oracle NLOS detector, tdoa_sigma {'default' if s is None else f'{s:.2f} m'}")
     return 0
 
 
