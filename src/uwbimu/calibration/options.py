@@ -234,7 +234,7 @@ class RangeModelOptions(BaseModel):
                             "(`direction` gives the direction candidate's form); 'given': the model as configured. "
                             "The graph's Huber threshold stays huber_k's (adaptive, or a number: the families are "
                             "then compared at it)")
-    select_folds: int = Field(5, ge=3, le=20, description="time blocks of the cross-validation with select: cv")
+    select_folds: int = Field(5, ge=3, le=20, description="time blocks of the cross-validation (select: auto or cv)")
 
 
 #: Huber threshold of the first solves when ``huber_k: adaptive`` (Huber's 95 %-efficiency value, robust enough that

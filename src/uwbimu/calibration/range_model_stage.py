@@ -160,7 +160,12 @@ def choose_and_resolve(start, o, built, solved, solve, events: list):
     -------
     ``(o, built, solved, record)``: the options with the chosen model (as given when none was chosen), the
     problem and solve under them, and calibration.yaml's ``range_model.selection`` (the selection's record with
-    ``select: cv``, else ``{select: given | configured | not_applicable, reason}``).
+    ``select: cv``, else ``{select: given | configured | not_applicable, reason}``; ``not_applicable`` also when
+    the log is too short for the time blocks, which with ``select: cv`` raises).
+
+    Raises
+    ------
+    InputError : ``select: cv`` on a log too short for its time blocks.
     """
     mode, why = selection_mode(o, start.dataset, built.problem)
     if mode != "select":
@@ -169,8 +174,15 @@ def choose_and_resolve(start, o, built, solved, solve, events: list):
     # sigma units, robust_loss; a number: kept): the selection's k is in units of its fitted innovation sd, not of
     # range_sigma.  A numeric huber_k is also the only threshold the families are compared at.
     grid = HUBER_GRID if o.huber_k == "adaptive" else (float(o.huber_k),)
-    sel: RangeModelSelection = select_on_residuals(solve_residuals(built.problem, solved), o, huber_grid=grid,
-                                                   basis="free_solve")
+    try:
+        sel: RangeModelSelection = select_on_residuals(solve_residuals(built.problem, solved), o, huber_grid=grid,
+                                                       basis="free_solve")
+    except InputError as exc:
+        if o.range_model.select == "cv":
+            raise
+        # too short for the cross-validation (a time block with fewer than MIN_BLOCK_ROWS ranges): the log cannot
+        # choose, the configured model is kept
+        return o, built, solved, {"select": "not_applicable", "reason": str(exc)}
     o2 = apply_selection(o, sel, huber=False)
     o2.check_log(start.dataset)
     record = {"select": "cv", **sel.as_dict()}
