@@ -168,9 +168,13 @@ def residual_rich_table(table_df, title: str = "Range residuals per anchor", key
     return t
 
 
-def print_residual_tables(console: Console, result) -> None:
+def print_residual_tables(console: Console, result, written_table=None) -> None:
     """Innovation tables of a run: per anchor for ranges, per anchor pair for TDoA; none for a kind
-    the run has no rows of (a TDoA-only log prints no range table)."""
+    the run has no rows of (a TDoA-only log prints no range table).
+
+    ``written_table``: the run's residual_table.csv as :func:`uwbimu.estimation.outputs.write_outputs` returned
+    it; a run with ranges only prints it instead of computing it again (the same function of the same rows).
+    """
     from types import SimpleNamespace
 
     from uwbimu.estimation.outputs import residual_table
@@ -178,9 +182,12 @@ def print_residual_tables(console: Console, result) -> None:
 
     r = result.residuals
     kind = r["kind"].astype(str).to_numpy() if "kind" in r.columns else np.full(len(r), "range")
-    ranges = r[kind == "range"]
-    if len(ranges):
-        console.print(residual_rich_table(residual_table(SimpleNamespace(residuals=ranges))))
+    is_range = kind == "range"
+    if is_range.any():
+        if written_table is not None and is_range.all():
+            console.print(residual_rich_table(written_table))
+        else:
+            console.print(residual_rich_table(residual_table(SimpleNamespace(residuals=r[is_range]))))
     td = r[kind == "tdoa"]
     if len(td):
         # one row per unordered pair: (b, a) rows read as (a, b) with the innovation's sign flipped
@@ -369,7 +376,7 @@ def register(app: typer.Typer) -> None:
         with output_folder(out, force, protect=[dataset], names=sorted(OUTPUT_FILES),
                            finite=NAN_DOCUMENTED) as tmp:
             written = write_outputs(res, ds, tmp, plots=plots)
-        print_residual_tables(console, res)
+        print_residual_tables(console, res, written["residual_table"])
         console.print(calibration_table(res, ds))
         comparison = truth_comparison(res, ds, written["metrics"])
         print_truth_comparison(console, comparison)
