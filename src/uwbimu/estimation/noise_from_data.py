@@ -76,7 +76,7 @@ def imu_noise_from_log(t: np.ndarray, u: np.ndarray, preset: ImuNoise) -> tuple[
     band_hz: [lo, hi], seconds, status}`` with densities in m/s^2/sqrt(Hz) and rad/s/sqrt(Hz);
     ``status`` is ``measured`` or ``too short`` (then the preset is used unchanged).
     """
-    from scipy.signal import welch
+    from uwbimu.estimation.spectrum import welch_psd as welch
 
     t = np.asarray(t, dtype=float)
     u = np.asarray(u, dtype=float)

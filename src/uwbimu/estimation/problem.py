@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from typing import Any, Optional, Sequence
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import gammaincinv
 
 from uwbimu.estimation import kernels as K
 from uwbimu.estimation.filterpass import Problem
@@ -197,7 +197,7 @@ def make_settings(
         block_sd={b.name: float(_option(opts, b.prior_sd_option)) if layout.count[b.name] else 0.0
                   for b in layout.declarations if b.prior_sd_option is not None},
     )
-    gate = float(chi2.ppf(opts.gating.probability, 1)) if opts.gating.probability < 1 else -1.0
+    gate = float(2 * gammaincinv(1 / 2, opts.gating.probability)) if opts.gating.probability < 1 else -1.0
     imu = np.array([noise.accel_noise_density**2, noise.gyro_noise_density**2, noise.accel_bias_rw**2,
                     noise.gyro_bias_rw**2])
     pn_values = block_process_noise(opts, layout)

@@ -8,11 +8,19 @@ Public API::
 See ``docs/real_data.md`` and ``docs/report.md``.
 """
 
-from uwbimu.metrics.align import Alignment, align_trajectories  # noqa: F401
-from uwbimu.eval.evaluate import evaluate_output  # noqa: F401
-from uwbimu.metrics.trajectory import associate, detect_glitches, evaluate_trajectory, relative_pose_error  # noqa: F401
-from uwbimu.eval.repeatability import consistency, repeatability, split_windows  # noqa: F401
-from uwbimu.eval.report import render_report, write_report  # noqa: F401
+from importlib import import_module
+
+#: public name -> defining module (resolved on first use, PEP 562: ``uwbimu.eval.clock_faults`` imported by
+#: ``uwbimu estimate`` does not pull the repeatability study's scipy.stats or the report's renderer)
+_EXPORTS = {
+    "Alignment": "uwbimu.metrics.align", "align_trajectories": "uwbimu.metrics.align",
+    "evaluate_output": "uwbimu.eval.evaluate",
+    "associate": "uwbimu.metrics.trajectory", "detect_glitches": "uwbimu.metrics.trajectory",
+    "evaluate_trajectory": "uwbimu.metrics.trajectory", "relative_pose_error": "uwbimu.metrics.trajectory",
+    "consistency": "uwbimu.eval.repeatability", "repeatability": "uwbimu.eval.repeatability",
+    "split_windows": "uwbimu.eval.repeatability",
+    "render_report": "uwbimu.eval.report", "write_report": "uwbimu.eval.report",
+}
 
 __all__ = [
     "Alignment",
@@ -28,3 +36,12 @@ __all__ = [
     "render_report",
     "write_report",
 ]
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'uwbimu.eval' has no attribute {name!r}")
+    value = getattr(import_module(module), name)
+    globals()[name] = value
+    return value

@@ -66,7 +66,6 @@ import copy
 from typing import Any, Callable, Optional
 
 import numpy as np
-from scipy.stats import chi2
 
 from uwbimu.estimation.noise_from_data import residual_variance_factor
 from uwbimu.eval.clock_windows import ALPHA, consistency_tests, fit_step, windowed_time_offsets
@@ -507,7 +506,9 @@ def confirm_fault(ev: dict[str, Any], corrected_run, gain: float, alpha: float =
     L = max(1.0, lrv) if np.isfinite(lrv) else 1.0
     c = float(ev.get("dispersion", 1.0))
     z = float(ev["z"]) * c / max(c, np.sqrt(L))
-    threshold = float(chi2.isf(alpha, ADDED_PARAMETERS[ev["kind"]]))
+    from scipy.special import chdtri
+
+    threshold = float(chdtri(ADDED_PARAMETERS[ev["kind"]], alpha))
     g = float(gain) / L
     return {"confirmed": bool(z > float(ev["crit"]) and g > threshold), "long_run_variance": L,
             "long_run_variance_measured": lrv, "z_calibrated": z, "likelihood_gain": float(gain),

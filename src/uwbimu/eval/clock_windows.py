@@ -27,7 +27,7 @@ from __future__ import annotations
 from typing import Any, Optional
 
 import numpy as np
-from scipy.stats import norm
+from scipy.special import ndtri
 
 from uwbimu.models.state import BA, BG, EBA, EBG, EPIU, ETD, PIU, TD
 
@@ -245,10 +245,10 @@ def consistency_tests(win: dict[str, np.ndarray], t_ref: float, alpha: float = A
     phi = lag1_correlation((y - better) * np.sqrt(w))
     n_split = n - 3
     out.update({"scale": c, "phi": phi, "offset_at_ref": a, "slope": s, "slope_sd": c * s_sd,
-                "chi2_line": chi_line, "z_drift": abs(s) / (c * s_sd), "crit_drift": float(norm.isf(alpha / 2)),
+                "chi2_line": chi_line, "z_drift": abs(s) / (c * s_sd), "crit_drift": float(-ndtri(alpha / 2)),
                 "k": int(k), "t_split": float(win["t0"][k]), "m1": m1, "m2": m2, "step_sd": c * st_sd,
                 "chi2_step": chi_step, "z_jump": abs(m2 - m1) / (c * st_sd),
-                "crit_jump": float(norm.isf(alpha / (2 * n_split)))})
+                "crit_jump": float(-ndtri(alpha / (2 * n_split)))})
     if not (np.isfinite(out["z_drift"]) and np.isfinite(out["z_jump"]) and out["slope_sd"] > 0 and out["step_sd"] > 0):
         return {"verdict": None, "n": n, "alpha": alpha}
     jump = out["z_jump"] > out["crit_jump"]
