@@ -1,6 +1,6 @@
 """Acceptance on real sequences, defaults only: both estimators, lever arm and t_d against the documented.
 
-    python benchmarks/acceptance_real.py DATASET [DATASET ...] [--no-batch] [--markdown]
+    python benchmarks/acceptance_real.py DATASET [DATASET ...] [--no-batch]
 
 DATASET: folders imported with the documented verbs (``uwbimu import inrol|isas-walk|cf-usdlog ...``).
 Per sequence and estimator (``run_eskf`` = ``uwbimu estimate``, ``calibrate`` = ``uwbimu calibrate``,
