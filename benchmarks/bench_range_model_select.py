@@ -95,7 +95,8 @@ def main() -> None:
         base = simulate(builtin_scenario("calibration-flight").updated(duration=60.0, seeds={"noise": seed}))
         right["white"] += row(f"sim white, seed {seed}", base, a.basis) == "white"
         right["direction"] += row(f"sim direction bias, seed {seed}", with_direction_bias(base), a.basis) == "direction"
-        right["drift"] += row(f"sim AR(1) 3 s, seed {seed}", ar1_ranges(base, 0.10, 3.0, 1000 + seed), a.basis) == "drift"
+        ar1 = ar1_ranges(base, 0.10, 3.0, 1000 + seed)
+        right["drift"] += row(f"sim AR(1) 3 s, seed {seed}", ar1, a.basis) == "drift"
     print(f"\ntrue family chosen: {', '.join(f'{k} {v}/{a.seeds}' for k, v in right.items())}")
     from uwbimu.io.loader import load_dataset
 

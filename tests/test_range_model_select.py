@@ -208,7 +208,8 @@ def test_selection_mode_rule(flight):
     # a configured model with select: cv is replaced (selected)
     cv = CalibrationOptions.model_validate({"range_bias_drift": {"sd": 0.05}, "range_model": {"select": "cv"}})
     assert selection_mode(cv, flight, pb)[0] == "select"
-    assert selection_mode(CalibrationOptions.model_validate({"range_model": {"select": "given"}}), flight, pb)[0] == "given"
+    given = CalibrationOptions.model_validate({"range_model": {"select": "given"}})
+    assert selection_mode(given, flight, pb)[0] == "given"
     tdoa = copy.copy(pb)
     tdoa.anchor_b = np.zeros(len(pb.rho), np.int64)
     ds_tdoa = SimpleNamespace(tdoa=flight.uwb.head(3))
