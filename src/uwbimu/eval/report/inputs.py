@@ -97,7 +97,7 @@ class WarningItem:
 #: event kinds a console prints (prefixes): these and every event of severity warning / refused are warnings
 PRINTED_EVENT_KINDS = ("flight_segment", "anchor_", "lever_arm_not_identified", "range_errors_correlated_over_blocks",
                        "time_offset_held", "time_offset_not_identified", "calibration_held", "divergence", "clock_",
-                       "second_start_won")
+                       "second_start_won", "range_model_selected")
 
 
 def run_warning_items(text_warnings, events, source: str = "calibration.yaml events") -> list[WarningItem]:
