@@ -218,14 +218,16 @@ def test_selection_mode_rule(flight):
         selection_mode(CalibrationOptions.model_validate({"range_model": {"select": "cv"}}), ds_tdoa, tdoa)
 
 
-def test_default_calibrate_chooses_drift_on_coloured_ranges_and_keeps_a_configured_model(flight):
+def test_default_calibrate_chooses_drift_on_coloured_ranges_and_keeps_a_configured_model():
     """The default (``select: auto``) on a log with per-anchor AR(1) range errors (10 cm, 3 s): the stage chooses
     the drift family on the batch's free solve, the graph is solved with a drift model (calibration.yaml
     ``range_model.drift``), the lever arm lands within 3 sigma of the truth; with a model configured it is kept
     (``select: configured``, no selection event)."""
     from uwbimu.calibration import calibrate
 
-    ds = ar1_ranges(flight, sigma=0.10, tau=3.0, seed=1001)
+    # 30 s (not the module's 60 s flight): two calibrations with a drift graph are the suite's costliest test
+    short = simulate(builtin_scenario("calibration-flight").updated(duration=30.0, seeds={"noise": 1}))
+    ds = ar1_ranges(short, sigma=0.10, tau=3.0, seed=1001)
     cal = calibrate(ds, CalibrationOptions.model_validate({"td_profile": {"enabled": False}})).calibration
     sel = cal["range_model"]["selection"]
     assert sel["select"] == "cv" and sel["basis"] == "free_solve" and "drift" in sel["chosen"], sel["reason"]
@@ -233,8 +235,12 @@ def test_default_calibrate_chooses_drift_on_coloured_ranges_and_keeps_a_configur
     assert cal["range_model"]["drift"]["sd"] == pytest.approx(sel["params"]["drift_sd"])
     err = np.abs(np.subtract(cal["lever_arm"], ds.meta.truth.lever_arm))
     assert np.all(err < 3.0 * np.asarray(cal["lever_arm_sd"])), (cal["lever_arm"], cal["lever_arm_sd"])
+    # a configured model is kept as configured (a drift model other than the chosen one: its sd shows it; the
+    # white model configured explicitly takes ~2 min on these coloured ranges, ten times this)
     kept = calibrate(ds, CalibrationOptions.model_validate({"td_profile": {"enabled": False},
-                                                            "range_bias_drift": None})).calibration
+                                                            "range_bias_drift": {"sd": 0.2, "correlation_time": 5.0}}
+                                                           )).calibration
     assert kept["range_model"]["selection"]["select"] == "configured"
-    assert kept["range_model"]["drift"] is None
+    assert kept["range_model"]["drift"]["sd"] == pytest.approx(0.2)
+    assert kept["range_model"]["drift"]["sd"] != pytest.approx(sel["params"]["drift_sd"])
     assert not any(e["kind"] == "range_model_selected" for e in kept["events"])
