@@ -108,36 +108,36 @@ def test_chunks_give_the_per_sample_state_and_the_same_guards(flight_with_faults
     assert [e["kind"] for e in rest[0]].count("initialised") == 1
 
 
+def _replay_one_call_at_a_time(flight_with_faults, look_every: int):
+    """Feed the flight one push per sample in arrival order, reading the state every ``look_every`` calls (a
+    caller looking now and then); the filter and the states read."""
+    ds, imu, (t, a, r), kinds, idx = flight_with_faults
+    f = Eskf.for_dataset(ds, EskfOptions(), record=True)
+    seen = []
+    for n, (k, i) in enumerate(zip(kinds.tolist(), idx.tolist())):
+        if k == 0:
+            f.push_imu(imu[i, 0], imu[i, 1:4], imu[i, 4:7])
+        else:
+            f.push_range(t[i], a[i], r[i])
+        if n % look_every == 0:
+            s = f.state()
+            seen.append(None if s is None else (s.t_imu, s.position.tolist(), s.covariance.tobytes()))
+    f.finish()
+    return f, seen
+
+
 def test_push_imu_batching_is_invisible(flight_with_faults, monkeypatch):
     """push_imu keeps up to IMU_BATCH samples before processing them; every accessor and every other push
     processes them first: states read along the way and events are those of one-sample processing."""
     from uwbimu.estimation import streaming
 
-    ds, imu, rng_, kinds, idx = flight_with_faults
-
-    def run():
-        f = Eskf.for_dataset(ds, EskfOptions(), record=True)
-        t, a, r = rng_
-        seen = []
-        for n, (k, i) in enumerate(zip(kinds.tolist(), idx.tolist())):
-            if k == 0:
-                f.push_imu(imu[i, 0], imu[i, 1:4], imu[i, 4:7])
-            else:
-                f.push_range(t[i], a[i], r[i])
-            if n % 137 == 0:  # a caller looking now and then
-                s = f.state()
-                seen.append(None if s is None else (s.t_imu, s.position.tolist(), s.covariance.tobytes()))
-        f.finish()
-        return f, seen
-
-    batched, seen_b = run()
+    batched, seen_b = _replay_one_call_at_a_time(flight_with_faults, 137)
     assert streaming.IMU_BATCH > 1
     monkeypatch.setattr(streaming, "IMU_BATCH", 1)
-    single, seen_1 = run()
+    single, seen_1 = _replay_one_call_at_a_time(flight_with_faults, 137)
     assert seen_b == seen_1 and any(x is not None for x in seen_1)
     assert batched.events() == single.events()
     np.testing.assert_array_equal(batched.passes()[-1].states, single.passes()[-1].states)
-
 
 
 def test_measurement_batching_is_invisible(flight_with_faults, monkeypatch):
@@ -146,29 +146,12 @@ def test_measurement_batching_is_invisible(flight_with_faults, monkeypatch):
     handing each range over at once (MEAS_BATCH = IMU_BATCH = 1), and so are the final states."""
     from uwbimu.estimation import streaming
 
-    ds, imu, rng_, kinds, idx = flight_with_faults
-
-    def run():
-        f = Eskf.for_dataset(ds, EskfOptions(), record=True)
-        t, a, r = rng_
-        seen = []
-        for n, (k, i) in enumerate(zip(kinds.tolist(), idx.tolist())):
-            if k == 0:
-                f.push_imu(imu[i, 0], imu[i, 1:4], imu[i, 4:7])
-            else:
-                f.push_range(t[i], a[i], r[i])
-            if n % 211 == 0:
-                s = f.state()
-                seen.append(None if s is None else (s.t_imu, s.position.tolist(), s.covariance.tobytes()))
-        f.finish()
-        return f, seen
-
     assert streaming.MEAS_BATCH > 1
-    batched, seen_b = run()
+    batched, seen_b = _replay_one_call_at_a_time(flight_with_faults, 211)
     assert len(batched._pend_m) == 0
     monkeypatch.setattr(streaming, "MEAS_BATCH", 1)
     monkeypatch.setattr(streaming, "IMU_BATCH", 1)
-    single, seen_1 = run()
+    single, seen_1 = _replay_one_call_at_a_time(flight_with_faults, 211)
     assert seen_b == seen_1 and any(x is not None for x in seen_1)
     assert batched.events() == single.events()
     assert any(e["kind"] == "input_rejected" and e["stream"] == "range" for e in single.events())
