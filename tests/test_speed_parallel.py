@@ -73,20 +73,43 @@ def test_the_fork_rule_compares_the_shared_work_with_the_caller_alone():
     assert not parallel.fork_pays(3, 0.3, workers=2, start_s=0.3)  # 0.9, not less than 0.9
 
 
-def test_a_warm_single_threaded_caller_forks_its_pool(monkeypatch):
-    """Where the platform forks and the caller runs one thread, the pool is forked from it (its workers start
-    warm); the results are the serial ones and both processes work."""
-    if not parallel._can_fork():
-        import pytest
+_FORK_SCRIPT = """
+import os, time
+from uwbimu import parallel
 
-        pytest.skip("no fork here, or this test process runs other threads")
-    forked = []
-    real = parallel._fork_executor
-    monkeypatch.setattr(parallel, "_fork_executor", lambda w: forked.append(w) or real(w))
-    monkeypatch.setattr(parallel, "_new_executor", lambda *a, **k: (_ for _ in ()).throw(AssertionError("forkserver")))
-    got = []
-    assert execute(_slow, list(range(8)), got.append, workers=2, preload=(), caller=True, measure_first=True) == []
-    assert forked == [1]
-    assert sorted((x, y) for x, y, _ in got) == [(x, x * x) for x in range(8)]
-    pids = {pid for *_, pid in got}
-    assert os.getpid() in pids and len(pids) == 2
+def slow(x):
+    time.sleep(0.25)
+    return x, x * x, os.getpid()
+
+forked = []
+real = parallel._fork_executor
+parallel._fork_executor = lambda w: forked.append(w) or real(w)
+def no_forkserver(*a, **k):
+    raise AssertionError("forkserver pool started")
+parallel._new_executor = no_forkserver
+got = []
+assert parallel._can_fork()
+assert parallel.execute(slow, list(range(8)), got.append, workers=2, preload=(), caller=True,
+                        measure_first=True) == []
+assert forked == [1], forked
+assert sorted((x, y) for x, y, _ in got) == [(x, x * x) for x in range(8)]
+pids = {pid for *_, pid in got}
+assert os.getpid() in pids and len(pids) == 2, pids
+print("ok")
+"""
+
+
+def test_a_warm_single_threaded_caller_forks_its_pool():
+    """Where the platform forks and the caller runs one thread, the pool is forked from it (its workers start
+    warm); the results are the serial ones and both processes work.  In a fresh interpreter: a test process
+    under pytest-xdist runs other threads, where the forkserver is used instead."""
+    import multiprocessing as mp
+    import subprocess
+    import sys
+
+    import pytest
+
+    if "fork" not in mp.get_all_start_methods():
+        pytest.skip("no fork on this platform")
+    out = subprocess.run([sys.executable, "-c", _FORK_SCRIPT], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
