@@ -125,10 +125,12 @@ def register(app: typer.Typer) -> None:
             from uwbimu.cli.compile_notice import ensure_compiled
 
             ensure_compiled(console)  # before the workers: they load the compiled kernels from the cache
-        with Progress(console=console) as prog:
+        # no auto-refresh: its thread would stop repeatability from forking its pool from this warm process
+        # (parallel._can_fork: one thread), the fast start that makes 2 workers pay on short windows
+        with Progress(console=console, auto_refresh=False) as prog:
             task = prog.add_task("calibrating windows", total=windows)
             rep = repeatability(ds, windows, method, options=opts, level=level, workers=workers,
-                                progress=lambda d, n: prog.update(task, completed=d))
+                                progress=lambda d, n: prog.update(task, completed=d, refresh=True))
         rep["method"] = method
         rep["dataset"] = str(dataset)
         with output_folder(out, force, protect=[dataset], names=["repeatability.json"], finite=False) as tmp:
