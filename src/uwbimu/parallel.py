@@ -298,16 +298,29 @@ class ProcessPool:
     """
 
     def __init__(self, workers: int, preload: tuple[str, ...] = ("uwbimu.sim", "uwbimu.estimation"),
-                 caller: bool = False):
+                 caller: bool = False, lazy: bool = False):
         self.workers = int(workers)
         self.preload = tuple(preload)
         #: the caller is one of the workers (``execute(..., caller=True)``): the pool has ``workers - 1``
         self.caller = bool(caller)
+        #: the processes start at :meth:`start`, not on entering the block: a caller that fills a module-level
+        #: cache first (the t_d profile's problem) then starts them, forked from itself where it can
+        #: (:func:`_can_fork`), so the workers inherit the cache and the loaded modules
+        self.lazy = bool(lazy)
         self.executor: Optional[ProcessPoolExecutor] = None
 
     def __enter__(self) -> "ProcessPool":
-        self.executor = _new_executor(max(1, self.workers - 1) if self.caller else self.workers, self.preload)
+        if not self.lazy:
+            self.start()
         return self
+
+    def start(self) -> None:
+        """Start the processes (once): forked from this process where the platform forks and one Python
+        thread runs (a lazy pool), else from the forkserver with the preload."""
+        if self.executor is not None:
+            return
+        n = max(1, self.workers - 1) if self.caller else self.workers
+        self.executor = _fork_executor(n) if self.lazy and _can_fork() else _new_executor(n, self.preload)
 
     def __exit__(self, exc_type, *exc) -> None:
         ex, self.executor = self.executor, None

@@ -201,6 +201,10 @@ def _run_walks(pb, imf, walks: list, mode: str, workers: int, executor: Optional
     if _WORKER_PROBLEM.get("token") != token:
         _WORKER_PROBLEM.clear()
         _WORKER_PROBLEM.update(token=token, pb=pb, imf=imf)
+    pool = (executor or {}).get("pool")
+    if pool is not None and pool.executor is None:
+        # started now that this process holds the problem: forked workers inherit it (no rebuild there)
+        pool.start()
     light = _light_problem(pb)
     got: dict[int, list] = {}
     tasks = [(i, (token, light, [float(g) for g in w[0]], w[1], w[2], mode, rows)) for i, w in enumerate(walks)]
@@ -266,7 +270,7 @@ def run_profile(pb, imf, free_values, centre: float, progress=None, workers: int
         # (_WORKER_PROBLEM) from the first pass instead of rebuilding them in a new pool per pass
         from uwbimu.parallel import ProcessPool
 
-        with ProcessPool(workers, preload=("uwbimu.calibration.profile_walk",), caller=True) as pool:
+        with ProcessPool(workers, preload=("uwbimu.calibration.profile_walk",), caller=True, lazy=True) as pool:
             try:
                 return run_profile(pb, imf, free_values, centre, progress, workers, {"pool": pool}, mode,
                                    chi2_scale, on_point)
