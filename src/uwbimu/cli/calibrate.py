@@ -104,8 +104,11 @@ class StageBars:
 
         self.console = console
         self.live = console.is_terminal
+        # refreshed on each report, no auto-refresh thread: with one thread the t_d profile's pool is forked
+        # from this process (parallel._can_fork), the start that makes --workers 2 pay
         self.progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                 TimeElapsedColumn(), console=console, transient=True, disable=not self.live)
+                                 TimeElapsedColumn(), console=console, transient=True, disable=not self.live,
+                                 auto_refresh=False)
         self.stages = None
         self.points = None
         self.t0 = None
@@ -127,16 +130,16 @@ class StageBars:
         if self.stages is None:
             self.stages = self.progress.add_task("calibrate", total=ev.total)
         if ev.status == "started":
-            self.progress.update(self.stages, description=f"calibrate: {ev.stage}", completed=ev.index)
+            self.progress.update(self.stages, description=f"calibrate: {ev.stage}", completed=ev.index, refresh=True)
             if not self.live:
                 self.console.print(escape(f"calibrate: {ev.stage} ({ev.index + 1}/{ev.total}, "
                                           f"{time.perf_counter() - self.t0:.0f} s)"), highlight=False)
         elif ev.status in ("done", "skipped"):
-            self.progress.update(self.stages, completed=ev.index + 1)
+            self.progress.update(self.stages, completed=ev.index + 1, refresh=True)
         elif ev.status == "point":
             if self.points is None:
                 self.points = self.progress.add_task("t_d profile points", total=ev.total_points)
-            self.progress.update(self.points, completed=ev.done, total=ev.total_points)
+            self.progress.update(self.points, completed=ev.done, total=ev.total_points, refresh=True)
 
 
 def register(app: typer.Typer) -> None:
