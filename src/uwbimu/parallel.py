@@ -37,8 +37,9 @@ POOL_START_S = 4.0
 #: the same once this process's forkserver runs (a later pool only forks workers from it)
 POOL_RESTART_S = 0.3
 #: a pool forked from this (warm) process, :func:`_fork_executor`: the workers inherit its imports and
-#: numba's loaded machine code, so they start in a fraction of a second (0.02-0.06 s wall to the first
-#: result for one worker on the 2-core development machine, loaded; an upper-side figure)
+#: numba's loaded machine code, so they start in a fraction of a second (7 ms wall to the first result for
+#: one worker forked from a process with the estimator loaded, 2-core development machine; an upper-side
+#: figure, for a loaded machine and a larger process)
 POOL_FORK_S = 0.3
 
 
