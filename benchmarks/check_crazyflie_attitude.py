@@ -1,6 +1,6 @@
 """Why the ESKF stays near the multilateration on the Crazyflie TDoA3 log: attitude, gyro bias and oracles.
 
-    python benchmarks/check_crazyflie_attitude.py DATASET [DATASET ...] [--no-oracles]
+    python benchmarks/check_crazyflie_attitude.py DATASET [DATASET ...] [--no-oracles] [--remove ANCHORS T0 T1]
 
 Per log (a folder imported with ``uwbimu import cf-usdlog``):
 
@@ -21,12 +21,12 @@ Per log (a folder imported with ``uwbimu import cf-usdlog``):
    They bound what a better start, another TDoA sigma or a burst detector can buy.
 
 Measured 2026-11-29 (traj16): the gyro implies |bias| < 0.06 deg/s over the flight (1.4 deg residual
-over 24 s) while the ESKF estimates 2.3 deg/s about z (the batch the same) and its yaw error ramps
-from +55 to -25 deg; the oracle start (true yaw, tight gyro bias; yaw then within 10 deg all flight)
+over 24 s) while the ESKF estimates 2.3 deg/s about z and its yaw error runs
+from +54 to -27 deg (2 s blocks); the oracle start (true yaw, tight gyro bias; yaw then within 10 deg all flight)
 leaves the RMSE at 0.40 m (default 0.42); TDoA sd 0.25 / 0.30 / 0.40 m give 0.400 / 0.339 / 0.326 m, the
 multilateration's 0.327 at best; the NLOS-detector oracle removes 1,460 of 6,347 rows and gives 0.85-0.89 m
-(a hand-picked removal of anchors 1 and 2 over 18-19.6 s gave 0.300 / 0.289 m with sd 0.30 / 0.40 m and
-0.92 m with the default); the 0.25 m run ends at the same RMSE as the default with a yaw 160 deg off for 10 s:
+(``--remove 1,2 18 19.6``, a hand-picked removal of anchors 1 and 2 over 18-19.6 s: 0.300 / 0.289 m with sd
+0.30 / 0.40 m and 0.923 m with the default); the 0.25 m run ends at the same RMSE as the default with a yaw 160 deg off for 10 s:
 on this vibrating IMU (accel sd 1-2.4 m/s^2 per axis, body-x mean -2.4 to +0.04 m/s^2 from block to
 block) the position barely depends on the attitude, the filter follows the TDoA, and the error left
 is the TDoA's own (the 18-20 s burst of anchors 1 and 2, `check_tdoa_z_offset.py`).
@@ -35,6 +35,7 @@ is the TDoA's own (the 18-20 s burst of anchors 1 and 2, `check_tdoa_z_offset.py
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -134,6 +135,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("datasets", nargs="+")
     ap.add_argument("--no-oracles", action="store_true")
+    ap.add_argument("--remove", nargs=3, metavar=("ANCHORS", "T0", "T1"), default=None,
+                    help="oracle: also run without the TDoA rows of these anchors (comma list) between T0 and T1 "
+                         "[s] (chosen by reading the truth residuals, e.g. 1,2 18 19.6 on traj16)")
     a = ap.parse_args()
     from uwbimu.estimation import EskfOptions, run_eskf
     from uwbimu.io.loader import load_dataset
@@ -163,6 +167,16 @@ def main() -> int:
             for s in (None, 0.30, 0.40):
                 eskf_report(clean, EskfOptions(tdoa_sigma=s),
                             f"oracle NLOS detector, tdoa_sigma {'default' if s is None else f'{s:.2f} m'}")
+            if a.remove:
+                ids, t_a, t_b = a.remove[0].split(","), float(a.remove[1]), float(a.remove[2])
+                td = ds.tdoa
+                hit = ((td["t"] >= t_a) & (td["t"] < t_b) & (td["anchor_a"].astype(str).isin(ids)
+                                                             | td["anchor_b"].astype(str).isin(ids))).to_numpy()
+                cut = dataclasses.replace(ds, tdoa=td[~hit].reset_index(drop=True))
+                print(f"  oracle hand-picked removal: anchors {ids} over {t_a:g}-{t_b:g} s, {int(hit.sum())} rows")
+                for s in (None, 0.30, 0.40):
+                    eskf_report(cut, EskfOptions(tdoa_sigma=s),
+                                f"hand-picked removal, tdoa_sigma {'default' if s is None else f'{s:.2f} m'}")
     return 0
 
 
