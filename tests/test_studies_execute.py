@@ -75,3 +75,41 @@ def test_pool_workers_use_one_blas_thread_without_touching_the_callers_environme
     changed = {k for k in blas if before.get(k) != os.environ.real.get(k)}
     assert changed == set()
     assert set(seen) == {("1", "1", "1")}
+
+
+_FOREIGN_SERVER = """
+import multiprocessing as mp, os
+from uwbimu.parallel import execute
+
+def blas(_):
+    return tuple(os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"))
+
+if __name__ == "__main__":
+    for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.pop(k, None)
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(["json"])        # the user's own forkserver, started first
+    p = ctx.Process(target=print, args=("",))
+    p.start(); p.join()
+    seen = []
+    assert execute(blas, [0, 1, 2], seen.append, workers=2, preload=()) == []
+    print("ok" if set(seen) == {("1", "1", "1")} else f"bad {seen}")
+"""
+
+
+def test_workers_get_one_blas_thread_from_a_forkserver_started_by_someone_else(tmp_path):
+    """A forkserver that runs before the first pool keeps its own preload (it never imported
+    uwbimu._worker_env): the workers still get one BLAS thread (the pool's initializer).  CI once saw
+    ``(None, None, None)`` in the test above after other tests had run in the same process."""
+    import multiprocessing as mp
+    import subprocess
+    import sys
+
+    import pytest
+
+    if "forkserver" not in mp.get_all_start_methods():
+        pytest.skip("no forkserver on this platform")
+    script = tmp_path / "foreign_server.py"
+    script.write_text(_FOREIGN_SERVER)
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip().endswith("ok"), (out.stdout[-500:], out.stderr[-2000:])

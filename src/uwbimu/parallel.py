@@ -107,7 +107,11 @@ def _fork_executor(workers: int) -> ProcessPoolExecutor:
 
 
 def _one_blas_thread() -> None:
-    """Pool initializer where there is no forkserver (runs in the worker, not in the caller)."""
+    """Pool initializer (runs in the worker, not in the caller): one BLAS thread where the variables are unset.
+
+    Where there is no forkserver it is the only place they are set.  A forkserver pool runs it too: a
+    server already running when the pool starts (one the user's code or another library started, with
+    its own preload) keeps that preload, so :data:`_WORKER_ENV` may never have been imported there."""
     for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(k, "1")
 
@@ -116,7 +120,7 @@ def _new_executor(workers: int, preload) -> ProcessPoolExecutor:
     import multiprocessing as mp
 
     ctx = mp.get_context("forkserver") if "forkserver" in mp.get_all_start_methods() else None
-    initializer = None
+    initializer = _one_blas_thread
     if ctx is not None:
         # Workers fork from a server that has already imported the heavy modules; the server
         # imports _worker_env first, so the BLAS thread variables are set before NumPy loads.
@@ -124,8 +128,7 @@ def _new_executor(workers: int, preload) -> ProcessPoolExecutor:
         # instead of every worker loading them on its first task.
         extra = [_WARM_ESKF] if "uwbimu.estimation" in preload else []
         ctx.set_forkserver_preload([_WORKER_ENV, *preload, *extra])
-    else:  # spawn (no forkserver): set them in each worker before it runs a task
-        initializer = _one_blas_thread
+    # spawn (no forkserver): the initializer is what sets them in each worker before it runs a task
     return ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=initializer)
 
 
