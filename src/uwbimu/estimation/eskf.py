@@ -29,6 +29,7 @@ from uwbimu.estimation.init import InitialisationError, InitialState
 from uwbimu.estimation.noise_from_data import imu_noise_from_log
 from uwbimu.estimation.noise_passes import (
     apply_variance_factor, match_measurement_noise, noise_events, noise_used, unidentified_blocks)
+from uwbimu.estimation.noise_search import kind_loglik, search_level
 from uwbimu.estimation.timeoffset import (information_verdict, single_clock_time_offset, time_offset_prior_sd,
                                           time_offset_verdict)
 from uwbimu.models import state as S
@@ -311,11 +312,30 @@ def run_eskf(
         noise_report["measurements"] = match
         update = {f"{k}_sigma": v["sigma_new"] for k, v in match.items() if v.get("changed")}
         if update:
+            # both levels explicit: a TDoA sd left to its default would follow the range sd in the search
             eff = eff.model_copy(update={"imu_noise": info["imu_noise"], "range_sigma": info["range_sigma"],
-                                         **update})
+                                         "tdoa_sigma": info.get("tdoa_sigma"), **update})
             prob, info = build_problem(dataset, eff)
             f, cpu2 = _filter_pass(prob, priors, eff, f.initial, cb)
             cpu_filter += cpu2
+            # the matched level fits the core; the level the filter predicts its measurements best with is
+            # searched from it (noise_search), each corrected kind in turn, from the same start
+            cpu_search = [0.0]
+            for kind in [k for k, v in match.items() if v.get("changed") and opts.noise_search]:
+                def evaluate(sig: float, kind: str = kind, base: EskfOptions = eff, start=f.initial):
+                    e2 = base.model_copy(update={f"{kind}_sigma": sig})
+                    p2, i2 = build_problem(dataset, e2)
+                    f2, c2 = _filter_pass(p2, priors, e2, start, cb)
+                    cpu_search[0] += c2
+                    return kind_loglik(f2.problem(), f2.passes(), kind), (f2, p2, i2, e2)
+
+                sig0 = float(getattr(eff, f"{kind}_sigma"))
+                sig, best, rep = search_level(sig0, kind_loglik(f.problem(), f.passes(), kind), evaluate,
+                                              payload0=(f, prob, info, eff))
+                match[kind]["likelihood"] = rep
+                match[kind]["sigma_new"] = sig
+                f, prob, info, eff = best
+            cpu_filter += cpu_search[0]
     result = _finish(dataset, f, info, priors, eff, noise_report)
     # a calibration block the log does not identify is held at its prior (consider mode) and the filter
     # rerun: a parameter the data cannot determine would otherwise absorb unmodelled errors into the

@@ -158,6 +158,11 @@ class EskfOptions(_Strict):
         "range/TDoA sd by covariance matching of a first pass's innovations (uwbimu.estimation.noise_from_data); "
         "a noise option given explicitly (imu_noise, imu_noise_scale, range_sigma, tdoa_sigma) is used as given. "
         "'preset': the preset/dataset values only")
+    noise_search: bool = Field(
+        default=True,
+        description="with noise 'data': where covariance matching corrected a range/TDoA sd, choose it by the "
+        "filter's own one-step predictive likelihood (outlier mixture), searched from the matched level "
+        "(uwbimu.estimation.noise_search; two to four more filter passes)")
     hold_unidentified: bool = Field(
         default=True,
         description="rerun the filter with the lever arm held at its prior in consider mode when the log "
