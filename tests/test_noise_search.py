@@ -101,6 +101,7 @@ def test_filter_corrects_an_understated_range_sd_to_the_truth():
     used = r.calibration["measurement_noise"]["range"]["sigma"]
     assert used == pytest.approx(0.15, rel=0.2)
     assert used == m["likelihood"]["sigma"] == m["sigma_new"]
+    assert r.calibration["measurement_noise"]["range"]["method"] == "predictive_likelihood"
 
 
 def test_a_log_whose_configured_noise_is_right_runs_no_search():

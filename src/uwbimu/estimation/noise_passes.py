@@ -162,6 +162,12 @@ def noise_used(report: dict[str, Any], info: dict[str, Any]) -> dict[str, Any]:
         meas[kind] = {"sigma": float(info[key] if info.get(key) is not None else m["sigma_new"]),
                       "source": "given" if m.get("given") else ("log" if m.get("changed") else "preset"),
                       "robust_variance_ratio": m.get("k"), "rejected_fraction": m.get("rejected_fraction")}
+        lk = m.get("likelihood")
+        if m.get("changed"):
+            # how the log's level was found: matching alone, or then the predictive likelihood (noise_search)
+            meas[kind]["method"] = "predictive_likelihood" if lk else "covariance_matching"
+        if lk:
+            meas[kind]["outlier_fraction"] = lk["outlier_fraction"]
     if not meas:
         meas["range"] = {"sigma": float(info["range_sigma"]), "source": "preset"}
     return {"imu_noise": out_imu, "measurement_noise": meas}
