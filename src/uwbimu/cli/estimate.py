@@ -111,8 +111,11 @@ def noise_line(result) -> Optional[str]:
         parts.append("IMU noise as given")
     for kind, e in (rep.get("measurements") or {}).items():
         if isinstance(e, dict) and e.get("sigma_new") is not None:
+            lk = e.get("likelihood") if isinstance(e.get("likelihood"), dict) else None
+            how = (f"predictive likelihood, {format_number(100 * float(lk['outlier_fraction']))} % outliers; "
+                   if lk and lk.get("outlier_fraction") is not None else "")
             parts.append(f"{kind} σ {format_number(100 * float(e['sigma_new']), 'cm')}"
-                         + (f" (configured {format_number(100 * float(e['sigma']), 'cm')})"
+                         + (f" ({how}configured {format_number(100 * float(e['sigma']), 'cm')})"
                             if e.get("sigma") is not None else ""))
     if not parts:
         return None
