@@ -147,15 +147,19 @@ def _survey(duration: float, seed: int):
 def test_grouped_survey_matches_the_per_range_graph(huber_k, bias, atol):
     """A short walk-around self-survey (3 surveyed, 5 unknown anchors): grouped range factors and one CustomFactor
     per range reach the same anchors.  With the loss quadratic on every row (huber_k 100) the two graphs give the
-    same linear systems, so the same iterates: within 1e-6 m (measured ~1e-10 m, anchor biases estimated, 40
-    iterations).  With the default Huber the Gauss-Newton weights of down-weighted rows differ by design
+    same linear systems, so the same iterates: within 1e-6 m after 12 iterations (measured 2e-10 m, anchor biases
+    estimated; the anchors have then moved 0.87 of the 0.88 m they move by convergence at iteration 40, where
+    the difference is the same 2e-10 m: the per-range graph's Python factors made those 28 more iterations 8 s).
+    With the default Huber the Gauss-Newton weights of down-weighted rows differ by design
     (:func:`make_gtsam_group_factor`), so only the optimum is shared, reached to the LM stopping rule: 1e-4 m
     (measured ~2e-5 m, biases fixed; with biases estimated the flat bias/distance valley lets the per-range
     graph stop 5 cm short at a higher cost, so that case is not compared)."""
     from uwbimu.calibration import CalibrationOptions, calibrate
 
     ds = _survey(12.0, 3)
-    base = {"td_profile": {"enabled": False}, "max_iterations": 200, "huber_k": huber_k, "estimate_anchor_bias": bias}
+    iterations = 12 if huber_k == 100.0 else 200  # same iterates (capped) / same optimum (converges in 6)
+    base = {"td_profile": {"enabled": False}, "max_iterations": iterations, "huber_k": huber_k,
+            "estimate_anchor_bias": bias}
     grp = calibrate(ds, CalibrationOptions.model_validate(base))
     per = calibrate(ds, CalibrationOptions.model_validate(base | {"group_range_factors": False}), eskf=grp.eskf)
     assert grp.anchors["estimated"].sum() == 5
