@@ -143,6 +143,9 @@ def test_calibrate_adapts_the_threshold_to_the_log(nlos_prob):
     err = np.append(np.subtract(cal["lever_arm"], truth.lever_arm), cal["time_offset"]["value"] - truth.time_offset)
     sd = np.append(cal["lever_arm_sd"], cal["time_offset"]["sd"])
     assert np.all(np.abs(err) < 3 * sd), (err, sd)
-    fixed = calibrate(ds, CalibrationOptions.model_validate(base | {"huber_k": 1.5}), eskf=res.eskf)
-    assert fixed.calibration["range_model"]["huber"] == {"selection": "fixed", "k": 1.5}
-    assert fixed.calibration["ranges"]["huber_k"] == 1.5
+    if nlos_prob == 0.0:
+        # a number is used as given: one solve, on the log whose adaptive k (2.05) is farther from 1.5 than the
+        # NLOS log's (1.63); the same path on both logs, the NLOS one repeated a 6 s solve for the same two fields
+        fixed = calibrate(ds, CalibrationOptions.model_validate(base | {"huber_k": 1.5}), eskf=res.eskf)
+        assert fixed.calibration["range_model"]["huber"] == {"selection": "fixed", "k": 1.5}
+        assert fixed.calibration["ranges"]["huber_k"] == 1.5
