@@ -145,3 +145,41 @@ def test_report_table_shows_the_truth_when_the_dataset_has_it(tmp_path, with_tru
             assert "truth" not in rep["parameters"][p]
     _, attrs = _repeatability_section(ReportInputs(tmp_path, None))
     assert attrs == {"truth-shown": "yes" if with_truth else "no", "parameters": 4}
+
+
+def test_a_parameter_held_at_its_prior_is_reported_held_not_under_confident():
+    """A window whose estimator held the lever arm at its prior (the ESKF's consider mode, the batch's
+    held_at_prior) returns the prior with the prior's sigma: no spread by construction.  Those windows are left
+    out of the sigma test; held in every window, the verdict says so (was: "under-confident", p = 1)."""
+    from types import SimpleNamespace
+
+    ds = _dataset()
+    held_eskf = StubEstimator(0.01, 0.01, seed=4)
+
+    def eskf_like(w):
+        cal = held_eskf(w)
+        cal["lever_arm"], cal["lever_arm_sd"] = [0.0, 0.0, 0.01], [0.3, 0.3, 0.3]
+        return SimpleNamespace(calibration=cal, config={"resolved": {"modes": {"lever_arm": "consider",
+                                                                               "time_offset": "estimate"}}})
+
+    rep = repeatability(ds, 4, eskf_like)
+    for p in ("lx", "ly", "lz"):
+        assert rep["parameters"][p]["verdict"] == "held at its prior"
+        assert rep["parameters"][p]["held_windows"] == 4 and rep["parameters"][p]["n"] == 0
+    assert rep["parameters"]["time_offset"]["verdict"] == "consistent"
+    assert rep["parameters"]["time_offset"]["held_windows"] == 0
+
+    # the batch's record: held in two windows of four, the other two tested
+    calls = {"n": 0}
+    stub = StubEstimator(0.01, 0.01, seed=5)
+
+    def batch_like(w):
+        calls["n"] += 1
+        cal = stub(w)
+        if calls["n"] <= 2:
+            cal["held_at_prior"] = {"blocks": ["lever_arm"]}
+        return cal
+
+    rep = repeatability(ds, 4, batch_like)
+    assert rep["parameters"]["lx"]["held_windows"] == 2 and rep["parameters"]["lx"]["n"] == 2
+    assert rep["parameters"]["lx"]["verdict"] in ("consistent", "over-confident", "under-confident")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from pathlib import Path
 from typing import Optional
 
@@ -143,8 +145,13 @@ def register(app: typer.Typer) -> None:
             sc, u = comp[name][0].table if name in comp else (100.0, "cm")
             # a scalar block by its state name (t_d), a vector's component by its output name (lx)
             shown = comp[name][0].name if name in comp and comp[name][0].size == 1 else name
-            t.add_row(escape(f"{shown} [{u}]"), f"{p['mean'] * sc:.2f}", f"{p['std'] * sc:.2f}", f"{p['rms_sd'] * sc:.2f}",
-                      f"{p['ratio']:.2f}", f"{p['chi2']:.1f}/{p['dof']}", f"{p['p_value']:.3f}", p["verdict"])
+            def cell(v, fmt, scale=1.0):  # "-" where the test does not apply (a parameter held in every window)
+                return "-" if v is None or not math.isfinite(v) else format(v * scale, fmt)
+
+            t.add_row(escape(f"{shown} [{u}]"), cell(p["mean"], ".2f", sc), cell(p["std"], ".2f", sc),
+                      cell(p["rms_sd"], ".2f", sc), cell(p["ratio"], ".2f"),
+                      "-" if not math.isfinite(p["chi2"]) else f"{p['chi2']:.1f}/{p['dof']}",
+                      cell(p["p_value"], ".3f"), p["verdict"])
         console.print(fit_table(console, t))
         for w in rep["windows"]:
             if "error" in w:

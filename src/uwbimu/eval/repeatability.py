@@ -144,6 +144,21 @@ def consistency(values: np.ndarray, sds: np.ndarray, level: float = 0.01) -> dic
     return out
 
 
+def _held(res: Any, cal: Mapping) -> list[str]:
+    """Parameters a window's estimator held at its prior instead of estimating them: the ESKF's resolved mode
+    ``consider`` or ``fixed`` (a lever arm the log does not determine, t_d on a single-clock log), the batch's
+    ``held_at_prior`` blocks.  Their window values are the prior, their spread zero by construction: no test
+    of the sigma."""
+    modes = (((getattr(res, "config", None) or {}).get("resolved") or {}).get("modes") or {})
+    blocks = set(((cal.get("held_at_prior") or {}).get("blocks") or []))
+    out: list[str] = []
+    if modes.get("lever_arm") in ("consider", "fixed") or "lever_arm" in blocks:
+        out += list(BLOCK["lever"].output_names)
+    if modes.get("time_offset") in ("consider", "fixed") or "time_offset" in blocks:
+        out += list(BLOCK["t_d"].output_names)
+    return out
+
+
 def _window_frame(i: int, w: Dataset) -> dict:
     t0, t1 = float(w.imu_t[0]) if len(w.imu) else float("nan"), float(w.imu_t[-1]) if len(w.imu) else float("nan")
     return {"i": i, "t0": t0, "t1": t1, "t_mid": 0.5 * (t0 + t1), "n_imu": len(w.imu), "n_uwb": len(w.uwb)}
@@ -156,6 +171,7 @@ def _run_window(i: int, w: Dataset, estimator: Callable[[Dataset], Any]) -> dict
         cal = _calibration_of(res)
         vals, sds = _values(cal)
         rec["values"], rec["sd"] = vals, sds
+        rec["held"] = _held(res, cal)
         scale = (cal.get("imu_noise") or {}).get("scale") or {}
         if scale.get("method") == "variance_component":  # the batch's IMU noise scale of this window
             rec["imu_noise_scale"] = float(scale["scale"])
@@ -206,7 +222,8 @@ def repeatability(
     -------
     dict (JSON-serialisable): ``k``, ``window_s``, ``windows`` (per window:
     ``t0, t1, t_mid, values, sd, warnings`` or ``error``), ``parameters``
-    (per parameter: :func:`consistency` + ``truth``, ``mean_error`` = mean − truth and ``mean_error_z`` =
+    (per parameter: :func:`consistency` over the windows that estimated it + ``held_windows`` (those that held
+    it at its prior: verdict ``held at its prior`` when all did), ``truth``, ``mean_error`` = mean − truth and ``mean_error_z`` =
     mean_error / mean_sd when the dataset's truth is known), ``truth_source`` (``dataset.yaml truth`` or
     None), ``n_failed``.
     """
@@ -255,10 +272,16 @@ def repeatability(
             truth[BLOCK["t_d"].output_names[0]] = float(ds.meta.truth.time_offset)
     params = {}
     for p in PARAMS:
-        ok = [r for r in records if p in r.get("values", {})]
-        if not ok:
+        have = [r for r in records if p in r.get("values", {})]
+        if not have:
             continue
+        # a window that held the parameter at its prior tells nothing of its sigma: left out of the test
+        ok = [r for r in have if p not in r.get("held", [])]
         st = consistency(np.array([r["values"][p] for r in ok]), np.array([r["sd"][p] for r in ok]), level=level)
+        st["held_windows"] = len(have) - len(ok)
+        if not ok:
+            st["verdict"] = "held at its prior"
+            st["mean"] = float(np.mean([r["values"][p] for r in have]))
         if p in truth:
             st["truth"] = truth[p]
             st["mean_error"] = st["mean"] - truth[p]
