@@ -12,6 +12,8 @@ whose configured noise is right runs no search).
 from __future__ import annotations
 
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,6 +22,9 @@ from uwbimu.estimation import EskfOptions, run_eskf
 from uwbimu.estimation.noise_from_data import outlier_width, predictive_loglik
 from uwbimu.estimation.noise_search import MAX_STEPS, STEP, search_level
 from uwbimu.sim import builtin_scenario, simulate
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from check_noise_search import nlos_runs  # noqa: E402  (the benchmark's controlled case, one definition)
 
 SIGMA = 0.2
 WIDTH = 20.0
@@ -115,21 +120,8 @@ def test_on_nlos_ranges_the_search_improves_the_trajectory_and_the_time_offset_s
     """Ranges with 10 % NLOS errors (positive, scale 0.3 m) and a configured sd 2.5 x too small: covariance
     matching fits the core; the likelihood's level gives a better trajectory and a t_d sd its error agrees
     with (seeds 1-3; measured: RMSE 0.164 vs 0.202 m, rms t_d error / sd 1.7 vs 3.4)."""
-    from uwbimu.metrics.filter import truth_at
-
-    rmse = {True: [], False: []}
-    z_td = {True: [], False: []}
-    for seed in (1, 2, 3):
-        sc = builtin_scenario("calibration-flight")
-        sc = sc.updated(uwb={**sc.uwb.model_dump(), "sigma": 0.05, "nlos_prob": 0.1, "nlos_scale": 0.3},
-                        duration=40.0, seeds={"truth": 0, "noise": seed, "init": seed + 1})
-        ds = simulate(sc)
-        ds.meta.range_sigma = 0.02
-        for search in (True, False):
-            r = run_eskf(ds, EskfOptions(noise_search=search))
-            p, *_ = truth_at(ds, np.asarray(r.t))
-            rmse[search].append(np.sqrt(np.mean(np.sum((np.asarray(r.states)[:, :3] - p) ** 2, axis=1))))
-            c = r.calibration
-            z_td[search].append((c["time_offset"] - ds.meta.truth.time_offset) / c["time_offset_sd"])
+    runs = [nlos_runs(seed) for seed in (1, 2, 3)]
+    rmse = {k: [r[k][0] for r in runs] for k in (True, False)}
+    z_td = {k: [r[k][1] for r in runs] for k in (True, False)}
     assert np.mean(rmse[True]) < 0.9 * np.mean(rmse[False])
     assert np.sqrt(np.mean(np.square(z_td[True]))) < np.sqrt(np.mean(np.square(z_td[False])))
