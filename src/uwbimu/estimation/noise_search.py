@@ -63,12 +63,13 @@ def search_level(sigma0: float, score0: dict[str, Any], evaluate: Callable[[floa
     ``(sigma, payload, report)``: the chosen sd, its pass, and ``{levels: [[sd, ll, eps], ...] in the order
     evaluated, sigma, ll, outlier_fraction, step, refined, at_limit}``.
     """
-    tried: dict[float, tuple[float, float, Any]] = {sigma0: (score0["ll"], score0["eps"], payload0)}
+    key = "score" if "score" in score0 else "ll"
+    tried: dict[float, tuple[float, float, Any]] = {sigma0: (score0[key], score0["eps"], payload0)}
     order = [sigma0]
 
     def run(sig: float) -> float:
         sc, pl = evaluate(sig)
-        ll = sc["ll"] if np.isfinite(sc["ll"]) else -np.inf
+        ll = sc[key] if np.isfinite(sc[key]) else -np.inf
         tried[sig] = (ll, sc["eps"], pl)
         order.append(sig)
         return ll
