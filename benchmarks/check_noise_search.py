@@ -10,12 +10,12 @@ position RMSE, mean NIS of the accepted updates, and t_d with its verdict.  Then
 0.3 m) over 0.05 m white noise, configured with 0.02 m: mean RMSE and the RMS of t_d error / sd over the
 seeds, search on and off (the case of ``tests/test_noise_search.py``).
 
-Measured 2026-11-29 (2-core machine): Crazyflie TDoA2 traj3: 0.135 -> 0.191 m, RMSE 0.234 -> 0.230 m;
-TDoA3 traj16: 0.194 -> 0.322 m, RMSE 0.420 -> 0.342 m (multilateration 0.327 m); INRoL: 0.076 -> 0.089 m,
-RMSE 0.182 m both, t_d -145.5 +- 24.2 ms "weakly identified" -> -18.7 +- 24.3 ms "not identified" (the
-batch: -1.7 +- 8.3 ms); ISAS-Walk: the matched 0.092 m kept.  NIS mean of the accepted updates 0.88 / 1.01 / 0.97 / 0.89
-(search off: 1.16 / 1.49 / 1.19 / 0.89).  Simulation (seeds 1 2 3): RMSE 0.164 vs
-0.202 m, RMS t_d error / sd 1.7 vs 3.4.
+Measured 2026-11-29 (2-core machine; the score is the median over time blocks): Crazyflie TDoA2 traj3:
+0.135 -> 0.180 m, RMSE 0.234 -> 0.231 m; TDoA3 traj16: 0.194 -> 0.349 m, RMSE 0.420 -> 0.345 m
+(multilateration 0.327 m); INRoL: 0.076 -> 0.090 m, RMSE 0.182 -> 0.178 m, t_d -145.5 +- 24.2 ms "weakly
+identified" -> -74.6 +- 23.8 ms "not identified" (the batch: -1.7 +- 8.3 ms); ISAS-Walk: the matched
+0.092 m kept.  NIS mean of the accepted updates 0.93 / 0.86 / 0.92 / 0.89 (search off: 1.16 / 1.49 / 1.19 /
+0.89).  Simulation (seeds 1 2 3): RMSE 0.176 vs 0.202 m, RMS t_d error / sd 2.05 vs 3.40.
 """
 
 from __future__ import annotations
