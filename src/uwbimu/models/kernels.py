@@ -193,7 +193,7 @@ if (N_P, N_V, N_Q) != (0, 3, 6):  # pragma: no cover - a layout change must revi
     raise ImportError("models.kernels._rk4_s assumes the nominal state starts with p (0:3), v (3:6), q (6:10)")
 
 
-@njit(cache=True)
+@njit(cache=True, inline='always')
 def _rk4_s(x, u0, um, u1, dt, out):
     """The RK4 step of :func:`_rk4_core` with the three inputs as 6-tuples (no array views: the
     compiled filter loop reads them straight from the IMU arrays)."""
