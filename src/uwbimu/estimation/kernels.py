@@ -87,13 +87,13 @@ def propagate_until(x, P, imu_t, imu_u, imu_um, k, t_target, pn, dt_max, cov_eve
                          np.empty((N_DYN, N)), np.empty((N_DYN, N)))
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _row6(A, k):
     """Row ``k`` of an (n, 6) array as a tuple (no array view)."""
     return A[k, 0], A[k, 1], A[k, 2], A[k, 3], A[k, 4], A[k, 5]
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, pn, dt_max, cov_every,
                   xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U):
     """:func:`propagate_until` with its work arrays passed in (no allocation: :func:`filter_loop` calls it for
@@ -557,19 +557,17 @@ def _propagate_gaps(x, P, imu_t, imu_u, imu_um, k, t_target, pn, dt_max, cov_eve
     ``t_target`` (or the end of the data)."""
     n = imu_t.shape[0]
     ng = gap_idx.shape[0]
-    # one call site of the propagation (it is inlined: the call of a function with two dozen array arguments
-    # cost as much as propagating a sample)
-    gi = -1
-    target = t_target
     if ng > 0:
         i = np.searchsorted(gap_idx, k)
         if not (i >= ng or gap_idx[i] + 1 >= n or imu_t[gap_idx[i]] >= t_target):
-            gi = i
-            target = imu_t[gap_idx[i] + 1]
-    k = _propagate_ws(x, P, imu_t, imu_u, imu_um, k, target, pn, dt_max, cov_every,
+            g = gap_idx[i]
+            k = _propagate_ws(x, P, imu_t, imu_u, imu_um, k, imu_t[g + 1], pn, dt_max, cov_every,
+                              xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U)
+            if k < g + 1:
+                return k, -1
+            return k, i
+    k = _propagate_ws(x, P, imu_t, imu_u, imu_um, k, t_target, pn, dt_max, cov_every,
                       xn, xb, usum, ub, ua, ue, wk, B, W, A, T, U)
-    if gi >= 0 and k >= gap_idx[gi] + 1:
-        return k, gi
     return k, -1
 
 

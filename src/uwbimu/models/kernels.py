@@ -193,7 +193,7 @@ if (N_P, N_V, N_Q) != (0, 3, 6):  # pragma: no cover - a layout change must revi
     raise ImportError("models.kernels._rk4_s assumes the nominal state starts with p (0:3), v (3:6), q (6:10)")
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _rk4_s(x, u0, um, u1, dt, out):
     """The RK4 step of :func:`_rk4_core` with the three inputs as 6-tuples (no array views: the
     compiled filter loop reads them straight from the IMU arrays)."""
@@ -695,7 +695,7 @@ def cov_step_blocks(P, x, u, dt, pn):
     _cov_step(P, x, u, dt, pn, np.empty((7, 3, 3)), np.empty((6, 3, 3)), np.empty(P.shape[0]))
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def decay_biases(x, dt, pn):
     """Mean of the Gauss-Markov blocks of ``pn`` over ``dt``: ``b <- exp(-|dt| / tau) b`` (no-op when
     there are none or ``1/tau = 0``)."""
