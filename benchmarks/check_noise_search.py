@@ -4,7 +4,8 @@
 
 Per DATASET (folders imported with the documented verbs; the ground truth in the anchors' frame gives
 the position RMSE, else n/a) and with ``EskfOptions(noise_search=True)`` (the default) and ``False``: the
-sd used, the levels the search scored (sd, mean log-likelihood per measurement, outlier fraction), the
+sd used, the levels the search scored (sd, score = median over time blocks of the mean log-likelihood per
+measurement, outlier fraction), the
 position RMSE, mean NIS of the accepted updates, and t_d with its verdict.  Then a controlled simulation
 (unless ``--no-sim``): the 40 s ``calibration-flight`` with 10 % NLOS ranges (positive errors of scale
 0.3 m) over 0.05 m white noise, configured with 0.02 m: mean RMSE and the RMS of t_d error / sd over the
@@ -52,7 +53,7 @@ def _line(r, rmse: float) -> str:
     td = (f"{1e3 * c['time_offset']:+.1f} +- {1e3 * c['time_offset_sd']:.1f} ms {c.get('time_offset_verdict')}"
           if c.get("time_offset_sd") else "t_d fixed")
     return (f"{kind} sd {used[kind]['sigma']:.3f} m; RMSE {rmse:.3f} m; NIS mean {nis:.2f}; {td}\n"
-            f"      levels [sd: ll (outlier fraction)]: {levels}")
+            f"      levels [sd: score (outlier fraction)]: {levels}")
 
 
 def nlos_runs(seed: int) -> dict:

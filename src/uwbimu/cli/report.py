@@ -141,13 +141,14 @@ def register(app: typer.Typer) -> None:
         for c in ("parameter", "mean", "spread sd", "predicted sigma", "ratio", "chi2/dof", "p", "verdict"):
             t.add_column(c, justify="right")
         comp = calibration_components()  # lx, ly, lz, time_offset -> (block, component)
+
+        def cell(v, fmt, scale=1.0):  # "-" where the test does not apply (a parameter held in every window)
+            return "-" if v is None or not math.isfinite(v) else format(v * scale, fmt)
+
         for name, p in rep["parameters"].items():
             sc, u = comp[name][0].table if name in comp else (100.0, "cm")
             # a scalar block by its state name (t_d), a vector's component by its output name (lx)
             shown = comp[name][0].name if name in comp and comp[name][0].size == 1 else name
-            def cell(v, fmt, scale=1.0):  # "-" where the test does not apply (a parameter held in every window)
-                return "-" if v is None or not math.isfinite(v) else format(v * scale, fmt)
-
             t.add_row(escape(f"{shown} [{u}]"), cell(p["mean"], ".2f", sc), cell(p["std"], ".2f", sc),
                       cell(p["rms_sd"], ".2f", sc), cell(p["ratio"], ".2f"),
                       "-" if not math.isfinite(p["chi2"]) else f"{p['chi2']:.1f}/{p['dof']}",

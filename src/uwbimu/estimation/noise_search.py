@@ -60,8 +60,8 @@ def search_level(sigma0: float, score0: dict[str, Any], evaluate: Callable[[floa
 
     Returns
     -------
-    ``(sigma, payload, report)``: the chosen sd, its pass, and ``{levels: [[sd, ll, eps], ...] in the order
-    evaluated, sigma, ll, outlier_fraction, step, refined, at_limit}``.
+    ``(sigma, payload, report)``: the chosen sd, its pass, and ``{levels: [[sd, score, eps], ...] in the order
+    evaluated, sigma, ll (the chosen level's score), outlier_fraction, step, refined, at_limit}``.
     """
     key = "score" if "score" in score0 else "ll"
     tried: dict[float, tuple[float, float, Any]] = {sigma0: (score0[key], score0["eps"], payload0)}
@@ -90,6 +90,7 @@ def search_level(sigma0: float, score0: dict[str, Any], evaluate: Callable[[floa
                 break
         if moved:
             break  # uphill found in this direction: the other side of sigma0 is below it
+
     def near(target: float):
         """The level evaluated at ``target`` (a product of steps: equal up to rounding), or None."""
         for s in tried:
