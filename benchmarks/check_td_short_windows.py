@@ -130,6 +130,8 @@ def main() -> int:
     ap.add_argument("--hold", type=float, default=0.0, metavar="S",
                     help="experiment: hold t_d in consider mode for the first S seconds of each pass")
     ap.add_argument("--batch", action="store_true", help="also run the batch estimator on the same windows")
+    ap.add_argument("--smoother", choices=("off", "forward_backward"), default="off",
+                    help="EskfOptions.smoother (forward_backward: what uwbimu estimate and the demo run)")
     a = ap.parse_args()
 
     from uwbimu.estimation import EskfOptions, run_eskf
@@ -157,7 +159,7 @@ def main() -> int:
             tight[b]()
     if a.hold > 0:
         _hold_time_offset(a.hold)
-    opts = EskfOptions(**over)
+    opts = EskfOptions(**over, smoother=a.smoother)
     errs, sds, trace, b_errs, b_sds = [], [], [], [], []
     for seed in a.seeds:
         sc = builtin_scenario("calibration-flight")

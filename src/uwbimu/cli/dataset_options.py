@@ -101,6 +101,22 @@ def load(path, load_options):
         return load_dataset(path, load_options)
 
 
+SMOOTH_HELP = ("Forward-backward smoothing (default): a second filter pass over the time-reversed log fused with "
+               "the first (trajectory from the data before and after each stamp; lever arm and t_d the mean of "
+               "both passes, half their difference in the sd). --no-smooth: the causal filter alone, as a robot "
+               "runs it online. A --config that sets smoother decides when neither is given.")
+
+
+def offline_smoothing(opts, smooth: Optional[bool]):
+    """ESKF options of a verb that reads a whole log: ``smoother = forward_backward`` unless ``smooth`` is
+    False, or None with a config that set ``smoother`` itself (the library's default is the causal filter)."""
+    if smooth is None:
+        if "smoother" in opts.model_fields_set:
+            return opts
+        smooth = True
+    return opts.model_copy(update={"smoother": "forward_backward" if smooth else "off"})
+
+
 def estimator_options(estimator: str, config, preset):
     """Estimator options from ``--config`` YAML or ``--preset`` NAME (defaults when neither)."""
     from uwbimu.errors import UsageError, UwbimuError

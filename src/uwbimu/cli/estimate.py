@@ -14,7 +14,7 @@ from uwbimu.formatting import format_number, format_value_sigma
 from rich.console import Console
 from rich.markup import escape
 
-from uwbimu.cli.dataset_options import with_load_options
+from uwbimu.cli.dataset_options import SMOOTH_HELP, with_load_options
 from rich.table import Table
 
 #: Files ``uwbimu estimate`` writes; an output folder holding anything else is refused without --force.
@@ -122,6 +122,22 @@ def noise_line(result) -> Optional[str]:
     return f"noise used ({rep.get('mode', 'given')}): " + ", ".join(parts)
 
 
+def smoothing_line(result) -> Optional[str]:
+    """One line for a forward-backward smoothed run (``result.extra["forward_backward"]``): what was fused and,
+    for an estimated time offset, the two passes' values; None for the causal filter alone."""
+    fb = (getattr(result, "extra", None) or {}).get("forward_backward")
+    if not isinstance(fb, dict):
+        return None
+    out = (f"trajectory: forward-backward smoothed ({fb['outputs_fused']} of {fb['outputs']} outputs; "
+           f"--no-smooth for the causal filter alone)")
+    td = (fb.get("calibration") or {}).get("time_offset")
+    if td:
+        out += (f"; time offset forward {format_value_sigma(1e3 * td['forward'], 1e3 * td['forward_sd'], 'ms')}, "
+                f"backward {format_value_sigma(1e3 * td['backward'], 1e3 * td['backward_sd'], 'ms')}, "
+                f"reported {format_value_sigma(1e3 * td['value'], 1e3 * td['sd'], 'ms')}")
+    return out
+
+
 def held_line(result) -> Optional[str]:
     """One line for a ``calibration_held`` event (the filter rerun with the blocks the log did not identify held at
     their prior in consider mode): which blocks, and the first pass's estimate; None without one."""
@@ -145,7 +161,7 @@ def held_line(result) -> Optional[str]:
 def print_run_summary(console: Console, result) -> None:
     """The NIS summary and the noise used, one line each (the report's figures; a held calibration is printed with
     the warnings, :func:`print_run_warnings`)."""
-    for line in (nis_line(result), noise_line(result)):
+    for line in (nis_line(result), noise_line(result), smoothing_line(result)):
         if line is not None:
             console.print(escape(line), highlight=False)
 
@@ -341,11 +357,13 @@ def register(app: typer.Typer) -> None:
         clock_faults: bool = typer.Option(True, "--clock-faults/--no-clock-faults",
                                           help="Test the run's time offset for UWB clock jumps/drift (no re-run "
                                                "on a clean log); correct the UWB stamps and re-run when found"),
+        smooth: Optional[bool] = typer.Option(None, "--smooth/--no-smooth", help=SMOOTH_HELP),
         load_options=None,
     ) -> None:
         """Estimate trajectory, lever arm and time offset with the UWB-IMU error-state EKF."""
         from uwbimu.cli.compile_notice import CompileNotice, ensure_compiled
-        from uwbimu.cli.dataset_options import apply_dataset_properties, estimator_options, load, print_load_warnings
+        from uwbimu.cli.dataset_options import (apply_dataset_properties, estimator_options, load,
+                                                offline_smoothing, print_load_warnings)
         from uwbimu.estimation import write_outputs
         from uwbimu.errors import UsageError
         from uwbimu.io.atomic import check_output_target, output_folder
@@ -363,6 +381,10 @@ def register(app: typer.Typer) -> None:
         ds = load(dataset, load_options)
         print_load_warnings(console, ds)
         opts = apply_dataset_properties(opts, ds, console)
+        if estimator == "eskf":
+            opts = offline_smoothing(opts, smooth)
+        elif smooth:
+            raise UsageError("--smooth applies to the eskf estimator only")
         compiled = CompileNotice(cold=False)
         # input problems raise InputError (exit 1), estimation failures EstimationError (exit 5):
         # nothing is relabelled here

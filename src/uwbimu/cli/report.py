@@ -10,6 +10,7 @@ from typing import Optional
 import typer
 
 from uwbimu.cli.conventions import FORCE_HELP
+from uwbimu.cli.dataset_options import SMOOTH_HELP
 from uwbimu.cli.dataset_options import with_load_options
 
 #: Files of an estimator output folder the report reads; a folder with none of them is refused.
@@ -80,6 +81,7 @@ def register(app: typer.Typer) -> None:
         level: float = typer.Option(0.01, "--level", help="Significance level of the chi-square test."),
         workers: int = typer.Option(1, "--workers", help="Windows calibrated in parallel (process pool, at least 1)."),
         force: bool = typer.Option(False, "--force", help=FORCE_HELP),
+        smooth: Optional[bool] = typer.Option(None, "--smooth/--no-smooth", help="With --method eskf: " + SMOOTH_HELP),
         load_options=None,
     ) -> None:
         """Calibrate K windows of a log and compare the spread of lever arm / time offset with the filter's sigma."""
@@ -89,7 +91,8 @@ def register(app: typer.Typer) -> None:
         from rich.table import Table
 
         from uwbimu.cli.conventions import fit_table
-        from uwbimu.cli.dataset_options import apply_dataset_properties, estimator_options, load, print_load_warnings
+        from uwbimu.cli.dataset_options import (apply_dataset_properties, estimator_options, load,
+                                                offline_smoothing, print_load_warnings)
         from uwbimu.eval.repeatability import repeatability
         from uwbimu.io.atomic import check_output_target, output_folder, write_json
         from uwbimu.models.blocks import calibration_components
@@ -120,7 +123,9 @@ def register(app: typer.Typer) -> None:
         ds = load(dataset, load_options)
         print_load_warnings(console, ds)
         if method == "eskf":
-            opts = apply_dataset_properties(opts, ds, console)
+            opts = offline_smoothing(apply_dataset_properties(opts, ds, console), smooth)
+        elif smooth is not None:
+            raise UsageError("--smooth/--no-smooth apply to --method eskf only")
         elif opts.init_eskf is not None:
             opts = opts.model_copy(update={"init_eskf": apply_dataset_properties(opts.init_eskf, ds, console)})
         if method == "eskf":

@@ -368,10 +368,14 @@ def run_eskf(
         result.events += [dict(e, first_pass=True) for e in first_lever_events]
     result.warnings = warnings + result.warnings
     result.events = events + result.events
+    result.config["resolved"]["modes"] = {"lever_arm": eff.lever_arm.mode, "time_offset": eff.time_offset.mode}
+    if opts.smoother == "forward_backward":
+        from uwbimu.estimation.smoother import smooth_result
+
+        result = smooth_result(result, dataset, eff, info, prob.gain_mask, run_eskf)
     result.runtime_s = time.perf_counter() - t_wall
     result.extra["filter_cpu_seconds"] = cpu_filter
     result.extra["init_cpu_seconds"] = f.init_cpu_seconds
-    result.config["resolved"]["modes"] = {"lever_arm": eff.lever_arm.mode, "time_offset": eff.time_offset.mode}
     for key, value in noise_used(noise_report, info).items():
         result.calibration[key] = value
     result.extra["total_cpu_seconds"] = time.process_time() - cpu0

@@ -163,6 +163,13 @@ class EskfOptions(_Strict):
         description="with noise 'data': where covariance matching corrected a range/TDoA sd, choose it by the "
         "filter's own one-step predictive likelihood (outlier mixture), searched from the matched level "
         "(uwbimu.estimation.noise_search; two to four more filter passes)")
+    smoother: Literal["off", "forward_backward"] = Field(
+        default="off",
+        description="'forward_backward': after the filter, a second pass over the time-reversed log fused with "
+        "it (two-filter smoother, uwbimu.estimation.smoother): the trajectory at each stamp from the data before "
+        "and after it, the lever arm and t_d the mean of both passes with half their difference in the sd; "
+        "twice the filter time. 'off': the causal filter (what a robot gets online). uwbimu estimate smooths "
+        "unless --no-smooth")
     hold_unidentified: bool = Field(
         default=True,
         description="rerun the filter with the lever arm held at its prior in consider mode when the log "

@@ -1,0 +1,323 @@
+"""Forward-backward (two-filter) smoothing of an ESKF run over a recorded log.
+
+The ESKF is causal: at time ``t`` it has used the data up to ``t`` only, and it is linearised at its own
+running estimates, which on a short or badly excited log are still settling (its start-up transient).
+Both leave marks a smoother removes: a position error that follows the filter's recent past, and a
+calibration that carries the transient (the time offset of 15 s windows of the demo flight: -13 ms mean
+error forward, see docs/estimator.md "Short logs").
+
+A second filter runs on the **time-reversed log** and is fused with the forward one (Fraser and Potter's
+two-filter smoother; the combined forward/reverse solution of GNSS/INS post-processing).  Reversing the
+log (stamps ``t -> T - t`` on both clocks, ``T`` = first + last IMU stamp, so the span maps onto itself;
+rows in reverse order) keeps the equations of motion when
+
+* the gyro reading is negated (``dR/d(-t) = -R [w]x``), so is the gyro bias;
+* the accelerometer reading is kept (``d(-v)/d(-t) = dv/dt``): the velocity is negated, the
+  accelerometer bias kept;
+* positions, attitudes, the lever arm and anchor or pair biases are kept;
+* the time offset is negated: an IMU sample stamped ``s`` describes UWB time ``s - t_d``; reversed, the
+  sample stamped ``T - s`` describes UWB time ``T - s + t_d``.
+
+Fusion, at every output stamp of the forward run:
+
+* the trajectory (position, velocity, attitude, IMU biases: the first 15 error components): the backward
+  estimate is a measurement of them with its covariance, independent of the forward filter's data (it
+  used the data after ``t``), folded into the forward state by one Kalman update in error coordinates
+  (Joseph form; blocks the forward run holds in consider mode or fixes get no gain).  Its own prior is
+  counted twice there, which matters only within the initialisation window of either end.
+* the calibration (the lever arm, the time offset: constants estimated from the whole log by both
+  passes): for a linear-Gaussian model the two final estimates would be the same full-data posterior;
+  their difference is what the filters' linearisation and transients made of the data.  The reported
+  value is their mean and its sd ``sqrt((sd_f^2 + sd_b^2)/2 + ((f - b)/2)^2)``: the passes' own sd and
+  half their disagreement in quadrature.  The verdicts are then re-derived from that sd by the same
+  information rule (:func:`uwbimu.estimation.timeoffset.time_offset_verdict`,
+  :func:`~uwbimu.estimation.timeoffset.information_verdict`).
+
+The residuals, NIS and noise levels stay the forward filter's (the backward pass runs with the forward
+pass's noise levels, not its own estimate, so that both fuse one model).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+
+from uwbimu.io.dataset import Dataset
+from uwbimu.models import state as S
+from uwbimu.models.quaternion import quat_conjugate, quat_exp, quat_log, quat_multiply, quat_normalize
+
+#: error components fused as a trajectory (p, v, theta, b_a, b_g)
+CORE = S.N_DYN
+
+
+def reversal_time(ds: Dataset) -> float:
+    """``T`` of the reversal ``t -> T - t``: the first plus the last IMU stamp [s]."""
+    t = ds.imu_t
+    return float(t[0] + t[-1])
+
+
+def reverse_dataset(ds: Dataset, T: float | None = None) -> Dataset:
+    """The time-reversed log (see the module docstring): stamps ``T - t``, rows reversed, gyro negated,
+    ground-truth velocity and the true time offset negated.  Anchors, ranges, TDoA values are kept."""
+    T = reversal_time(ds) if T is None else float(T)
+
+    def rev(df, negate=()):
+        if df is None or len(df) == 0:
+            return df
+        out = df.iloc[::-1].reset_index(drop=True).copy()
+        out["t"] = T - out["t"].to_numpy(float)
+        for c in negate:
+            if c in out.columns:
+                out[c] = -out[c]
+        return out
+
+    meta = ds.meta
+    if meta.truth is not None and meta.truth.time_offset is not None:
+        meta = meta.model_copy(update={"truth": meta.truth.model_copy(update={"time_offset": -meta.truth.time_offset})})
+    return dataclasses.replace(ds, imu=rev(ds.imu, ("wx", "wy", "wz")), uwb=rev(ds.uwb), tdoa=rev(ds.tdoa),
+                               groundtruth=rev(ds.groundtruth, ("vx", "vy", "vz")), meta=meta)
+
+
+def _signs(n_err: int) -> np.ndarray:
+    """+1/-1 per error component: the reversal's effect (velocity, gyro bias and time offset negated)."""
+    s = np.ones(n_err)
+    s[S.EV] = -1.0
+    s[S.EBG] = -1.0
+    s[S.ETD] = -1.0
+    return s
+
+
+def unreverse(states: np.ndarray, covs: np.ndarray | None, sd: np.ndarray) -> tuple:
+    """A reversed run's nominal states, covariances and sds mapped back to forward time's conventions."""
+    X = states.copy()
+    X[:, S.V] *= -1.0
+    X[:, S.BG] *= -1.0
+    X[:, S.TD] *= -1.0
+    s = _signs(sd.shape[1])
+    D = sd * np.abs(s)  # sds are unsigned
+    C = None
+    if covs is not None:
+        sc = _signs(covs.shape[1])
+        C = covs * sc[None, :, None] * sc[None, None, :]
+    return X, C, D
+
+
+def _on_grid(t_src: np.ndarray, X: np.ndarray, C: np.ndarray, t: np.ndarray):
+    """States (quaternions by slerp-free normalised linear blend: neighbours are 1/output_rate apart) and
+    covariances linearly interpolated from stamps ``t_src`` (increasing) to ``t`` (inside them)."""
+    i = np.clip(np.searchsorted(t_src, t) - 1, 0, len(t_src) - 2)
+    a = ((t - t_src[i]) / np.maximum(t_src[i + 1] - t_src[i], 1e-12)).clip(0.0, 1.0)
+    X0, X1 = X[i], X[i + 1]
+    q1 = X1[:, S.Q] * np.sign(np.sum(X0[:, S.Q] * X1[:, S.Q], axis=1, keepdims=True) + 1e-300)
+    Xi = X0 + a[:, None] * (X1 - X0)
+    Xi[:, S.Q] = quat_normalize(X0[:, S.Q] + a[:, None] * (q1 - X0[:, S.Q]))
+    Ci = C[i] + a[:, None, None] * (C[i + 1] - C[i])
+    return Xi, Ci
+
+
+def fuse_trajectory(t_f, X_f, C_f, t_b, X_b, C_b, gain_mask) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The forward states updated by the backward estimate of their first ``CORE`` error components.
+
+    ``t_*`` output stamps (UWB clock, the backward's already mapped to forward time and increasing),
+    ``X_*`` nominal states, ``C_*`` error covariances (the backward's already mapped, see :func:`unreverse`),
+    ``gain_mask`` (N,) 1 where the forward run may correct a component.  Returns the fused states,
+    covariances and a mask of the forward stamps the backward run covers (the others are kept)."""
+    X, C = X_f.copy(), C_f.copy()
+    cover = (t_f >= t_b[0]) & (t_f <= t_b[-1])
+    if cover.sum() == 0 or len(t_b) < 2:
+        return X, C, cover
+    idx = np.flatnonzero(cover)
+    Xb, Cb = _on_grid(t_b, X_b, C_b, t_f[idx])
+    Xf, Cf = X_f[idx], C_f[idx]
+    n = Cf.shape[1]
+    c = CORE
+    # innovation: backward minus forward in error coordinates (body attitude error, the filter's convention)
+    d = np.zeros((len(idx), c))
+    d[:, S.EP] = Xb[:, S.P] - Xf[:, S.P]
+    d[:, S.EV] = Xb[:, S.V] - Xf[:, S.V]
+    d[:, S.ETH] = quat_log(quat_multiply(quat_conjugate(Xf[:, S.Q]), Xb[:, S.Q]))
+    d[:, S.EBA] = Xb[:, S.BA] - Xf[:, S.BA]
+    d[:, S.EBG] = Xb[:, S.BG] - Xf[:, S.BG]
+    # gain block by block (position, velocity, attitude, each IMU bias: K_i = P_f,ii (P_f,ii + P_b,ii)^-1),
+    # not the full-state gain: on real logs the two passes' yaws can differ by tens of degrees with sds that
+    # do not say so, and the full gain carries that through the attitude-position correlations into the
+    # position (Crazyflie traj16: 0.47 m vs 0.27 m block by block); the Joseph form below gives the
+    # covariance of this (suboptimal) gain exactly
+    K = np.zeros((len(idx), n, c))
+    for sl in (S.EP, S.EV, S.ETH, S.EBA, S.EBG):
+        Sm = Cf[:, sl, sl] + Cb[:, sl, sl]
+        Sm = 0.5 * (Sm + np.swapaxes(Sm, 1, 2))
+        K[:, sl, sl] = np.swapaxes(np.linalg.solve(Sm, np.swapaxes(Cf[:, sl, sl], 1, 2)), 1, 2)
+    K *= gain_mask[None, :, None]
+    dx = np.einsum("kij,kj->ki", K, d)
+    IKH = np.broadcast_to(np.eye(n), Cf.shape).copy()
+    IKH[:, :, :c] -= K
+    Cs = IKH @ Cf @ np.swapaxes(IKH, 1, 2) + K @ Cb[:, :c, :c] @ np.swapaxes(K, 1, 2)
+    Cs = 0.5 * (Cs + np.swapaxes(Cs, 1, 2))
+    Xs = Xf.copy()
+    Xs[:, S.P] += dx[:, S.EP]
+    Xs[:, S.V] += dx[:, S.EV]
+    Xs[:, S.Q] = quat_normalize(quat_multiply(Xf[:, S.Q], quat_exp(dx[:, S.ETH])))
+    Xs[:, S.BA] += dx[:, S.EBA]
+    Xs[:, S.BG] += dx[:, S.EBG]
+    Xs[:, S.PIU] += dx[:, S.EPIU]
+    Xs[:, S.TD] += dx[:, S.ETD]
+    Xs[:, S.NOMINAL_DIM:] += dx[:, S.ERROR_DIM:n]
+    X[idx], C[idx] = Xs, Cs
+    return X, C, cover
+
+
+def combine(f: float, sd_f: float, b: float, sd_b: float) -> tuple[float, float]:
+    """Mean of two full-data estimates of one constant and its sd: the passes' sd and half their
+    disagreement in quadrature (module docstring)."""
+    return 0.5 * (f + b), math.sqrt(0.5 * (sd_f ** 2 + sd_b ** 2) + (0.5 * (f - b)) ** 2)
+
+
+def combine_calibration(cal_f: dict[str, Any], cal_b: dict[str, Any], modes: dict[str, str]) -> dict[str, Any]:
+    """The lever arm and time offset of the smoothed result (only the estimated ones change) and a report.
+
+    ``cal_b`` is the backward run's calibration as it reported it (reversed conventions: its t_d is
+    negated here).  Returns ``{"calibration": updates, "report": per-parameter forward/backward/combined}``.
+    """
+    upd: dict[str, Any] = {}
+    rep: dict[str, Any] = {}
+    if modes.get("time_offset") == "estimate" and cal_b.get("time_offset") is not None:
+        f, sf = float(cal_f["time_offset"]), float(cal_f["time_offset_sd"])
+        b, sb = -float(cal_b["time_offset"]), float(cal_b["time_offset_sd"])
+        v, sd = combine(f, sf, b, sb)
+        upd["time_offset"], upd["time_offset_sd"] = v, sd
+        rep["time_offset"] = {"forward": f, "forward_sd": sf, "backward": b, "backward_sd": sb,
+                              "value": v, "sd": sd}
+    if modes.get("lever_arm") == "estimate" and cal_b.get("lever_arm") is not None:
+        lv, ls, r = [], [], {}
+        for i, c in enumerate("xyz"):
+            f, sf = float(cal_f["lever_arm"][i]), float(cal_f["lever_arm_sd"][i])
+            b, sb = float(cal_b["lever_arm"][i]), float(cal_b["lever_arm_sd"][i])
+            v, sd = combine(f, sf, b, sb)
+            lv.append(v)
+            ls.append(sd)
+            r[c] = {"forward": f, "forward_sd": sf, "backward": b, "backward_sd": sb, "value": v, "sd": sd}
+        upd["lever_arm"], upd["lever_arm_sd"] = lv, ls
+        rep["lever_arm"] = r
+    return {"calibration": upd, "report": rep}
+
+
+_RANK = {"identified": 2, "weakly identified": 1, "not identified": 0}
+
+
+def backward_options(eff, info: dict[str, Any]):
+    """The options of the reversed pass: the forward pass's model as it ended (noise levels measured or
+    searched there, blocks held there), its priors reversed (t_d prior and gyro-bias-free), on the whole
+    (already selected) log, without another search, hold or smoothing."""
+    upd: dict[str, Any] = {"noise": "preset", "imu_noise": info["imu_noise"], "imu_noise_scale": 1.0,
+                           "range_sigma": info["range_sigma"], "segment": "whole", "start": None, "end": None,
+                           "hold_unidentified": False, "smoother": "off", "store_covariance": True}
+    if info.get("tdoa_sigma") is not None:
+        upd["tdoa_sigma"] = info["tdoa_sigma"]
+    if eff.time_offset.prior is not None:
+        upd["time_offset"] = eff.time_offset.model_copy(update={"prior": -float(eff.time_offset.prior)})
+    return eff.model_copy(update=upd)
+
+
+def smooth_result(forward, dataset: Dataset, eff, info: dict[str, Any], gain_mask: np.ndarray, run) -> Any:
+    """``forward`` (an :class:`~uwbimu.estimation.result.EstimationResult` of ``dataset``, the segment it
+    ran on, with options ``eff`` and problem ``info``) smoothed by a pass of ``run(dataset, options)`` over
+    the reversed log; the result is changed in place and returned.
+
+    ``gain_mask`` (N,): the forward problem's.  Adds ``extra["filtered"]`` (the forward states and sds),
+    ``extra["forward_backward"]`` and an event ``forward_backward``; re-derives the calibration verdicts."""
+    from uwbimu.estimation.timeoffset import information_verdict, time_offset_verdict
+
+    T = reversal_time(dataset)
+    back = run(reverse_dataset(dataset, T), backward_options(eff, info))
+    Xb, Cb, _ = unreverse(back.states[::-1], None if back.covariances is None else back.covariances[::-1],
+                          back.sd[::-1])
+    t_b = T - np.asarray(back.t, float)[::-1]
+    n = forward.states.shape[0]
+    C_f = forward.covariances
+    if C_f is None:  # the forward run stored sds only: fuse with diagonal covariances
+        d = np.nan_to_num(forward.sd, nan=0.0) ** 2
+        C_f = np.einsum("ki,ij->kij", d, np.eye(d.shape[1]))
+    if Cb is None:
+        d = np.nan_to_num(back.sd[::-1], nan=0.0) ** 2
+        Cb = np.einsum("ki,ij->kij", d, np.eye(d.shape[1]))
+    mask = np.asarray(gain_mask, float)[:C_f.shape[1]].copy()
+    cal = forward.calibration
+    modes = dict(forward.config.get("resolved", {}).get("modes", {}))
+    if str(cal.get("time_offset_verdict_reason", "")).startswith("the initial grid search could not locate"):
+        modes["time_offset"] = "consider"  # held at its prior by the initialiser: no gain, no combination
+    for key, sl in (("lever_arm", S.EPIU), ("time_offset", slice(S.ETD, S.ETD + 1))):
+        if modes.get(key, "estimate") != "estimate":
+            mask[sl] = 0.0
+    X, C, cover = fuse_trajectory(np.asarray(forward.t, float), forward.states, C_f, t_b, Xb, Cb, mask)
+    forward.extra["filtered"] = {"states": forward.states, "sd": forward.sd}
+    forward.states = X
+    sd = np.sqrt(np.clip(np.diagonal(C, axis1=1, axis2=2), 0.0, None))[:, :forward.sd.shape[1]]
+    forward.sd = np.where(np.isnan(forward.sd), np.nan, sd)
+    if forward.covariances is not None:
+        forward.covariances = C
+    comb = combine_calibration(cal, back.calibration, modes)
+    verdicts: dict[str, Any] = {}
+    if "time_offset" in comb["report"]:
+        r = comb["report"]["time_offset"]
+        sd_prior = float(cal.get("time_offset_prior_sd", float("nan")))
+        v, reason = time_offset_verdict(r["sd"], sd_prior)
+        if _RANK.get(v, 0) > _RANK.get(cal.get("time_offset_verdict"), 0):
+            v, reason = cal.get("time_offset_verdict"), cal.get("time_offset_verdict_reason")
+        if _RANK.get(v, 0) < _RANK.get(cal.get("time_offset_verdict"), 0):
+            reason = (f"the forward and backward passes give {r['forward'] * 1e3:.1f} and {r['backward'] * 1e3:.1f} ms; "
+                      f"their mean {r['value'] * 1e3:.1f} ± {r['sd'] * 1e3:.1f} ms (half their difference in the sd): {reason}")
+        verdicts["time_offset"] = {"forward": cal.get("time_offset_verdict"), "smoothed": v}
+        cal["time_offset_verdict"], cal["time_offset_verdict_reason"] = v, reason
+    if "lever_arm" in comb["report"]:
+        prior = None
+        for e in forward.events:
+            if e.get("kind") == "lever_arm_verdict":
+                prior = {c: a["prior_sd"] for c, a in e["axes"].items()}
+        if prior is not None:
+            old = dict(cal.get("lever_arm_verdict") or {})
+            new = {}
+            for c, r in comb["report"]["lever_arm"].items():
+                v, _ = information_verdict(r["sd"], float(prior[c]))
+                new[c] = v if _RANK.get(v, 0) <= _RANK.get(old.get(c), 2) else old.get(c)
+            cal["lever_arm_verdict"] = new
+            verdicts["lever_arm"] = {"forward": old, "smoothed": new}
+    if "lever_arm" in comb["calibration"] and isinstance(cal.get("tags"), dict):
+        for entry in cal["tags"].values():  # the first tag's entry repeats the top-level lever arm
+            if isinstance(entry, dict) and entry.get("lever_arm") == cal["lever_arm"]:
+                entry["lever_arm"] = list(comb["calibration"]["lever_arm"])
+                entry["lever_arm_sd"] = list(comb["calibration"]["lever_arm_sd"])
+                break
+    for k, v in comb["calibration"].items():
+        cal[k] = v
+    # a constant's smoothed estimate is the same at every stamp: the combined value over the covered outputs
+    # (the output stamps stay on the UWB clock, where the ranges placed them; t_imu follows the new t_d)
+    def set_constant(nom, err, value, sd_new):
+        forward.states[cover, nom] = value
+        if forward.covariances is not None:
+            # rows and columns scaled (D C D, D > 0 diagonal): the new variance, correlations and PSD kept
+            ii = np.arange(forward.covariances.shape[1])[err]
+            old = np.sqrt(np.clip(forward.covariances[cover][:, ii, ii], 1e-300, None))
+            r = np.ones((int(cover.sum()), forward.covariances.shape[1]))
+            r[:, err] = np.asarray(sd_new, float) / old
+            forward.covariances[cover] *= r[:, :, None] * r[:, None, :]
+        forward.sd[cover, err] = sd_new
+
+    if "lever_arm" in comb["calibration"]:
+        set_constant(S.PIU, S.EPIU, np.asarray(cal["lever_arm"], float), np.asarray(cal["lever_arm_sd"], float))
+    if "time_offset" in comb["calibration"]:
+        set_constant(S.TD, S.ETD, float(cal["time_offset"]), float(cal["time_offset_sd"]))
+        if forward.t_imu is not None:
+            forward.t_imu = np.asarray(forward.t, float) + forward.states[:, S.TD]
+    # the backward pass's own warnings repeat the forward's findings on the same data (noise, held blocks):
+    # they travel in the event, not in the run's warnings
+    rep = {"covered": [float(t_b[0]), float(t_b[-1])], "outputs_fused": int(cover.sum()), "outputs": int(n),
+           "backward_runtime_s": float(back.runtime_s), "calibration": comb["report"], "verdicts": verdicts,
+           "backward_warnings": list(back.warnings)}
+    forward.extra["forward_backward"] = rep
+    t0 = float(forward.t[0]) if n else None
+    forward.events.append({"t": t0, "kind": "forward_backward", **rep})
+    return forward
