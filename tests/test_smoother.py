@@ -124,6 +124,7 @@ def test_cli_estimate_smooths_unless_told_not_to(tmp_path, flights):
     from typer.testing import CliRunner
 
     from uwbimu.cli.main import app
+    from uwbimu.eval.report.inputs import ReportInputs
     from uwbimu.io.dataset import write_dataset
 
     ds = flights[0][0]
@@ -136,4 +137,14 @@ def test_cli_estimate_smooths_unless_told_not_to(tmp_path, flights):
         r = runner.invoke(app, ["estimate", str(src), "-o", str(out), "--no-plots", *flag])
         assert r.exit_code == 0, r.output
         kinds[tuple(flag)] = {e["kind"] for e in yaml.safe_load((out / "events.yaml").read_text())}
+        cal = yaml.safe_load((out / "calibration.yaml").read_text())
+        notes = [w for w in ReportInputs(out).warning_items() if w.kind == "forward_backward"]
+        if flag:
+            assert "smoothing" not in cal and not notes
+        else:
+            # one voice: the console's note, calibration.yaml's record and the report's item say the same
+            assert cal["smoothing"]["method"] == "forward_backward"
+            assert cal["time_offset"]["value"] == pytest.approx(cal["smoothing"]["time_offset"]["value"])
+            assert [n.text for n in notes] == [cal["smoothing"]["message"]]
+            assert " ".join(cal["smoothing"]["message"].split()[:3]) in " ".join(r.output.split())
     assert "forward_backward" in kinds[()] and "forward_backward" not in kinds[("--no-smooth",)]

@@ -122,22 +122,6 @@ def noise_line(result) -> Optional[str]:
     return f"noise used ({rep.get('mode', 'given')}): " + ", ".join(parts)
 
 
-def smoothing_line(result) -> Optional[str]:
-    """One line for a forward-backward smoothed run (``result.extra["forward_backward"]``): what was fused and,
-    for an estimated time offset, the two passes' values; None for the causal filter alone."""
-    fb = (getattr(result, "extra", None) or {}).get("forward_backward")
-    if not isinstance(fb, dict):
-        return None
-    out = (f"trajectory: forward-backward smoothed ({fb['outputs_fused']} of {fb['outputs']} outputs; "
-           f"--no-smooth for the causal filter alone)")
-    td = (fb.get("calibration") or {}).get("time_offset")
-    if td:
-        out += (f"; time offset forward {format_value_sigma(1e3 * td['forward'], 1e3 * td['forward_sd'], 'ms')}, "
-                f"backward {format_value_sigma(1e3 * td['backward'], 1e3 * td['backward_sd'], 'ms')}, "
-                f"reported {format_value_sigma(1e3 * td['value'], 1e3 * td['sd'], 'ms')}")
-    return out
-
-
 def held_line(result) -> Optional[str]:
     """One line for a ``calibration_held`` event (the filter rerun with the blocks the log did not identify held at
     their prior in consider mode): which blocks, and the first pass's estimate; None without one."""
@@ -161,7 +145,7 @@ def held_line(result) -> Optional[str]:
 def print_run_summary(console: Console, result) -> None:
     """The NIS summary and the noise used, one line each (the report's figures; a held calibration is printed with
     the warnings, :func:`print_run_warnings`)."""
-    for line in (nis_line(result), noise_line(result), smoothing_line(result)):
+    for line in (nis_line(result), noise_line(result)):
         if line is not None:
             console.print(escape(line), highlight=False)
 

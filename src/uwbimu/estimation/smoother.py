@@ -318,6 +318,23 @@ def smooth_result(forward, dataset: Dataset, eff, info: dict[str, Any], gain_mas
            "backward_runtime_s": float(back.runtime_s), "calibration": comb["report"], "verdicts": verdicts,
            "backward_warnings": list(back.warnings)}
     forward.extra["forward_backward"] = rep
+    # calibration.yaml's record of it (the report reads it there)
+    cal["smoothing"] = {"method": "forward_backward", "message": message(rep), **comb["report"]}
     t0 = float(forward.t[0]) if n else None
-    forward.events.append({"t": t0, "kind": "forward_backward", **rep})
+    forward.events.append({"t": t0, "kind": "forward_backward", "severity": "info", "message": message(rep), **rep})
     return forward
+
+
+def message(rep: dict[str, Any]) -> str:
+    """The one line the console and the report print for a smoothed run (its ``forward_backward`` event)."""
+    from uwbimu.formatting import format_value_sigma
+
+    out = (f"trajectory smoothed forward-backward ({rep['outputs_fused']} of {rep['outputs']} outputs; "
+           f"--no-smooth for the causal filter alone)")
+    td = (rep.get("calibration") or {}).get("time_offset")
+    if td:
+        out += (f"; time offset forward {format_value_sigma(1e3 * td['forward'], 1e3 * td['forward_sd'], 'ms')}, "
+                f"backward {format_value_sigma(1e3 * td['backward'], 1e3 * td['backward_sd'], 'ms')}, "
+                f"reported {format_value_sigma(1e3 * td['value'], 1e3 * td['sd'], 'ms')} (their mean; half "
+                f"their difference in the sd)")
+    return out

@@ -28,6 +28,12 @@ Schema version 2 (``schema_version: 2``)::
       parameters:                  # one per compared parameter (lever_arm_x/y/z [m], time_offset [s])
         - {name, eskf, eskf_sd, batch, batch_sd, z, eskf_verdict, batch_verdict, favours, reason}
 
+    smoothing:                     # ESKF smoothed forward-backward only (uwbimu estimate's default;
+      method: forward_backward     # uwbimu.estimation.smoother): the lever arm / time offset above are the
+      message: "..."               # mean of the two passes; the line the console printed
+      time_offset: {forward, forward_sd, backward, backward_sd, value, sd}   # [s], when estimated
+      lever_arm: {x: {forward, forward_sd, backward, backward_sd, value, sd}, y: ..., z: ...}   # [m]
+
 Every other key (IMU biases, anchor biases, ``warnings``, ``events``, ``config``) is unchanged. A sigma is never
 NaN: a quantity that was not estimated has ``sd: null``.
 

@@ -97,7 +97,7 @@ class WarningItem:
 #: event kinds a console prints (prefixes): these and every event of severity warning / refused are warnings
 PRINTED_EVENT_KINDS = ("flight_segment", "anchor_", "lever_arm_not_identified", "range_errors_correlated_over_blocks",
                        "time_offset_held", "time_offset_not_identified", "calibration_held", "divergence", "clock_",
-                       "second_start_won", "range_model_selected")
+                       "second_start_won", "range_model_selected", "forward_backward")
 
 
 def run_warning_items(text_warnings, events, source: str = "calibration.yaml events") -> list[WarningItem]:
@@ -223,7 +223,13 @@ class ReportInputs:
         """Every warning the console printed for this run (:func:`run_warning_items` of the folder's text warnings
         and calibration.yaml ``events``), then the report's own."""
         own = [w for w in self.warnings if w.source == "report"]
-        return run_warning_items([w for w in self.warnings if w.source != "report"], self.events) + own
+        items = run_warning_items([w for w in self.warnings if w.source != "report"], self.events) + own
+        sm = (self.calibration or {}).get("smoothing")
+        if isinstance(sm, dict) and sm.get("message") and not any(w.kind == "forward_backward" for w in items):
+            # the ESKF's calibration.yaml carries no events: its smoothing block says what the console's
+            # forward_backward note said, in the same words
+            items.append(WarningItem("forward_backward", "calibration.yaml smoothing", str(sm["message"]), "info"))
+        return items
 
     def time_offset(self) -> dict[str, Any]:
         """The time offset as every section shows it: ``value, sd`` [s] (sd None when not estimated), ``mode`` (the
