@@ -129,7 +129,12 @@ def test_calibrate_adapts_the_threshold_to_the_log(nlos_prob):
 
     ds = _flight(nlos_prob, 11)
     base = {"td_profile": {"enabled": False}}
-    res = calibrate(ds, CalibrationOptions.model_validate(base))
+    # started from the causal ESKF, the start this was measured on: from the smoothed default start the clean log's
+    # chosen k (2.15) has V 1.006 x V(1.345), inside the rule's one standard error (the choice is the largest k
+    # within one SE of the minimum, not the minimiser), so "more efficient than 1.345" is a property of a start
+    from uwbimu.estimation import EskfOptions
+
+    res = calibrate(ds, CalibrationOptions.model_validate(base), eskf_options=EskfOptions(smoother="off"))
     cal, truth = res.calibration, ds.meta.truth
     h = cal["range_model"]["huber"]
     assert h["selection"] == "adaptive" and cal["ranges"]["huber_k"] == h["k"] == cal["range_model"]["huber_k"]

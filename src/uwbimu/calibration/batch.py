@@ -264,7 +264,9 @@ def _start(dataset, o: CalibrationOptions, eskf, eskf_options, events: list) -> 
     from uwbimu.calibration.frames import to_graph_frame
 
     given_eskf = eskf is not None
-    eo0 = eskf_options or o.init_eskf or EskfOptions()
+    # by default the ESKF run uwbimu estimate makes (smoothed forward-backward): the batch starts from it and
+    # compares its answer with it (estimators_agree / _disagree), one ESKF answer for the user
+    eo0 = eskf_options or o.init_eskf or EskfOptions(smoother="forward_backward")
     # the same part of the log as the ESKF (the flight, where the floor's ranges are shadowed): one answer
     dataset, ev_segment = select_segment(dataset, eo0.segment, eo0.start, eo0.end)
     o.check_log(dataset)  # work bounds that depend on the log (drift knots), before any solve

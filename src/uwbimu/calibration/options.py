@@ -324,7 +324,9 @@ class CalibrationOptions(BaseModel):
                     "range-model error that follows the motion for tens of seconds; event "
                     "range_errors_correlated_over_blocks where the blocks reject the HAC)")
     init_eskf: Optional[EskfOptions] = Field(
-        None, description="options of the initialising ESKF (as examples/estimator*.yaml; none: its defaults); "
+        None, description="options of the initialising ESKF (as examples/estimator*.yaml; none: its defaults with "
+                          "smoother forward_backward, i.e. the run uwbimu estimate makes, so that the batch starts "
+                          "from and compares itself with the same ESKF answer); "
                           "calibrate(eskf_options=...) and `uwbimu calibrate --eskf-config` take precedence. A "
                           "filter that diverges on a short window leaves the graph in a wrong minimum (ISAS-Walk's "
                           "last 15 s window: lever arm 72 cm off with the defaults, within 1 sigma with the "
