@@ -149,3 +149,25 @@ def test_cli_estimate_smooths_unless_told_not_to(tmp_path, flights):
             assert [n.text for n in notes] == [cal["smoothing"]["message"]]
             assert " ".join(cal["smoothing"]["message"].split()[:3]) in " ".join(r.output.split())
     assert "forward_backward" in kinds[()] and "forward_backward" not in kinds[("--no-smooth",)]
+
+
+def test_a_failed_reversed_pass_leaves_the_causal_run_and_says_so(flights):
+    """The reversed pass can fail where the forward one did not (too few anchors heard at the end of a log):
+    the causal result stands, with a warning event, not an exit 5."""
+    from uwbimu.errors import EstimationError
+    from uwbimu.estimation.eskf import build_problem
+    from uwbimu.estimation.smoother import smooth_result
+
+    ds = flights[0][0]
+    opts = EskfOptions()
+    forward = run_eskf(ds, opts)
+    states = forward.states.copy()
+    _, info = build_problem(ds, opts)
+
+    def failing(dataset, options):
+        raise EstimationError("not enough data to initialise")
+
+    r = smooth_result(forward, ds, opts, info, np.ones(forward.covariances.shape[1]), failing)
+    assert np.array_equal(r.states, states) and "forward_backward" not in r.extra
+    ev = [e for e in r.events if e["kind"] == "forward_backward_skipped"]
+    assert len(ev) == 1 and ev[0]["severity"] == "warning" and ev[0]["error"] == "EstimationError"

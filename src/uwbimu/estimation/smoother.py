@@ -45,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from uwbimu.errors import EstimationError
 from uwbimu.io.dataset import Dataset
 from uwbimu.models import state as S
 from uwbimu.models.quaternion import quat_conjugate, quat_exp, quat_log, quat_multiply, quat_normalize
@@ -239,7 +240,15 @@ def smooth_result(forward, dataset: Dataset, eff, info: dict[str, Any], gain_mas
     # the reversed pass starts from its own data (fix, yaw bank, t_d grid): its lever arm and t_d stay an
     # estimate independent of the forward pass's (starting it from the forward's final navigation state
     # instead bought 0.003-0.006 m on the real logs and raised the simulated attitude NEES 4.2 -> 5.0)
-    back = run(rev, backward_options(eff, info))
+    try:
+        back = run(rev, backward_options(eff, info))
+    except EstimationError as exc:
+        # e.g. too few anchors heard at the end of the log to start there: the causal run stands, and says so
+        msg = f"smoothing skipped: the pass over the reversed log failed ({exc}); the trajectory is the causal filter's"
+        forward.warnings.append(msg)
+        forward.events.append({"t": float(forward.t[0]) if len(forward.t) else None, "kind": "forward_backward_skipped",
+                               "severity": "warning", "message": msg, "error": type(exc).__name__})
+        return forward
     Xb, Cb, _ = unreverse(back.states[::-1], None if back.covariances is None else back.covariances[::-1],
                           back.sd[::-1])
     t_b = T - np.asarray(back.t_imu if back.t_imu is not None else back.t, float)[::-1]
