@@ -171,3 +171,28 @@ def test_a_failed_reversed_pass_leaves_the_causal_run_and_says_so(flights):
     assert np.array_equal(r.states, states) and "forward_backward" not in r.extra
     ev = [e for e in r.events if e["kind"] == "forward_backward_skipped"]
     assert len(ev) == 1 and ev[0]["severity"] == "warning" and ev[0]["error"] == "EstimationError"
+
+
+def test_the_clock_fault_check_reads_the_causal_track_of_a_smoothed_run():
+    """The clock-fault check differences the filter's information window by window; a smoothed run carries
+    one t_d everywhere, so it must read the causal track (uwbimu estimate smooths, then checks the clock).
+    Before: a -0.2 s UWB clock jump went unseen on the smoothed run and t_d came out 126 ms (truth 30)."""
+    from uwbimu.eval.clock_faults import handle_clock_faults
+    from uwbimu.estimation.smoother import causal_view
+
+    ds = simulate(builtin_scenario("calibration-flight").updated(duration=60.0, seeds={"noise": 1}))
+    u = ds.uwb.copy()
+    t = u["t"].to_numpy().copy()
+    keep = ~((t >= 30.0) & (t < 30.2))  # a backward jump: a dropout of its length, invisible in the stamps
+    u, t = u[keep].copy(), t[keep]
+    t[t >= 30.0] -= 0.2
+    u["t"] = t
+    bad = dataclasses.replace(ds, uwb=u.reset_index(drop=True))
+    opts = EskfOptions(smoother="forward_backward")
+    res = run_eskf(bad, opts)
+    view = causal_view(res)
+    assert np.array_equal(view.states, res.extra["filtered"]["states"]) and view.states is not res.states
+    fixed, _ = handle_clock_faults(res, bad, lambda d: run_eskf(d, opts))
+    kinds = [e["kind"] for e in fixed.events if str(e.get("kind", "")).startswith("clock_")]
+    assert kinds == ["clock_jump"]
+    assert abs(fixed.calibration["time_offset"] - 0.03) < 3 * fixed.calibration["time_offset_sd"]

@@ -270,7 +270,12 @@ def smooth_result(forward, dataset: Dataset, eff, info: dict[str, Any], gain_mas
             mask[sl] = 0.0
     t_imu = np.asarray(forward.t_imu if forward.t_imu is not None else forward.t, float)
     X, C, cover = fuse_trajectory(t_imu, forward.states, C_f, t_b, Xb, Cb, mask)
-    forward.extra["filtered"] = {"states": forward.states, "sd": forward.sd}
+    # the causal track, kept whole: what a robot had online, and the information history that the clock-fault
+    # check differences window by window (causal_view)
+    forward.extra["filtered"] = {"t": np.asarray(forward.t, float).copy(), "t_imu": None if forward.t_imu is None
+                                 else np.asarray(forward.t_imu, float).copy(), "states": forward.states,
+                                 "sd": forward.sd, "covariances": forward.covariances}
+    # new arrays from here on (fuse_trajectory copied them): the causal track above stays as it was
     forward.states = X
     sd = np.sqrt(np.clip(np.diagonal(C, axis1=1, axis2=2), 0.0, None))[:, :forward.sd.shape[1]]
     forward.sd = np.where(np.isnan(forward.sd), np.nan, sd)
@@ -344,6 +349,18 @@ def smooth_result(forward, dataset: Dataset, eff, info: dict[str, Any], gain_mas
     t0 = float(forward.t[0]) if n else None
     forward.events.append({"t": t0, "kind": "forward_backward", "severity": "info", "message": message(rep), **rep})
     return forward
+
+
+def causal_view(result):
+    """``result`` with the causal filter's track (stamps, states, sds, covariances) in place of the smoothed one;
+    ``result`` itself when it was not smoothed.  For what reads the filter's information history rather than
+    the trajectory: the clock-fault check differences the filter's information window by window, which a
+    smoothed track (one t_d everywhere) no longer carries (a -0.2 s clock jump went unseen, t_d 126 ms)."""
+    f = (getattr(result, "extra", None) or {}).get("filtered")
+    if not isinstance(f, dict) or "t" not in f:
+        return result
+    return dataclasses.replace(result, t=f["t"], t_imu=f["t_imu"], states=f["states"], sd=f["sd"],
+                               covariances=f["covariances"])
 
 
 def message(rep: dict[str, Any]) -> str:

@@ -107,6 +107,9 @@ def windowed_time_offsets(result, window_s: Optional[float] = None) -> dict[str,
     offset [s]: a range stamped t observes the IMU at ``t + tau``), ``sd`` [s]; empty arrays
     when t_d was not estimated (held or fixed).
     """
+    from uwbimu.estimation.smoother import causal_view
+
+    result = causal_view(result)  # the filter's information history, not a smoothed track
     t = np.asarray(result.t, float)
     empty = {k: np.zeros(0) for k in ("t0", "t1", "t", "tau", "sd")}
     if result.states.shape[1] <= TD or result.sd.shape[1] <= ETD:
