@@ -373,6 +373,7 @@ def run_eskf(
         from uwbimu.estimation.smoother import smooth_result
 
         result = smooth_result(result, dataset, eff, info, prob.gain_mask, run_eskf)
+        cpu_filter += (result.extra.get("forward_backward") or {}).get("backward_filter_cpu_seconds", 0.0)
     result.runtime_s = time.perf_counter() - t_wall
     result.extra["filter_cpu_seconds"] = cpu_filter
     result.extra["init_cpu_seconds"] = f.init_cpu_seconds

@@ -341,7 +341,9 @@ def smooth_result(forward, dataset: Dataset, eff, info: dict[str, Any], gain_mas
     # the backward pass's own warnings repeat the forward's findings on the same data (noise, held blocks):
     # they travel in the event, not in the run's warnings
     rep = {"covered": [float(t_b[0]), float(t_b[-1])], "outputs_fused": int(cover.sum()), "outputs": int(n),
-           "backward_runtime_s": float(back.runtime_s), "calibration": comb["report"], "verdicts": verdicts,
+           "backward_runtime_s": float(back.runtime_s),
+           "backward_filter_cpu_seconds": float(back.extra.get("filter_cpu_seconds") or 0.0),
+           "calibration": comb["report"], "verdicts": verdicts,
            "backward_warnings": list(back.warnings)}
     forward.extra["forward_backward"] = rep
     # calibration.yaml's record of it (the report reads it there)
