@@ -214,8 +214,8 @@ _RANK = {"identified": 2, "weakly identified": 1, "not identified": 0}
 
 def backward_options(eff, info: dict[str, Any]):
     """The options of the reversed pass: the forward pass's model as it ended (noise levels measured or
-    searched there, blocks held there), its priors reversed (t_d prior and gyro-bias-free), on the whole
-    (already selected) log, without another search, hold or smoothing."""
+    searched there, blocks held there), a configured t_d prior negated (the reversal's rule), on the whole
+    (already selected) log, without another noise search, hold rerun or smoothing."""
     upd: dict[str, Any] = {"noise": "preset", "imu_noise": info["imu_noise"], "imu_noise_scale": 1.0,
                            "range_sigma": info["range_sigma"], "segment": "whole", "start": None, "end": None,
                            "hold_unidentified": False, "smoother": "off", "store_covariance": True}
@@ -231,8 +231,10 @@ def smooth_result(forward, dataset: Dataset, eff, info: dict[str, Any], gain_mas
     ran on, with options ``eff`` and problem ``info``) smoothed by a pass of ``run(dataset, options)`` over
     the reversed log; the result is changed in place and returned.
 
-    ``gain_mask`` (N,): the forward problem's.  Adds ``extra["filtered"]`` (the forward states and sds),
-    ``extra["forward_backward"]`` and an event ``forward_backward``; re-derives the calibration verdicts."""
+    ``gain_mask`` (N,): the forward problem's.  Adds ``extra["filtered"]`` (the causal track: stamps, states,
+    sds, covariances; :func:`causal_view`), ``extra["forward_backward"]``, calibration ``smoothing`` and an
+    event ``forward_backward``; re-derives the calibration verdicts.  A reversed pass that fails leaves the
+    causal run with a warning event ``forward_backward_skipped``."""
     from uwbimu.estimation.timeoffset import information_verdict, time_offset_verdict
 
     T = reversal_time(dataset)
@@ -263,7 +265,8 @@ def smooth_result(forward, dataset: Dataset, eff, info: dict[str, Any], gain_mas
     mask = np.asarray(gain_mask, float)[:C_f.shape[1]].copy()
     cal = forward.calibration
     modes = dict(forward.config.get("resolved", {}).get("modes", {}))
-    if str(cal.get("time_offset_verdict_reason", "")).startswith("the initial grid search could not locate"):
+    if any(e.get("kind") == "time_offset_verdict" and e.get("initial_search") == "not identified"
+           for e in forward.events):
         modes["time_offset"] = "consider"  # held at its prior by the initialiser: no gain, no combination
     for key, sl in (("lever_arm", S.EPIU), ("time_offset", slice(S.ETD, S.ETD + 1))):
         if modes.get(key, "estimate") != "estimate":
