@@ -119,7 +119,7 @@ def _on_grid(t_src: np.ndarray, X: np.ndarray, C: np.ndarray, t: np.ndarray):
     return Xi, Ci
 
 
-def fuse_trajectory(t_f, X_f, C_f, t_b, X_b, C_b, gain_mask) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def fuse_trajectory(t_f, X_f, C_f, t_b, X_b, C_b, gain_mask) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """The forward states updated by the backward estimate of their first ``CORE`` error components.
 
     ``t_*`` output stamps on the IMU clock (the backward's mapped to forward time and increasing): the
@@ -128,11 +128,12 @@ def fuse_trajectory(t_f, X_f, C_f, t_b, X_b, C_b, gain_mask) -> tuple[np.ndarray
     attitude of the demo flight had NEES 16 for 3 dof),
     ``X_*`` nominal states, ``C_*`` error covariances (the backward's already mapped, see :func:`unreverse`),
     ``gain_mask`` (N,) 1 where the forward run may correct a component.  Returns the fused states,
-    covariances and a mask of the forward stamps the backward run covers (the others are kept)."""
+    covariances, a mask of the forward stamps the backward run covers (the others are kept) and the passes'
+    agreement per block (``{block: {"r", "factor"}}``, see the comment in the body)."""
     X, C = X_f.copy(), C_f.copy()
     cover = (t_f >= t_b[0]) & (t_f <= t_b[-1])
     if cover.sum() == 0 or len(t_b) < 2:
-        return X, C, cover
+        return X, C, cover, {}
     idx = np.flatnonzero(cover)
     Xb, Cb = _on_grid(t_b, X_b, C_b, t_f[idx])
     Xf, Cf = X_f[idx], C_f[idx]
@@ -161,6 +162,28 @@ def fuse_trajectory(t_f, X_f, C_f, t_b, X_b, C_b, gain_mask) -> tuple[np.ndarray
     IKH[:, :, :c] -= K
     Cs = IKH @ Cf @ np.swapaxes(IKH, 1, 2) + K @ Cb[:, :c, :c] @ np.swapaxes(K, 1, 2)
     Cs = 0.5 * (Cs + np.swapaxes(Cs, 1, 2))
+    # the two passes' agreement, block by block: r = mean of d' (P_f + P_b)^-1 d / 3 over the fused stamps is 1
+    # when their errors are independent and their covariances right.  r < 1: they agree better than that, so
+    # they share an error (the consider-mode lever arm, a common model error) and fusing them gains less:
+    # with a shared part c (P_f + P_b) / 2 of their errors, c = 1 - r, the fused covariance is (1 + c) times
+    # the independent one (twice it at r = 0: fully correlated estimates, one estimate's covariance).  r > 1:
+    # they disagree beyond their covariances, both too small by r (method of moments).  Hence the factor
+    # 1 + |1 - r| on each block's rows and columns (D C D: correlations and PSD kept)
+    agreement: dict[str, dict[str, float]] = {}
+    g = np.ones(n)
+    for name, sl in (("position", S.EP), ("velocity", S.EV), ("attitude", S.ETH), ("accel_bias", S.EBA),
+                     ("gyro_bias", S.EBG)):
+        if not np.any(gain_mask[sl]):
+            continue
+        q = np.einsum("ki,ki->k", d[:, sl], np.linalg.solve(Cf[:, sl, sl] + Cb[:, sl, sl], d[:, sl][..., None])[..., 0])
+        q = q[np.isfinite(q)]
+        if len(q) == 0:
+            continue
+        r = float(np.mean(q)) / (sl.stop - sl.start)
+        g[sl] = 1.0 + abs(1.0 - r)
+        agreement[name] = {"r": r, "factor": float(g[sl.start])}
+    sg = np.sqrt(g)
+    Cs = Cs * sg[None, :, None] * sg[None, None, :]
     Xs = Xf.copy()
     Xs[:, S.P] += dx[:, S.EP]
     Xs[:, S.V] += dx[:, S.EV]
@@ -171,7 +194,7 @@ def fuse_trajectory(t_f, X_f, C_f, t_b, X_b, C_b, gain_mask) -> tuple[np.ndarray
     Xs[:, S.TD] += dx[:, S.ETD]
     Xs[:, S.NOMINAL_DIM:] += dx[:, S.ERROR_DIM:n]
     X[idx], C[idx] = Xs, Cs
-    return X, C, cover
+    return X, C, cover, agreement
 
 
 def combine(f: float, sd_f: float, b: float, sd_b: float) -> tuple[float, float]:
@@ -272,7 +295,7 @@ def smooth_result(forward, dataset: Dataset, eff, info: dict[str, Any], gain_mas
         if modes.get(key, "estimate") != "estimate":
             mask[sl] = 0.0
     t_imu = np.asarray(forward.t_imu if forward.t_imu is not None else forward.t, float)
-    X, C, cover = fuse_trajectory(t_imu, forward.states, C_f, t_b, Xb, Cb, mask)
+    X, C, cover, agreement = fuse_trajectory(t_imu, forward.states, C_f, t_b, Xb, Cb, mask)
     # the causal track, kept whole: what a robot had online, and the information history that the clock-fault
     # check differences window by window (causal_view)
     forward.extra["filtered"] = {"t": np.asarray(forward.t, float).copy(), "t_imu": None if forward.t_imu is None
@@ -346,7 +369,7 @@ def smooth_result(forward, dataset: Dataset, eff, info: dict[str, Any], gain_mas
     rep = {"covered": [float(t_b[0]), float(t_b[-1])], "outputs_fused": int(cover.sum()), "outputs": int(n),
            "backward_runtime_s": float(back.runtime_s),
            "backward_filter_cpu_seconds": float(back.extra.get("filter_cpu_seconds") or 0.0),
-           "calibration": comb["report"], "verdicts": verdicts,
+           "calibration": comb["report"], "verdicts": verdicts, "agreement": agreement,
            "backward_warnings": list(back.warnings)}
     forward.extra["forward_backward"] = rep
     # calibration.yaml's record of it (the report reads it there)
