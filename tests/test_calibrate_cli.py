@@ -163,3 +163,32 @@ def test_summary_says_what_set_each_sigma_and_the_verdict():
     assert lines["lever arm y (cm)"][2:] == ["sandwich", "weakly identified"]
     assert lines["time offset (ms)"][2:] == ["sandwich", "identified"]
     assert lines["range bias A0 (cm)"][2:] == ["blocks", "identified"]
+
+
+def test_calibrate_starts_from_the_eskf_run_uwbimu_estimate_makes(dataset_dir, tmp_path, monkeypatch):
+    """The initialising ESKF is smoothed forward-backward as `uwbimu estimate`'s (one ESKF answer to start from
+    and compare with) unless its options say otherwise; calibrate.yaml's init_eskf is used when no
+    --eskf-config is given (the CLI passed the defaults over it before)."""
+    from uwbimu.calibration import frames
+
+    seen = []
+    orig = frames.to_graph_frame
+
+    def spy(dataset, eskf_options, eskf):
+        seen.append(eskf_options)
+        return orig(dataset, eskf_options, eskf)
+
+    monkeypatch.setattr(frames, "to_graph_frame", spy)
+    base = {"td_profile": {"enabled": False}, "max_iterations": 10, "second_start": False}
+    cfg = tmp_path / "calibrate.yaml"
+    cfg.write_text(yaml.safe_dump(base))
+    init = tmp_path / "init.yaml"
+    init.write_text(yaml.safe_dump(base | {"init_eskf": {"range_sigma": 0.07}}))
+    causal = tmp_path / "eskf.yaml"
+    causal.write_text(yaml.safe_dump({"smoother": "off"}))
+    for i, extra in enumerate((["--config", str(cfg)], ["--config", str(init)],
+                               ["--config", str(cfg), "--eskf-config", str(causal)])):
+        r = CliRunner().invoke(app, ["calibrate", str(dataset_dir), "--out", str(tmp_path / f"o{i}"), *extra])
+        assert r.exit_code == 0, r.output
+    assert [o.smoother for o in seen] == ["forward_backward", "forward_backward", "off"]
+    assert seen[1].range_sigma == 0.07 and seen[0].range_sigma != 0.07

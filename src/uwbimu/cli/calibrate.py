@@ -168,8 +168,8 @@ def register(app: typer.Typer) -> None:
 
         from uwbimu.calibration.outputs import OUTPUT_FILES
         from uwbimu.cli.estimate import print_run_warnings
-        from uwbimu.cli.dataset_options import apply_dataset_properties, estimator_options, load, \
-            print_load_warnings
+        from uwbimu.cli.dataset_options import (apply_dataset_properties, estimator_options, load,
+                                                offline_smoothing, print_load_warnings)
         import numpy as np
 
         from uwbimu.errors import EstimationError, UsageError, UwbimuError
@@ -183,11 +183,14 @@ def register(app: typer.Typer) -> None:
             if not ids:
                 raise UsageError("--estimate-anchors: expected comma-separated anchor ids, e.g. --estimate-anchors 6,7,8")
             opts = opts.model_copy(update={"estimate_anchors": list(dict.fromkeys(opts.estimate_anchors + ids))})
-        eskf_opts = estimator_options("eskf", eskf_config, None)
+        # the initialising ESKF: --eskf-config, else calibrate.yaml's init_eskf, else the defaults; smoothed
+        # forward-backward unless that file sets smoother (the run uwbimu estimate makes: one ESKF answer)
+        eskf_opts = (estimator_options("eskf", eskf_config, None) if eskf_config is not None
+                     else opts.init_eskf if opts.init_eskf is not None else estimator_options("eskf", None, None))
         check_output_target(out, sorted(OUTPUT_FILES), force, protect=[dataset])
         ds = load(dataset, load_options)
         print_load_warnings(console, ds)
-        eskf_opts = apply_dataset_properties(eskf_opts, ds, console)
+        eskf_opts = offline_smoothing(apply_dataset_properties(eskf_opts, ds, console), None)
         from uwbimu.cli.compile_notice import ensure_compiled
 
         # the initialising ESKF's kernels: a cold cache compiles them now, announced and timed, not in silence

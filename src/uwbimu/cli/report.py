@@ -126,8 +126,9 @@ def register(app: typer.Typer) -> None:
             opts = offline_smoothing(apply_dataset_properties(opts, ds, console), smooth)
         elif smooth is not None:
             raise UsageError("--smooth/--no-smooth apply to --method eskf only")
-        elif opts.init_eskf is not None:
-            opts = opts.model_copy(update={"init_eskf": apply_dataset_properties(opts.init_eskf, ds, console)})
+        elif opts.init_eskf is not None:  # the initialising ESKF smoothed as uwbimu estimate's unless it says
+            opts = opts.model_copy(update={"init_eskf": offline_smoothing(
+                apply_dataset_properties(opts.init_eskf, ds, console), None)})
         if method == "eskf":
             from uwbimu.cli.compile_notice import ensure_compiled
 
