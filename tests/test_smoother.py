@@ -232,3 +232,24 @@ def test_the_fused_covariance_follows_the_passes_agreement(case):
     assert 2.6 < nees < 3.4, (case, nees)
     naive = np.einsum("ki,ki->k", e, e).mean() / 0.005  # the information combination's covariance 0.005 I
     assert (2.6 < naive < 3.4) == (case == "independent")
+
+
+def test_fusion_in_chunks_is_the_fusion_at_once():
+    """Long logs are fused a chunk of stamps at a time (bounded temporaries); the result is the same."""
+    rng = np.random.default_rng(3)
+    k, n = 50, S.ERROR_DIM
+    A = rng.normal(size=(k, n, n))
+    Cf = A @ np.swapaxes(A, 1, 2) * 0.01 + 1e-3 * np.eye(n)
+    B = rng.normal(size=(k, n, n))
+    Cb = B @ np.swapaxes(B, 1, 2) * 0.01 + 1e-3 * np.eye(n)
+    X = np.tile(S.make_state(), (k, 1))
+    Xb = X.copy()
+    Xb[:, S.P] += rng.normal(size=(k, 3)) * 0.1
+    t = np.arange(k, dtype=float)
+    whole = fuse_trajectory(t, X, Cf, t + 0.3, Xb, Cb, np.ones(n))
+    parts = fuse_trajectory(t, X, Cf, t + 0.3, Xb, Cb, np.ones(n), chunk=7)
+    for a, b in zip(whole[:3], parts[:3]):
+        assert np.allclose(a, b, rtol=1e-12, atol=1e-15)
+    assert whole[3].keys() == parts[3].keys()
+    for name in whole[3]:
+        assert whole[3][name] == pytest.approx(parts[3][name], rel=1e-12)

@@ -119,28 +119,20 @@ def _on_grid(t_src: np.ndarray, X: np.ndarray, C: np.ndarray, t: np.ndarray):
     return Xi, Ci
 
 
-def fuse_trajectory(t_f, X_f, C_f, t_b, X_b, C_b, gain_mask) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
-    """The forward states updated by the backward estimate of their first ``CORE`` error components.
+#: output stamps fused at a time: bounds the temporaries of the batched Joseph products (a few 10 MB)
+CHUNK = 4096
 
-    ``t_*`` output stamps on the IMU clock (the backward's mapped to forward time and increasing): the
-    attitude is the integral of the gyro, an IMU-clock quantity, and the two passes' t_d differ by
-    milliseconds (a body turning at 1 rad/s turns 0.06 deg per ms: aligned on the UWB clock the fused
-    attitude of the demo flight had NEES 16 for 3 dof),
-    ``X_*`` nominal states, ``C_*`` error covariances (the backward's already mapped, see :func:`unreverse`),
-    ``gain_mask`` (N,) 1 where the forward run may correct a component.  Returns the fused states,
-    covariances, a mask of the forward stamps the backward run covers (the others are kept) and the passes'
-    agreement per block (``{block: {"r", "factor"}}``, see the comment in the body)."""
-    X, C = X_f.copy(), C_f.copy()
-    cover = (t_f >= t_b[0]) & (t_f <= t_b[-1])
-    if cover.sum() == 0 or len(t_b) < 2:
-        return X, C, cover, {}
-    idx = np.flatnonzero(cover)
-    Xb, Cb = _on_grid(t_b, X_b, C_b, t_f[idx])
-    Xf, Cf = X_f[idx], C_f[idx]
+#: the fused blocks (error slices) and their names in the agreement report
+BLOCKS = (("position", S.EP), ("velocity", S.EV), ("attitude", S.ETH), ("accel_bias", S.EBA), ("gyro_bias", S.EBG))
+
+
+def _fuse_chunk(Xf, Cf, Xb, Cb, gain_mask):
+    """One chunk of :func:`fuse_trajectory`: the fused states, their covariances before the agreement factor,
+    and per block the sum of ``d' (P_f + P_b)^-1 d`` and its count over the chunk's stamps."""
     n = Cf.shape[1]
     c = CORE
     # innovation: backward minus forward in error coordinates (body attitude error, the filter's convention)
-    d = np.zeros((len(idx), c))
+    d = np.zeros((len(Xf), c))
     d[:, S.EP] = Xb[:, S.P] - Xf[:, S.P]
     d[:, S.EV] = Xb[:, S.V] - Xf[:, S.V]
     d[:, S.ETH] = quat_log(quat_multiply(quat_conjugate(Xf[:, S.Q]), Xb[:, S.Q]))
@@ -151,39 +143,21 @@ def fuse_trajectory(t_f, X_f, C_f, t_b, X_b, C_b, gain_mask) -> tuple[np.ndarray
     # do not say so, and the full gain carries that through the attitude-position correlations into the
     # position (Crazyflie traj16: 0.47 m vs 0.27 m block by block); the Joseph form below gives the
     # covariance of this (suboptimal) gain exactly
-    K = np.zeros((len(idx), n, c))
-    for sl in (S.EP, S.EV, S.ETH, S.EBA, S.EBG):
+    K = np.zeros((len(Xf), n, c))
+    q_sum = {}
+    for name, sl in BLOCKS:
         Sm = Cf[:, sl, sl] + Cb[:, sl, sl]
         Sm = 0.5 * (Sm + np.swapaxes(Sm, 1, 2))
         K[:, sl, sl] = np.swapaxes(np.linalg.solve(Sm, np.swapaxes(Cf[:, sl, sl], 1, 2)), 1, 2)
+        q = np.einsum("ki,ki->k", d[:, sl], np.linalg.solve(Sm, d[:, sl][..., None])[..., 0])
+        q = q[np.isfinite(q)]
+        q_sum[name] = (float(q.sum()), len(q))
     K *= gain_mask[None, :, None]
     dx = np.einsum("kij,kj->ki", K, d)
     IKH = np.broadcast_to(np.eye(n), Cf.shape).copy()
     IKH[:, :, :c] -= K
     Cs = IKH @ Cf @ np.swapaxes(IKH, 1, 2) + K @ Cb[:, :c, :c] @ np.swapaxes(K, 1, 2)
     Cs = 0.5 * (Cs + np.swapaxes(Cs, 1, 2))
-    # the two passes' agreement, block by block: r = mean of d' (P_f + P_b)^-1 d / 3 over the fused stamps is 1
-    # when their errors are independent and their covariances right.  r < 1: they agree better than that, so
-    # they share an error (the consider-mode lever arm, a common model error) and fusing them gains less:
-    # with a shared part c (P_f + P_b) / 2 of their errors, c = 1 - r, the fused covariance is (1 + c) times
-    # the independent one (twice it at r = 0: fully correlated estimates, one estimate's covariance).  r > 1:
-    # they disagree beyond their covariances, both too small by r (method of moments).  Hence the factor
-    # 1 + |1 - r| on each block's rows and columns (D C D: correlations and PSD kept)
-    agreement: dict[str, dict[str, float]] = {}
-    g = np.ones(n)
-    for name, sl in (("position", S.EP), ("velocity", S.EV), ("attitude", S.ETH), ("accel_bias", S.EBA),
-                     ("gyro_bias", S.EBG)):
-        if not np.any(gain_mask[sl]):
-            continue
-        q = np.einsum("ki,ki->k", d[:, sl], np.linalg.solve(Cf[:, sl, sl] + Cb[:, sl, sl], d[:, sl][..., None])[..., 0])
-        q = q[np.isfinite(q)]
-        if len(q) == 0:
-            continue
-        r = float(np.mean(q)) / (sl.stop - sl.start)
-        g[sl] = 1.0 + abs(1.0 - r)
-        agreement[name] = {"r": r, "factor": float(g[sl.start])}
-    sg = np.sqrt(g)
-    Cs = Cs * sg[None, :, None] * sg[None, None, :]
     Xs = Xf.copy()
     Xs[:, S.P] += dx[:, S.EP]
     Xs[:, S.V] += dx[:, S.EV]
@@ -193,7 +167,55 @@ def fuse_trajectory(t_f, X_f, C_f, t_b, X_b, C_b, gain_mask) -> tuple[np.ndarray
     Xs[:, S.PIU] += dx[:, S.EPIU]
     Xs[:, S.TD] += dx[:, S.ETD]
     Xs[:, S.NOMINAL_DIM:] += dx[:, S.ERROR_DIM:n]
-    X[idx], C[idx] = Xs, Cs
+    return Xs, Cs, q_sum
+
+
+def fuse_trajectory(t_f, X_f, C_f, t_b, X_b, C_b, gain_mask, chunk: int = CHUNK
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """The forward states updated by the backward estimate of their first ``CORE`` error components.
+
+    ``t_*`` output stamps on the IMU clock (the backward's mapped to forward time and increasing): the
+    attitude is the integral of the gyro, an IMU-clock quantity, and the two passes' t_d differ by
+    milliseconds (a body turning at 1 rad/s turns 0.06 deg per ms: aligned on the UWB clock the fused
+    attitude of the demo flight had NEES 16 for 3 dof),
+    ``X_*`` nominal states, ``C_*`` error covariances (the backward's already mapped, see :func:`unreverse`),
+    ``gain_mask`` (N,) 1 where the forward run may correct a component; ``chunk`` stamps at a time.  Returns
+    the fused states, covariances, a mask of the forward stamps the backward run covers (the others are
+    kept) and the passes' agreement per block (``{block: {"r", "factor"}}``, see the comment in the body)."""
+    X, C = X_f.copy(), C_f.copy()
+    cover = (t_f >= t_b[0]) & (t_f <= t_b[-1])
+    if cover.sum() == 0 or len(t_b) < 2:
+        return X, C, cover, {}
+    idx = np.flatnonzero(cover)
+    n = C_f.shape[1]
+    q_tot = {name: [0.0, 0] for name, _ in BLOCKS}
+    for a in range(0, len(idx), chunk):
+        ii = idx[a:a + chunk]
+        Xb, Cb = _on_grid(t_b, X_b, C_b, t_f[ii])
+        X[ii], C[ii], q_sum = _fuse_chunk(X_f[ii], C_f[ii], Xb, Cb, gain_mask)
+        for name, (qs, m) in q_sum.items():
+            q_tot[name][0] += qs
+            q_tot[name][1] += m
+    # the two passes' agreement, block by block: r = mean of d' (P_f + P_b)^-1 d / 3 over the fused stamps is 1
+    # when their errors are independent and their covariances right.  r < 1: they agree better than that, so
+    # they share an error (the consider-mode lever arm, a common model error) and fusing them gains less:
+    # with a shared part c (P_f + P_b) / 2 of their errors, c = 1 - r, the fused covariance is (1 + c) times
+    # the independent one (twice it at r = 0: fully correlated estimates, one estimate's covariance).  r > 1:
+    # they disagree beyond their covariances, both too small by r (method of moments).  Hence the factor
+    # 1 + |1 - r| on each block's rows and columns (D C D: correlations and PSD kept)
+    agreement: dict[str, dict[str, float]] = {}
+    g = np.ones(n)
+    for name, sl in BLOCKS:
+        qs, m = q_tot[name]
+        if not np.any(gain_mask[sl]) or m == 0:
+            continue
+        r = qs / m / (sl.stop - sl.start)
+        g[sl] = 1.0 + abs(1.0 - r)
+        agreement[name] = {"r": r, "factor": float(g[sl.start])}
+    sg = np.sqrt(g)
+    for a in range(0, len(idx), chunk):
+        ii = idx[a:a + chunk]
+        C[ii] *= sg[None, :, None] * sg[None, None, :]
     return X, C, cover, agreement
 
 
