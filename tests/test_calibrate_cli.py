@@ -99,15 +99,12 @@ def test_repeatability_with_the_batch_method(dataset_dir, tmp_path):
     assert bad.exit_code != 0 and "--method" in bad.output
 
 
-def test_repeatability_batch_takes_the_initialising_eskf_preset(dataset_dir, tmp_path, monkeypatch):
-    """``--preset`` with ``--method batch`` is the initialising ESKF's options (``init_eskf``): every window's
-    filter runs with the preset (its white range sd 0.05 m), the batch options still come from --config."""
-    import json
-
+@pytest.fixture
+def eskf_options_seen(monkeypatch):
+    """The options of every initialising ESKF the batch runs (a spy on ``frames.to_graph_frame``)."""
     from uwbimu.calibration import frames
 
     seen = []
-
     orig = frames.to_graph_frame
 
     def spy(dataset, eskf_options, eskf):
@@ -115,6 +112,15 @@ def test_repeatability_batch_takes_the_initialising_eskf_preset(dataset_dir, tmp
         return orig(dataset, eskf_options, eskf)
 
     monkeypatch.setattr(frames, "to_graph_frame", spy)
+    return seen
+
+
+def test_repeatability_batch_takes_the_initialising_eskf_preset(dataset_dir, tmp_path, eskf_options_seen):
+    """``--preset`` with ``--method batch`` is the initialising ESKF's options (``init_eskf``): every window's
+    filter runs with the preset (its white range sd 0.05 m), the batch options still come from --config."""
+    import json
+
+    seen = eskf_options_seen
     cfg = tmp_path / "calibrate.yaml"
     cfg.write_text(yaml.safe_dump({"td_profile": {"enabled": False}, "max_iterations": 10}))
     out = tmp_path / "rep"
@@ -165,20 +171,11 @@ def test_summary_says_what_set_each_sigma_and_the_verdict():
     assert lines["range bias A0 (cm)"][2:] == ["blocks", "identified"]
 
 
-def test_calibrate_starts_from_the_eskf_run_uwbimu_estimate_makes(dataset_dir, tmp_path, monkeypatch):
+def test_calibrate_starts_from_the_eskf_run_uwbimu_estimate_makes(dataset_dir, tmp_path, eskf_options_seen):
     """The initialising ESKF is smoothed forward-backward as `uwbimu estimate`'s (one ESKF answer to start from
     and compare with) unless its options say otherwise; calibrate.yaml's init_eskf is used when no
     --eskf-config is given (the CLI passed the defaults over it before)."""
-    from uwbimu.calibration import frames
-
-    seen = []
-    orig = frames.to_graph_frame
-
-    def spy(dataset, eskf_options, eskf):
-        seen.append(eskf_options)
-        return orig(dataset, eskf_options, eskf)
-
-    monkeypatch.setattr(frames, "to_graph_frame", spy)
+    seen = eskf_options_seen
     base = {"td_profile": {"enabled": False}, "max_iterations": 10, "second_start": False}
     cfg = tmp_path / "calibrate.yaml"
     cfg.write_text(yaml.safe_dump(base))
