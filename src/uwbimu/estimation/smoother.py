@@ -18,13 +18,17 @@ rows in reverse order) keeps the equations of motion when
 * the time offset is negated: an IMU sample stamped ``s`` describes UWB time ``s - t_d``; reversed, the
   sample stamped ``T - s`` describes UWB time ``T - s + t_d``.
 
-Fusion, at every output stamp of the forward run:
+Fusion, at every output stamp of the forward run (on the IMU clock: the attitude is the gyro's integral):
 
 * the trajectory (position, velocity, attitude, IMU biases: the first 15 error components): the backward
   estimate is a measurement of them with its covariance, independent of the forward filter's data (it
-  used the data after ``t``), folded into the forward state by one Kalman update in error coordinates
-  (Joseph form; blocks the forward run holds in consider mode or fixes get no gain).  Its own prior is
-  counted twice there, which matters only within the initialisation window of either end.
+  used the data after ``t``), folded into the forward state by one Kalman update in error coordinates,
+  block by block (Joseph form; blocks the forward run holds in consider mode or fixes get no gain).  Its
+  own prior is counted twice there, which matters only within the initialisation window of either end.
+  Each block's fused covariance is then scaled by the passes' agreement, ``1 + |1 - r|`` with ``r`` the
+  mean normalised squared difference of the two estimates per dof (:func:`fuse_trajectory`): errors the
+  passes share (the consider-mode lever arm) are not averaged away, and passes that disagree beyond their
+  covariances widen it.
 * the calibration (the lever arm, the time offset: constants estimated from the whole log by both
   passes): for a linear-Gaussian model the two final estimates would be the same full-data posterior;
   their difference is what the filters' linearisation and transients made of the data.  The reported
