@@ -52,7 +52,8 @@ import numpy as np
 from uwbimu.errors import EstimationError
 from uwbimu.io.dataset import Dataset
 from uwbimu.models import state as S
-from uwbimu.models.quaternion import quat_conjugate, quat_exp, quat_log, quat_multiply, quat_normalize
+from uwbimu.models.quaternion import (quat_conjugate, quat_exp, quat_log, quat_multiply, quat_normalize,
+                                      quat_slerp)
 
 #: error components fused as a trajectory (p, v, theta, b_a, b_g)
 CORE = S.N_DYN
@@ -101,8 +102,7 @@ def unreverse(states: np.ndarray, covs: np.ndarray | None, sd: np.ndarray) -> tu
     X[:, S.V] *= -1.0
     X[:, S.BG] *= -1.0
     X[:, S.TD] *= -1.0
-    s = _signs(sd.shape[1])
-    D = sd * np.abs(s)  # sds are unsigned
+    D = sd.copy()  # sds are unsigned: the reversal leaves them
     C = None
     if covs is not None:
         sc = _signs(covs.shape[1])
@@ -111,14 +111,13 @@ def unreverse(states: np.ndarray, covs: np.ndarray | None, sd: np.ndarray) -> tu
 
 
 def _on_grid(t_src: np.ndarray, X: np.ndarray, C: np.ndarray, t: np.ndarray):
-    """States (quaternions by slerp-free normalised linear blend: neighbours are 1/output_rate apart) and
-    covariances linearly interpolated from stamps ``t_src`` (increasing) to ``t`` (inside them)."""
+    """States (quaternions by slerp) and covariances linearly interpolated from stamps ``t_src`` (increasing)
+    to ``t`` (inside them)."""
     i = np.clip(np.searchsorted(t_src, t) - 1, 0, len(t_src) - 2)
     a = ((t - t_src[i]) / np.maximum(t_src[i + 1] - t_src[i], 1e-12)).clip(0.0, 1.0)
     X0, X1 = X[i], X[i + 1]
-    q1 = X1[:, S.Q] * np.sign(np.sum(X0[:, S.Q] * X1[:, S.Q], axis=1, keepdims=True) + 1e-300)
     Xi = X0 + a[:, None] * (X1 - X0)
-    Xi[:, S.Q] = quat_normalize(X0[:, S.Q] + a[:, None] * (q1 - X0[:, S.Q]))
+    Xi[:, S.Q] = quat_slerp(X0[:, S.Q], X1[:, S.Q], a)
     Ci = C[i] + a[:, None, None] * (C[i + 1] - C[i])
     return Xi, Ci
 
